@@ -1,0 +1,100 @@
+"""The contract every system implements (double integrator with friction, quadrotor, paddle ball).
+
+One implementation of each system's dynamics serves the simulator (``true_step``), the learner's base
+model (``base_step``, the f_hat of the paper) and the MPC. Dynamics are batched torch functions:
+
+* ``x``: state, shape ``(B, state.size)``; ``u``: control, shape ``(B, control.size)``;
+* return: the *target* of one transition, shape ``(B, target.size)``. For time-stepped systems the target
+  is x_{t+1} (``target is state``); for the paddle ball it is the ball's post-impact velocity.
+
+They accept float32 or float64 tensors, keep the input dtype, are differentiable with torch autograd,
+and contain no Python-level branching on tensor values (``torch.where`` instead), so they also run
+under ``torch.func.vmap`` / ``jacrev``.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import numpy as np
+import torch
+
+from saml_ros.core.layout import VectorLayout, schema_hash
+
+
+class System(abc.ABC):
+    """A dynamical system with a true model and an imperfect first-principles base model f_hat."""
+
+    #: registry name used in parameters, specs and checkpoints ("friction", "quadrotor", "paddle_ball")
+    name: str
+    state: VectorLayout
+    control: VectorLayout
+    #: what one transition predicts; ``state`` for time-stepped systems
+    target: VectorLayout
+    #: sampling period in seconds (0.0 for event-based systems such as the paddle-ball impact)
+    dt: float
+    #: hidden layer sizes the paper uses for this system's residual network
+    paper_hidden: tuple[int, ...]
+
+    @property
+    @abc.abstractmethod
+    def control_low(self) -> np.ndarray:
+        """Lower control bound, shape ``(control.size,)``."""
+
+    @property
+    @abc.abstractmethod
+    def control_high(self) -> np.ndarray:
+        """Upper control bound, shape ``(control.size,)``."""
+
+    @abc.abstractmethod
+    def true_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Ground-truth transition f(x, u) used by the simulator; ``(B, n), (B, m) -> (B, target.size)``."""
+
+    @abc.abstractmethod
+    def base_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """First-principles base model f_hat(x, u); same shapes as :meth:`true_step`."""
+
+    @abc.abstractmethod
+    def sample_inputs(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Draw ``n`` (x_t, u_t) pairs from the paper's training distribution; float64 ``(n, n_x), (n, m)``."""
+
+    @abc.abstractmethod
+    def paper_spec(self) -> dict[str, Any]:
+        """The paper's Sufficiently Accurate problem for this system, as a spec dict (see ``core.spec``)."""
+
+    # ----------------------------------------------------------------- conveniences (not overridden)
+    def schema_hash(self) -> str:
+        """Hash of the state, control and target layouts; checkpoints store it, the MPC compares it."""
+        return schema_hash(self.state, self.control, self.target)
+
+    def true_step_np(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """:meth:`true_step` on float64 numpy arrays; accepts a single ``(n,)`` state or a batch."""
+        return _np_call(self.true_step, x, u)
+
+    def base_step_np(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """:meth:`base_step` on float64 numpy arrays; accepts a single ``(n,)`` state or a batch."""
+        return _np_call(self.base_step, x, u)
+
+    def make_dataset(
+        self, n: int, rng: np.random.Generator, noise: dict[str, float] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sample ``n`` transitions (x, u, y) with y = true_step(x, u).
+
+        ``noise`` maps target field names to the std-dev of zero-mean Gaussian noise added to y
+        (the convergence experiment adds sigma = 0.2 to ``v``).
+        """
+        x, u = self.sample_inputs(n, rng)
+        y = self.true_step_np(x, u)
+        for name, sigma in (noise or {}).items():
+            y[:, self.target.index(name)] += rng.normal(0.0, sigma, size=n)
+        return x, u, y
+
+
+def _np_call(fn: Any, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    single = np.ndim(x) == 1
+    xt = torch.as_tensor(np.atleast_2d(np.asarray(x, dtype=np.float64)))
+    ut = torch.as_tensor(np.atleast_2d(np.asarray(u, dtype=np.float64)))
+    with torch.no_grad():
+        y = fn(xt, ut).numpy()
+    return y[0] if single else y

@@ -1,0 +1,59 @@
+"""Run any saml_ros executable by name: ``python -m saml_ros.entry NAME [args...]`` (what ``./dev NAME`` does).
+
+The target module is imported only when asked for, so ``./dev record`` never imports torch unless the
+recorder does. ``sys.argv`` is rewritten to ``[NAME, args...]`` so argparse shows the executable's name,
+exactly as the console script installed by colcon would.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Sequence
+
+from saml_ros.executables import EXECUTABLES
+
+#: exit code for an unknown or unavailable executable (same as argparse's usage errors)
+USAGE_ERROR = 2
+
+
+def usage() -> str:
+    """One line per executable: ``name  module:function``."""
+    width = max(len(n) for n in EXECUTABLES)
+    lines = [f"  {name:<{width}}  {target}" for name, target in EXECUTABLES.items()]
+    return "usage: python -m saml_ros.entry NAME [args...]\nexecutables:\n" + "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int | str | None:
+    """Dispatch to ``EXECUTABLES[argv[0]]`` with ``sys.argv = [name, *argv[1:]]``.
+
+    Returns what the executable's function returns (an exit code, a message or ``None``), which
+    ``sys.exit`` treats exactly as the installed console script does.
+    """
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(usage(), file=sys.stdout if args else sys.stderr)
+        return 0 if args else USAGE_ERROR
+    name, rest = args[0], args[1:]
+    target = EXECUTABLES.get(name)
+    if target is None:
+        print(f"unknown executable {name!r}; valid names: {', '.join(EXECUTABLES)}", file=sys.stderr)
+        return USAGE_ERROR
+    module_name, func_name = target.split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        # Only a missing *target* module is a usage problem; a missing dependency inside it is a bug
+        # whose traceback the user needs.
+        if exc.name is None or not (module_name == exc.name or module_name.startswith(exc.name + ".")):
+            raise
+        print(f"executable {name!r} is not available: module {module_name!r} not found", file=sys.stderr)
+        return USAGE_ERROR
+    func = getattr(module, func_name)
+    sys.argv = [name, *rest]
+    result: int | str | None = func()
+    return result
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,47 @@
+"""Shared pytest fixtures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from saml_ros.core.layout import make_layout
+from saml_ros.core.systems.base import System
+
+
+class ToySystem(System):
+    """A 1-d toy system used by trainer tests: a full model sees a constant input, so it can only
+    predict one constant c for every sample — the learning problem is convex in c."""
+
+    name = "toy"
+    state = make_layout("state", [("s", "1")])
+    control = make_layout("control", [("a", "1")])
+    target = make_layout("target", [("y", "1")])
+    dt = 0.1
+    paper_hidden = ()
+
+    @property
+    def control_low(self) -> np.ndarray:
+        return np.array([-1.0])
+
+    @property
+    def control_high(self) -> np.ndarray:
+        return np.array([1.0])
+
+    def true_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return x
+
+    def base_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(x)
+
+    def sample_inputs(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        return np.ones((n, 1)), np.zeros((n, 1))
+
+    def paper_spec(self) -> dict:
+        return {"objective": {"loss": "squared_l2"}}
+
+
+@pytest.fixture
+def toy_system() -> ToySystem:
+    return ToySystem()

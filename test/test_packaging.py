@@ -1,0 +1,176 @@
+"""The ament_python packaging: package.xml, setup.cfg, the executables table, and a real colcon build."""
+
+from __future__ import annotations
+
+import configparser
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+import saml_ros
+from saml_ros import entry
+from saml_ros.executables import EXECUTABLES
+
+REPO = Path(__file__).resolve().parents[1]
+VENV_BIN = Path(sys.executable).parent
+IN_CI = os.environ.get("CI", "").lower() == "true"
+
+REQUIRED_EXEC_DEPENDS = {
+    "rclpy", "std_msgs", "sensor_msgs", "nav_msgs", "geometry_msgs", "diagnostic_msgs", "rosgraph_msgs",
+    "std_srvs", "builtin_interfaces", "python3-numpy", "python3-scipy", "python3-yaml",
+    "python3-matplotlib", "python3-tqdm",
+}  # fmt: skip
+TARGET_RE = re.compile(r"^(saml_ros|sim_nodes)(\.[a-z_][a-z0-9_]*)+:[a-z_][a-z0-9_]*$")
+
+
+def _package_xml() -> ET.Element:
+    return ET.parse(REPO / "package.xml").getroot()
+
+
+def test_package_xml_is_format_3_ament_python() -> None:
+    root = _package_xml()
+    assert root.tag == "package" and root.get("format") == "3"
+    assert root.findtext("name") == "saml_ros"
+    assert root.findtext("version") == saml_ros.__version__
+    assert root.findtext("license") == "Apache-2.0"
+    maintainer = root.find("maintainer")
+    assert maintainer is not None and maintainer.get("email", "").endswith("@example.org")
+    assert root.findtext("export/build_type") == "ament_python"
+    exec_depends = {e.text for e in root.findall("exec_depend")}
+    assert REQUIRED_EXEC_DEPENDS <= exec_depends, REQUIRED_EXEC_DEPENDS - exec_depends
+    assert {e.text for e in root.findall("test_depend")} == {"python3-pytest"}
+
+
+def test_setup_cfg_installs_scripts_where_ros2_run_looks() -> None:
+    cfg = configparser.ConfigParser(interpolation=None)
+    cfg.read(REPO / "setup.cfg")
+    assert cfg["develop"]["script_dir"] == "$base/lib/saml_ros"
+    assert cfg["install"]["install_scripts"] == "$base/lib/saml_ros"
+
+
+def test_pyproject_holds_tool_config_only() -> None:
+    # A [build-system] or [project] table would change how setuptools/pip build the package.
+    import tomllib
+
+    tables = set(tomllib.loads((REPO / "pyproject.toml").read_text()))
+    assert tables == {"tool"}
+
+
+def test_every_executable_target_is_well_formed() -> None:
+    assert len(EXECUTABLES) >= 12
+    for name, target in EXECUTABLES.items():
+        assert re.fullmatch(r"[a-z][a-z0-9_]*", name), name
+        assert TARGET_RE.fullmatch(target), f"{name}: {target!r}"
+        assert target.endswith(":main"), f"{name}: {target!r}"
+
+
+def test_entry_rejects_unknown_names_with_the_list(capsys: pytest.CaptureFixture[str]) -> None:
+    assert entry.main(["no_such_exe"]) == 2
+    err = capsys.readouterr().err
+    assert "no_such_exe" in err and all(name in err for name in EXECUTABLES)
+    assert entry.main([]) == 2
+    capsys.readouterr()
+    assert entry.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in EXECUTABLES)
+
+
+_seen_argv: list[list[str]] = []
+
+
+def _probe() -> int:
+    _seen_argv.append(list(sys.argv))
+    return 7
+
+
+def test_entry_dispatches_lazily_with_argv(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setitem(entry.EXECUTABLES, "probe", f"{__name__}:_probe")
+    monkeypatch.setitem(entry.EXECUTABLES, "ghost", "saml_ros.no_such_module:main")
+    monkeypatch.setattr(sys, "argv", ["entry"])
+    assert entry.main(["probe", "--flag", "x"]) == 7
+    assert _seen_argv[-1] == ["probe", "--flag", "x"]
+    assert entry.main(["ghost"]) == 2
+    assert "not available" in capsys.readouterr().err
+
+
+def test_entry_module_exit_code_for_unknown_name() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "saml_ros.entry", "definitely_not_an_exe"],
+        capture_output=True, text=True, timeout=60, cwd=REPO,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert "learner" in proc.stderr
+
+
+def _colcon() -> str | None:
+    return shutil.which("colcon", path=f"{VENV_BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+
+
+def _top_level(path: Path) -> set[str]:
+    return {p.name for p in path.iterdir()}
+
+
+def test_colcon_build_installs_every_executable(tmp_path: Path) -> None:
+    colcon = _colcon()
+    if colcon is None:
+        if IN_CI:
+            pytest.fail("colcon is not installed but CI=true: install requirements.txt (colcon-common-extensions)")
+        pytest.skip("colcon not installed (pip install colcon-common-extensions 'setuptools<80'); runs in CI")
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "saml_ros").symlink_to(REPO, target_is_directory=True)
+    before = _top_level(REPO)
+    env = dict(os.environ, PATH=f"{VENV_BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+    install = tmp_path / "install"
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        [colcon, "--log-base", str(tmp_path / "log"), "build", "--base-paths", "src",
+         "--build-base", str(tmp_path / "build"), "--install-base", str(install)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    elapsed = time.monotonic() - t0
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert elapsed < 60, f"colcon build took {elapsed:.1f} s"
+    # the build writes nothing into the source tree (egg-info etc. go to --build-base)
+    assert _top_level(REPO) == before
+
+    prefix = install / "saml_ros"
+    for name in EXECUTABLES:
+        exe = prefix / "lib" / "saml_ros" / name
+        assert exe.is_file() and os.access(exe, os.X_OK), f"missing executable {exe}"
+    assert (prefix / "share" / "saml_ros" / "package.xml").is_file()
+    assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "saml_ros").is_file()
+    for cfg in (REPO / "config").glob("*.yaml"):
+        assert (prefix / "share" / "saml_ros" / "config" / cfg.name).is_file(), cfg.name
+
+    site = next((prefix / "lib").glob("python3*/site-packages"))
+    for pkg in ("saml_ros", "msg_schemas", "sim_nodes"):
+        if (REPO / pkg / "__init__.py").is_file():
+            assert (site / pkg / "__init__.py").is_file(), f"package {pkg} not installed"
+    for xml in (REPO / "sim_nodes" / "assets").glob("*.xml"):
+        assert (site / "sim_nodes" / "assets" / xml.name).is_file(), f"MuJoCo model {xml.name} not installed"
+    # the console scripts point at exactly the table in saml_ros/executables.py
+    entry_points = configparser.ConfigParser(delimiters=("=",))
+    entry_points.read(next(site.glob("saml_ros-*.egg-info")) / "entry_points.txt")
+    installed = {k: v.replace(" ", "") for k, v in entry_points["console_scripts"].items()}
+    assert installed == EXECUTABLES
+
+    # ament_index finds the package, and the installed Python package imports from the install space
+    probe = (
+        "import ament_index_python, saml_ros.executables as e; "
+        "print(ament_index_python.get_package_prefix('saml_ros')); print(e.__file__)"
+    )
+    child_env = dict(env, AMENT_PREFIX_PATH=str(prefix), PYTHONPATH=str(site))
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=tmp_path, env=child_env, capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    found_prefix, module_file = out.stdout.split()
+    assert Path(found_prefix) == prefix
+    assert Path(module_file).is_relative_to(site)
