@@ -275,7 +275,7 @@ class VectorCodec(abc.ABC):
         blob = {
             "conventions": CONVENTIONS_VERSION,
             "msg_type": self.msg_type,
-            "fields": [[d.name, d.unit, d.path, d.note] for d in self.field_docs()],
+            "fields": [[d.name, d.unit, d.path, d.plotjuggler, d.note] for d in self.field_docs()],
             "convention": self.convention,
         }
         return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:16]
@@ -357,7 +357,9 @@ class SystemSchema:
     # -- state x_t
     def state_to_msg(self, x: Any, stamp_ns: int, *, factory: MessageFactory = RCLPY, **frames: str) -> Any:
         """State vector -> message for ``state`` (see :meth:`VectorCodec.to_msg`)."""
-        return self.state.to_msg(x, stamp_ns, factory=factory, topic=self._topic_label(self.state_topic, None), **frames)
+        return self.state.to_msg(
+            x, stamp_ns, factory=factory, topic=self._topic_label(self.state_topic, None), **frames
+        )
 
     def state_from_msg(self, msg: Any, topic: str | None = None) -> tuple[np.ndarray, int]:
         """``state`` message -> ``(x, stamp_ns)``; :class:`SchemaError` if malformed."""
@@ -366,7 +368,9 @@ class SystemSchema:
     # -- control u_t (cmd and applied_cmd)
     def control_to_msg(self, u: Any, stamp_ns: int, *, factory: MessageFactory = RCLPY, **frames: str) -> Any:
         """Control vector -> message for ``cmd`` / ``applied_cmd``."""
-        return self.control.to_msg(u, stamp_ns, factory=factory, topic=self._topic_label(self.cmd_topic, None), **frames)
+        return self.control.to_msg(
+            u, stamp_ns, factory=factory, topic=self._topic_label(self.cmd_topic, None), **frames
+        )
 
     def control_from_msg(self, msg: Any, topic: str | None = None) -> tuple[np.ndarray, int]:
         """``cmd`` / ``applied_cmd`` message -> ``(u, stamp_ns)``; :class:`SchemaError` if malformed."""

@@ -100,7 +100,9 @@ class JointStateCodec(VectorCodec):
             arr = np.asarray(getattr(msg, array), dtype=np.float64)
             allowed = (n,) if array in self.arrays else (0, n)
             if arr.shape[0] not in allowed:
-                raise SchemaError(topic, array, "shape", f"expected {' or '.join(map(str, allowed))} values, got {arr.shape[0]}")
+                raise SchemaError(
+                    topic, array, "shape", f"expected {' or '.join(map(str, allowed))} values, got {arr.shape[0]}"
+                )
             values[array] = arr
         out = np.empty(self.size)
         for i, (name, (array, j)) in enumerate(zip(self.field_names, self._slots, strict=True)):
@@ -178,25 +180,34 @@ class OdometryCodec(VectorCodec):
 
     def field_docs(self) -> tuple[FieldDoc, ...]:
         unit = dict(zip(self.field_names, self.units, strict=True))
-        docs = [FieldDoc(n, unit[n], f"pose.pose.position.{a}", f"/pose/pose/position/{a}") for n, a in zip(_P, "xyz")]
+        docs = [
+            FieldDoc(n, unit[n], f"pose.pose.position.{a}", f"/pose/pose/position/{a}")
+            for n, a in zip(_P, "xyz", strict=True)
+        ]
         if self.rigid_body:
             note = "body frame: twist.linear = R(q)^T [vx, vy, vz]; read back as R(q) twist.linear"
             docs += [
                 FieldDoc(n, unit[n], f"twist.twist.linear.{a}", f"/twist/twist/linear/{a}", note)
-                for n, a in zip(_V, "xyz")
+                for n, a in zip(_V, "xyz", strict=True)
             ]
             docs += [
                 FieldDoc(n, unit[n], f"pose.pose.orientation.{a}", f"/pose/pose/orientation/{a}")
-                for n, a in zip(_Q, "wxyz")
+                for n, a in zip(_Q, "wxyz", strict=True)
             ]
             docs += [
                 FieldDoc(n, unit[n], f"twist.twist.angular.{a}", f"/twist/twist/angular/{a}")
-                for n, a in zip(_W, "xyz")
+                for n, a in zip(_W, "xyz", strict=True)
             ]
         else:
             docs += [
-                FieldDoc(n, unit[n], f"twist.twist.linear.{a}", f"/twist/twist/linear/{a}", "world frame (identity orientation)")
-                for n, a in zip(_V, "xyz")
+                FieldDoc(
+                    n,
+                    unit[n],
+                    f"twist.twist.linear.{a}",
+                    f"/twist/twist/linear/{a}",
+                    "world frame (identity orientation)",
+                )
+                for n, a in zip(_V, "xyz", strict=True)
             ]
         return tuple(docs)
 

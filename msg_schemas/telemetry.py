@@ -229,9 +229,7 @@ class DiagnosticEntry:
     hardware_id: str = ""
 
 
-def diagnostics_to_msg(
-    entries: Sequence[DiagnosticEntry], stamp_ns: int, *, factory: MessageFactory = RCLPY
-) -> Any:
+def diagnostics_to_msg(entries: Sequence[DiagnosticEntry], stamp_ns: int, *, factory: MessageFactory = RCLPY) -> Any:
     """``diagnostic_msgs/DiagnosticArray`` with one status per entry."""
     status = []
     for e in entries:
@@ -257,9 +255,7 @@ def diagnostics_from_msg(msg: Any, topic: str = DIAGNOSTICS_TOPIC) -> tuple[list
     entries = []
     for s in msg.status:
         level = s.level[0] if isinstance(s.level, bytes | bytearray) else int(s.level)
-        entries.append(
-            DiagnosticEntry(s.name, level, s.message, {kv.key: kv.value for kv in s.values}, s.hardware_id)
-        )
+        entries.append(DiagnosticEntry(s.name, level, s.message, {kv.key: kv.value for kv in s.values}, s.hardware_id))
     return entries, stamp
 
 

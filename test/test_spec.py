@@ -143,3 +143,15 @@ def test_yaml_file_errors_name_the_file(tmp_path):
     f.write_text("objective: [unclosed\n")
     with pytest.raises(SpecError, match="not valid YAML"):
         ProblemSpec.from_yaml(f, Sys())
+
+
+def test_shipped_spec_files_are_the_papers():
+    from pathlib import Path
+
+    from saml_ros.core.systems import SYSTEM_NAMES, get_system
+
+    root = Path(__file__).resolve().parents[1] / "config" / "specs"
+    for name in SYSTEM_NAMES:
+        system = get_system(name)
+        spec = ProblemSpec.from_yaml(root / f"{name}.yaml", system)
+        assert spec.to_dict() == ProblemSpec.for_system(system.paper_spec(), system).to_dict()

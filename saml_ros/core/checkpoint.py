@@ -280,12 +280,8 @@ class CheckpointStore:
 
     def versions(self) -> list[int]:
         """Versions of the checkpoint files present, ascending (temp files are ignored)."""
-        out = []
-        for entry in os.scandir(self.run_dir):
-            m = _CKPT_RE.fullmatch(entry.name)
-            if m:
-                out.append(int(m.group(1)))
-        return sorted(out)
+        with os.scandir(self.run_dir) as it:
+            return sorted(int(m.group(1)) for e in it if (m := _CKPT_RE.fullmatch(e.name)))
 
     def save(self, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> tuple[Path, int]:
         """Write the next version, then atomically point ``latest`` at it, then prune.
@@ -401,10 +397,11 @@ class CheckpointStore:
             return None
 
     def _remove_temp_files(self) -> None:
-        for entry in os.scandir(self.run_dir):
-            if _TMP_RE.fullmatch(entry.name):
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(entry.path)
+        with os.scandir(self.run_dir) as it:
+            stale = [e.path for e in it if _TMP_RE.fullmatch(e.name)]
+        for p in stale:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(p)
 
     def _prune(self, keep: int, current: int) -> None:
         have = self.versions()

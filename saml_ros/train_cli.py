@@ -1,0 +1,175 @@
+"""``ros2 run saml_ros train`` / ``./dev train``: train a Sufficiently (or Uniformly) Accurate model offline.
+
+Data comes from the system's paper sampling distribution (default) or from recorded bags (``--bag``).
+Writes into ``--out``: ``ckpt-000001.saml`` + ``latest`` (usable by the MPC node), ``history.json``,
+``training_curves.png`` and ``metrics.json`` (held-out evaluation per constraint region).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.model_io import save_checkpoint
+from saml_ros.core.spec import ProblemSpec, SpecError
+from saml_ros.core.systems import SYSTEM_NAMES, get_system
+from saml_ros.core.trainer import TrainConfig
+from saml_ros.offline import evaluate_models, generate_datasets, mean_std, train_models
+from saml_ros.plots import plot_training_curves
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="train",
+        description="Train a residual (or full) dynamics model with the primal-dual method (Algorithm 1).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--system", required=True, choices=SYSTEM_NAMES)
+    p.add_argument("--spec", type=Path, help="problem spec YAML (default: the paper's spec for the system)")
+    p.add_argument("--uniform", action="store_true", help="drop the constraints: the Uniformly Accurate baseline")
+    p.add_argument("--kind", choices=("residual", "full"), default="residual")
+    p.add_argument("--hidden", type=int, nargs="+", help="hidden layer sizes (default: the paper's for the system)")
+    p.add_argument("--samples", type=int, help="training transitions to generate (default: the paper's)")
+    p.add_argument("--test-samples", type=int, default=10000, help="held-out transitions for metrics.json")
+    p.add_argument("--noise", action="append", default=[], metavar="FIELD=SIGMA",
+                   help="Gaussian noise on a target field of the training data, e.g. v=0.2 (repeatable)")
+    p.add_argument("--bag", type=Path, nargs="+", help="train from recorded bags instead of generated data")
+    p.add_argument("--epochs", type=int, help="epochs (default: the paper's for the system)")
+    p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
+    p.add_argument("--primal-lr", type=float, default=TrainConfig.primal_lr)
+    p.add_argument("--dual-lr", type=float, default=TrainConfig.dual_lr)
+    p.add_argument("--primal-optimizer", choices=("adam", "sgd"), default="adam")
+    p.add_argument("--dual-optimizer", choices=("adam", "sgd"), default="adam")
+    p.add_argument("--seed", type=int, default=0, help="first seed")
+    p.add_argument("--seeds", type=int, default=1, help="train this many seeds at once (one ensemble)")
+    p.add_argument("--out", type=Path, help="output run directory (default: runs/train-<system>-<time>)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+#: the paper's dataset sizes and epochs per system
+PAPER_DEFAULTS: dict[str, dict[str, int]] = {
+    "friction": {"samples": 15000, "epochs": 200},
+    "quadrotor": {"samples": 10000, "epochs": 3000},
+    "paddle_ball": {"samples": 20000, "epochs": 200},
+}
+
+
+def _parse_noise(items: list[str]) -> dict[str, float]:
+    out = {}
+    for it in items:
+        name, _, val = it.partition("=")
+        try:
+            out[name.strip()] = float(val)
+        except ValueError:
+            raise SystemExit(f"train: --noise expects FIELD=SIGMA, got {it!r}") from None
+    return out
+
+
+def load_spec(system: Any, path: Path | None, uniform: bool) -> ProblemSpec:
+    spec = ProblemSpec.from_yaml(path, system) if path else ProblemSpec.for_system(system.paper_spec(), system)
+    return spec.uniform() if uniform else spec
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
+    system = get_system(args.system)
+    try:
+        spec = load_spec(system, args.spec, args.uniform)
+        noise = _parse_noise(args.noise)
+        for name in noise:
+            system.target.index(name)
+    except (SpecError, KeyError, OSError) as exc:
+        print(f"train: {exc}", file=sys.stderr)
+        return 2
+    defaults = PAPER_DEFAULTS[system.name]
+    epochs = args.epochs if args.epochs is not None else defaults["epochs"]
+    n_train = args.samples or defaults["samples"]
+    seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
+    config = TrainConfig(epochs=epochs, batch_size=args.batch_size, primal_lr=args.primal_lr,
+                         dual_lr=args.dual_lr, primal_optimizer=args.primal_optimizer,
+                         dual_optimizer=args.dual_optimizer, seed=args.seed)
+    out = args.out or Path("runs") / f"train-{system.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+    if args.bag:
+        try:
+            from saml_ros.bag_data import transitions_from_bags
+        except ImportError:
+            print("train: training from bags needs saml_ros.bag_data (not available in this build)",
+                  file=sys.stderr)
+            return 2
+        try:
+            x, u, y = transitions_from_bags(args.bag, system)
+        except Exception as exc:  # bag errors carry a message naming the bag and the problem
+            print(f"train: {exc}", file=sys.stderr)
+            return 2
+        source = f"{len(x)} transitions from {len(args.bag)} bag(s)"
+        rng = np.random.default_rng(10_000 + args.seed)
+        perm = rng.permutation(len(x))
+        n_test = max(1, len(x) // 5) if len(x) >= 10 else 0
+        test_idx, train_idx = perm[:n_test], perm[n_test:]
+        xt, ut, yt = x[test_idx], u[test_idx], y[test_idx]
+        x, u, y = x[train_idx], u[train_idx], y[train_idx]
+        if len(x) < 2:
+            print(f"train: only {len(x)} training transitions in the bag(s); need at least 2", file=sys.stderr)
+            return 2
+    else:
+        x, u, y = generate_datasets(system, n_train, seeds, noise)
+        source = f"{n_train} generated transitions per seed (paper sampling distribution)"
+        xt, ut, yt = system.make_dataset(args.test_samples, np.random.default_rng(10_000 + args.seed), noise)
+
+    print(f"train: {system.name}, {args.kind} model {list(args.hidden or system.paper_hidden)}, "
+          f"spec '{spec.raw.get('name')}': {spec.describe()}")
+    print(f"train: {source}; {epochs} epochs, batch {args.batch_size}, seeds {seeds} -> {out}")
+    torch.manual_seed(args.seed)
+    result = train_models(system, spec, x, u, y, config, seeds, args.hidden, args.kind,
+                          progress=not args.no_progress, desc=f"{system.name} {spec.raw.get('name')}")
+    metrics: dict[str, Any] = {"train_seconds": result.train_seconds, "n_train": result.n_train,
+                               "updates": result.trainer.steps, "seeds": seeds, "source": source}
+    if len(xt):
+        ev = evaluate_models(result.model, spec, xt, ut, yt)
+        metrics["test"] = {
+            "n": int(len(xt)),
+            "objective": ev.objective.tolist(),
+            "constraints": dict(zip(spec.constraint_names, ev.constraints.T.tolist())),
+            "regions": {r.name: {"inside": r.inside.tolist(), "outside": r.outside.tolist(),
+                                 "overall": r.overall.tolist(), "frac_inside": r.frac_inside}
+                        for r in ev.regions},
+        }
+    feas = result.trainer.feasibility()
+    metrics["feasibility_warnings"] = feas.messages()
+
+    store = CheckpointStore(out)
+    ckpt, version = save_checkpoint(store, result.trainer, metrics=metrics)
+    (out / "history.json").write_text(json.dumps(result.history.to_dict()))
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    (out / "spec.yaml").write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))
+    fig = plot_training_curves({spec.raw.get("name", "run"): result.history}, out / "training_curves.png",
+                               title=f"{system.name}: {spec.describe()}")
+
+    print(f"train: done in {result.train_seconds:.1f} s ({result.trainer.steps} updates)")
+    if "test" in metrics:
+        print(f"train: held-out objective {mean_std(np.asarray(metrics['test']['objective']))}")
+        for r in ev.regions:
+            print(f"train: constraint '{r.name}': error inside {mean_std(r.inside)}, "
+                  f"outside {mean_std(r.outside)} ({100 * r.frac_inside:.1f}% of test data inside)")
+    print(f"train: lambda = {np.round(result.trainer.lam.numpy(), 4).tolist()}")
+    if feas.messages():
+        print(f"train: WARNING {len(feas.messages())} constraint(s) still violated at the end (see warnings above)")
+    print(f"train: checkpoint {ckpt} (version {version}); curves {fig}; metrics {out / 'metrics.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
