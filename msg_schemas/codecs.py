@@ -110,11 +110,6 @@ class JointStateCodec(VectorCodec):
         return out, stamp
 
 
-def named_vector_codec(names: Sequence[str], units: Sequence[str], array: str, convention: str) -> JointStateCodec:
-    """A JointState codec whose joint names equal the given names, all values in one ``array``."""
-    return JointStateCodec([(n, u, n, array) for n, u in zip(names, units, strict=True)], convention)
-
-
 # ------------------------------------------------------------------------------------------ rotations
 def rotation_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     """Rotation matrix (body -> world, ``v_w = R v_b``) of quaternion ``[w, x, y, z]``, normalised first.

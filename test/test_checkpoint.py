@@ -171,7 +171,7 @@ def test_payload_is_live(tmp_path: Path) -> None:
     buf = io.BytesIO()
     np.save(buf, np.array([Marker(marker)], dtype=object), allow_pickle=True)
     buf.seek(0)
-    np.load(buf, allow_pickle=True)
+    np.load(buf, allow_pickle=True)[0].close()  # the unpickled object is the opened file
     assert marker.exists()
 
 
