@@ -203,7 +203,8 @@ class ProblemSpec:
         """Validate and compile ``raw``; raises :class:`SpecError` naming the bad path/field."""
         if not isinstance(raw, Mapping):
             raise SpecError(f"spec: expected a mapping, got {type(raw).__name__}")
-        raw = copy.deepcopy(dict(raw))
+        spec_raw: dict[str, Any] = copy.deepcopy(dict(raw))
+        raw = spec_raw
         c = _Compiler(state, control, target)
         c.check_keys(raw, "spec", {"name", "description", "objective", "constraints"})
         if "objective" not in raw:
@@ -217,8 +218,8 @@ class ProblemSpec:
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise SpecError(f"spec.constraints: duplicate constraint names {dup}")
-        raw.setdefault("name", "unnamed")
-        return cls(raw, objective, constraints, state, control, target)
+        spec_raw.setdefault("name", "unnamed")
+        return cls(spec_raw, objective, constraints, state, control, target)
 
     @classmethod
     def for_system(cls, raw: Mapping[str, Any], system: Any) -> ProblemSpec:

@@ -22,12 +22,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from saml_ros.core import fast_train
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
 
 log = logging.getLogger("saml_ros.trainer")
 
 OPTIMIZERS = ("adam", "sgd")
+ENGINES = ("fast", "plain")
 
 
 @dataclass
@@ -43,6 +45,9 @@ class TrainConfig:
         log_every: steps between history points (0: once per epoch); values are averaged in between.
         seed: seeds minibatch sampling.
         dtype: ``"float32"`` or ``"float64"`` for parameters and data.
+        engine: how :meth:`PrimalDualTrainer.fit` runs: ``"fast"`` (hand-written forward/backward and flat
+            Adam, :mod:`saml_ros.core.fast_train`; same results up to float rounding, falls back to the plain
+            loop where it does not apply) or ``"plain"`` (autograd and ``torch.optim``).
     """
 
     epochs: int = 200
@@ -54,6 +59,7 @@ class TrainConfig:
     log_every: int = 0
     seed: int = 0
     dtype: str = "float32"
+    engine: str = "fast"
 
     def __post_init__(self) -> None:
         if self.primal_optimizer not in OPTIMIZERS or self.dual_optimizer not in OPTIMIZERS:
@@ -64,6 +70,8 @@ class TrainConfig:
             raise ValueError("primal_lr must be > 0 and dual_lr >= 0")
         if self.dtype not in ("float32", "float64"):
             raise ValueError("dtype must be float32 or float64")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}")
 
     @property
     def torch_dtype(self) -> torch.dtype:
@@ -197,6 +205,7 @@ class PrimalDualTrainer:
         self.rng = torch.Generator().manual_seed(int(self.config.seed))
         self._acc: list[SpecValues] = []
         self._t0 = time.monotonic()
+        self.engine_used: str | None = None  # engine of the last fit(): "fast" or "plain"
 
     @staticmethod
     def _make_opt(kind: str, params: list[torch.nn.Parameter], lr: float, maximize: bool) -> torch.optim.Optimizer:
@@ -248,7 +257,10 @@ class PrimalDualTrainer:
         obj = torch.stack([v.objective for v in self._acc]).mean(0)
         con = torch.stack([v.constraints for v in self._acc]).mean(0)
         self._acc.clear()
-        lam = self.lam.clone()
+        self._record(obj, con, self.lam.clone())
+
+    def _record(self, obj: torch.Tensor, con: torch.Tensor, lam: torch.Tensor) -> None:
+        """Append one history row: mean objective ``(E,)``, constraints ``(E, K)`` and lambda ``(E, K)``."""
         h = self.history
         h.step.append(self.steps)
         h.epoch.append(self.epochs_done)
@@ -267,8 +279,19 @@ class PrimalDualTrainer:
         desc: str = "training",
         callback: Callable[[PrimalDualTrainer], None] | None = None,
     ) -> History:
-        """Run ``epochs`` passes of Algorithm 1 over a fixed dataset; every member sees its own shuffle."""
+        """Run ``epochs`` passes of Algorithm 1 over a fixed dataset; every member sees its own shuffle.
+
+        Runs on the engine named by ``config.engine`` (see :class:`TrainConfig`); :attr:`engine_used` says
+        which one ran.
+        """
         epochs = self.config.epochs if epochs is None else epochs
+        if self.config.engine == "fast":
+            why = fast_train.unsupported_reason(self, data)
+            if why is None:
+                self.engine_used = "fast"
+                return fast_train.fit_fast(self, data, epochs, progress, desc, callback)
+            log.info("fast training engine not used (%s): running the plain loop", why)
+        self.engine_used = "plain"
         n = len(data)
         bsz = min(self.config.batch_size, n)
         per_epoch = max(1, n // bsz)

@@ -1,0 +1,346 @@
+"""Follow a learner's checkpoints and hand new models to a controller between two control steps (ROS-free).
+
+A :class:`ModelWatcher` learns about new checkpoints in two ways:
+
+* **notifications** (:meth:`ModelWatcher.notify`): the MPC node forwards every ``learner/checkpoint``
+  announcement (path, version, schema hash);
+* **polling** a run directory every ``poll_period`` seconds: its ``latest`` pointer and the checkpoint files
+  themselves (a file newer than the pointer exists only if a writer died between its two renames, and it is
+  complete, exactly as :meth:`~saml_ros.core.checkpoint.CheckpointStore.load_latest_valid` assumes).
+
+Loading (:func:`saml_ros.core.model_io.load_model` with ``expect=system``, plus an optional ``prepare`` step)
+runs on a **background thread**. The control thread calls :meth:`ModelWatcher.take` before each solve, which
+never blocks on I/O: it returns the newest model that finished loading since the last call (or ``None``), and
+the caller swaps it in between two solves.
+
+A checkpoint that cannot be used is **refused** and the current model is kept. Every refusal is counted by
+reason and logged once per file (a file is identified by path, size and modification time, so a file that is
+replaced is looked at again, an unchanged one never twice):
+
+* ``incompatible``: another system, another schema hash or inconsistent contents
+  (:class:`~saml_ros.core.model_io.IncompatibleCheckpoint`, or an announcement whose schema hash differs);
+* ``corrupt``: truncated, damaged, not a checkpoint, a malformed ``latest`` pointer
+  (:class:`~saml_ros.core.checkpoint.CheckpointError`);
+* ``missing``: an announced file that does not exist (e.g. pruned before it could be read);
+* ``error``: anything else raised while loading or preparing (never propagated: the watcher keeps going).
+
+Only checkpoints *newer* than the newest one loaded are considered: a higher version in the same directory,
+or any version in a directory other than the current model's (a new learner run starts again at 1).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from saml_ros.core.checkpoint import CheckpointError, CheckpointStore
+from saml_ros.core.model_io import IncompatibleCheckpoint, LoadedModel, load_model
+from saml_ros.core.systems.base import System
+
+#: refusal reasons, in the order the counters are reported
+REFUSAL_REASONS: tuple[str, ...] = ("incompatible", "corrupt", "missing", "error")
+
+
+class Logger(Protocol):
+    """What the watcher logs through (``logging.Logger`` and rclpy's node logger both fit)."""
+
+    def info(self, msg: str) -> Any: ...
+    def warning(self, msg: str) -> Any: ...
+
+
+@dataclass(frozen=True)
+class ReadyModel:
+    """A checkpoint loaded (and prepared) on the background thread, waiting to be swapped in.
+
+    Attributes:
+        loaded: the rebuilt model with its spec, meta and arrays.
+        path: the checkpoint file.
+        version: checkpoint version (``meta["version"]``; >= 1).
+        prepared: what ``prepare(loaded)`` returned (``None`` without a ``prepare`` hook).
+        load_seconds: wall time of load + prepare on the background thread (s).
+        source: ``"notification"``, ``"poll"`` or ``"initial"``.
+    """
+
+    loaded: LoadedModel
+    path: Path
+    version: int
+    prepared: Any
+    load_seconds: float
+    source: str
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """One refused checkpoint: ``reason`` is one of :data:`REFUSAL_REASONS`, ``message`` says why."""
+
+    path: str
+    version: int | None
+    reason: str
+    message: str
+    time: float
+
+
+_FileId = tuple[str, int, int]  # (resolved path, size, mtime_ns)
+
+
+class ModelWatcher:
+    """Watches ``run_dir`` and/or receives checkpoint notifications; loads new models off the control thread.
+
+    Args:
+        system: the system the controller runs; a checkpoint of any other system or schema is refused.
+        run_dir: run directory to poll (``None``: notifications only). It need not exist yet.
+        poll_period: seconds between polls of ``run_dir`` (> 0).
+        prepare: optional ``prepare(loaded) -> Any`` run on the background thread after loading (e.g. copy
+            the weights into the solver's format); an exception in it refuses the checkpoint (``error``).
+        loader: ``loader(path, system) -> LoadedModel``; :func:`~saml_ros.core.model_io.load_model` by default.
+        logger: where refusals and loads are logged (``None``: silent).
+
+    Thread safety: :meth:`notify`, :meth:`take`, :meth:`stats` may be called from any thread.
+    """
+
+    def __init__(
+        self,
+        system: System,
+        run_dir: str | Path | None = None,
+        *,
+        poll_period: float = 0.5,
+        prepare: Callable[[LoadedModel], Any] | None = None,
+        loader: Callable[[Path, System], LoadedModel] | None = None,
+        logger: Logger | None = None,
+    ) -> None:
+        if not poll_period > 0:
+            raise ValueError(f"poll_period must be > 0 s, got {poll_period}")
+        self.system = system
+        self.run_dir = Path(run_dir) if run_dir else None
+        self.poll_period = float(poll_period)
+        self._prepare = prepare
+        self._loader = loader or (lambda path, system: load_model(path, expect=system))
+        self._log = logger
+        self._cond = threading.Condition()
+        self._work = threading.Lock()  # one load at a time (background thread or a synchronous call)
+        self._notes: list[tuple[str, int | None, str | None]] = []
+        self._ready: ReadyModel | None = None
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._seen: set[_FileId] = set()
+        self._newest: tuple[Path, int] | None = None  # (directory, version) of the newest model loaded
+        self.refusals: Counter[str] = Counter()
+        self.last_refusal: Refusal | None = None
+        self.loaded = 0
+        self.superseded = 0
+        self.notifications = 0
+
+    # ------------------------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Start the background thread (idempotent)."""
+        with self._cond:
+            if self._thread is not None:
+                return
+            self._stop = False
+            self._thread = threading.Thread(target=self._run, name="model_watch", daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the background thread and wait up to ``timeout`` seconds for it."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+            thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout)
+
+    def __enter__(self) -> ModelWatcher:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # --------------------------------------------------------------------------------- control side
+    def notify(self, path: str | Path, version: int | None = None, schema_hash: str | None = None) -> None:
+        """A checkpoint was announced (non-blocking): it is loaded on the background thread if it is newer."""
+        with self._cond:
+            self.notifications += 1
+            self._notes.append((str(path), version, schema_hash))
+            self._cond.notify_all()
+
+    def take(self) -> ReadyModel | None:
+        """The newest model loaded since the last call, or ``None`` (never blocks on loading)."""
+        with self._cond:
+            ready, self._ready = self._ready, None
+            return ready
+
+    def wait_ready(self, timeout: float) -> ReadyModel | None:
+        """Like :meth:`take`, but waits up to ``timeout`` seconds for a model (for start-up and tests)."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._ready is None and (left := deadline - time.monotonic()) > 0:
+                self._cond.wait(left)
+            ready, self._ready = self._ready, None
+            return ready
+
+    def stats(self) -> dict[str, Any]:
+        """Counters: ``loaded``, ``superseded``, ``notifications``, ``refused`` (total), ``refused/<reason>``,
+        ``newest_version`` (newest loaded, 0 = none) and ``last_refusal`` (its message, or "")."""
+        with self._cond:
+            out: dict[str, Any] = {
+                "loaded": self.loaded,
+                "superseded": self.superseded,
+                "notifications": self.notifications,
+                "refused": sum(self.refusals.values()),
+            }
+            out.update({f"refused/{r}": self.refusals[r] for r in REFUSAL_REASONS})
+            out["newest_version"] = self._newest[1] if self._newest else 0
+            out["last_refusal"] = self.last_refusal.message if self.last_refusal else ""
+            return out
+
+    # ------------------------------------------------------------------------------- loading side
+    def poll_once(self, source: str = "poll") -> ReadyModel | None:
+        """Process pending notifications, then poll ``run_dir``, in the calling thread.
+
+        The background thread calls this; call it directly (e.g. once at start-up, before the first solve)
+        to load synchronously. Returns the model it loaded (also left for :meth:`take`), or ``None``.
+        """
+        with self._work:
+            with self._cond:
+                notes, self._notes = self._notes, []
+            got: ReadyModel | None = None
+            # newest announcement first: an older one that is still pending is superseded by it
+            for path, version, schema_hash in sorted(notes, key=lambda n: -(n[1] or 0)):
+                got = self._try_notified(Path(path), version, schema_hash) or got
+                if got is not None:
+                    break
+            if self.run_dir is not None:
+                got = self._poll_dir(source) or got
+            return got
+
+    def _run(self) -> None:
+        next_poll = 0.0
+        while True:
+            with self._cond:
+                while not self._stop and not self._notes and time.monotonic() < next_poll:
+                    self._cond.wait(max(0.0, next_poll - time.monotonic()))
+                if self._stop:
+                    return
+            try:
+                self.poll_once()
+            except Exception as exc:  # noqa: BLE001 - the watcher must outlive any surprise
+                self._refuse("?", None, "error", f"model watcher: unexpected {type(exc).__name__}: {exc}")
+            next_poll = time.monotonic() + self.poll_period
+
+    def _is_newer(self, path: Path, version: int | None) -> bool:
+        if self._newest is None:
+            return True
+        directory, newest = self._newest
+        if path.parent.resolve() != directory:
+            return True
+        return version is None or version > newest
+
+    def _try_notified(self, path: Path, version: int | None, schema_hash: str | None) -> ReadyModel | None:
+        if not self._is_newer(path, version):
+            return None
+        fid = _file_id(path)
+        if fid is None:
+            key: _FileId = (str(path), -1, version or -1)
+            if key not in self._seen:
+                self._seen.add(key)
+                self._refuse(str(path), version, "missing", f"{path}: announced checkpoint does not exist")
+            return None
+        if fid in self._seen:
+            return None
+        if schema_hash is not None and schema_hash != self.system.schema_hash():
+            self._seen.add(fid)
+            self._refuse(str(path), version, "incompatible",
+                         f"{path}: announced schema hash {schema_hash} does not match {self.system.name!r} "
+                         f"({self.system.schema_hash()})")  # fmt: skip
+            return None
+        return self._load(path, fid, "notification")
+
+    def _poll_dir(self, source: str) -> ReadyModel | None:
+        assert self.run_dir is not None
+        if not self.run_dir.is_dir():
+            return None
+        store = CheckpointStore(self.run_dir)  # only reads: the directory exists, nothing is written
+        candidates: dict[int, Path] = {}
+        try:
+            pointed = store.latest()
+        except CheckpointError as exc:
+            pfid = _file_id(store.latest_path)
+            if pfid is not None and pfid not in self._seen:
+                self._seen.add(pfid)
+                self._refuse(str(store.latest_path), None, "corrupt", str(exc))
+            pointed = None
+        if pointed is not None:
+            candidates[pointed[1]] = pointed[0]
+        try:
+            for v in store.versions():
+                candidates.setdefault(v, store.path_for(v))
+        except OSError:
+            pass
+        for version in sorted(candidates, reverse=True):
+            path = candidates[version]
+            if not self._is_newer(path, version):
+                break
+            fid = _file_id(path)
+            if fid is None or fid in self._seen:
+                continue
+            ready = self._load(path, fid, source)
+            if ready is not None:
+                return ready
+        return None
+
+    def _load(self, path: Path, fid: _FileId, source: str) -> ReadyModel | None:
+        self._seen.add(fid)
+        t0 = time.perf_counter()
+        try:
+            loaded = self._loader(path, self.system)
+            prepared = self._prepare(loaded) if self._prepare is not None else None
+        except IncompatibleCheckpoint as exc:
+            self._refuse(str(path), None, "incompatible", str(exc))
+            return None
+        except CheckpointError as exc:
+            reason = "missing" if not path.exists() else "corrupt"
+            self._refuse(str(path), None, reason, str(exc))
+            return None
+        except Exception as exc:  # noqa: BLE001 - a bad file must never take the controller down
+            self._refuse(str(path), None, "error", f"{path}: {type(exc).__name__}: {exc}")
+            return None
+        version = loaded.version
+        if version < 1:
+            self._refuse(str(path), None, "incompatible", f"{path}: checkpoint has no version in its metadata")
+            return None
+        if not self._is_newer(path, version):  # e.g. a stale announcement naming an older file
+            return None
+        ready = ReadyModel(loaded, path, version, prepared, time.perf_counter() - t0, source)
+        with self._cond:
+            if self._ready is not None:
+                self.superseded += 1
+            self._ready = ready
+            self._newest = (path.parent.resolve(), version)
+            self.loaded += 1
+            self._cond.notify_all()
+        if self._log is not None:
+            self._log.info(f"loaded checkpoint version {version} from {path} ({1e3 * ready.load_seconds:.1f} ms, "
+                           f"via {source})")
+        return ready
+
+    def _refuse(self, path: str, version: int | None, reason: str, message: str) -> None:
+        with self._cond:
+            self.refusals[reason] += 1
+            self.last_refusal = Refusal(path, version, reason, message, time.time())
+        if self._log is not None:
+            self._log.warning(f"refused checkpoint ({reason}), keeping the current model: {message}")
+
+
+def _file_id(path: Path) -> _FileId | None:
+    with contextlib.suppress(OSError):
+        st = os.stat(path)
+        return (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    return None

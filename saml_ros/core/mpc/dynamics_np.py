@@ -1,0 +1,336 @@
+"""The MPC's prediction model ``f_hat + phi`` on float64 numpy arrays, with exact Jacobians.
+
+The base models f_hat of the three systems are re-implemented here in numpy with hand-derived Jacobians
+(the torch versions in ``core.systems`` stay the single source of truth: ``test/test_mpc.py`` checks values
+and Jacobians against them and torch autograd). A system without a numpy twin falls back to torch autograd
+(``torch.func.jacrev``), which is exact but slow.
+
+Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``y`` ``(B, n_y)``, ``A = dy/dx`` ``(B, n_y, n_x)``,
+``Bu = dy/du`` ``(B, n_y, n_u)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.mlp_np import NumpyMLP
+from saml_ros.core.systems.base import System
+from saml_ros.core.systems.friction import FrictionDoubleIntegrator
+from saml_ros.core.systems.paddle_ball import PaddleBall
+from saml_ros.core.systems.quadrotor import Quadrotor
+
+Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+class BaseModelNP(Protocol):
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3: ...
+
+
+class FrictionBaseNP:
+    """Frictionless double integrator ``p' = p + dt v``, ``v' = v + dt u``."""
+
+    def __init__(self, system: FrictionDoubleIntegrator) -> None:
+        self.dt = system.dt
+        self._a = np.array([[1.0, self.dt], [0.0, 1.0]])
+        self._b = np.array([[0.0], [self.dt]])
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        y = x @ self._a.T
+        y[:, 1] += self.dt * u[:, 0]
+        return y
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        p, v = x.tolist()
+        return np.array((p + self.dt * v, v + self.dt * float(u[0])))
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        n = x.shape[0]
+        return self.step(x, u), np.broadcast_to(self._a, (n, 2, 2)), np.broadcast_to(self._b, (n, 2, 1))
+
+
+class QuadrotorBaseNP:
+    """One explicit Euler step of the rigid-body quadrotor (see ``core.systems.quadrotor``)."""
+
+    def __init__(self, system: Quadrotor) -> None:
+        self.dt, self.mass, self.g = system.dt, system.mass, system.g
+        self.inertia = np.asarray(system.inertia, dtype=np.float64)
+        self.inv_inertia = 1.0 / self.inertia
+        # torque = mix @ f:  [f4 - f2, f3 - f1, (f1 + f3) - (f2 + f4)]
+        self.mix = np.array([[0.0, -1.0, 0.0, 1.0], [-1.0, 0.0, 1.0, 0.0], [1.0, -1.0, 1.0, -1.0]])
+        self._dw_du = self.dt * self.inv_inertia[:, None] * self.mix  # (3, 4)
+        self._eye4 = np.eye(4)
+
+    def _parts(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
+        q = x[:, 6:10]
+        nq = np.sqrt(np.einsum("bi,bi->b", q, q))[:, None]
+        qn = q / nq
+        w = x[:, 10:13]
+        qw, qx, qy, qz = qn[:, 0], qn[:, 1], qn[:, 2], qn[:, 3]
+        # third column of R(qn): body z axis in the world frame
+        col = np.stack((2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy)), 1)
+        wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
+        # qr = qn + dt/2 qn ⊗ [0, w]
+        h = 0.5 * self.dt
+        qr = qn + h * np.stack(
+            (
+                -qx * wx - qy * wy - qz * wz,
+                qw * wx + qy * wz - qz * wy,
+                qw * wy - qx * wz + qz * wx,
+                qw * wz + qx * wy - qy * wx,
+            ),
+            1,
+        )
+        nr = np.sqrt(np.einsum("bi,bi->b", qr, qr))[:, None]
+        return nq, qn, col, qr, nr
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self._step(x, u, self._parts(x, u))
+
+    def _step(self, x: np.ndarray, u: np.ndarray, parts: tuple[np.ndarray, ...]) -> np.ndarray:
+        _, _, col, qr, nr = parts
+        dt = self.dt
+        y = np.empty_like(x)
+        y[:, 0:3] = x[:, 0:3] + dt * x[:, 3:6]
+        thrust = u.sum(1, keepdims=True) * (dt / self.mass)
+        y[:, 3:6] = x[:, 3:6] + thrust * col
+        y[:, 5] -= dt * self.g
+        y[:, 6:10] = qr / nr
+        w = x[:, 10:13]
+        iw = w * self.inertia
+        y[:, 10:13] = w + (u @ self._dw_du.T) - dt * self.inv_inertia * _cross(w, iw)
+        return y
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """One state ``(13,), (4,) -> (13,)`` in plain Python floats (3-4x faster than numpy at B = 1)."""
+        px, py, pz, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz = x.tolist()
+        f1, f2, f3, f4 = u.tolist()
+        dt, h = self.dt, 0.5 * self.dt
+        nq = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qw, qx, qy, qz = qw / nq, qx / nq, qy / nq, qz / nq
+        a = (f1 + f2 + f3 + f4) * dt / self.mass
+        rw = qw + h * (-qx * wx - qy * wy - qz * wz)
+        rx = qx + h * (qw * wx + qy * wz - qz * wy)
+        ry = qy + h * (qw * wy - qx * wz + qz * wx)
+        rz = qz + h * (qw * wz + qx * wy - qy * wx)
+        nr = math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+        i1, i2, i3 = self.inertia.tolist()
+        j1, j2, j3 = (dt * self.inv_inertia).tolist()
+        t1, t2, t3 = f4 - f2, f3 - f1, (f1 + f3) - (f2 + f4)
+        return np.array((
+            px + dt * vx, py + dt * vy, pz + dt * vz,
+            vx + a * 2.0 * (qx * qz + qw * qy),
+            vy + a * 2.0 * (qy * qz - qw * qx),
+            vz + a * (1.0 - 2.0 * (qx * qx + qy * qy)) - dt * self.g,
+            rw / nr, rx / nr, ry / nr, rz / nr,
+            wx + j1 * (t1 - (wy * i3 * wz - wz * i2 * wy)),
+            wy + j2 * (t2 - (wz * i1 * wx - wx * i3 * wz)),
+            wz + j3 * (t3 - (wx * i2 * wy - wy * i1 * wx)),
+        ))  # fmt: skip
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        parts = self._parts(x, u)
+        nq, qn, col, qr, nr = parts
+        y = self._step(x, u, parts)
+        n, dt, h = x.shape[0], self.dt, 0.5 * self.dt
+        a = np.zeros((n, 13, 13))
+        b = np.zeros((n, 13, 4))
+        idx3 = np.arange(3)
+        a[:, idx3, idx3] = 1.0
+        a[:, idx3, idx3 + 3] = dt
+        a[:, idx3 + 3, idx3 + 3] = 1.0
+        # d qn / d q = (I - qn qn^T) / |q|
+        n_q = (self._eye4 - qn[:, :, None] * qn[:, None, :]) / nq[:, :, None]
+        qw, qx, qy, qz = qn[:, 0], qn[:, 1], qn[:, 2], qn[:, 3]
+        z = np.zeros_like(qw)
+        dcol = 2.0 * np.stack(
+            (
+                np.stack((qy, qz, qw, qx), 1),
+                np.stack((-qx, -qw, qz, qy), 1),
+                np.stack((z, -2.0 * qx, -2.0 * qy, z), 1),
+            ),
+            1,
+        )  # d col / d qn, (B, 3, 4)
+        thrust = u.sum(1) * (dt / self.mass)
+        a[:, 3:6, 6:10] = thrust[:, None, None] * (dcol @ n_q)
+        b[:, 3:6, :] = (dt / self.mass) * col[:, :, None]
+        # q' = qr / |qr|,  qr = (I + h Omega(w)) qn,  d qr / d w = h Xi(qn)
+        qp = qr / nr
+        n_r = (self._eye4 - qp[:, :, None] * qp[:, None, :]) / nr[:, :, None]
+        w = x[:, 10:13]
+        wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
+        omega = np.stack(
+            (
+                np.stack((z, -wx, -wy, -wz), 1),
+                np.stack((wx, z, wz, -wy), 1),
+                np.stack((wy, -wz, z, wx), 1),
+                np.stack((wz, wy, -wx, z), 1),
+            ),
+            1,
+        )
+        xi = np.stack(
+            (
+                np.stack((-qx, -qy, -qz), 1),
+                np.stack((qw, -qz, qy), 1),
+                np.stack((qz, qw, -qx), 1),
+                np.stack((-qy, qx, qw), 1),
+            ),
+            1,
+        )
+        a[:, 6:10, 6:10] = n_r @ ((self._eye4 + h * omega) @ n_q)
+        a[:, 6:10, 10:13] = h * (n_r @ xi)
+        # w' = w + dt I^-1 (mix f - w x I w);  d(w x Iw)/dw = [w]x diag(I) - [Iw]x
+        iw = w * self.inertia
+        dcross = _skew(w) * self.inertia[None, None, :] - _skew(iw)
+        a[:, 10:13, 10:13] = np.eye(3) - dt * self.inv_inertia[None, :, None] * dcross
+        b[:, 10:13, :] = self._dw_du
+        return y, a, b
+
+
+class PaddleBaseNP:
+    """The paper's impact map with the base restitution: ``v+ = a (v_rel - 2 n (n . v_rel)) + v_paddle``."""
+
+    def __init__(self, system: PaddleBall) -> None:
+        self.a = system.restitution_base
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.step_jac(x, u)[0]
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.step_jac(x[None], u[None])[0][0]
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        bsz = x.shape[0]
+        pv, nraw = u[:, 0:3], u[:, 3:6]
+        nn = np.sqrt(np.einsum("bi,bi->b", nraw, nraw))[:, None].clip(min=1e-12)
+        n = nraw / nn
+        vrel = x[:, 3:6] - pv
+        dot = np.einsum("bi,bi->b", n, vrel)[:, None]
+        y = self.a * (vrel - 2.0 * n * dot) + pv
+        eye = np.eye(3)
+        refl = eye - 2.0 * n[:, :, None] * n[:, None, :]  # (B, 3, 3)
+        a = np.zeros((bsz, 3, 6))
+        a[:, :, 3:6] = self.a * refl
+        b = np.empty((bsz, 3, 6))
+        b[:, :, 0:3] = eye - self.a * refl
+        dn = -2.0 * self.a * (dot[:, :, None] * eye + n[:, :, None] * vrel[:, None, :])
+        proj = (eye - n[:, :, None] * n[:, None, :]) / nn[:, :, None]
+        b[:, :, 3:6] = dn @ proj
+        return y, a, b
+
+
+class TorchBaseNP:
+    """Any system's ``base_step`` through torch autograd (exact but slow: the fallback for unknown systems)."""
+
+    def __init__(self, system: System) -> None:
+        self.system = system
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return self.system.base_step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.step(x[None], u[None])[0]
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        def one(xi: torch.Tensor, ui: torch.Tensor) -> torch.Tensor:
+            return self.system.base_step(xi[None], ui[None])[0]
+
+        xt, ut = torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(np.ascontiguousarray(u))
+        ja, jb = torch.func.vmap(torch.func.jacrev(one, argnums=(0, 1)))(xt, ut)
+        return self.step(x, u), ja.numpy(), jb.numpy()
+
+
+def base_model_np(system: System) -> BaseModelNP:
+    """The numpy twin of ``system.base_step`` (autograd fallback for systems without one)."""
+    if isinstance(system, Quadrotor):
+        return QuadrotorBaseNP(system)
+    if isinstance(system, FrictionDoubleIntegrator):
+        return FrictionBaseNP(system)
+    if isinstance(system, PaddleBall):
+        return PaddleBaseNP(system)
+    return TorchBaseNP(system)
+
+
+class NumpyDynamics:
+    """The model the MPC predicts with: ``f_hat + phi`` (residual), ``phi`` (full) or ``f_hat`` (no model).
+
+    The learned part is a frozen copy of ensemble member ``member`` taken when this object is built.
+    """
+
+    def __init__(self, system: System, model: DynamicsModel | None = None, member: int = 0) -> None:
+        self.system = system
+        self.base: BaseModelNP | None = None
+        self.mlp: NumpyMLP | None = None
+        self.kind = "base" if model is None else model.kind
+        if model is None or model.kind == "residual":
+            self.base = base_model_np(system)
+        if model is not None:
+            if model.system.schema_hash() != system.schema_hash():
+                raise ValueError(
+                    f"model is for system {model.system.name!r} (schema {model.system.schema_hash()}), "
+                    f"not {system.name!r} (schema {system.schema_hash()})"
+                )
+            self.mlp = NumpyMLP(model, member)
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Predicted target ``(B, n_y)``."""
+        if self.base is None:
+            assert self.mlp is not None
+            return self.mlp.forward(x, u)
+        y = self.base.step(x, u)
+        if self.mlp is not None:
+            y = y + self.mlp.forward(x, u)
+        return y
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Prediction for one sample ``(n_x,), (n_u,) -> (n_y,)`` (the rollout's hot path)."""
+        if self.base is None:
+            assert self.mlp is not None
+            return self.mlp.forward1(x, u)
+        y = self.base.step1(x, u)
+        if self.mlp is not None:
+            y += self.mlp.forward1(x, u)
+        return y
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        """Prediction and its Jacobians ``(B, n_y)``, ``(B, n_y, n_x)``, ``(B, n_y, n_u)``."""
+        if self.base is None:
+            assert self.mlp is not None
+            return self.mlp.forward_jac(x, u)
+        y, a, b = self.base.step_jac(x, u)
+        if self.mlp is not None:
+            yp, ap, bp = self.mlp.forward_jac(x, u)
+            return y + yp, a + ap, b + bp
+        return y, a, b
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of ``(B, 3)`` arrays (``np.cross`` is several times slower for small B)."""
+    return np.stack(
+        (
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ),
+        1,
+    )
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` for each row of ``(B, 3)``: ``(B, 3, 3)`` with ``[v]x w = v x w``."""
+    z = np.zeros_like(v[:, 0])
+    return np.stack(
+        (
+            np.stack((z, -v[:, 2], v[:, 1]), 1),
+            np.stack((v[:, 2], z, -v[:, 0]), 1),
+            np.stack((-v[:, 1], v[:, 0], z), 1),
+        ),
+        1,
+    )

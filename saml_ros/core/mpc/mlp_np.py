@@ -1,0 +1,82 @@
+"""A frozen float64 numpy copy of one member of a :class:`~saml_ros.core.models.DynamicsModel`'s network.
+
+The MPC evaluates the learned correction phi(x, u) thousands of times per second on batches of 1-40 samples,
+where PyTorch's per-call overhead (several microseconds per op) would dominate. This copy folds the input
+normalisation into the first layer and the output scale into the last, and returns exact Jacobians of the
+piecewise-linear PReLU network (the derivative at a kink is taken from the ``h >= 0`` side, as PyTorch does).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from saml_ros.core.models import DynamicsModel
+
+
+class NumpyMLP:
+    """phi(x, u) of ensemble member ``member`` of ``model``, frozen at construction time.
+
+    Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``(B, n_y)``; Jacobians ``(B, n_y, n_x)`` and ``(B, n_y, n_u)``.
+    """
+
+    def __init__(self, model: DynamicsModel, member: int = 0) -> None:
+        if not 0 <= member < model.n_models:
+            raise ValueError(f"member {member} out of range for an ensemble of {model.n_models}")
+        net = model.net
+        n_x = model.system.state.size
+        with torch.no_grad():
+            ws = [w[member].double().numpy().copy() for w in net.weights]
+            bs = [b[member, 0].double().numpy().copy() for b in net.biases]
+            self.slopes = [float(s[member].item()) for s in net.slopes]
+            mean = model.in_mean[member, 0].double().numpy()
+            std = model.in_std[member, 0].double().numpy()
+            ostd = model.out_std[member, 0].double().numpy()
+        # ((z - mean) / std) @ W0 + b0 == z @ (W0 / std) + (b0 - (mean / std) @ W0)
+        w0 = ws[0] / std[:, None]
+        bs[0] = bs[0] - (mean / std) @ ws[0]
+        ws[0] = w0
+        ws[-1] = ws[-1] * ostd[None, :]
+        bs[-1] = bs[-1] * ostd
+        self.w_x = np.ascontiguousarray(ws[0][:n_x])
+        self.w_u = np.ascontiguousarray(ws[0][n_x:])
+        self.weights = ws
+        self.biases = bs
+        self.n_x, self.n_u, self.n_y = n_x, ws[0].shape[0] - n_x, ws[-1].shape[1]
+        # max(h, a h) == PReLU(h) exactly when 0 <= a <= 1, and is one numpy call instead of three
+        self._max_ok = [0.0 <= a <= 1.0 for a in self.slopes]
+
+    def _act(self, h: np.ndarray, i: int) -> np.ndarray:
+        a = self.slopes[i]
+        if self._max_ok[i]:
+            return np.maximum(h, a * h)
+        return np.where(h >= 0.0, h, a * h)
+
+    def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """phi(x, u): ``(B, n_x), (B, n_u) -> (B, n_y)``."""
+        n = len(self.weights)
+        h = x @ self.w_x + u @ self.w_u + self.biases[0]
+        for i in range(1, n):
+            h = self._act(h, i - 1) @ self.weights[i] + self.biases[i]
+        return h
+
+    def forward1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """phi for one sample: ``(n_x,), (n_u,) -> (n_y,)``."""
+        n = len(self.weights)
+        h = x @ self.w_x + u @ self.w_u + self.biases[0]
+        for i in range(1, n):
+            h = self._act(h, i - 1) @ self.weights[i] + self.biases[i]
+        return h
+
+    def forward_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """phi and its Jacobians: ``(B, n_y)``, ``(B, n_y, n_x)``, ``(B, n_y, n_u)``."""
+        n = len(self.weights)
+        h = x @ self.w_x + u @ self.w_u + self.biases[0]
+        jac = self.weights[0][None, :, :]  # (1 | B, n_in, d): d h / d z, transposed
+        for i in range(1, n):
+            a = self.slopes[i - 1]
+            mask = np.where(h >= 0.0, 1.0, a)
+            h = (h * mask) @ self.weights[i] + self.biases[i]
+            jac = (jac * mask[:, None, :]) @ self.weights[i]
+        jac_t = np.broadcast_to(jac, (x.shape[0], *jac.shape[1:])).transpose(0, 2, 1)
+        return h, jac_t[:, :, : self.n_x], jac_t[:, :, self.n_x :]

@@ -1,0 +1,164 @@
+"""Small dense convex QP solvers for the SQP subproblems (tens of variables).
+
+* :func:`solve_box_qp`: ``min 1/2 d'Hd + g'd  s.t.  lo <= d <= hi`` by projected Newton (Bertsekas 1982):
+  a Newton step on the free variables, then a projected backtracking line search. Usually 1-4 iterations.
+* :func:`solve_qp`: the same with general inequalities ``G d <= h`` in elastic mode: every general row gets a
+  slack ``s >= 0`` (``G d - s <= h``) priced ``penalty * sum(s)``, so the subproblem is always feasible even
+  when the linearised state constraints are not. Solved by Mehrotra's predictor-corrector interior point
+  method on the dense normal equations (one Cholesky per iteration).
+
+``H`` must be symmetric positive definite (the SQP adds a Levenberg-Marquardt term).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+from scipy.linalg.lapack import dpotrf as _dpotrf
+from scipy.linalg.lapack import dpotrs as _dpotrs
+
+
+@dataclass
+class QPResult:
+    d: np.ndarray  #: primal solution, shape (n,)
+    slack: np.ndarray  #: elastic slacks of the general rows (>= 0), shape (k,); empty for box QPs
+    mult: np.ndarray  #: multipliers of the general rows, shape (k,); empty for box QPs
+    iterations: int
+    converged: bool
+
+
+def solve_box_qp(
+    hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 30, tol: float = 1e-10
+) -> QPResult:
+    """``min 1/2 d'Hd + g'd  s.t.  lo <= d <= hi`` (``lo <= 0 <= hi`` not required); shapes ``(n, n), (n,)``."""
+    d = np.clip(np.zeros_like(grad), lo, hi)
+    f = 0.5 * d @ hess @ d + grad @ d
+    gscale = tol * (1.0 + np.abs(grad).max())
+    it = 0
+    converged = False
+    for it in range(1, max_iter + 1):  # noqa: B007
+        gr = hess @ d + grad
+        clamped = ((d <= lo) & (gr > 0.0)) | ((d >= hi) & (gr < 0.0))
+        free = ~clamped
+        if not free.any() or np.abs(gr[free]).max() <= gscale:
+            converged = True
+            break
+        step = np.zeros_like(d)
+        hff = hess[np.ix_(free, free)]
+        step[free] = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(hff, check_finite=False), gr[free],
+                                             check_finite=False)
+        alpha = 1.0
+        for _ in range(30):
+            cand = np.clip(d + alpha * step, lo, hi)
+            fc = 0.5 * cand @ hess @ cand + grad @ cand
+            if fc <= f + 1e-4 * (gr @ (cand - d)):
+                break
+            alpha *= 0.5
+        else:
+            break
+        moved = np.abs(cand - d).max()
+        d, f = cand, fc
+        if moved <= 1e-14 * (1.0 + np.abs(d).max()):
+            converged = True
+            break
+    empty = np.zeros(0)
+    return QPResult(d, empty, empty, it, converged)
+
+
+def solve_qp(
+    hess: np.ndarray,
+    grad: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    g_mat: np.ndarray,
+    h_vec: np.ndarray,
+    penalty: float | np.ndarray,
+    max_iter: int = 40,
+    tol: float = 1e-9,
+) -> QPResult:
+    """Elastic QP ``min 1/2 d'Hd + g'd + penalty's  s.t.  lo <= d <= hi, G d - s <= h, s >= 0``.
+
+    Shapes: ``hess (n, n)``, ``grad, lo, hi (n,)`` (finite), ``g_mat (k, n)``, ``h_vec (k,)``, ``penalty``
+    a positive scalar or ``(k,)``. With ``H = 0`` on a block this also solves exact l1 (LP) models:
+    ``|a + b'd| = min s1 + s2  s.t.  b'd - s1 <= -a, -b'd - s2 <= a``.
+    """
+    n, k = grad.size, h_vec.size
+    if k == 0:
+        return solve_box_qp(hess, grad, lo, hi)
+    nz = n + k
+    pen = np.broadcast_to(np.asarray(penalty, dtype=np.float64), (k,))
+    q = np.concatenate((grad, pen))
+    # variables z = [d, s]; rows of C z <= c: d <= hi (n), -d <= -lo (n), G d - s <= h (k), -s <= 0 (k)
+    c_mat = np.zeros((2 * n + 2 * k, nz))
+    ar_n = np.arange(n)
+    ar_k = np.arange(k)
+    c_mat[ar_n, ar_n] = 1.0
+    c_mat[n + ar_n, ar_n] = -1.0
+    c_mat[2 * n : 2 * n + k, :n] = g_mat
+    c_mat[2 * n + ar_k, n + ar_k] = -1.0
+    c_mat[2 * n + k + ar_k, n + ar_k] = -1.0
+    c_t = np.ascontiguousarray(c_mat.T)
+    g_rows = c_mat[2 * n : 2 * n + k]
+    c_vec = np.concatenate((hi, -lo, h_vec, np.zeros(k)))
+    m = c_vec.size
+    z = np.zeros(nz)
+    z[:n] = np.clip(0.0, lo, hi)
+    z[n:] = np.maximum(g_mat @ z[:n] - h_vec, 0.0) + 1.0
+    s = np.maximum(c_vec - c_mat @ z, 1.0)
+    lam = np.ones(m)
+    # the elastic pair (G d - s <= h, -s <= 0) has multipliers summing to `penalty` at the solution
+    lam[2 * n : 2 * n + k] = 0.5 * pen
+    lam[2 * n + k :] = 0.5 * pen
+    kkt0 = np.zeros((nz, nz))
+    kkt0[:n, :n] = hess
+    diag = np.arange(nz)
+    scale = 1.0 + max(np.abs(q).max(), np.abs(c_vec).max())
+    stop = tol * scale
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007
+        r_d = kkt0 @ z + q + c_t @ lam
+        r_p = c_mat @ z + s - c_vec
+        mu = (s @ lam) / m
+        if mu <= stop and np.abs(r_d).max() <= stop and np.abs(r_p).max() <= stop:
+            converged = True
+            break
+        w = lam / s
+        # C' W C without the dense product: the bound rows only touch the diagonal
+        kkt = (g_rows.T * w[2 * n : 2 * n + k]) @ g_rows
+        kkt += kkt0
+        wd = np.empty(nz)
+        wd[:n] = w[:n] + w[n : 2 * n] + 1e-12
+        wd[n:] = w[2 * n + k :]
+        kkt[diag, diag] += wd
+        chol, info = _dpotrf(kkt, lower=1, clean=0, overwrite_a=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"QP: KKT matrix not positive definite (dpotrf info={info})")
+        r_dw = -r_d - c_t @ (w * r_p)
+        # predictor (affine scaling), then Mehrotra's corrector with the same factorisation
+        dz = _dpotrs(chol, r_dw + c_t @ lam, lower=1)[0]
+        dlam = w * (c_mat @ dz + r_p) - lam
+        ds = -s - s * dlam / lam
+        a_aff = min(_max_step(s, ds), _max_step(lam, dlam))
+        mu_aff = ((s + a_aff * ds) @ (lam + a_aff * dlam)) / m
+        sigma = (mu_aff / mu) ** 3
+        r_c = s * lam + ds * dlam - sigma * mu
+        dz = _dpotrs(chol, r_dw + c_t @ (r_c / s), lower=1)[0]
+        dlam = w * (c_mat @ dz + r_p) - r_c / s
+        ds = -(r_c + s * dlam) / lam
+        alpha = min(1.0, 0.99 * min(_max_step(s, ds), _max_step(lam, dlam)))
+        z += alpha * dz
+        s += alpha * ds
+        lam += alpha * dlam
+    d = np.clip(z[:n], lo, hi)
+    return QPResult(d, np.maximum(z[n:], 0.0), lam[2 * n : 2 * n + k], it, converged)
+
+
+def _max_step(v: np.ndarray, dv: np.ndarray) -> float:
+    """Largest alpha in (0, 1] with ``v + alpha dv >= 0`` (for ``v > 0``)."""
+    neg = dv < 0.0
+    if not neg.any():
+        return 1.0
+    return min(1.0, float((v[neg] / -dv[neg]).min()))

@@ -1,0 +1,348 @@
+"""Single-shooting MPC for the time-stepped systems: the fast SQP solver and the SLSQP reference.
+
+Both optimise the controls ``U (T, m)`` of a :class:`~saml_ros.core.mpc.tasks.ShootingTask` through the same
+numpy prediction model (:class:`~saml_ros.core.mpc.dynamics_np.NumpyDynamics`), warm-start from the previous
+plan, and finish identically (clip to the bounds, roll out, exact cost, constraint check), so their plans and
+costs are directly comparable.
+
+Fast solver (:class:`SQPShootingMPC`), per iteration:
+
+1. exact Jacobians ``A_t, B_t`` of ``f_hat + phi`` at the current trajectory, batched over t;
+2. condensed sensitivities ``S_t = dx_t/dU`` by the recursion ``S_{t+1} = A_t S_t + [0 .. B_t .. 0]``;
+3. a Gauss-Newton model of the cost with iteratively reweighted least squares (IRLS): each norm
+   ``||r_t||`` is smoothed to ``sqrt(||r_t||^2 + eps^2)`` and majorised by
+   ``w_t/2 ||r_t + J_t d||^2 + const`` with ``w_t = 1/sqrt(||r_t||^2 + eps^2)``, plus a Levenberg-Marquardt
+   term ``rho/2 ||d||^2``;
+4. one QP over the step d: box ``u_low - U <= d <= u_high - U`` and the linearised state constraints in
+   elastic mode (always feasible), solved by projected Newton (no state constraint) or a small interior
+   point method;
+5. a backtracking line search on the l1 merit ``sum sqrt(||r_t||^2 + eps^2) + penalty * sum max(c_i, 0)``;
+   rho shrinks after full steps and grows after failed ones.
+
+It stops when the QP predicts a merit decrease below ``tol * (1 + merit)`` or the step is negligible.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+import scipy.optimize
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.dynamics_np import NumpyDynamics
+from saml_ros.core.mpc.qp import solve_qp
+from saml_ros.core.mpc.tasks import ShootingTask, make_task
+from saml_ros.core.mpc.types import MPCResult
+from saml_ros.core.systems.base import System
+
+
+class ShootingMPC:
+    """Shared machinery: model handling, warm start, rollout, result assembly and failure handling.
+
+    Args:
+        system: a time-stepped system (friction or quadrotor).
+        model: residual/full model (member ``member`` is used) or None for f_hat alone.
+        horizon: T, number of controls planned.
+        feas_tol: tolerance on the state constraints for ``success`` (state units).
+        task_options: forwarded to :func:`~saml_ros.core.mpc.tasks.make_task` (quadrotor: ``min_height``,
+            ``qw_tol``).
+    """
+
+    def __init__(
+        self,
+        system: System,
+        model: DynamicsModel | None = None,
+        horizon: int = 10,
+        member: int = 0,
+        feas_tol: float = 1e-4,
+        **task_options: Any,
+    ) -> None:
+        self.system = system
+        self.horizon = int(horizon)
+        self.member = member
+        self.feas_tol = feas_tol
+        self.task = make_task(system, self.horizon, **task_options)
+        self.n, self.m = system.state.size, system.control.size
+        self.dyn = NumpyDynamics(system, model, member)
+        self._u_lo = np.tile(self.task.u_low, self.horizon)
+        self._u_hi = np.tile(self.task.u_high, self.horizon)
+        self._plan_u: np.ndarray | None = None
+        self._plan_x: np.ndarray | None = None
+
+    # ------------------------------------------------------------------------------ Controller API
+    def set_model(self, model: DynamicsModel | None) -> None:
+        self.dyn = NumpyDynamics(self.system, model, self.member)
+
+    def reset(self) -> None:
+        self._plan_u = None
+        self._plan_x = None
+
+    def solve(self, x0: np.ndarray, goal: Any | None = None) -> MPCResult:
+        start = time.perf_counter()
+        x0 = np.asarray(x0, dtype=np.float64)
+        if x0.shape != (self.n,):
+            raise ValueError(f"{self.system.name} MPC: x0 must have shape ({self.n},), got {x0.shape}")
+        task = self.task if goal is None else self.task.with_target(goal)
+        if not np.all(np.isfinite(x0)):
+            return self._fallback(start, "non-finite state")
+        u0 = self._warm_start(x0, task)
+        try:
+            plan_u, iters, converged, msg = self._optimize(x0, u0, task)
+            plan_u = np.clip(plan_u, task.u_low, task.u_high)
+            plan_x = self.rollout(x0, plan_u)
+            if not (np.all(np.isfinite(plan_x)) and np.all(np.isfinite(plan_u))):
+                return self._fallback(start, f"non-finite plan ({msg})", iters)
+        except Exception as exc:  # any numerical breakdown: keep flying on the last good plan
+            return self._fallback(start, f"solver failure: {type(exc).__name__}: {exc}")
+        viol = task.violations(plan_x)
+        worst = float(max(0.0, viol.max())) if viol.size else 0.0
+        ok = worst <= self.feas_tol
+        if not ok:
+            i = int(np.argmax(viol))
+            msg = f"{msg}; {task.cons_name[i]} violated by {worst:.3g}"
+        self._plan_u, self._plan_x = plan_u, plan_x
+        return MPCResult(
+            u=plan_u[0].copy(),
+            plan_u=plan_u,
+            plan_x=plan_x,
+            cost=task.cost(plan_x),
+            solve_time=time.perf_counter() - start,
+            iterations=iters,
+            success=ok,
+            message=msg,
+            constraint_violation=worst,
+            converged=converged,
+        )
+
+    # ------------------------------------------------------------------------------ helpers
+    def rollout(self, x0: np.ndarray, plan_u: np.ndarray) -> np.ndarray:
+        """Predicted states ``(T+1, n)`` from ``x0`` under ``plan_u`` ``(T, m)`` with the model in use."""
+        xs = np.empty((plan_u.shape[0] + 1, self.n))
+        xs[0] = x0
+        step = self.dyn.step1
+        for t in range(plan_u.shape[0]):
+            xs[t + 1] = step(xs[t], plan_u[t])
+        return xs
+
+    def _warm_start(self, x0: np.ndarray, task: ShootingTask) -> np.ndarray:
+        """The previous plan, shifted by one step when x0 is nearer its x_1 than its x_0 (closed loop), kept
+        unshifted when x0 is nearer x_0 (a re-solve from the same state); tail filled with ``u_default``."""
+        if self._plan_u is None or self._plan_x is None:
+            return np.tile(task.u_default, (self.horizon, 1))
+        prev_u, prev_x = self._plan_u, self._plan_x
+        shift = 1 if np.linalg.norm(x0 - prev_x[1]) < np.linalg.norm(x0 - prev_x[0]) else 0
+        u = np.empty((self.horizon, self.m))
+        keep = min(self.horizon, prev_u.shape[0] - shift)
+        u[:keep] = prev_u[shift : shift + keep]
+        u[keep:] = task.u_default
+        return np.clip(u, task.u_low, task.u_high)
+
+    def _fallback(self, start: float, why: str, iters: int = 0) -> MPCResult:
+        """A safe result: the next control of the last good plan (or ``u_default``), clipped."""
+        task = self.task
+        if self._plan_u is not None and self._plan_u.shape[0] > 1:
+            plan_u = np.vstack((self._plan_u[1:], task.u_default[None]))
+        else:
+            plan_u = np.tile(task.u_default, (self.horizon, 1))
+        plan_u = np.clip(plan_u, task.u_low, task.u_high)
+        plan_x = np.full((self.horizon + 1, self.n), np.nan)
+        return MPCResult(
+            u=plan_u[0].copy(), plan_u=plan_u, plan_x=plan_x, cost=float("nan"),
+            solve_time=time.perf_counter() - start, iterations=iters, success=False, message=why,
+            constraint_violation=float("inf"), converged=False,
+        )  # fmt: skip
+
+    def _optimize(self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, int, bool, str]:
+        raise NotImplementedError
+
+
+class SQPShootingMPC(ShootingMPC):
+    """The fast solver (see the module docstring).
+
+    Args (beyond :class:`ShootingMPC`'s):
+        max_iter: SQP iteration cap per solve.
+        tol: relative tolerance on the predicted merit decrease.
+        eps: smoothing of the norms (cost units); the plan's reported cost is the exact, unsmoothed one.
+        penalty: price of one unit of state-constraint violation (elastic QP and merit function).
+        rho0: initial Levenberg-Marquardt weight, relative to the mean diagonal of the Gauss-Newton Hessian.
+    """
+
+    def __init__(
+        self,
+        system: System,
+        model: DynamicsModel | None = None,
+        horizon: int = 10,
+        max_iter: int = 30,
+        tol: float = 1e-5,
+        eps: float = 1e-3,
+        penalty: float = 100.0,
+        rho0: float = 1e-3,
+        radial: float = 1.0,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(system, model, horizon, **kwargs)
+        self.max_iter, self.tol, self.eps, self.penalty, self.rho0 = max_iter, tol, eps, penalty, rho0
+        self.radial = radial
+        self._rho = rho0
+        # LM scale when the smooth part is zero (exact l1 model): the stage rows' curvature is ~ ||J||^2
+        self._scale_floor = 1e-6
+        nu = self.horizon * self.m
+        self._sens = np.zeros((self.horizon + 1, self.n, nu))
+        self._eye = np.eye(nu)
+
+    def _merit(self, xs: np.ndarray, task: ShootingTask) -> tuple[float, np.ndarray, np.ndarray]:
+        """Merit (smoothed cost + penalty * violation), residuals ``(T, k)`` and constraint values ``(nc,)``."""
+        r = xs[1:, task.res_idx] - task.target
+        c = task.violations(xs)
+        if r.shape[1] == 1:
+            merit = float(np.abs(r).sum())
+        else:
+            merit = float(np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2).sum())
+        if c.size:
+            merit += self.penalty * float(np.maximum(c, 0.0).sum())
+        if not np.isfinite(merit):
+            merit = float("inf")
+        return merit, r, c
+
+    def _sensitivities(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``S[t] = dx_t/dU`` ``(T+1, n, T m)`` (``S[0] = 0``); columns beyond ``(t) m`` stay zero."""
+        s, m = self._sens, self.m
+        for t in range(self.horizon):
+            if t:
+                np.matmul(a[t], s[t, :, : t * m], out=s[t + 1, :, : t * m])
+            s[t + 1, :, t * m : (t + 1) * m] = b[t]
+        return s
+
+    def _subproblem(
+        self, sens: np.ndarray, r: np.ndarray, c: np.ndarray, task: ShootingTask
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Model of the step d: ``hess, grad`` (smooth part) and elastic rows ``G d <= h`` priced ``pen``, plus
+        the model's value at d = 0 split as (stage rows, constraint rows) for the predicted decrease."""
+        T, k = self.horizon, task.res_idx.size
+        jac = sens[1:, task.res_idx, :]  # (T, k, Tm)
+        g_con = task.cons_sign[:, None] * sens[task.cons_t, task.cons_idx, :]
+        if k == 1:
+            # exact l1 model: |r_t + J_t d| through a pair of elastic rows per stage, no smooth part
+            j1 = jac[:, 0, :]
+            r1 = r[:, 0]
+            g_mat = np.vstack((j1, -j1, g_con))
+            h_vec = np.concatenate((-r1, r1, -c))
+            pen = np.concatenate((np.ones(2 * T), np.full(c.size, self.penalty)))
+            hess = np.zeros((j1.shape[1], j1.shape[1]))
+            grad = np.zeros(j1.shape[1])
+        else:
+            f = np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2)
+            jf = jac.reshape(T * k, -1)
+            v = np.einsum("tk,tkj->tj", r, jac)  # J_t' r_t
+            grad = (v / f[:, None]).sum(0)
+            # generalised Gauss-Newton: J' [(I - r r'/f^2) / f] J, the Hessian of the smoothed norm
+            hess = (jf.T * np.repeat(1.0 / f, k)) @ jf - (v.T * (self.radial / f**3)) @ v
+            g_mat, h_vec, pen = g_con, -c, np.full(c.size, self.penalty)
+        return hess, grad, g_mat, h_vec, pen, -h_vec
+
+    def _optimize(self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, int, bool, str]:
+        T, m = self.horizon, self.m
+        u = u0.copy()
+        xs = self.rollout(x0, u)
+        merit, r, c = self._merit(xs, task)
+        if not np.isfinite(merit):
+            raise FloatingPointError("the warm start's prediction is not finite")
+        rho = self._rho
+        msg, converged = "max_iter", False
+        it = 0
+        for it in range(1, self.max_iter + 1):  # noqa: B007
+            _, a, b = self.dyn.step_jac(xs[:-1], u)
+            sens = self._sensitivities(a, b)
+            hess, grad, g_mat, h_vec, pen, row0 = self._subproblem(sens, r, c, task)
+            lo, hi = self._u_lo - u.reshape(-1), self._u_hi - u.reshape(-1)
+            scale = max(float(np.trace(hess)) / hess.shape[0], self._scale_floor)
+            rows0 = float(pen @ np.maximum(row0, 0.0))
+            accepted = False
+            while True:
+                qp = solve_qp(hess + (rho * scale) * self._eye, grad, lo, hi, g_mat, h_vec, pen)
+                d = qp.d
+                pred = -(grad @ d + 0.5 * d @ hess @ d) + rows0 - float(pen @ np.maximum(g_mat @ d - h_vec, 0.0))
+                if pred <= self.tol * (1.0 + abs(merit)) or np.abs(d).max() <= 1e-9 * (1.0 + np.abs(u).max()):
+                    converged, msg = True, "converged"
+                    break
+                alpha = 1.0
+                while alpha >= 1.0 / 16.0:
+                    u_new = u + alpha * d.reshape(T, m)
+                    xs_new = self.rollout(x0, u_new)
+                    merit_new, r_new, c_new = self._merit(xs_new, task)
+                    if merit_new <= merit - 1e-4 * alpha * pred:
+                        accepted = True
+                        break
+                    alpha *= 0.5
+                if accepted:
+                    ratio = (merit - merit_new) / pred
+                    if alpha == 1.0 and ratio > 0.75:
+                        rho = max(rho / 4.0, 1e-9)
+                    elif alpha < 1.0 or ratio < 0.25:
+                        rho *= 2.0
+                    break
+                rho *= 10.0
+                if rho > 1e8:
+                    msg = "line search failed"
+                    break
+            if not accepted:
+                break
+            u, xs, merit, r, c = u_new, xs_new, merit_new, r_new, c_new
+        self._rho = rho
+        return u, it, converged, msg
+
+    def reset(self) -> None:
+        super().reset()
+        self._rho = self.rho0
+
+
+class SLSQPShootingMPC(ShootingMPC):
+    """The paper's reference: scipy SLSQP over the flattened controls, single shooting through the model,
+    gradients by scipy's default 2-point finite differences, the exact (non-smooth) objective.
+
+    Rollouts are memoised (LRU) so the objective and the constraints never roll out the same U twice.
+
+    Args (beyond :class:`ShootingMPC`'s): ``max_iter`` (SLSQP ``maxiter``), ``ftol`` (SLSQP ``ftol``).
+    """
+
+    def __init__(
+        self,
+        system: System,
+        model: DynamicsModel | None = None,
+        horizon: int = 10,
+        max_iter: int = 100,
+        ftol: float = 1e-6,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(system, model, horizon, **kwargs)
+        self.max_iter, self.ftol = max_iter, ftol
+
+    def _optimize(self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, int, bool, str]:
+        T, m = self.horizon, self.m
+        cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
+
+        def traj(flat: np.ndarray) -> np.ndarray:
+            key = flat.tobytes()
+            xs = cache.get(key)
+            if xs is None:
+                xs = self.rollout(x0, flat.reshape(T, m))
+                cache[key] = xs
+                if len(cache) > 4 * T * m + 8:
+                    cache.popitem(last=False)
+            return xs
+
+        constraints = []
+        if task.n_cons:
+            constraints.append({"type": "ineq", "fun": lambda f: -task.violations(traj(f))})
+        res = scipy.optimize.minimize(
+            lambda f: task.cost(traj(f)),
+            u0.reshape(-1),
+            method="SLSQP",
+            bounds=scipy.optimize.Bounds(self._u_lo, self._u_hi),
+            constraints=constraints,
+            options={"maxiter": self.max_iter, "ftol": self.ftol},
+        )
+        return res.x.reshape(T, m), int(res.nit), bool(res.success), str(res.message)

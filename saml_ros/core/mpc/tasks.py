@@ -1,0 +1,118 @@
+"""The paper's time-stepped MPC problems as data (double integrator with friction, quadrotor landing).
+
+Both are single-shooting problems over the controls ``U = (u_0, ..., u_{T-1})`` of the form
+
+    min_U  sum_{t=1..T} || x_t[res_idx] - target ||_2
+    s.t.   u_low <= u_t <= u_high                       (t = 0..T-1)
+           sign_i * x_{t_i}[idx_i] <= bound_i           (state constraints, one scalar each)
+           x_{t+1} = f_hat(x_t, u_t) + phi(x_t, u_t),  x_0 = current state
+
+The current state x_0 is not in the sum (no control can change it). See ``docs/mpc.md`` for how this maps
+onto the paper's equations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from saml_ros.core.systems.base import System
+from saml_ros.core.systems.friction import FrictionDoubleIntegrator
+from saml_ros.core.systems.quadrotor import Quadrotor
+
+
+@dataclass(frozen=True)
+class ShootingTask:
+    """One time-stepped MPC problem (see the module docstring); arrays are float64 unless stated."""
+
+    name: str
+    horizon: int
+    u_low: np.ndarray  #: (m,)
+    u_high: np.ndarray  #: (m,)
+    res_idx: np.ndarray  #: (k,) int, state indices entering the stage cost
+    target: np.ndarray  #: (k,) the goal of those indices
+    u_default: np.ndarray  #: (m,) cold-start guess, tail fill of the shifted warm start, last-resort control
+    cons_t: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) time index in 1..T
+    cons_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) state index
+    cons_sign: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: (nc,) +1 (upper) or -1 (lower bound)
+    cons_bound: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: (nc,)
+    cons_name: tuple[str, ...] = ()  #: (nc,) for messages
+
+    @property
+    def n_cons(self) -> int:
+        return int(self.cons_t.size)
+
+    def with_target(self, target: np.ndarray) -> ShootingTask:
+        target = np.asarray(target, dtype=np.float64).reshape(-1)
+        if target.shape != self.target.shape or not np.all(np.isfinite(target)):
+            raise ValueError(f"{self.name}: goal must be {self.target.size} finite number(s), got {target!r}")
+        return replace(self, target=target)
+
+    def stage_costs(self, xs: np.ndarray) -> np.ndarray:
+        """``||x[res_idx] - target||_2`` for each row of ``xs`` ``(N, n)`` -> ``(N,)``."""
+        r = xs[:, self.res_idx] - self.target
+        return np.sqrt(np.einsum("ij,ij->i", r, r))
+
+    def cost(self, xs: np.ndarray) -> float:
+        """The exact objective of a predicted trajectory ``xs`` ``(T+1, n)`` (x_0 excluded)."""
+        return float(self.stage_costs(xs[1:]).sum())
+
+    def violations(self, xs: np.ndarray) -> np.ndarray:
+        """``sign * x_t[idx] - bound`` per state constraint (> 0 = violated); ``(T+1, n) -> (nc,)``."""
+        return self.cons_sign * xs[self.cons_t, self.cons_idx] - self.cons_bound
+
+
+def friction_task(system: FrictionDoubleIntegrator, horizon: int = 10) -> ShootingTask:
+    """Paper eq. double_integrator_mpc: ``min sum |p_t - p_goal|  s.t. |u_t| <= u_max`` (goal: position, m)."""
+    return ShootingTask(
+        name="friction",
+        horizon=horizon,
+        u_low=system.control_low.astype(np.float64),
+        u_high=system.control_high.astype(np.float64),
+        res_idx=np.array([system.state.index("p")]),
+        target=np.zeros(1),
+        u_default=np.zeros(1),
+    )
+
+
+def quadrotor_task(
+    system: Quadrotor, horizon: int = 10, min_height: float = 0.2, qw_tol: float = 0.05
+) -> ShootingTask:
+    """Paper eq. quad3d_mpc: ``min sum ||p_t - p_goal||_2  s.t. 0 <= u <= f_max, pz_t >= min_height (all t),
+    |qw_T - 1| <= qw_tol`` (only ``qw_T >= 1 - qw_tol`` can bind: a unit quaternion has ``qw <= 1``)."""
+    if not 0.0 < qw_tol < 1.0:
+        raise ValueError(f"quadrotor MPC: qw_tol must be in (0, 1), got {qw_tol}")
+    t = np.arange(1, horizon + 1)
+    iz, iqw = system.state.index("pz"), system.state.index("qw")
+    return ShootingTask(
+        name="quadrotor",
+        horizon=horizon,
+        u_low=system.control_low.astype(np.float64),
+        u_high=system.control_high.astype(np.float64),
+        res_idx=np.array([system.state.index(n) for n in ("px", "py", "pz")]),
+        target=np.zeros(3),
+        u_default=system.hover_thrust(),
+        cons_t=np.concatenate((t, [horizon])),
+        cons_idx=np.concatenate((np.full(horizon, iz), [iqw])),
+        cons_sign=np.full(horizon + 1, -1.0),
+        cons_bound=np.concatenate((np.full(horizon, -min_height), [-(1.0 - qw_tol)])),
+        cons_name=tuple([f"height x_{i}" for i in t] + [f"attitude qw_{horizon}"]),
+    )
+
+
+def make_task(system: System, horizon: int = 10, **options: Any) -> ShootingTask:
+    """The paper's MPC problem for a time-stepped ``system`` (friction or quadrotor)."""
+    if horizon < 1:
+        raise ValueError(f"horizon must be >= 1, got {horizon}")
+    if isinstance(system, FrictionDoubleIntegrator):
+        if options:
+            raise TypeError(f"friction MPC has no option(s) {sorted(options)}")
+        return friction_task(system, horizon)
+    if isinstance(system, Quadrotor):
+        unknown = set(options) - {"min_height", "qw_tol"}
+        if unknown:
+            raise TypeError(f"quadrotor MPC has no option(s) {sorted(unknown)}; valid: min_height, qw_tol")
+        return quadrotor_task(system, horizon, **options)
+    raise ValueError(f"no shooting MPC task for system {system.name!r}")

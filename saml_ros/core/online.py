@@ -1,0 +1,503 @@
+"""Online Sufficiently Accurate model learning, ROS-free: ingest -> replay buffer -> primal-dual updates.
+
+:class:`OnlineLearner` owns everything the learner node does except ROS:
+
+* one :class:`~saml_ros.core.pairing.StampPairer` per source (robot / namespace), fed ``(kind, stamp, vector)``
+  events by :meth:`OnlineLearner.ingest`; paired transitions go into one shared
+  :class:`~saml_ros.core.buffer.ReplayBuffer` and into a small window of the most recent transitions;
+* the model and the :class:`~saml_ros.core.trainer.PrimalDualTrainer`, created once ``min_transitions``
+  transitions have arrived: the input/output normalisation is fitted on exactly those transitions and then
+  frozen (it is part of the model, so it is checkpointed and restored with it);
+* the update loop (:meth:`update`: ``n`` primal-dual steps on minibatches sampled from the buffer);
+* live telemetry (:meth:`compute_model_metrics`, :meth:`telemetry`): the one-step error of the *current*
+  model on the most recent transitions inside / outside each constraint region, the objective, constraint
+  estimates and Lagrangian (means over the minibatches since the previous telemetry), lambda, buffer size,
+  update count and rejection counters, named as :func:`msg_schemas.telemetry.model_error_names`;
+* periodic checkpoints (:meth:`save_checkpoint`, via :func:`saml_ros.core.model_io.save_checkpoint`) and
+  resume from the newest *valid* checkpoint of a run directory (weights, normalisation, lambda, optimizer
+  states, update count).
+
+Threads: one thread may call :meth:`ingest` (per source) while another calls :meth:`update`,
+:meth:`compute_model_metrics` and :meth:`save_checkpoint`; :meth:`telemetry` is cheap and may be called from
+any thread. The model is guarded by one lock; the buffer and the recent window have their own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from msg_schemas.telemetry import REJECT_REASONS, model_error_names
+from saml_ros.core.buffer import Policy, ReplayBuffer
+from saml_ros.core.checkpoint import CheckpointError, CheckpointStore, read_checkpoint
+from saml_ros.core.model_io import MODEL_KIND, LoadedModel, model_from_payload, save_checkpoint
+from saml_ros.core.models import MODEL_KINDS, DynamicsModel
+from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
+from saml_ros.core.spec import ProblemSpec
+from saml_ros.core.systems.base import System
+from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
+
+log = logging.getLogger("saml_ros.online")
+
+#: extra ``learner/model_error`` values appended after the canonical names
+EXTRA_METRICS: tuple[tuple[str, str, str], ...] = (
+    ("paired", "count", "transitions paired so far (all sources)"),
+    ("window", "count", "recent transitions the live errors are computed on"),
+    ("error_all", "loss", "live one-step error of the current model on the recent window (the objective's loss)"),
+    ("training", "1", "1 while primal-dual updates run, 0 while waiting for min_transitions"),
+)
+#: extra per-constraint values (``<name>/<k>``)
+EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
+    ("n_in", "count", "recent transitions inside region k (error_in is NaN when 0)"),
+)
+#: history rows the trainer keeps in memory (older rows are dropped; online training never ends)
+HISTORY_ROWS = 1000
+
+
+class ResumeError(RuntimeError):
+    """The run directory holds checkpoints that contradict the configuration (another system, another
+    architecture, other constraints): resuming would silently mix two runs."""
+
+
+@dataclass
+class OnlineConfig:
+    """Configuration of an :class:`OnlineLearner`.
+
+    Attributes:
+        kind: ``"residual"`` (f_hat + phi) or ``"full"`` (phi only).
+        hidden: hidden layer sizes; ``None`` = the system's ``paper_hidden``.
+        train: primal-dual hyper-parameters (``epochs`` is not used online).
+        buffer_capacity: replay buffer rows (>= min_transitions).
+        buffer_policy: ``"fifo"`` or ``"reservoir"`` (see docs/buffer.md).
+        min_transitions: transitions needed before training starts (normalisation is fitted on the first
+            ``min_transitions``); training also pauses while the buffer holds fewer (e.g. right after a resume).
+        telemetry_window: most recent transitions the live model error is computed on.
+        checkpoint_keep: checkpoint files kept in the run directory (older ones are pruned).
+    """
+
+    kind: str = "residual"
+    hidden: tuple[int, ...] | None = None
+    train: TrainConfig = field(default_factory=TrainConfig)
+    buffer_capacity: int = 100_000
+    buffer_policy: str = "fifo"
+    min_transitions: int = 1000
+    telemetry_window: int = 1000
+    checkpoint_keep: int = 5
+
+    def __post_init__(self) -> None:
+        if self.kind not in MODEL_KINDS:
+            raise ValueError(f"model kind must be one of {list(MODEL_KINDS)}, got {self.kind!r}")
+        if self.hidden is not None:
+            self.hidden = tuple(int(h) for h in self.hidden)
+            if any(h < 1 for h in self.hidden):
+                raise ValueError(f"hidden layer sizes must be >= 1, got {list(self.hidden)}")
+        if self.min_transitions < 2:
+            raise ValueError(f"min_transitions must be >= 2 (normalisation needs a spread), got {self.min_transitions}")
+        if self.buffer_capacity < self.min_transitions:
+            raise ValueError(
+                f"buffer capacity ({self.buffer_capacity}) must be >= min_transitions ({self.min_transitions})"
+            )
+        if self.buffer_policy not in ("fifo", "reservoir"):
+            raise ValueError(f"buffer policy must be 'fifo' or 'reservoir', got {self.buffer_policy!r}")
+        if self.telemetry_window < 1 or self.checkpoint_keep < 1:
+            raise ValueError("telemetry_window and checkpoint_keep must be >= 1")
+
+
+@dataclass
+class ResumeInfo:
+    """What :class:`OnlineLearner` resumed from.
+
+    Attributes:
+        path, version: the checkpoint loaded.
+        updates: its update count.
+        lam: its lambda, ``(K,)``.
+        skipped: ``(path, reason)`` of newer checkpoints that were unreadable or inconsistent.
+    """
+
+    path: Path
+    version: int
+    updates: int
+    lam: list[float]
+    skipped: list[tuple[Path, str]]
+
+
+class _Recent:
+    """Ring of the ``size`` most recent transitions (thread-safe)."""
+
+    def __init__(self, size: int, n_x: int, n_u: int, n_y: int) -> None:
+        self._rows = np.zeros((size, n_x + n_u + n_y))
+        self._split = (n_x, n_x + n_u)
+        self._n = 0
+        self._lock = threading.Lock()
+
+    def add(self, x: np.ndarray, u: np.ndarray, y: np.ndarray) -> None:
+        with self._lock:
+            row = self._rows[self._n % len(self._rows)]
+            a, b = self._split
+            row[:a], row[a:b], row[b:] = x, u, y
+            self._n += 1
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with self._lock:
+            rows = self._rows[: min(self._n, len(self._rows))].copy()
+        a, b = self._split
+        return rows[:, :a], rows[:, a:b], rows[:, b:]
+
+
+class OnlineLearner:
+    """Online primal-dual learning of one system's dynamics model from paired transitions.
+
+    Args:
+        system: the system (its layouts, base model f_hat and dt).
+        spec: the Sufficiently Accurate problem.
+        config: see :class:`OnlineConfig`.
+        store: run directory for checkpoints (``None``: no checkpoints).
+        resume: load the newest valid checkpoint of ``store`` (if any) at construction.
+        clock: time source for checkpoint periods (seconds); ``time.monotonic`` by default.
+
+    Raises:
+        ResumeError: ``resume`` found a checkpoint of another system or with another architecture /
+            constraint set.
+    """
+
+    def __init__(
+        self,
+        system: System,
+        spec: ProblemSpec,
+        config: OnlineConfig | None = None,
+        *,
+        store: CheckpointStore | None = None,
+        resume: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.system, self.spec = system, spec
+        self.config = cfg = config or OnlineConfig()
+        self.store = store
+        self._clock = clock
+        n_x, n_u, n_y = system.state.size, system.control.size, system.target.size
+        policy: Policy = "reservoir" if cfg.buffer_policy == "reservoir" else "fifo"
+        self.buffer = ReplayBuffer(cfg.buffer_capacity, n_x, n_u, n_y, policy, seed=cfg.train.seed)
+        self.model = DynamicsModel(system, cfg.hidden, cfg.kind, n_models=1, seed=cfg.train.seed)
+        self.model.to(cfg.train.torch_dtype)
+        self.trainer: PrimalDualTrainer | None = None
+        self._recent = _Recent(cfg.telemetry_window, n_x, n_u, n_y)
+        self._sources: list[StampPairer] = []
+        self._lock = threading.RLock()
+        self._rng = np.random.default_rng(cfg.train.seed)
+        self._acc_n = 0
+        self._acc_obj = 0.0
+        self._acc_con = np.zeros(spec.n_constraints)
+        self._last_obj = math.nan
+        self._last_con = np.full(spec.n_constraints, math.nan)
+        self.model_version = 0
+        self._saved_updates: int | None = None
+        self._saved_at = clock()
+        self.checkpoints_written = 0
+        self.checkpoints_skipped = 0
+        self.resumed: ResumeInfo | None = None
+        self._metrics: dict[str, float] = {}
+        if store is not None and resume:
+            self._resume(store)
+        self.compute_model_metrics()
+
+    # ------------------------------------------------------------------------------------------ sources
+    def add_source(self, name: str, pairing: PairingConfig) -> int:
+        """Register a source (robot / namespace) with its pairing rule; returns its index."""
+        p = StampPairer(pairing, source=len(self._sources), name=name)
+        for reason in REJECT_REASONS:
+            p.counts.setdefault(reason, 0)
+        self._sources.append(p)
+        return p.source
+
+    @property
+    def sources(self) -> list[StampPairer]:
+        return list(self._sources)
+
+    def ingest(self, source: int, kind: str, stamp_ns: int, vector: Any) -> AddResult:
+        """Feed one event of ``source`` (see :meth:`StampPairer.add`); completed transitions are added."""
+        res = self._sources[source].add(kind, stamp_ns, vector)
+        for tr in res.transitions:
+            self.add(tr)
+        return res
+
+    def reject(self, source: int, reason: str) -> None:
+        """Count a message of ``source`` dropped before pairing (``reason``: a SchemaError reason)."""
+        self._sources[source].reject(reason)
+
+    def add(self, tr: Transition) -> None:
+        """Add one paired transition to the buffer and the recent window."""
+        self.buffer.add(tr.x, tr.u, tr.y, stamp=tr.stamp_ns * 1e-9, source=tr.source)
+        self._recent.add(tr.x, tr.u, tr.y)
+
+    def counts(self) -> dict[str, int]:
+        """All sources' pairing and rejection counters, summed."""
+        return total_counts(dict(list(p.counts.items())) for p in self._sources)
+
+    # ------------------------------------------------------------------------------------------ training
+    @property
+    def updates(self) -> int:
+        """Primal-dual updates so far (including those of the checkpoint resumed from)."""
+        tr = self.trainer
+        return 0 if tr is None else tr.steps
+
+    @property
+    def training(self) -> bool:
+        """True when :meth:`update` would take steps now."""
+        if self.trainer is None:
+            return self.buffer.total_added >= self.config.min_transitions
+        return len(self.buffer) >= self.config.min_transitions
+
+    @property
+    def lam(self) -> np.ndarray:
+        """Current lambda ``(K,)`` (zeros before training starts)."""
+        tr = self.trainer
+        return np.zeros(self.spec.n_constraints) if tr is None else tr.lam[0].double().numpy().copy()
+
+    def update(self, n_steps: int) -> int:
+        """Run up to ``n_steps`` primal-dual updates; returns how many ran (0 while waiting for data).
+
+        The first call after ``min_transitions`` transitions arrived fits the normalisation on them and
+        creates the trainer.
+        """
+        if n_steps <= 0 or not self.training:
+            return 0
+        with self._lock:
+            if self.trainer is None:
+                self._start_training()
+            tr = self.trainer
+            assert tr is not None
+            bsz, dt = self.config.train.batch_size, self.config.train.torch_dtype
+            for _ in range(n_steps):
+                xb, ub, yb = self.buffer.sample(bsz, self._rng)
+                vals = tr.step(torch.from_numpy(xb).to(dt), torch.from_numpy(ub).to(dt), torch.from_numpy(yb).to(dt))
+                self._acc_n += 1
+                self._acc_obj += float(vals.objective[0])
+                if self.spec.n_constraints:
+                    self._acc_con += vals.constraints[0].double().numpy()
+                if tr.steps % 100 == 0:
+                    tr.log_point()
+                    _trim_history(tr)
+            return n_steps
+
+    def _start_training(self) -> None:
+        m = self.config.min_transitions
+        rows = self.buffer.arrays()  # oldest first: the first min_transitions ever added (capacity >= m)
+        self.model.fit_normalization(rows.x[:m], rows.u[:m], rows.y[:m])
+        self.trainer = PrimalDualTrainer(self.model, self.spec, self.config.train)
+        log.info("training started: normalisation fitted on the first %d transitions and frozen", m)
+
+    # ------------------------------------------------------------------------------------------ telemetry
+    def compute_model_metrics(self) -> dict[str, float]:
+        """Evaluate the current model on the recent window and summarise training since the last call.
+
+        Heavier than :meth:`telemetry` (one forward pass over the window): call it at the telemetry rate
+        from the thread that trains. Returns (and caches for :meth:`telemetry`) the model part of the metrics.
+        """
+        x, u, y = self._recent.arrays()
+        out: dict[str, float] = {}
+        with self._lock:
+            if self._acc_n:
+                self._last_obj = self._acc_obj / self._acc_n
+                self._last_con = self._acc_con / self._acc_n
+                self._acc_n, self._acc_obj = 0, 0.0
+                self._acc_con = np.zeros(self.spec.n_constraints)
+            lam = self.lam
+            errs: dict[str, dict[str, torch.Tensor]] = {}
+            err_all = math.nan
+            if len(x):
+                with torch.no_grad():
+                    xt, ut, yt = (torch.from_numpy(a) for a in (x, u, y))
+                    dt = self.model.in_mean.dtype
+                    pred = self.model(xt.to(dt), ut.to(dt)).double()
+                    errs = self.spec.region_errors(xt, ut, yt, pred)
+                    err_all = float(self.spec.objective.per_sample(pred, yt).mean())
+            updates, version = self.updates, self.model_version
+        out["objective"] = self._last_obj
+        out["lagrangian"] = self._last_obj + float(np.sum(lam * self._last_con)) if self.spec.n_constraints else (
+            self._last_obj
+        )
+        out["updates"] = float(updates)
+        out["model_version"] = float(version)
+        for k, name in enumerate(self.spec.constraint_names):
+            e = errs.get(name)
+            out[f"constraint/{name}"] = float(self._last_con[k])
+            out[f"lambda/{name}"] = float(lam[k])
+            out[f"error_in/{name}"] = float(e["in"][0]) if e else math.nan
+            out[f"error_out/{name}"] = float(e["out"][0]) if e else math.nan
+            out[f"n_in/{name}"] = float(e["n_in"][0]) if e else 0.0
+        out["window"] = float(len(x))
+        out["error_all"] = err_all
+        self._metrics = out
+        return dict(out)
+
+    def telemetry(self) -> dict[str, float]:
+        """The full ``learner/model_error`` values: canonical names first (``model_error_names``), then
+        :data:`EXTRA_METRICS` and ``n_in/<k>``. Model values come from the last :meth:`compute_model_metrics`;
+        counters, buffer size and update count are live."""
+        names = self.spec.constraint_names
+        m = self._metrics
+        counts = self.counts()
+        live = {
+            "buffer_size": float(len(self.buffer)),
+            "updates": float(self.updates),
+            "model_version": float(self.model_version),
+            "paired": float(counts.get("paired", 0)),
+            "training": 1.0 if self.training else 0.0,
+        }
+        out: dict[str, float] = {}
+        for n in model_error_names(names):
+            if n in live:
+                out[n] = live[n]
+            elif n.startswith("rejected/"):
+                out[n] = float(counts.get(n.removeprefix("rejected/"), 0))
+            else:
+                out[n] = m.get(n, math.nan)
+        for n, _, _ in EXTRA_METRICS:
+            out[n] = live[n] if n in live else m.get(n, math.nan)
+        for c in names:
+            out[f"n_in/{c}"] = m.get(f"n_in/{c}", 0.0)
+        return out
+
+    # ------------------------------------------------------------------------------------------ checkpoints
+    @property
+    def dirty(self) -> bool:
+        """True when the trainer has updates not yet in a checkpoint."""
+        return self.trainer is not None and self.updates != self._saved_updates
+
+    def checkpoint_due(self, period_s: float) -> bool:
+        """True when ``period_s`` seconds passed since the last save (or start) and there is something new."""
+        return self.dirty and self._clock() - self._saved_at >= period_s
+
+    def save_checkpoint(self, extra: Mapping[str, Any] | None = None) -> tuple[Path, int] | None:
+        """Write the next checkpoint into the store (``None`` if no store or no trainer yet).
+
+        Raises:
+            OSError: the run directory is not writable (the caller logs and retries later).
+        """
+        if self.store is None or self.trainer is None:
+            return None
+        with self._lock:
+            counts = self.counts()
+            info = {
+                "paired": counts.get("paired", 0),
+                "sources": [p.name for p in self._sources],
+                "min_transitions": self.config.min_transitions,
+                "buffer_size": len(self.buffer),
+                **dict(extra or {}),
+            }
+            metrics = {k: v for k, v in self._metrics.items() if isinstance(v, float)}
+            path, version = save_checkpoint(self.store, self.trainer, metrics, {"learner": info})
+            self.model_version = version
+            self._saved_updates = self.trainer.steps
+            self._saved_at = self._clock()
+            self.checkpoints_written += 1
+            return path, version
+
+    def _resume(self, store: CheckpointStore) -> None:
+        """Load the newest valid checkpoint of ``store`` (see the class docstring)."""
+        skipped: list[tuple[Path, str]] = []
+        try:
+            first = store.load_latest_valid()
+        except CheckpointError as exc:  # files exist, none readable
+            versions = store.versions()
+            self.checkpoints_skipped += len(versions)
+            log.error("resume: no readable checkpoint in %s, starting from scratch (%s)", store.run_dir, exc)
+            return
+        if first is None:
+            log.info("resume: no checkpoint in %s yet, starting from scratch", store.run_dir)
+            return
+        skipped.extend(first.skipped)
+        candidates: list[tuple[Path, int, dict[str, np.ndarray] | None, dict[str, Any] | None]] = [
+            (first.path, first.version, first.arrays, first.meta)
+        ]
+        candidates += [(store.path_for(v), v, None, None) for v in reversed(store.versions()) if v < first.version]
+        for path, version, arrays, meta in candidates:
+            if arrays is None or meta is None:
+                try:
+                    arrays, meta = read_checkpoint(path)
+                except CheckpointError as exc:
+                    skipped.append((path, str(exc)))
+                    continue
+            try:
+                loaded = self._check_and_rebuild(arrays, meta, path)
+                trainer = self._make_trainer(loaded)
+            except ResumeError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - CheckpointError, or torch refusing inconsistent states
+                skipped.append((path, str(exc) if isinstance(exc, CheckpointError) else f"{path}: {exc}"))
+                continue
+            self._adopt(trainer, path, version, skipped)
+            return
+        self.checkpoints_skipped += len(skipped)
+        log.error("resume: no usable checkpoint in %s, starting from scratch: %s", store.run_dir,
+                  "; ".join(r for _, r in skipped))
+
+    def _check_and_rebuild(self, arrays: dict[str, np.ndarray], meta: dict[str, Any], path: Path) -> LoadedModel:
+        sysname = meta.get("system")
+        if meta.get("kind") == MODEL_KIND and (
+            sysname != self.system.name or meta.get("schema_hash") != self.system.schema_hash()
+        ):
+            raise ResumeError(
+                f"{path} is a checkpoint of system {sysname!r} (schema {meta.get('schema_hash')}), but this learner "
+                f"trains {self.system.name!r} (schema {self.system.schema_hash()}): use another run_dir or resume:=false"
+            )
+        loaded = model_from_payload(arrays, meta, expect=self.system, path=path)
+        arch = loaded.model.architecture()
+        want = self.model.architecture()
+        diffs = [f"{k}: checkpoint {arch[k]!r}, configured {want[k]!r}" for k in ("kind", "hidden", "n_models")
+                 if arch[k] != want[k]]
+        if loaded.spec.constraint_names != self.spec.constraint_names:
+            diffs.append(
+                f"constraints: checkpoint {loaded.spec.constraint_names}, configured {self.spec.constraint_names}"
+            )
+        if diffs:
+            raise ResumeError(
+                f"{path} does not match the configured learner ({'; '.join(diffs)}): use another run_dir, "
+                "resume:=false, or the checkpoint's settings"
+            )
+        if loaded.spec.to_dict() != self.spec.to_dict():
+            log.warning("resume: %s was trained with another spec (same constraints %s); continuing with the "
+                        "configured spec and the checkpoint's lambda", path, self.spec.constraint_names)
+        return loaded
+
+    def _make_trainer(self, loaded: LoadedModel) -> PrimalDualTrainer:
+        cfg = self.config.train
+        trainer = dataclasses.replace(loaded, spec=self.spec).trainer(cfg)
+        # torch optimizers restore the learning rate saved with their state: the configured one wins
+        for opt, lr in ((trainer.primal_opt, cfg.primal_lr), (trainer.dual_opt, cfg.dual_lr)):
+            for group in opt.param_groups:
+                group["lr"] = lr
+        return trainer
+
+    def _adopt(self, trainer: PrimalDualTrainer, path: Path, version: int, skipped: list[tuple[Path, str]]) -> None:
+        cfg = self.config.train
+        self.model = trainer.model
+        self.model.train()
+        self.trainer = trainer
+        self.model_version = version
+        self._saved_updates = trainer.steps
+        self._rng = np.random.default_rng([cfg.seed, version])  # a fresh minibatch sequence per resume
+        self.checkpoints_skipped += len(skipped)
+        self.resumed = ResumeInfo(path, version, trainer.steps, self.lam.tolist(), list(skipped))
+        for p, why in skipped:
+            log.warning("resume: skipped %s: %s", p, why)
+        log.info("resume: loaded %s (version %d, %d updates, lambda %s)", path, version, trainer.steps,
+                 self.lam.tolist())
+
+
+def _trim_history(tr: PrimalDualTrainer) -> None:
+    h = tr.history
+    extra = len(h.step) - HISTORY_ROWS
+    if extra > 0:
+        for name in ("step", "epoch", "objective", "constraints", "lambdas", "lagrangian", "wall_time"):
+            del getattr(h, name)[:extra]

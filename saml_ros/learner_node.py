@@ -1,0 +1,535 @@
+"""Online learner node (``ros2 run saml_ros learner``): pairs simulator / robot data and trains the model live.
+
+A thin rclpy wrapper over :class:`saml_ros.core.online.OnlineLearner` (see docs/learner.md):
+
+* subscribes, per namespace in ``namespaces``, to ``state``, ``applied_cmd`` (and ``post_impact`` for the
+  paddle ball) with ``DATA_QOS`` in one callback group; each message is decoded by ``msg_schemas`` and fed
+  to the namespace's stamp pairer; malformed / duplicate / out-of-order / late messages are counted under
+  ``rejected/<reason>`` and logged (throttled per reason), never paired;
+* trains on a separate thread (primal-dual steps on minibatches of the shared replay buffer), which also
+  computes the live model error and writes checkpoints every ``checkpoint_period`` seconds;
+* publishes ``learner/model_error`` (sensor_msgs/JointState, names -> values) at ``telemetry_rate``,
+  ``learner/checkpoint`` (std_msgs/String JSON, transient local) after every checkpoint and ``/diagnostics``;
+* on SIGINT / SIGTERM writes a final checkpoint and exits 0. Configuration errors (unknown system, bad spec,
+  bad parameter, a run directory of another system) are logged and exit with status 2.
+
+Usage::
+
+    ros2 run saml_ros learner --ros-args -r __ns:=/friction -p system:=friction \\
+        --params-file config/learner.yaml
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+#: exit status for configuration errors (the node never starts)
+CONFIG_ERROR = 2
+NODE_NAME = "learner"
+
+#: ``train.*`` parameters: TrainConfig field -> description (``epochs`` is an offline-only field)
+TRAIN_PARAM_DOCS: dict[str, str] = {
+    "batch_size": "minibatch size M sampled from the replay buffer per update",
+    "primal_lr": "learning rate alpha_theta of the model parameters",
+    "dual_lr": "learning rate alpha_lambda of the dual variables (ascent on the constraint estimates)",
+    "primal_optimizer": "'adam' (the paper) or 'sgd'",
+    "dual_optimizer": "'adam' (the paper) or 'sgd'",
+    "log_every": "updates between training-history rows kept in memory (0 = 100)",
+    "seed": "seed of the model initialisation and the minibatch sampling",
+    "dtype": "'float32' or 'float64' for the model and the minibatches",
+    "engine": "offline training engine (not used by the online step loop)",
+}
+
+
+class ConfigError(Exception):
+    """An unrecoverable configuration problem; the message says which parameter and why."""
+
+
+@dataclass
+class LearnerParams:
+    """The node's parameters after validation (units in the names' descriptions, docs/learner.md)."""
+
+    system: str
+    namespaces: list[str]
+    spec_file: str
+    model_kind: str
+    model_hidden: list[int]
+    train: dict[str, Any]
+    buffer_capacity: int
+    buffer_policy: str
+    min_transitions: int
+    updates_per_second: float
+    checkpoint_period: float
+    checkpoint_keep: int
+    run_dir: str
+    resume: bool
+    telemetry_rate: float
+    telemetry_window: int
+    diagnostics_rate: float
+    dt: float
+    pairing_horizon: float
+    pairing_tolerance: float
+
+
+def normalize_namespace(ns: str) -> str:
+    """``"friction"`` / ``"/friction/"`` -> ``"/friction"``; ``""`` / ``"/"`` -> ``"/"``."""
+    ns = "/" + ns.strip().strip("/")
+    return ns
+
+
+def topic_in(ns: str, name: str) -> str:
+    """Absolute topic ``name`` inside namespace ``ns``."""
+    return f"/{name}" if ns == "/" else f"{ns}/{name}"
+
+
+class _Throttle:
+    """Per-key log throttling: the first event of each key is logged at once, later ones at most every
+    ``period`` seconds with the number suppressed in between."""
+
+    def __init__(self, log: Callable[[str], Any], period: float = 5.0) -> None:
+        self._log, self._period = log, period
+        self._state: dict[str, tuple[float, int]] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        with self._lock:
+            last, suppressed = self._state.get(key, (-math.inf, 0))
+            if now - last < self._period:
+                self._state[key] = (last, suppressed + 1)
+                return
+            self._state[key] = (now, 0)
+        more = f" ({suppressed} more '{key}' since the last report)" if suppressed else ""
+        self._log(f"rejected/{key}: {message}{more}")
+
+
+class _ForwardToRos(logging.Handler):
+    """Forward Python ``logging`` records of ``saml_ros.*`` to the node's rclpy logger."""
+
+    def __init__(self, logger: Any) -> None:
+        super().__init__()
+        self._logger = logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        msg = self.format(record)
+        if record.levelno >= logging.ERROR:
+            self._logger.error(msg)
+        elif record.levelno >= logging.WARNING:
+            self._logger.warning(msg)
+        else:
+            self._logger.info(msg)
+
+
+def _build_node_class() -> type:
+    """The node class (built on demand so this module imports without rclpy for docs and tests)."""
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    import msg_schemas.telemetry as tele
+    from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, SchemaError, get_schema
+    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.online import OnlineConfig, OnlineLearner, ResumeError
+    from saml_ros.core.pairing import PairingConfig
+    from saml_ros.core.spec import ProblemSpec, SpecError
+    from saml_ros.core.systems import get_system
+    from saml_ros.core.trainer import TrainConfig
+
+    # rcl_interfaces ships no type information; through importlib it is simply Any
+    ParameterDescriptor = importlib.import_module("rcl_interfaces.msg").ParameterDescriptor
+
+    class LearnerNode(Node):
+        """The learner; raises :class:`ConfigError` from the constructor on bad configuration."""
+
+        def __init__(self, namespace: str | None) -> None:
+            super().__init__(NODE_NAME, namespace=namespace)
+            self._log_handler = _ForwardToRos(self.get_logger())
+            logging.getLogger("saml_ros").addHandler(self._log_handler)
+            logging.getLogger("saml_ros").setLevel(logging.INFO)
+            self.p = p = self._read_parameters()
+            try:
+                self.system = get_system(p.system, **({"dt": p.dt} if p.dt > 0 else {}))
+                self.schema = get_schema(p.system)
+            except (ValueError, TypeError) as exc:
+                raise ConfigError(f"parameter 'system' / 'dt': {exc}") from None
+            self.spec = self._load_spec(p)
+            try:
+                train = TrainConfig.from_dict(p.train)
+                config = OnlineConfig(
+                    kind=p.model_kind, hidden=tuple(p.model_hidden) or None, train=train,
+                    buffer_capacity=p.buffer_capacity, buffer_policy=p.buffer_policy,
+                    min_transitions=p.min_transitions, telemetry_window=p.telemetry_window,
+                    checkpoint_keep=p.checkpoint_keep,
+                )
+                pairing = PairingConfig.for_system(
+                    self.system, self.schema.target_pairing, tolerance=p.pairing_tolerance, horizon=p.pairing_horizon
+                )
+            except (ValueError, TypeError) as exc:
+                raise ConfigError(str(exc)) from None
+            run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
+            try:
+                store = CheckpointStore(run_dir, keep=p.checkpoint_keep)
+                self.learner = OnlineLearner(self.system, self.spec, config, store=store, resume=p.resume)
+            except ResumeError as exc:
+                raise ConfigError(str(exc)) from None
+            except OSError as exc:
+                raise ConfigError(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
+            self.run_dir = run_dir
+            self._throttle = _Throttle(self.get_logger().warning)
+            self._SchemaError = SchemaError
+            self._tele = tele
+            self.checkpoint_errors = 0
+            self.train_errors = 0
+            self._last_unpaired = 0
+            self._stop = threading.Event()
+            self._train_thread: threading.Thread | None = None
+            self._t_start = time.monotonic()
+
+            self.data_group = MutuallyExclusiveCallbackGroup()
+            self.timer_group = MutuallyExclusiveCallbackGroup()
+            self.pub_error = self.create_publisher(
+                self._msg_type(tele.JOINT_STATE), tele.MODEL_ERROR_TOPIC, TELEMETRY_QOS.to_rclpy()
+            )
+            self.pub_ckpt = self.create_publisher(
+                self._msg_type(tele.STRING), tele.CHECKPOINT_TOPIC, CHECKPOINT_QOS.to_rclpy()
+            )
+            self.pub_diag = self.create_publisher(
+                self._msg_type(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy()
+            )
+            self._subs = []
+            data_qos = DATA_QOS.to_rclpy()
+            sc = self.schema
+            kinds = [("state", sc.state_topic, sc.state_from_msg, sc.state.msg_type),
+                     ("applied_cmd", sc.applied_cmd_topic, sc.control_from_msg, sc.control.msg_type)]
+            if sc.target_pairing == "same":
+                kinds.append(("target", sc.target_topic, sc.target_from_msg, sc.target.msg_type))
+            for ns in p.namespaces:
+                src = self.learner.add_source(ns, pairing)
+                for kind, name, decode, msg_type in kinds:
+                    topic = topic_in(ns, name)
+                    cb = self._make_callback(src, kind, topic, decode)
+                    self._subs.append(self.create_subscription(
+                        self._msg_type(msg_type), topic, cb, data_qos, callback_group=self.data_group
+                    ))
+            self.create_timer(1.0 / p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group)
+            self.create_timer(1.0 / p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group)
+            r = self.learner.resumed
+            if r is not None:
+                self._announce(r.path, r.version)
+            self.get_logger().info(
+                f"learner for {p.system!r} on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
+                f"({self.spec.describe()}), model {config.kind} {list(self.learner.model.hidden)}, "
+                f"run_dir {run_dir}, "
+                + (f"resumed from version {r.version} ({r.updates} updates, lambda {r.lam})" if r else "fresh start")
+                + f"; training starts after {p.min_transitions} transitions"
+            )
+
+        # ------------------------------------------------------------------------------ parameters
+        def _declare(self, name: str, default: Any, description: str, ptype: Any = None) -> Any:
+            desc = ParameterDescriptor(description=description, dynamic_typing=isinstance(default, float))
+            value = ptype if ptype is not None else default
+            try:
+                got = self.declare_parameter(name, value, desc).value
+            except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad overrides
+                raise ConfigError(f"parameter {name!r}: {exc}") from None
+            if got is None:
+                return default
+            if isinstance(default, float):
+                if isinstance(got, bool) or not isinstance(got, int | float) or not math.isfinite(got):
+                    raise ConfigError(f"parameter {name!r}: expected a finite number, got {got!r}")
+                return float(got)
+            return got
+
+        def _read_parameters(self) -> LearnerParams:
+            d = self._declare
+            system = d("system", "friction", "system name: friction | quadrotor | paddle_ball")
+            namespaces = d("namespaces", [], "namespaces whose state/applied_cmd are paired (each separately, one "
+                           "shared buffer); empty = this node's namespace", Parameter.Type.STRING_ARRAY)
+            spec_file = d("spec_file", "", "problem spec YAML (docs/spec.md); empty = the paper's spec")
+            kind = d("model.kind", "residual", "'residual' (f_hat + network) or 'full' (network only)")
+            hidden = d("model.hidden", [], "hidden layer sizes; empty = the paper's sizes for the system",
+                       Parameter.Type.INTEGER_ARRAY)
+            train: dict[str, Any] = {}
+            for f in dataclasses.fields(TrainConfig):
+                if f.name == "epochs":
+                    continue
+                default = getattr(TrainConfig(), f.name)
+                text = TRAIN_PARAM_DOCS.get(f.name, f"TrainConfig.{f.name}")
+                train[f.name] = d(f"train.{f.name}", default, text)
+            cap = d("buffer.capacity", 100_000, "replay buffer capacity (transitions)")
+            policy = d("buffer.policy", "fifo", "eviction when full: 'fifo' (keep the newest) or 'reservoir'")
+            min_tr = d("min_transitions", 1000, "transitions before training starts; the input/output "
+                       "normalisation is fitted on them once and frozen")
+            ups = d("updates_per_second", 0.0, "primal-dual updates per wall-clock second (0 = as fast as possible)")
+            period = d("checkpoint_period", 10.0, "wall-clock seconds between checkpoints (only when there are "
+                       "new updates)")
+            keep = d("checkpoint_keep", 5, "checkpoint files kept in run_dir (older ones are pruned)")
+            run_dir = d("run_dir", "", "checkpoint directory; empty = runs/<system> in the working directory")
+            resume = d("resume", True, "load the newest valid checkpoint of run_dir (weights, normalisation, "
+                       "lambda, optimizer state, update count)")
+            rate = d("telemetry_rate", 5.0, "learner/model_error messages per second (Hz)")
+            window = d("telemetry_window", 1000, "most recent transitions the live model error is computed on")
+            diag = d("diagnostics_rate", 1.0, "/diagnostics messages per second (Hz)")
+            dt = d("dt", 0.0, "sampling period of the simulator / robot in s (0 = the system's default); "
+                   "pairs x_t with x_{t+dt} and sets the base model's step")
+            horizon = d("pairing.horizon", 2.0, "s of stamp time an incomplete transition waits for its partners")
+            tol = d("pairing.tolerance", 1e-6, "s: stamps closer than this are the same stamp")
+            checks = [
+                (isinstance(namespaces, list) and all(isinstance(n, str) for n in namespaces), "namespaces",
+                 "a list of strings"),
+                (rate > 0, "telemetry_rate", "> 0"), (diag > 0, "diagnostics_rate", "> 0"),
+                (ups >= 0, "updates_per_second", ">= 0"), (period > 0, "checkpoint_period", "> 0"),
+                (keep >= 1, "checkpoint_keep", ">= 1"), (dt >= 0, "dt", ">= 0"),
+                (horizon > 0, "pairing.horizon", "> 0"), (tol >= 0, "pairing.tolerance", ">= 0"),
+            ]
+            for ok, name, what in checks:
+                if not ok:
+                    raise ConfigError(f"parameter {name!r} must be {what}")
+            node_ns = normalize_namespace(self.get_namespace())
+            nss = [normalize_namespace(n) for n in namespaces] or [node_ns]
+            if len(set(nss)) != len(nss):
+                raise ConfigError(f"parameter 'namespaces' lists a namespace twice: {nss}")
+            return LearnerParams(
+                system=system, namespaces=nss, spec_file=spec_file, model_kind=kind, model_hidden=list(hidden),
+                train=train, buffer_capacity=cap, buffer_policy=policy, min_transitions=min_tr,
+                updates_per_second=ups, checkpoint_period=period, checkpoint_keep=keep, run_dir=run_dir,
+                resume=resume, telemetry_rate=rate, telemetry_window=window, diagnostics_rate=diag, dt=dt,
+                pairing_horizon=horizon, pairing_tolerance=tol,
+            )
+
+        def _load_spec(self, p: LearnerParams) -> ProblemSpec:
+            try:
+                if p.spec_file:
+                    return ProblemSpec.from_yaml(p.spec_file, self.system)
+                return ProblemSpec.for_system(self.system.paper_spec(), self.system)
+            except FileNotFoundError:
+                raise ConfigError(f"parameter 'spec_file': no such file {p.spec_file!r}") from None
+            except (SpecError, OSError) as exc:
+                raise ConfigError(f"parameter 'spec_file': {exc}") from None
+
+        @staticmethod
+        def _msg_type(type_name: str) -> Any:
+            from msg_schemas import RCLPY
+
+            return RCLPY.cls(type_name)
+
+        # ------------------------------------------------------------------------------ ingest
+        def _make_callback(self, src: int, kind: str, topic: str, decode: Callable[..., Any]) -> Callable[[Any], None]:
+            learner, throttle, schema_error = self.learner, self._throttle, self._SchemaError
+
+            def callback(msg: Any) -> None:
+                try:
+                    vec, stamp = decode(msg, topic)
+                except schema_error as exc:
+                    learner.reject(src, exc.reason)
+                    throttle(exc.reason, str(exc))
+                    return
+                except Exception as exc:  # noqa: BLE001 - a message no codec expects must not kill ingest
+                    learner.reject(src, "format")
+                    throttle("format", f"{topic}: cannot decode ({type(exc).__name__}: {exc})")
+                    return
+                res = learner.ingest(src, kind, stamp, vec)
+                if res.rejected is not None:
+                    throttle(res.rejected, f"{topic}: {res.detail}")
+                elif res.detail:
+                    self.get_logger().warning(res.detail)
+
+            return callback
+
+        # ------------------------------------------------------------------------------ training thread
+        def start_training(self) -> None:
+            self._train_thread = threading.Thread(target=self._train_loop, name="learner-train", daemon=True)
+            self._train_thread.start()
+
+        def _train_loop(self) -> None:
+            p, learner = self.p, self.learner
+            chunk = 10
+            metrics_period = 1.0 / p.telemetry_rate
+            next_metrics = 0.0
+            paced_from: float | None = None
+            paced_done = 0
+            while not self._stop.is_set():
+                try:
+                    now = time.monotonic()
+                    if now >= next_metrics:
+                        learner.compute_model_metrics()
+                        next_metrics = now + metrics_period
+                    if learner.checkpoint_due(p.checkpoint_period):
+                        self._checkpoint()
+                    if not learner.training:
+                        paced_from = None
+                        self._stop.wait(0.05)
+                        continue
+                    n = chunk
+                    if p.updates_per_second > 0:
+                        if paced_from is None:
+                            paced_from, paced_done = now, 0
+                        due = int((now - paced_from) * p.updates_per_second) - paced_done
+                        if due <= 0:
+                            self._stop.wait(min(0.05, (paced_done + 1) / p.updates_per_second - (now - paced_from)))
+                            continue
+                        n = min(due, chunk)
+                        paced_done += n
+                    learner.update(n)
+                except Exception as exc:  # noqa: BLE001 - keep ingesting and retry; the error is counted
+                    self.train_errors += 1
+                    self.get_logger().error(f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s")
+                    self._stop.wait(1.0)
+
+        def _checkpoint(self) -> None:
+            try:
+                saved = self.learner.save_checkpoint()
+            except OSError as exc:
+                self.checkpoint_errors += 1
+                self.get_logger().error(f"cannot write a checkpoint into {self.run_dir}: {exc}")
+                return
+            if saved is not None:
+                self._announce(*saved)
+
+        def _announce(self, path: Path, version: int) -> None:
+            info = self._tele.CheckpointInfo(str(path), int(version), self.system.schema_hash(),
+                                             self.get_clock().now().nanoseconds * 1e-9)
+            try:
+                self.pub_ckpt.publish(self._tele.checkpoint_to_msg(info))
+            except Exception as exc:  # noqa: BLE001 - e.g. the context is already shut down
+                self.get_logger().warning(f"could not announce checkpoint {path}: {exc}")
+
+        def stop(self) -> None:
+            """Stop training and write a final checkpoint (if there is anything new)."""
+            self._stop.set()
+            if self._train_thread is not None:
+                self._train_thread.join(timeout=30.0)
+            learner = self.learner
+            if learner.trainer is None:
+                self.get_logger().info(
+                    f"shutdown: no checkpoint written, training never started "
+                    f"({learner.buffer.total_added}/{self.p.min_transitions} transitions)"
+                )
+            elif not learner.dirty:
+                self.get_logger().info(f"shutdown: checkpoint version {learner.model_version} is current")
+            else:
+                learner.compute_model_metrics()
+                self._checkpoint()
+                self.get_logger().info(
+                    f"shutdown: final checkpoint version {learner.model_version} ({learner.updates} updates)"
+                )
+            logging.getLogger("saml_ros").removeHandler(self._log_handler)
+
+        # ------------------------------------------------------------------------------ telemetry
+        def _stamp_ns(self) -> int:
+            return max(0, int(self.get_clock().now().nanoseconds))
+
+        def _publish_telemetry(self) -> None:
+            self.pub_error.publish(self._tele.model_error_to_msg(self.learner.telemetry(), self._stamp_ns()))
+
+        def _publish_diagnostics(self) -> None:
+            learner = self.learner
+            totals = learner.counts()
+            values: dict[str, Any] = {
+                "paired": totals.get("paired", 0),
+                "buffer_size": len(learner.buffer),
+                "updates": learner.updates,
+                "model_version": learner.model_version,
+                "training": int(learner.training),
+                "checkpoints_written": learner.checkpoints_written,
+                "checkpoints_skipped": learner.checkpoints_skipped,
+                "checkpoint_errors": self.checkpoint_errors,
+                "train_errors": self.train_errors,
+            }
+            for reason in self._tele.REJECT_REASONS:
+                values[f"rejected/{reason}"] = totals.get(reason, 0)
+            for key in ("time_resets", "stale_slots", "overflow_slots"):
+                values[key] = totals.get(key, 0)
+            for pairer in learner.sources:
+                c = dict(list(pairer.counts.items()))
+                for key in ("received/state", "received/applied_cmd", "received/target", "paired"):
+                    values[f"{pairer.name}/{key}"] = c.get(key, 0)
+                for reason in self._tele.REJECT_REASONS:
+                    values[f"{pairer.name}/rejected/{reason}"] = c.get(reason, 0)
+            unpaired = totals.get("unpaired", 0)
+            if unpaired > self._last_unpaired:
+                self._throttle("unpaired", f"{unpaired - self._last_unpaired} message(s) expired without a partner "
+                               f"within pairing.horizon = {self.p.pairing_horizon} s")
+            self._last_unpaired = unpaired
+            rejected = sum(totals.get(r, 0) for r in self._tele.REJECT_REASONS)
+            level = self._tele.ERROR if self.train_errors or self.checkpoint_errors else (
+                self._tele.WARN if rejected else self._tele.OK)
+            message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
+                       f"version {values['model_version']}, rejected {rejected}")
+            entry = self._tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
+            self.pub_diag.publish(self._tele.diagnostics_to_msg([entry], self._stamp_ns()))
+
+    return LearnerNode
+
+
+def create_node() -> Any:
+    """Create the learner node (``rclpy.init`` must have been called). It lives in ``/<system>`` unless the
+    command line remaps ``__ns``. Raises :class:`ConfigError`."""
+    from rclpy.node import Node
+
+    probe = Node(NODE_NAME)
+    try:
+        system = probe.declare_parameter("system", "friction").value
+    except Exception as exc:  # noqa: BLE001
+        raise ConfigError(f"parameter 'system': {exc}") from None
+    remapped = probe.get_namespace() != "/"
+    probe.destroy_node()
+    cls = _build_node_class()
+    return cls(None if remapped else f"/{system}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``learner [--ros-args ...]``: run until SIGINT / SIGTERM, then write a final checkpoint and exit 0."""
+    stop = {"signal": 0}
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop["signal"] = signum
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    args = list(sys.argv if argv is None else [NODE_NAME, *argv])
+    if any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args:
+        print(__doc__)
+        return 0
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    try:
+        try:
+            node = create_node()
+        except ConfigError as exc:
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"configuration error: {exc}")
+            return CONFIG_ERROR
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        node.start_training()
+        while not stop["signal"]:
+            executor.spin_once(timeout_sec=0.1)
+        node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
+        node.stop()
+        return 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,299 @@
+"""``ros2 run saml_ros record``: record a closed loop's topics into a rosbag2 bag (version 9, MCAP).
+
+    record --system friction                       # /friction/** + /clock + /diagnostics -> rosbag2_<time>/
+    record --system quadrotor --namespace /q1 /q2 -o runs/flight1
+    record --topics /friction/state /clock -o bag  # exactly these topics
+    record --all -o bag                            # every topic
+
+Messages are recorded with *raw* subscriptions: the CDR bytes DDS delivered are written as they are
+(never deserialised and serialised again), so the bag holds exactly what was published. The graph is
+polled every ``--poll-period`` s, so topics that appear late are picked up; topics that disappear keep
+their subscription (and resume if they come back). Each topic is subscribed with the QoS its publishers
+offer (reliable / transient local when all of them are), and their offered profiles go into metadata.yaml.
+
+The log time of a message is the recorder's clock when it arrived (wall time; simulated time with
+``--use-sim-time`` or ``--ros-args -p use_sim_time:=true``). ``play`` replays with those times.
+
+Durability: the pending MCAP chunk is written and the file flushed every ``--flush-period`` s (default
+0.5), so a crash (SIGKILL, power cut aside) loses at most that much. SIGINT / SIGTERM finish the bag
+(footer + metadata.yaml) and exit 0. A bag of a killed recorder is recovered with ``bag_info --repair``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from saml_ros.bags import (
+    CUSTOM_NAMESPACES,
+    CUSTOM_SCHEMA_HASH,
+    CUSTOM_SYSTEM,
+    DEFAULT_FLUSH_PERIOD,
+    BagError,
+    BagWriter,
+    jazzy_typestore,
+    message_class,
+    normalize_namespace,
+    qos_from_rclpy,
+    saml_topics,
+)
+
+#: topics recorded next to the namespaces' topics by default
+GLOBAL_DEFAULT_TOPICS = ("/clock", "/diagnostics")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="record",
+        description="Record saml_ros topics (raw CDR) into a rosbag2 bag: format version 9, MCAP storage.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("-o", "--output", type=Path, help="bag directory to create (default: rosbag2_<date-time>)")
+    p.add_argument("--system", help="system whose closed loop is recorded (friction, quadrotor, paddle_ball); "
+                   "default namespace /<system>; stored in metadata.yaml custom_data")
+    p.add_argument("--namespace", nargs="+", default=[], metavar="NS",
+                   help="system namespace(s) to record (every topic under each, plus /clock and /diagnostics)")
+    p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="record exactly these topics")
+    p.add_argument("--regex", help="also record topics matching this regular expression")
+    p.add_argument("--all", action="store_true", help="record every topic")
+    p.add_argument("--exclude", help="never record topics matching this regular expression")
+    p.add_argument("--poll-period", type=float, default=0.5, help="graph poll period for new topics (s)")
+    p.add_argument("--flush-period", type=float, default=DEFAULT_FLUSH_PERIOD,
+                   help="write the pending MCAP chunk and flush at least this often (s)")
+    p.add_argument("--queue-depth", type=int, default=1000, help="subscription queue depth (messages)")
+    p.add_argument("--duration", type=float, default=0.0, help="stop after this many wall seconds (0 = until Ctrl-C)")
+    p.add_argument("--use-sim-time", action="store_true", help="log times from /clock instead of the wall clock")
+    return p
+
+
+class TopicSelector:
+    """Decides which discovered topics to record."""
+
+    def __init__(self, *, namespaces: Sequence[str], topics: Sequence[str], regex: str | None,
+                 all_topics: bool, exclude: str | None) -> None:
+        self.prefixes = tuple(normalize_namespace(ns).rstrip("/") + "/" for ns in namespaces)
+        self.exact = set(topics) | (set(GLOBAL_DEFAULT_TOPICS) if namespaces else set())
+        self.regex = re.compile(regex) if regex else None
+        self.all = all_topics
+        self.exclude = re.compile(exclude) if exclude else None
+
+    def __call__(self, topic: str) -> bool:
+        if self.exclude is not None and self.exclude.search(topic):
+            return False
+        return (
+            self.all
+            or topic in self.exact
+            or topic.startswith(self.prefixes)
+            or (self.regex is not None and self.regex.search(topic) is not None)
+        )
+
+
+class Recorder:
+    """The recording node: discovers topics, subscribes raw, writes to a :class:`BagWriter`.
+
+    Args:
+        node: an rclpy node (the recorder owns its subscriptions and timers).
+        writer: the open bag.
+        select: topic filter.
+        poll_period / flush_period: seconds.
+        queue_depth: subscription history depth.
+    """
+
+    def __init__(self, node: Any, writer: BagWriter, select: TopicSelector, *, poll_period: float,
+                 flush_period: float, queue_depth: int) -> None:
+        self.node = node
+        self.writer = writer
+        self.select = select
+        self.queue_depth = int(queue_depth)
+        self.subscriptions: dict[tuple[str, str], Any] = {}
+        self.skipped: set[tuple[str, str]] = set()
+        self.counters: dict[str, int] = {"messages": 0, "bytes": 0, "topics": 0, "skipped_topics": 0,
+                                         "write_errors": 0}
+        self.error: str | None = None
+        self._clock = node.get_clock()
+        self._diag_pub = self._make_diagnostics_publisher()
+        node.create_timer(poll_period, self.poll)
+        node.create_timer(flush_period, self.flush)
+        node.create_timer(1.0, self.publish_diagnostics)
+        self.poll()
+
+    def _make_diagnostics_publisher(self) -> Any:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from msg_schemas.base import TELEMETRY_QOS
+
+        return self.node.create_publisher(DiagnosticArray, "/diagnostics", TELEMETRY_QOS.to_rclpy())
+
+    # -- discovery
+    def poll(self) -> None:
+        """Subscribe to every selected topic that has a publisher and is not yet subscribed."""
+        for topic, types in self.node.get_topic_names_and_types():
+            if not self.select(topic):
+                continue
+            for msg_type in types:
+                key = (topic, msg_type)
+                if key in self.subscriptions or key in self.skipped:
+                    continue
+                publishers = self.node.get_publishers_info_by_topic(topic)
+                publishers = [p for p in publishers if p.topic_type == msg_type]
+                if not publishers:
+                    continue  # only subscribers so far: the offered QoS is unknown; look again next poll
+                self._subscribe(topic, msg_type, publishers)
+
+    def _subscribe(self, topic: str, msg_type: str, publishers: list[Any]) -> None:
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+        key = (topic, msg_type)
+        cls = message_class(msg_type)
+        if cls is None or msg_type not in jazzy_typestore().types:
+            self.skipped.add(key)
+            self.counters["skipped_topics"] += 1
+            self.node.get_logger().warning(f"not recording {topic}: message type {msg_type} is not available")
+            return
+        offered = [p.qos_profile for p in publishers]
+        reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+        transient = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+        # Reliable topics are read KEEP_ALL: DDS then acknowledges a sample only once it fits in the queue,
+        # so a writer that waits for acknowledgements (``play --rate 0``) is slowed down instead of losing data.
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_ALL if reliable else HistoryPolicy.KEEP_LAST,
+            depth=self.queue_depth,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
+        )
+        type_hash = str(getattr(publishers[0], "topic_type_hash", "") or "")
+        try:
+            self.writer.add_topic(topic, msg_type, [qos_from_rclpy(q) for q in offered],
+                                  type_hash=type_hash if type_hash.startswith("RIHS01_") else None)
+        except BagError as exc:
+            self.skipped.add(key)
+            self.counters["skipped_topics"] += 1
+            self.node.get_logger().warning(f"not recording {topic}: {exc}")
+            return
+
+        def on_message(data: bytes, _key: tuple[str, str] = key) -> None:
+            self._write(_key, data)
+
+        self.subscriptions[key] = self.node.create_subscription(cls, topic, on_message, qos, raw=True)
+        self.counters["topics"] += 1
+        print(f"record: recording {topic} ({msg_type}, {'reliable' if reliable else 'best effort'}"
+              f"{', transient local' if transient else ''})", flush=True)
+
+    # -- data
+    def _write(self, key: tuple[str, str], data: bytes) -> None:
+        if self.error is not None:
+            return
+        try:
+            self.writer.write(key[0], key[1], data, self._clock.now().nanoseconds)
+        except Exception as exc:  # disk full, ...: stop cleanly so the data already written stays readable
+            self.counters["write_errors"] += 1
+            self.error = f"cannot write to {self.writer.path}: {exc}"
+            self.node.get_logger().error(self.error)
+            return
+        self.counters["messages"] += 1
+        self.counters["bytes"] += len(data)
+
+    def flush(self) -> None:
+        if self.error is None:
+            try:
+                self.writer.flush()
+            except Exception as exc:
+                self.counters["write_errors"] += 1
+                self.error = f"cannot flush {self.writer.path}: {exc}"
+                self.node.get_logger().error(self.error)
+
+    def publish_diagnostics(self) -> None:
+        from msg_schemas.telemetry import ERROR, OK, DiagnosticEntry, diagnostics_to_msg
+
+        entry = DiagnosticEntry(
+            name=self.node.get_fully_qualified_name(),
+            level=ERROR if self.error else OK,
+            message=self.error or f"recording {self.counters['topics']} topics to {self.writer.path}",
+            values=dict(self.counters),
+        )
+        self._diag_pub.publish(diagnostics_to_msg([entry], self._clock.now().nanoseconds))
+
+
+def default_output() -> Path:
+    """``rosbag2_YYYY_MM_DD-HH_MM_SS`` (rosbag2's default name)."""
+    return Path(time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S"))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.utilities import remove_ros_args
+
+    full = [sys.argv[0], *(sys.argv[1:] if argv is None else argv)]
+    args = build_parser().parse_args(remove_ros_args(full)[1:])
+    rclpy.init(args=full, signal_handler_options=SignalHandlerOptions.NO)
+    stop = {"signal": 0}
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop["signal"] = signum
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    node = Node("record")
+    writer: BagWriter | None = None
+    try:
+        if args.use_sim_time:
+            node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
+        namespaces = list(args.namespace)
+        if not namespaces and args.system:
+            node_ns = node.get_namespace()
+            namespaces = [node_ns if node_ns != "/" else f"/{args.system}"]
+        if not (namespaces or args.topics or args.regex or args.all):
+            print("record: nothing to record: give --system, --namespace, --topics, --regex or --all", file=sys.stderr)
+            return 2
+        custom: dict[str, str] = {}
+        if args.system:
+            from msg_schemas import get_schema
+
+            try:
+                custom = {CUSTOM_SYSTEM: args.system, CUSTOM_SCHEMA_HASH: get_schema(args.system).schema_hash(),
+                          CUSTOM_NAMESPACES: ",".join(normalize_namespace(n) for n in namespaces)}
+                saml_topics(args.system)
+            except ValueError as exc:
+                print(f"record: {exc}", file=sys.stderr)
+                return 2
+        out = args.output or default_output()
+        try:
+            writer = BagWriter(out, custom_data=custom, flush_period=args.flush_period)
+        except BagError as exc:
+            print(f"record: {exc}", file=sys.stderr)
+            return 1
+        select = TopicSelector(namespaces=namespaces, topics=args.topics, regex=args.regex,
+                               all_topics=args.all, exclude=args.exclude)
+        rec = Recorder(node, writer, select, poll_period=args.poll_period, flush_period=args.flush_period,
+                       queue_depth=args.queue_depth)
+        print(f"record: writing {out} (Ctrl-C to stop)", flush=True)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        deadline = time.monotonic() + args.duration if args.duration > 0 else float("inf")
+        while not stop["signal"] and rec.error is None and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        writer.close()
+        counts = writer.counts
+        print(f"record: wrote {sum(counts.values())} messages on {len(counts)} topics to {out}", flush=True)
+        return 1 if rec.error else 0
+    finally:
+        if writer is not None and not writer.closed:
+            writer.close()
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,57 @@
+"""``quadrotor_sim``: the quadrotor with ground effect as a ROS 2 node (namespace ``/quadrotor``).
+
+State: 13-d rigid body (``state`` is a ``nav_msgs/Odometry``, so 3D viewers show the vehicle); command: four
+motor forces (N). Start states like the paper's landing task: x, y ~ U[-2, 2] m, z ~ U[1, 3] m, level, at
+rest. Safe default: hover thrust. Ground: the centre of mass stays at or above ``landing_height``
+(:func:`sim_nodes.sim_core.ground_contact`); a step changed by the ground publishes no ``applied_cmd``.
+See docs/simulators.md.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from saml_ros.core.systems.base import System
+from saml_ros.core.systems.quadrotor import Quadrotor
+from sim_nodes.sim_core import Param, SimBinding, SimConfig, SimCore, SteppedSim, quadrotor_model
+
+
+def build(system: System, config: SimConfig, params: dict[str, Any]) -> SimCore:
+    """The quadrotor simulator core for the node parameters ``params``."""
+    assert isinstance(system, Quadrotor)
+    model = quadrotor_model(system, params["landing_height"])
+    return SteppedSim(model, config, publish_clock=params["publish_clock"])
+
+
+BINDING = SimBinding(
+    system="quadrotor",
+    node_name="quadrotor_sim",
+    params=(
+        Param("rate_hz", 10.0, "realtime step rate (Hz, wall clock); 1 / system.dt runs in real time"),
+        Param("landing_height", 0.1, "height (m) of the centre of mass when the quadrotor stands on the ground; "
+                                     "it never goes lower"),
+    ),
+    system_params=(
+        ("dt", "Euler step (s); the MPC must use the same"),
+        ("mass", "mass (kg)"),
+        ("inertia", "principal moments of inertia [Ixx, Iyy, Izz] (kg m^2)"),
+        ("g", "gravity (m/s^2)"),
+        ("f_max", "upper motor force bound (N); the lower bound is 0"),
+        ("arm_length", "centre-to-motor distance (m), for the propeller heights of the ground effect"),
+        ("h_max", "ground-effect ceiling (m): no ground effect above it"),
+        ("alpha", "maximum ground-effect fraction in [0, 1] (level, at the ground)"),
+    ),
+    build=build,
+)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the node (``quadrotor_sim --ros-args ...``)."""
+    from sim_nodes.sim_node import run
+
+    return run(BINDING, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,286 @@
+"""The generic simulator node: a thin rclpy wrapper around a :class:`~sim_nodes.sim_core.SimCore`.
+
+One class runs all three simulators; a :class:`~sim_nodes.sim_core.SimBinding` (in ``friction_sim.py``,
+``quadrotor_sim.py``, ``paddle_ball_sim.py``) names the system, its extra parameters and how to build its core.
+
+* Topics (``msg_schemas``, relative to the namespace, default ``/<system>``): publishes ``state``,
+  ``applied_cmd`` (and ``post_impact`` / ``flight`` for the paddle ball), subscribes ``cmd``; ``/clock``
+  (``publish_clock``) and ``/diagnostics`` (counters, every ``diagnostics_period`` s).
+* Service ``~/reset`` (std_srvs/Trigger): the next step starts a new episode.
+* Every timer runs on the steady clock: the simulator is the clock source, so ``use_sim_time`` never
+  drives it. Realtime stamps start at the wall time of the first state; lockstep stamps at 1 s.
+* Bad commands are rejected (log line, throttled; counter ``rejected/<reason>``), never fatal.
+  SIGINT / SIGTERM, or ``max_sim_time`` reached, end the node with exit code 0; bad parameters with 2.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import rclpy
+import torch
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.task import Future
+
+from msg_schemas import CLOCK_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError, get_schema
+from msg_schemas.telemetry import (
+    CLOCK_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    OK,
+    WARN,
+    DiagnosticEntry,
+    clock_to_msg,
+    diagnostics_to_msg,
+)
+from saml_ros.core.systems import default_params, get_system
+from sim_nodes.sim_core import (
+    APPLIED,
+    CLOCK,
+    FLIGHT,
+    LOCKSTEP_T0_NS,
+    STATE,
+    TARGET,
+    Output,
+    Param,
+    SimBinding,
+    coerce_param,
+    config_from_params,
+)
+
+#: exit code for invalid parameters (as argparse's usage errors)
+USAGE_ERROR = 2
+#: wall seconds the node keeps spinning after max_sim_time so reliable messages reach their readers
+FINISH_GRACE_S = 0.5
+#: counters whose increase turns the diagnostics level to WARN
+_WARN_PREFIXES = ("rejected/", "lockstep_misses", "cmd_timeouts", "diverged", "failures")
+
+
+def _as_param_default(value: Any) -> Any:
+    """A system constructor default as a ROS parameter value (tuples -> lists, nested lists flattened)."""
+    if isinstance(value, tuple | list):
+        flat: list[float] = []
+        for v in value:
+            flat.extend(_as_param_default(v) if isinstance(v, tuple | list) else [float(v)])
+        return flat
+    return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+class SimNode(Node):  # type: ignore[misc]
+    """See the module docstring."""
+
+    def __init__(self, binding: SimBinding) -> None:
+        super().__init__(binding.node_name, namespace=f"/{binding.system}")
+        self.binding = binding
+        p = self._declare_parameters()
+        self.params = p
+        self.system = get_system(binding.system, **{k[len("system."):]: v for k, v in p.items()
+                                                    if k.startswith("system.")})
+        self.schema = get_schema(binding.system)
+        self.core = binding.build(self.system, config_from_params(p), p)
+        self.lockstep = self.core.config.lockstep
+        self.done_future = Future()
+        self._finish_at: float | None = None
+        self._started_wall = time.monotonic()
+        self._warned_at: dict[str, float] = {}
+        self._last_diag: dict[str, Any] = {}
+        self._last_diag_time = time.monotonic()
+
+        data_qos = DATA_QOS.to_rclpy()
+        # High-rate publishers skip rclpy's default QoS-event handlers: each one is an extra entity in every
+        # executor wait, and our reliable/volatile offers are compatible with any subscriber anyway.
+        lean = PublisherEventCallbacks(use_default_callbacks=False)
+        state_cls = RCLPY.cls(self.schema.state.msg_type)
+        control_cls = RCLPY.cls(self.schema.control.msg_type)
+        self._emit: dict[str, Callable[[np.ndarray | None, int], None]] = {}
+        state_pub = self.create_publisher(state_cls, self.schema.state_topic, data_qos, event_callbacks=lean)
+        self.state_pub = state_pub
+        applied_pub = self.create_publisher(control_cls, self.schema.applied_cmd_topic, data_qos,
+                                            event_callbacks=lean)
+        self._emit[STATE] = lambda x, t: state_pub.publish(self.schema.state_to_msg(x, t))
+        self._emit[APPLIED] = lambda u, t: applied_pub.publish(self.schema.control_to_msg(u, t))
+        if self.schema.target_topic != self.schema.state_topic:
+            target_pub = self.create_publisher(RCLPY.cls(self.schema.target.msg_type), self.schema.target_topic,
+                                               data_qos, event_callbacks=lean)
+            self._emit[TARGET] = lambda y, t: target_pub.publish(self.schema.target_to_msg(y, t))
+        flight = next((t for t in self.schema.topics if t.name == "flight"), None)
+        if flight is not None and flight.codec is not None:
+            codec, label = flight.codec, f"{self.schema.system}/flight"
+            flight_pub = self.create_publisher(RCLPY.cls(flight.msg_type), flight.name, flight.qos.to_rclpy(),
+                                               event_callbacks=lean)
+            self._emit[FLIGHT] = lambda x, t: flight_pub.publish(codec.to_msg(x, t, topic=label))
+        if p["publish_clock"]:
+            from rosgraph_msgs.msg import Clock as ClockMsg
+
+            clock_pub = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS.to_rclpy(), event_callbacks=lean)
+            self._emit[CLOCK] = lambda _, t: clock_pub.publish(clock_to_msg(t))
+        else:
+            self._emit[CLOCK] = lambda _, t: None
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_srvs.srv import Trigger
+
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy())
+        self.cmd_sub = self.create_subscription(control_cls, self.schema.cmd_topic, self._on_cmd, data_qos)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._start_timer = self.create_timer(0.05, self._try_start, clock=steady)
+        if self.lockstep:
+            period = min(0.02, p["lockstep_timeout"] / 4)
+            self.create_timer(period, self._on_watchdog, clock=steady)
+        else:
+            self.create_timer(1.0 / p["rate_hz"], self._on_tick, clock=steady)
+        self.create_timer(p["diagnostics_period"], self._publish_diagnostics, clock=steady)
+        self.create_timer(0.1, self._check_finished, clock=steady)
+        self.get_logger().info(
+            f"{binding.system} simulator, {p['mode']}"
+            + (f" at {p['rate_hz']:g} Hz" if not self.lockstep else f" (lockstep_timeout {p['lockstep_timeout']} s)")
+            + f", episode_steps {p['episode_steps']}, max_sim_time {p['max_sim_time']} s, seed {p['seed']}"
+        )
+
+    # ---------------------------------------------------------------------------------------- parameters
+    def _declare_parameters(self) -> dict[str, Any]:
+        b = self.binding
+        params = b.all_params()
+        defaults = default_params(b.system)
+        for name, text in b.system_params:
+            params.append(Param(f"system.{name}", _as_param_default(defaults[name]), text))
+        out: dict[str, Any] = {}
+        for spec in params:
+            descriptor = ParameterDescriptor(description=spec.description, dynamic_typing=True)
+            value = self.declare_parameter(spec.name, spec.default, descriptor).value
+            out[spec.name] = coerce_param(spec.name, value, spec.default)
+        for name in ("rate_hz", "diagnostics_period", "lockstep_timeout"):
+            if not out[name] > 0:
+                raise ValueError(f"parameter {name!r} must be > 0, got {out[name]}")
+        if out["start_delay"] < 0:
+            raise ValueError(f"parameter 'start_delay' must be >= 0, got {out['start_delay']}")
+        return out
+
+    # ---------------------------------------------------------------------------------------- publishing
+    def _publish(self, outputs: list[Output]) -> None:
+        for kind, vec, stamp in outputs:
+            self._emit[kind](vec, stamp)
+        if self.core.done and self._finish_at is None:
+            self._finish_at = time.monotonic() + FINISH_GRACE_S
+            self.get_logger().info(f"max_sim_time {self.params['max_sim_time']} s reached: finishing")
+
+    def _warn_throttled(self, key: str, text: str, period: float = 5.0) -> None:
+        now = time.monotonic()
+        if now - self._warned_at.get(key, -1e9) >= period:
+            self._warned_at[key] = now
+            self.get_logger().warning(text)
+
+    # ---------------------------------------------------------------------------------------- callbacks
+    def _try_start(self) -> None:
+        if time.monotonic() - self._started_wall < self.params["start_delay"]:
+            return
+        if self.lockstep and self.params["wait_for_controller"]:
+            cmd_publishers = self.count_publishers(self.cmd_sub.topic_name)
+            if cmd_publishers == 0 or self.state_pub.get_subscription_count() == 0:
+                self._warn_throttled("waiting", "lockstep: waiting for a controller (a cmd publisher and a state "
+                                                "subscriber) before the first state")
+                return
+        self._start_timer.cancel()
+        self.destroy_timer(self._start_timer)
+        t0 = LOCKSTEP_T0_NS if self.lockstep else time.time_ns()
+        self._publish(self.core.begin(time.monotonic_ns(), t0))
+
+    def _on_cmd(self, msg: Any) -> None:
+        now = time.monotonic_ns()
+        try:
+            u, stamp = self.schema.control_from_msg(msg, self.cmd_sub.topic_name)
+        except SchemaError as exc:
+            self.core.reject(exc.reason, str(exc))
+            self._warn_throttled("reject", f"rejected cmd: {exc}")
+            return
+        rejected_before = self.core.last_rejection
+        self._publish(self.core.on_cmd(u, stamp, now))
+        if self.core.last_rejection is not rejected_before:
+            self._warn_throttled("reject", f"rejected cmd: {self.core.last_rejection}")
+
+    def _on_tick(self) -> None:
+        self._publish(self.core.tick(time.monotonic_ns()))
+
+    def _on_watchdog(self) -> None:
+        outputs = self.core.poll(time.monotonic_ns())
+        if outputs:
+            self._warn_throttled("miss", f"lockstep: no valid cmd within {self.params['lockstep_timeout']} s; "
+                                         "applied the held command / safe default")
+        self._publish(outputs)
+
+    def _on_reset(self, request: Any, response: Any) -> Any:
+        response.message = self.core.request_reset()
+        response.success = True
+        self.get_logger().info(response.message)
+        return response
+
+    def _check_finished(self) -> None:
+        if self._finish_at is not None and time.monotonic() >= self._finish_at and not self.done_future.done():
+            self._publish_diagnostics()
+            self.done_future.set_result(True)
+
+    def _publish_diagnostics(self) -> None:
+        values = self.core.diagnostics()
+        now = time.monotonic()
+        steps = int(values.get("steps", 0))
+        rate = (steps - int(self._last_diag.get("steps", 0))) / max(now - self._last_diag_time, 1e-9)
+        values["steps_per_second"] = f"{rate:.1f}"
+        warn = any(k.startswith(_WARN_PREFIXES) and values[k] != self._last_diag.get(k, 0) for k in values)
+        self._last_diag, self._last_diag_time = values, now
+        entry = DiagnosticEntry(
+            name=self.get_fully_qualified_name(),
+            level=WARN if warn else OK,
+            message="commands rejected, missed or timed out since the last report" if warn else "running",
+            values=values,
+        )
+        self.diag_pub.publish(diagnostics_to_msg([entry], self.core.sim_now_ns()))
+
+
+def _usage(binding: SimBinding) -> str:
+    lines = [f"usage: {binding.node_name} [--ros-args [-p NAME:=VALUE] [--params-file config/{binding.node_name}"
+             f".yaml] [-r __ns:=/{binding.system}]]", "", "parameters:"]
+    defaults = default_params(binding.system)
+    for p in binding.all_params():
+        lines.append(f"  {p.name} (default {p.default!r}): {p.description}")
+    for name, text in binding.system_params:
+        lines.append(f"  system.{name} (default {_as_param_default(defaults[name])!r}): {text}")
+    return "\n".join(lines)
+
+
+def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
+    """Run the simulator node of ``binding`` until SIGINT / SIGTERM or ``max_sim_time`` (exit code 0).
+
+    ``argv`` excludes the program name (default ``sys.argv[1:]``); ROS arguments follow ``--ros-args``.
+    """
+    args = [binding.node_name, *(sys.argv[1:] if argv is None else argv)]
+    ros_start = args.index("--ros-args") if "--ros-args" in args else len(args)
+    if any(a in ("-h", "--help") for a in args[1:ros_start]):
+        print(_usage(binding))
+        return 0
+    torch.set_num_threads(1)  # one small state per step: extra threads only contend for the 2 cores
+    rclpy.init(args=args)
+    node: SimNode | None = None
+    try:
+        try:
+            node = SimNode(binding)
+        except ValueError as exc:
+            print(f"{binding.node_name}: {exc}", file=sys.stderr)
+            return USAGE_ERROR
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin_until_future_complete(node.done_future)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
