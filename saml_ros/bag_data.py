@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from msg_schemas import SYSTEM_NAMES, SchemaError, SystemSchema, get_schema
-from saml_ros.bags import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError, BagMessage, join_topic, normalize_namespace
+from saml_ros.bags import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError, join_topic, normalize_namespace
 from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
 from saml_ros.core.systems import get_system
 
@@ -188,11 +188,14 @@ def extract_transitions(
                     kinds[join_topic(ns, schema.target_topic)] = (pairer, "target")
             for msg in bag.messages(kinds):
                 pairer, kind = kinds[msg.topic]
+                decoded = bag.decode(msg)  # undecodable CDR: a damaged bag, BagError
                 try:
-                    vec, stamp = _decode(bag, schema, kind, msg)
-                except SchemaError as exc:
-                    pairer.counts["received/" + kind] += 1
+                    vec, stamp = _from_msg(schema, kind, decoded, msg.topic)
+                except SchemaError as exc:  # counted exactly as the learner node counts it
                     pairer.reject(exc.reason)
+                    continue
+                except Exception:
+                    pairer.reject("format")
                     continue
                 for t in pairer.add(kind, stamp, vec).transitions:
                     xs.append(t.x)
@@ -200,7 +203,7 @@ def extract_transitions(
                     ys.append(t.y)
                     stamps.append(t.stamp_ns)
                     src.append(t.source)
-            for ns, pairer in pairers.items():
+            for pairer in pairers.values():
                 pairer.flush()
                 stats = sources[pairer.source]
                 stats.counts = dict(pairer.counts)
@@ -219,13 +222,12 @@ def extract_transitions(
     )
 
 
-def _decode(bag: Bag, schema: SystemSchema, kind: str, msg: BagMessage) -> tuple[np.ndarray, int]:
-    decoded = bag.decode(msg)
+def _from_msg(schema: SystemSchema, kind: str, msg: Any, topic: str) -> tuple[np.ndarray, int]:
     if kind == "state":
-        return schema.state_from_msg(decoded, msg.topic)
+        return schema.state_from_msg(msg, topic)
     if kind == "applied_cmd":
-        return schema.control_from_msg(decoded, msg.topic)
-    return schema.target_from_msg(decoded, msg.topic)
+        return schema.control_from_msg(msg, topic)
+    return schema.target_from_msg(msg, topic)
 
 
 def _describe_counts(counts: dict[str, int]) -> str:

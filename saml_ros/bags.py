@@ -26,13 +26,13 @@ from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 
 from msg_schemas import QosSpec, TopicSpec, get_schema
 from msg_schemas.telemetry import GLOBAL_TOPICS, TELEMETRY_TOPICS
 
 #: rosbag2 metadata format version Jazzy writes
-BAG_VERSION = 9
+BAG_VERSION: Literal[9] = 9
 #: storage plugin Jazzy uses by default
 STORAGE_ID = "mcap"
 #: custom_data keys saml_ros writes into metadata.yaml
@@ -128,7 +128,7 @@ class BagWriter:
             self._writer.open()
         except (WriterError, OSError) as exc:
             raise BagError(f"bag {self.path}: cannot create it: {exc}") from None
-        self._storage = self._writer.storage
+        self._storage: Any = self._writer.storage
         # rosbags' MCAP storage keeps the current chunk in memory until it reaches 1 MiB; we close it early.
         if not (hasattr(self._storage, "close_chunk") and hasattr(self._storage, "chunk")):
             raise BagError("this rosbags version has no MCAP chunk control (need rosbags 0.11.x)")

@@ -47,6 +47,8 @@ from saml_ros.core.systems import get_system
 from saml_ros.mpc_node import GOAL_PARAMS
 
 SYSTEMS = ("friction", "quadrotor", "paddle_ball")
+#: ROS node name of each child (bringup waits for them to appear before it stops them)
+NODE_NAMES = {"sim": "{system}_sim", "learner": "learner", "mpc": "mpc", "record": "record"}
 NODE_SECTIONS = ("sim", "learner", "mpc")
 
 #: default configuration per system; ``config/bringup_<system>.yaml`` holds the same values
@@ -163,7 +165,8 @@ class Child:
 
     def tail(self, lines: int = 20) -> str:
         """The last ``lines`` lines of the child's log."""
-        self.log.flush()
+        if not self.log.closed:
+            self.log.flush()
         try:
             text = self.log_path.read_text(errors="replace")
         except OSError:
@@ -346,7 +349,7 @@ class BringupResult:
     system: str
     run_dir: Path
     sim_time: float = 0.0  #: simulated seconds covered
-    wall_time: float = 0.0  #: wall seconds from starting the simulator to the stop
+    wall_time: float = 0.0  #: wall seconds from the first state to the stop
     stop_reason: str = ""  #: "sim_time", "signal SIGINT", "child <name> exited", "startup timeout", ...
     returncodes: dict[str, int] = field(default_factory=dict)
     episodes: list[Episode] = field(default_factory=list)
@@ -363,11 +366,18 @@ class BringupResult:
     ok: bool = False  #: every child exited cleanly and the run was not cut short by a failure
 
     def error_before_after(self, k: int = 3) -> tuple[float, float]:
-        """Median in-region error of the first / last ``k`` finite reports (NaN if none)."""
-        vals = [e for _, e in self.model_error if math.isfinite(e)]
-        if not vals:
+        """In-region error of the base model and of the newest model (NaN if unknown).
+
+        Before: the last finite report made before the learner's first update (the zero-initialised residual
+        predicts exactly f_hat, and the last such report covers the most transitions); if training started
+        before any finite report, the first finite one. After: the median of the last ``k`` finite reports.
+        """
+        finite = [(u, e) for u, e in self.model_error if math.isfinite(e)]
+        if not finite:
             return math.nan, math.nan
-        return float(np.median(vals[:k])), float(np.median(vals[-k:]))
+        untrained = [e for u, e in finite if u == 0]
+        before = untrained[-1] if untrained else finite[0][1]
+        return float(before), float(np.median([e for _, e in finite[-k:]]))
 
     def base_and_last_episodes(self, n: int = 5) -> tuple[list[Episode], list[Episode]]:
         """Episodes flown entirely on the base model, and the last ``n`` flown entirely on learned models."""
@@ -383,8 +393,8 @@ def format_summary(res: BringupResult, n_last: int = 5) -> str:
              f"{res.stop_reason}; run dir {res.run_dir}"]
     before, after = res.error_before_after()
     last_upd = res.model_error[-1][0] if res.model_error else 0
-    lines.append(f"  in-region model error ({res.constraint or 'n/a'}): before {before:.4g} -> after {after:.4g} "
-                 f"(after {last_upd:.0f} learner updates)")
+    lines.append(f"  in-region one-step model error ({res.constraint or 'n/a'}, learner/model_error): base model "
+                 f"{before:.4g} -> {after:.4g} after {last_upd:.0f} learner updates")
     base, learned = res.base_and_last_episodes(n_last)
 
     def stat(eps: list[Episode], attr: str) -> str:
@@ -415,6 +425,7 @@ class Monitor:
     """The bringup's own ROS node: reads the loop's topics for progress, stop condition and summary."""
 
     def __init__(self, system: str, namespace: str, goal: np.ndarray, result: BringupResult) -> None:
+        from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from sensor_msgs.msg import JointState
         from std_msgs.msg import String
@@ -426,6 +437,8 @@ class Monitor:
         self.result = result
         self.namespace = namespace
         self.node = Node("bringup_monitor", namespace=namespace)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
         self.tracker = EpisodeTracker(system, self.system.dt, goal)
         self.model_version = 0
         self.last_error: dict[str, float] = {}
@@ -480,6 +493,15 @@ class Monitor:
 
     def _on_checkpoint(self, msg: Any) -> None:
         self.result.checkpoints_announced += 1
+
+    def wait_nodes_up(self, names: Mapping[str, str], timeout: float) -> None:
+        """Spin until every node name in ``names.values()`` is in the ROS graph (at most ``timeout`` s)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            present = {n for n, _ in self.node.get_node_names_and_namespaces()}
+            if set(names.values()) <= present:
+                return
+            self.executor.spin_once(timeout_sec=0.05)
 
     def subscribers(self, topic: str) -> int:
         return int(self.node.count_subscribers(f"{self.namespace}/{topic}"))
@@ -537,7 +559,6 @@ def node_params(config: Mapping[str, Any], run_dir: Path) -> dict[str, dict[str,
 def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
     """Run one closed loop as described in the module docstring; returns what it observed."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     system = str(config["system"])
@@ -573,8 +594,7 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
     t_wall0 = time.monotonic()
     try:
         monitor = Monitor(system, namespace, goal_position(system, params["mpc"]), result)
-        executor = SingleThreadedExecutor()
-        executor.add_node(monitor.node)
+        executor = monitor.executor
         logs = run_dir / "logs"
         started = []
         if opts.learner:
@@ -606,11 +626,13 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
             sim = procs.start("sim", node_argv(f"{system}_sim", namespace, files["sim"]), env, logs / "sim.log")
             say(f"[bringup] consumers ready after {time.monotonic() - t_wall0:.1f} s; started {system}_sim "
                 f"(pid {sim.pid}); running for {float(config['sim_time']):g} s of simulated time")
-        t_sim0 = time.monotonic()
-        next_progress = t_sim0 + opts.progress_period
+        t_sim0: float | None = None
+        next_progress = time.monotonic() + opts.progress_period
         sim_time = float(config["sim_time"])
         while "reason" not in stop:
             executor.spin_once(timeout_sec=0.05)
+            if t_sim0 is None and result.states:
+                t_sim0 = time.monotonic()  # the loop's speed counts from its first state
             if sim_time > 0 and result.sim_time >= sim_time:
                 stop["reason"] = "sim_time"
             for c in procs.exited():
@@ -619,10 +641,15 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
             if now >= next_progress:
                 say(monitor.progress())
                 next_progress = now + opts.progress_period
-        result.wall_time = time.monotonic() - t_sim0
+        result.wall_time = time.monotonic() - t_sim0 if t_sim0 is not None else 0.0
         result.stop_reason = stop["reason"]
         say(f"[bringup] stopping ({result.stop_reason}) ...")
     finally:
+        if monitor is not None:
+            # SIGINT before a child installed its handlers (still importing) would kill it with a traceback:
+            # give children that are still starting a moment to show up in the graph first
+            monitor.wait_nodes_up({c.name: NODE_NAMES.get(c.name, c.name).format(system=system)
+                                   for c in procs.children if c.proc.poll() is None}, timeout=30.0)
         result.returncodes = procs.stop()
         if monitor is not None:
             monitor.node.destroy_node()

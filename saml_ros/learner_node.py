@@ -6,8 +6,9 @@ A thin rclpy wrapper over :class:`saml_ros.core.online.OnlineLearner` (see docs/
   paddle ball) with ``DATA_QOS`` in one callback group; each message is decoded by ``msg_schemas`` and fed
   to the namespace's stamp pairer; malformed / duplicate / out-of-order / late messages are counted under
   ``rejected/<reason>`` and logged (throttled per reason), never paired;
-* trains on a separate thread (primal-dual steps on minibatches of the shared replay buffer), which also
-  computes the live model error and writes checkpoints every ``checkpoint_period`` seconds;
+* trains in a separate, niced process (:class:`saml_ros.core.online.TrainingProcess`: the replay buffer, the
+  primal-dual steps, the live model error and a checkpoint every ``checkpoint_period`` seconds live there), so
+  training never competes with ingest for Python's GIL and the OS runs ingest first when CPUs are short;
 * publishes ``learner/model_error`` (sensor_msgs/JointState, names -> values) at ``telemetry_rate``,
   ``learner/checkpoint`` (std_msgs/String JSON, transient local) after every checkpoint and ``/diagnostics``;
 * on SIGINT / SIGTERM writes a final checkpoint and exits 0. Configuration errors (unknown system, bad spec,
@@ -79,8 +80,9 @@ class LearnerParams:
     telemetry_window: int
     diagnostics_rate: float
     dt: float
-    pairing_horizon: float
+    pairing_window: int
     pairing_tolerance: float
+    training_niceness: int
 
 
 def normalize_namespace(ns: str) -> str:
@@ -115,23 +117,6 @@ class _Throttle:
         self._log(f"rejected/{key}: {message}{more}")
 
 
-class _ForwardToRos(logging.Handler):
-    """Forward Python ``logging`` records of ``saml_ros.*`` to the node's rclpy logger."""
-
-    def __init__(self, logger: Any) -> None:
-        super().__init__()
-        self._logger = logger
-
-    def emit(self, record: logging.LogRecord) -> None:
-        msg = self.format(record)
-        if record.levelno >= logging.ERROR:
-            self._logger.error(msg)
-        elif record.levelno >= logging.WARNING:
-            self._logger.warning(msg)
-        else:
-            self._logger.info(msg)
-
-
 def _build_node_class() -> type:
     """The node class (built on demand so this module imports without rclpy for docs and tests)."""
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -141,8 +126,16 @@ def _build_node_class() -> type:
     import msg_schemas.telemetry as tele
     from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, SchemaError, get_schema
     from saml_ros.core.checkpoint import CheckpointStore
-    from saml_ros.core.online import OnlineConfig, OnlineLearner, ResumeError
-    from saml_ros.core.pairing import PairingConfig
+    from saml_ros.core.model_io import system_params
+    from saml_ros.core.online import (
+        LearnerSetup,
+        LoopConfig,
+        OnlineConfig,
+        ResumeError,
+        TrainingProcess,
+        assemble_telemetry,
+    )
+    from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
     from saml_ros.core.spec import ProblemSpec, SpecError
     from saml_ros.core.systems import get_system
     from saml_ros.core.trainer import TrainConfig
@@ -155,9 +148,6 @@ def _build_node_class() -> type:
 
         def __init__(self, namespace: str | None) -> None:
             super().__init__(NODE_NAME, namespace=namespace)
-            self._log_handler = _ForwardToRos(self.get_logger())
-            logging.getLogger("saml_ros").addHandler(self._log_handler)
-            logging.getLogger("saml_ros").setLevel(logging.INFO)
             self.p = p = self._read_parameters()
             try:
                 self.system = get_system(p.system, **({"dt": p.dt} if p.dt > 0 else {}))
@@ -174,28 +164,34 @@ def _build_node_class() -> type:
                     checkpoint_keep=p.checkpoint_keep,
                 )
                 pairing = PairingConfig.for_system(
-                    self.system, self.schema.target_pairing, tolerance=p.pairing_tolerance, horizon=p.pairing_horizon
+                    self.system, self.schema.target_pairing, tolerance=p.pairing_tolerance, window=p.pairing_window,
+                    max_slots=max(10_000, 10 * p.pairing_window),
                 )
+                loop = LoopConfig(updates_per_second=p.updates_per_second, telemetry_rate=p.telemetry_rate,
+                                  checkpoint_period=p.checkpoint_period)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
-            run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
+            self.run_dir = run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
             try:
-                store = CheckpointStore(run_dir, keep=p.checkpoint_keep)
-                self.learner = OnlineLearner(self.system, self.spec, config, store=store, resume=p.resume)
-            except ResumeError as exc:
-                raise ConfigError(str(exc)) from None
+                CheckpointStore(run_dir, keep=p.checkpoint_keep)  # fail here, clearly, if it cannot be created
             except OSError as exc:
                 raise ConfigError(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
-            self.run_dir = run_dir
-            self._throttle = _Throttle(self.get_logger().warning)
-            self._SchemaError = SchemaError
+            setup = LearnerSetup(
+                system=p.system, system_params=system_params(self.system), spec=self.spec.to_dict(), config=config,
+                run_dir=str(run_dir), resume=p.resume, loop=loop, niceness=p.training_niceness,
+            )
             self._tele = tele
-            self.checkpoint_errors = 0
-            self.train_errors = 0
+            self._throttle = _Throttle(self.get_logger().warning)
             self._last_unpaired = 0
-            self._stop = threading.Event()
-            self._train_thread: threading.Thread | None = None
-            self._t_start = time.monotonic()
+            self.pairers = [StampPairer(pairing, i, ns) for i, ns in enumerate(p.namespaces)]
+            self.trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
+                                           on_error=self._child_error)
+            try:
+                ready = self.trainer.start()
+            except ResumeError as exc:
+                raise ConfigError(str(exc)) from None
+            except RuntimeError as exc:
+                raise ConfigError(f"the training process could not start: {exc}") from None
 
             self.data_group = MutuallyExclusiveCallbackGroup()
             self.timer_group = MutuallyExclusiveCallbackGroup()
@@ -208,32 +204,31 @@ def _build_node_class() -> type:
             self.pub_diag = self.create_publisher(
                 self._msg_type(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy()
             )
-            self._subs = []
+            self._subs: list[tuple[str, str, Any]] = []  # (namespace, kind, subscription)
             data_qos = DATA_QOS.to_rclpy()
             sc = self.schema
             kinds = [("state", sc.state_topic, sc.state_from_msg, sc.state.msg_type),
                      ("applied_cmd", sc.applied_cmd_topic, sc.control_from_msg, sc.control.msg_type)]
             if sc.target_pairing == "same":
                 kinds.append(("target", sc.target_topic, sc.target_from_msg, sc.target.msg_type))
-            for ns in p.namespaces:
-                src = self.learner.add_source(ns, pairing)
+            for pairer in self.pairers:
                 for kind, name, decode, msg_type in kinds:
-                    topic = topic_in(ns, name)
-                    cb = self._make_callback(src, kind, topic, decode)
-                    self._subs.append(self.create_subscription(
+                    topic = topic_in(pairer.name, name)
+                    cb = self._make_callback(pairer, kind, topic, decode)
+                    self._subs.append((pairer.name, kind, self.create_subscription(
                         self._msg_type(msg_type), topic, cb, data_qos, callback_group=self.data_group
-                    ))
+                    )))
             self.create_timer(1.0 / p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group)
             self.create_timer(1.0 / p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group)
-            r = self.learner.resumed
+            r = ready.resumed
             if r is not None:
-                self._announce(r.path, r.version)
+                self._announce(r["path"], r["version"])
             self.get_logger().info(
                 f"learner for {p.system!r} on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
-                f"({self.spec.describe()}), model {config.kind} {list(self.learner.model.hidden)}, "
-                f"run_dir {run_dir}, "
-                + (f"resumed from version {r.version} ({r.updates} updates, lambda {r.lam})" if r else "fresh start")
-                + f"; training starts after {p.min_transitions} transitions"
+                f"({self.spec.describe()}), model {config.kind} {ready.hidden}, run_dir {run_dir}, "
+                + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
+                   else "fresh start")
+                + f"; training process pid {self.trainer.pid}; training starts after {p.min_transitions} transitions"
             )
 
         # ------------------------------------------------------------------------------ parameters
@@ -280,19 +275,23 @@ def _build_node_class() -> type:
             resume = d("resume", True, "load the newest valid checkpoint of run_dir (weights, normalisation, "
                        "lambda, optimizer state, update count)")
             rate = d("telemetry_rate", 5.0, "learner/model_error messages per second (Hz)")
-            window = d("telemetry_window", 1000, "most recent transitions the live model error is computed on")
+            err_window = d("telemetry_window", 1000, "most recent transitions the live model error is computed on")
             diag = d("diagnostics_rate", 1.0, "/diagnostics messages per second (Hz)")
             dt = d("dt", 0.0, "sampling period of the simulator / robot in s (0 = the system's default); "
                    "pairs x_t with x_{t+dt} and sets the base model's step")
-            horizon = d("pairing.horizon", 2.0, "s of stamp time an incomplete transition waits for its partners")
+            window = d("pairing.window", 1000, "newest states (per namespace) whose stamps are remembered for "
+                       "pairing; older incomplete entries are dropped (counted)")
             tol = d("pairing.tolerance", 1e-6, "s: stamps closer than this are the same stamp")
+            nice = d("training_niceness", 10, "nice increment of the training process (0-19): the OS runs "
+                     "ingest, simulators and the MPC first when CPUs are short")
             checks = [
                 (isinstance(namespaces, list) and all(isinstance(n, str) for n in namespaces), "namespaces",
                  "a list of strings"),
                 (rate > 0, "telemetry_rate", "> 0"), (diag > 0, "diagnostics_rate", "> 0"),
                 (ups >= 0, "updates_per_second", ">= 0"), (period > 0, "checkpoint_period", "> 0"),
                 (keep >= 1, "checkpoint_keep", ">= 1"), (dt >= 0, "dt", ">= 0"),
-                (horizon > 0, "pairing.horizon", "> 0"), (tol >= 0, "pairing.tolerance", ">= 0"),
+                (window >= 2, "pairing.window", ">= 2"), (tol >= 0, "pairing.tolerance", ">= 0"),
+                (0 <= nice <= 19, "training_niceness", "in 0..19"),
             ]
             for ok, name, what in checks:
                 if not ok:
@@ -305,8 +304,8 @@ def _build_node_class() -> type:
                 system=system, namespaces=nss, spec_file=spec_file, model_kind=kind, model_hidden=list(hidden),
                 train=train, buffer_capacity=cap, buffer_policy=policy, min_transitions=min_tr,
                 updates_per_second=ups, checkpoint_period=period, checkpoint_keep=keep, run_dir=run_dir,
-                resume=resume, telemetry_rate=rate, telemetry_window=window, diagnostics_rate=diag, dt=dt,
-                pairing_horizon=horizon, pairing_tolerance=tol,
+                resume=resume, telemetry_rate=rate, telemetry_window=err_window, diagnostics_rate=diag, dt=dt,
+                pairing_window=window, pairing_tolerance=tol, training_niceness=nice,
             )
 
         def _load_spec(self, p: LearnerParams) -> ProblemSpec:
@@ -326,21 +325,24 @@ def _build_node_class() -> type:
             return RCLPY.cls(type_name)
 
         # ------------------------------------------------------------------------------ ingest
-        def _make_callback(self, src: int, kind: str, topic: str, decode: Callable[..., Any]) -> Callable[[Any], None]:
-            learner, throttle, schema_error = self.learner, self._throttle, self._SchemaError
+        def _make_callback(self, pairer: Any, kind: str, topic: str, decode: Callable[..., Any]
+                           ) -> Callable[[Any], None]:
+            throttle, schema_error, submit = self._throttle, SchemaError, self.trainer.submit
 
             def callback(msg: Any) -> None:
                 try:
                     vec, stamp = decode(msg, topic)
                 except schema_error as exc:
-                    learner.reject(src, exc.reason)
+                    pairer.reject(exc.reason, kind)
                     throttle(exc.reason, str(exc))
                     return
                 except Exception as exc:  # noqa: BLE001 - a message no codec expects must not kill ingest
-                    learner.reject(src, "format")
+                    pairer.reject("format", kind)
                     throttle("format", f"{topic}: cannot decode ({type(exc).__name__}: {exc})")
                     return
-                res = learner.ingest(src, kind, stamp, vec)
+                res = pairer.add(kind, stamp, vec)
+                for tr in res.transitions:
+                    submit(tr)
                 if res.rejected is not None:
                     throttle(res.rejected, f"{topic}: {res.detail}")
                 elif res.detail:
@@ -348,128 +350,85 @@ def _build_node_class() -> type:
 
             return callback
 
-        # ------------------------------------------------------------------------------ training thread
-        def start_training(self) -> None:
-            self._train_thread = threading.Thread(target=self._train_loop, name="learner-train", daemon=True)
-            self._train_thread.start()
+        # ------------------------------------------------------------------------------ training process
+        def _child_log(self, level: int, text: str) -> None:
+            logger = self.get_logger()
+            if level >= logging.ERROR:
+                logger.error(text)
+            elif level >= logging.WARNING:
+                logger.warning(text)
+            else:
+                logger.info(text)
 
-        def _train_loop(self) -> None:
-            p, learner = self.p, self.learner
-            chunk = 10
-            metrics_period = 1.0 / p.telemetry_rate
-            next_metrics = 0.0
-            paced_from: float | None = None
-            paced_done = 0
-            while not self._stop.is_set():
-                try:
-                    now = time.monotonic()
-                    if now >= next_metrics:
-                        learner.compute_model_metrics()
-                        next_metrics = now + metrics_period
-                    if learner.checkpoint_due(p.checkpoint_period):
-                        self._checkpoint()
-                    if not learner.training:
-                        paced_from = None
-                        self._stop.wait(0.05)
-                        continue
-                    n = chunk
-                    if p.updates_per_second > 0:
-                        if paced_from is None:
-                            paced_from, paced_done = now, 0
-                        due = int((now - paced_from) * p.updates_per_second) - paced_done
-                        if due <= 0:
-                            self._stop.wait(min(0.05, (paced_done + 1) / p.updates_per_second - (now - paced_from)))
-                            continue
-                        n = min(due, chunk)
-                        paced_done += n
-                    learner.update(n)
-                except Exception as exc:  # noqa: BLE001 - keep ingesting and retry; the error is counted
-                    self.train_errors += 1
-                    self.get_logger().error(f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s")
-                    self._stop.wait(1.0)
+        def _child_error(self, what: str, text: str) -> None:
+            self.get_logger().error(f"{what}: {text}")
 
-        def _checkpoint(self) -> None:
+        def _announce(self, path: str, version: int) -> None:
+            info = tele.CheckpointInfo(str(path), int(version), self.system.schema_hash(),
+                                       self.get_clock().now().nanoseconds * 1e-9)
             try:
-                saved = self.learner.save_checkpoint()
-            except OSError as exc:
-                self.checkpoint_errors += 1
-                self.get_logger().error(f"cannot write a checkpoint into {self.run_dir}: {exc}")
-                return
-            if saved is not None:
-                self._announce(*saved)
-
-        def _announce(self, path: Path, version: int) -> None:
-            info = self._tele.CheckpointInfo(str(path), int(version), self.system.schema_hash(),
-                                             self.get_clock().now().nanoseconds * 1e-9)
-            try:
-                self.pub_ckpt.publish(self._tele.checkpoint_to_msg(info))
-            except Exception as exc:  # noqa: BLE001 - e.g. the context is already shut down
+                self.pub_ckpt.publish(tele.checkpoint_to_msg(info))
+            except Exception as exc:  # noqa: BLE001 - e.g. the publisher is not created yet or already gone
                 self.get_logger().warning(f"could not announce checkpoint {path}: {exc}")
 
         def stop(self) -> None:
-            """Stop training and write a final checkpoint (if there is anything new)."""
-            self._stop.set()
-            if self._train_thread is not None:
-                self._train_thread.join(timeout=30.0)
-            learner = self.learner
-            if learner.trainer is None:
-                self.get_logger().info(
-                    f"shutdown: no checkpoint written, training never started "
-                    f"({learner.buffer.total_added}/{self.p.min_transitions} transitions)"
-                )
-            elif not learner.dirty:
-                self.get_logger().info(f"shutdown: checkpoint version {learner.model_version} is current")
+            """Stop training: the training process writes a final checkpoint if there is anything new."""
+            final = self.trainer.stop()
+            status = self.trainer.status
+            if final is None:
+                self.get_logger().error("shutdown: the training process did not stop in time; it was killed")
+            elif final[0] is not None:
+                self._announce(final[0], final[1])
+                self.get_logger().info(f"shutdown: final checkpoint version {final[1]} ({final[2]} updates)")
+            elif status.get("updates", 0) > 0 or final[1] > 0:
+                self.get_logger().info(f"shutdown: checkpoint version {final[1]} is current ({final[2]} updates)")
             else:
-                learner.compute_model_metrics()
-                self._checkpoint()
-                self.get_logger().info(
-                    f"shutdown: final checkpoint version {learner.model_version} ({learner.updates} updates)"
-                )
-            logging.getLogger("saml_ros").removeHandler(self._log_handler)
+                paired = total_counts(pr.counts for pr in self.pairers).get("paired", 0)
+                self.get_logger().info(f"shutdown: no checkpoint written, training never started ({paired}/"
+                                       f"{self.p.min_transitions} transitions)")
 
         # ------------------------------------------------------------------------------ telemetry
         def _stamp_ns(self) -> int:
             return max(0, int(self.get_clock().now().nanoseconds))
 
+        def _counts(self) -> dict[str, int]:
+            return total_counts(dict(list(pr.counts.items())) for pr in self.pairers)
+
         def _publish_telemetry(self) -> None:
-            self.pub_error.publish(self._tele.model_error_to_msg(self.learner.telemetry(), self._stamp_ns()))
+            values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self._counts())
+            self.pub_error.publish(tele.model_error_to_msg(values, self._stamp_ns()))
 
         def _publish_diagnostics(self) -> None:
-            learner = self.learner
-            totals = learner.counts()
-            values: dict[str, Any] = {
-                "paired": totals.get("paired", 0),
-                "buffer_size": len(learner.buffer),
-                "updates": learner.updates,
-                "model_version": learner.model_version,
-                "training": int(learner.training),
-                "checkpoints_written": learner.checkpoints_written,
-                "checkpoints_skipped": learner.checkpoints_skipped,
-                "checkpoint_errors": self.checkpoint_errors,
-                "train_errors": self.train_errors,
-            }
-            for reason in self._tele.REJECT_REASONS:
+            totals = self._counts()
+            st, tr = self.trainer.status, self.trainer
+            values: dict[str, Any] = {"paired": totals.get("paired", 0)}
+            for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written",
+                        "checkpoints_skipped"):
+                values[key] = int(st.get(key, 0))
+            values.update(train_errors=tr.errors, train_restarts=tr.restarts, queued=tr.queued, dropped=tr.dropped)
+            for reason in tele.REJECT_REASONS:
                 values[f"rejected/{reason}"] = totals.get(reason, 0)
-            for key in ("time_resets", "stale_slots", "overflow_slots"):
+            for key in ("time_resets", "reanchors", "expired", "overflow"):
                 values[key] = totals.get(key, 0)
-            for pairer in learner.sources:
+            for pairer in self.pairers:
                 c = dict(list(pairer.counts.items()))
                 for key in ("received/state", "received/applied_cmd", "received/target", "paired"):
                     values[f"{pairer.name}/{key}"] = c.get(key, 0)
-                for reason in self._tele.REJECT_REASONS:
+                for reason in tele.REJECT_REASONS:
                     values[f"{pairer.name}/rejected/{reason}"] = c.get(reason, 0)
+            for ns, kind, sub in self._subs:
+                values[f"{ns}/publishers/{kind}"] = sub.get_publisher_count()
             unpaired = totals.get("unpaired", 0)
             if unpaired > self._last_unpaired:
-                self._throttle("unpaired", f"{unpaired - self._last_unpaired} message(s) expired without a partner "
-                               f"within pairing.horizon = {self.p.pairing_horizon} s")
+                self._throttle("unpaired", f"{unpaired - self._last_unpaired} message(s) dropped from the pairing "
+                               f"window ({self.p.pairing_window} states) without ever being paired")
             self._last_unpaired = unpaired
-            rejected = sum(totals.get(r, 0) for r in self._tele.REJECT_REASONS)
-            level = self._tele.ERROR if self.train_errors or self.checkpoint_errors else (
-                self._tele.WARN if rejected else self._tele.OK)
+            rejected = sum(totals.get(r, 0) for r in tele.REJECT_REASONS)
+            level = tele.ERROR if tr.errors or tr.dropped else (tele.WARN if rejected else tele.OK)
             message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                        f"version {values['model_version']}, rejected {rejected}")
-            entry = self._tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
-            self.pub_diag.publish(self._tele.diagnostics_to_msg([entry], self._stamp_ns()))
+            entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
+            self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
     return LearnerNode
 
@@ -518,11 +477,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             return CONFIG_ERROR
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        node.start_training()
-        while not stop["signal"]:
-            executor.spin_once(timeout_sec=0.1)
-        node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
-        node.stop()
+        try:
+            while not stop["signal"]:
+                executor.spin_once(timeout_sec=0.1)
+            node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
+        finally:
+            node.stop()
         return 0
     finally:
         if node is not None:

@@ -79,7 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-clock", action="store_true",
                    help="do not publish /clock from the bag's timestamps (republish a recorded /clock instead)")
     p.add_argument("--wait-for-subscribers", nargs="*", metavar="TOPIC",
-                   help="before playing, wait until these topics (no names: every played topic) have a subscriber")
+                   help="before playing, wait until these topics (no names: every played topic and /clock) have a "
+                        "subscriber")
     p.add_argument("--wait-timeout", type=float, default=30.0, help="give up waiting for subscribers after (s)")
     p.add_argument("--ack-batch", type=int, default=50,
                    help="--rate 0: wait for acknowledgements after this many messages")
@@ -114,9 +115,12 @@ class Player:
     def wait_for_subscribers(self, topics: Sequence[str], timeout: float, stop: dict[str, int]) -> list[str]:
         """Wait until each of ``topics`` has a subscriber; returns the ones still without one."""
         deadline = time.monotonic() + timeout
-        waiting = [t for t in topics if t in self.publishers]
+        pubs = dict(self.publishers)
+        if self.clock_pub is not None:
+            pubs[CLOCK_TOPIC] = self.clock_pub
+        waiting = [t for t in topics if t in pubs]
         while waiting and not stop["signal"] and time.monotonic() < deadline:
-            waiting = [t for t in waiting if self.publishers[t].get_subscription_count() == 0]
+            waiting = [t for t in waiting if pubs[t].get_subscription_count() == 0]
             time.sleep(0.02)
         if not waiting:
             time.sleep(0.2)  # the subscriber side finishes matching too
@@ -200,8 +204,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         for t in player.skipped:
             print(f"play: skipping {t}: message type {bag.topics[t].msg_type} is not available", file=sys.stderr)
         if args.wait_for_subscribers is not None:
-            want = args.wait_for_subscribers or list(player.publishers)
-            missing = [t for t in want if t not in player.publishers]
+            played = list(player.publishers) + ([CLOCK_TOPIC] if player.clock_pub is not None else [])
+            want = args.wait_for_subscribers or played
+            missing = [t for t in want if t not in played]
             if missing:
                 print(f"play: --wait-for-subscribers: {missing} are not played topics", file=sys.stderr)
                 return 2

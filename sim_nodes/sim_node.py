@@ -22,13 +22,16 @@ from typing import Any
 
 import numpy as np
 import rclpy
+import rclpy.parameter
 import torch
-from rcl_interfaces.msg import ParameterDescriptor
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_srvs.srv import Trigger
 
 from msg_schemas import CLOCK_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError, get_schema
 from msg_schemas.telemetry import (
@@ -73,12 +76,16 @@ def _as_param_default(value: Any) -> Any:
     return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
 
 
-class SimNode(Node):  # type: ignore[misc]
+class SimNode(Node):
     """See the module docstring."""
 
     def __init__(self, binding: SimBinding) -> None:
         super().__init__(binding.node_name, namespace=f"/{binding.system}")
         self.binding = binding
+        if self.get_parameter("use_sim_time").value:
+            # the simulator is the clock source: following its own /clock would only add work per step
+            self.get_logger().warning("use_sim_time is ignored: the simulator publishes /clock itself")
+            self.set_parameters([rclpy.parameter.Parameter("use_sim_time", value=False)])
         p = self._declare_parameters()
         self.params = p
         self.system = get_system(binding.system, **{k[len("system."):]: v for k, v in p.items()
@@ -94,8 +101,9 @@ class SimNode(Node):  # type: ignore[misc]
         self._last_diag_time = time.monotonic()
 
         data_qos = DATA_QOS.to_rclpy()
-        # High-rate publishers skip rclpy's default QoS-event handlers: each one is an extra entity in every
-        # executor wait, and our reliable/volatile offers are compatible with any subscriber anyway.
+        # Publishers skip rclpy's default QoS-event handlers: each one is an extra entity in every executor
+        # wait, and reliable + volatile offers are compatible with every volatile subscriber. (The cmd
+        # subscription keeps them: a best-effort cmd publisher would be incompatible, and says so.)
         lean = PublisherEventCallbacks(use_default_callbacks=False)
         state_cls = RCLPY.cls(self.schema.state.msg_type)
         control_cls = RCLPY.cls(self.schema.control.msg_type)
@@ -117,28 +125,22 @@ class SimNode(Node):  # type: ignore[misc]
                                                event_callbacks=lean)
             self._emit[FLIGHT] = lambda x, t: flight_pub.publish(codec.to_msg(x, t, topic=label))
         if p["publish_clock"]:
-            from rosgraph_msgs.msg import Clock as ClockMsg
-
             clock_pub = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS.to_rclpy(), event_callbacks=lean)
             self._emit[CLOCK] = lambda _, t: clock_pub.publish(clock_to_msg(t))
         else:
             self._emit[CLOCK] = lambda _, t: None
-        from diagnostic_msgs.msg import DiagnosticArray
-        from std_srvs.srv import Trigger
-
-        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy())
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy(),
+                                              event_callbacks=lean)
         self.cmd_sub = self.create_subscription(control_cls, self.schema.cmd_topic, self._on_cmd, data_qos)
         self.create_service(Trigger, "~/reset", self._on_reset)
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._start_timer = self.create_timer(0.05, self._try_start, clock=steady)
-        if self.lockstep:
-            period = min(0.02, p["lockstep_timeout"] / 4)
-            self.create_timer(period, self._on_watchdog, clock=steady)
-        else:
+        if not self.lockstep:
             self.create_timer(1.0 / p["rate_hz"], self._on_tick, clock=steady)
+        # lockstep deadline and end-of-run checks; few timers, as each one costs time in every executor wait
+        self.create_timer(min(0.05, p["lockstep_timeout"] / 4), self._on_housekeeping, clock=steady)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics, clock=steady)
-        self.create_timer(0.1, self._check_finished, clock=steady)
         self.get_logger().info(
             f"{binding.system} simulator, {p['mode']}"
             + (f" at {p['rate_hz']:g} Hz" if not self.lockstep else f" (lockstep_timeout {p['lockstep_timeout']} s)")
@@ -152,9 +154,10 @@ class SimNode(Node):  # type: ignore[misc]
         defaults = default_params(b.system)
         for name, text in b.system_params:
             params.append(Param(f"system.{name}", _as_param_default(defaults[name]), text))
+        descriptor_cls = RCLPY.cls("rcl_interfaces/msg/ParameterDescriptor")
         out: dict[str, Any] = {}
         for spec in params:
-            descriptor = ParameterDescriptor(description=spec.description, dynamic_typing=True)
+            descriptor = descriptor_cls(description=spec.description, dynamic_typing=True)
             value = self.declare_parameter(spec.name, spec.default, descriptor).value
             out[spec.name] = coerce_param(spec.name, value, spec.default)
         for name in ("rate_hz", "diagnostics_period", "lockstep_timeout"):
@@ -170,6 +173,7 @@ class SimNode(Node):  # type: ignore[misc]
             self._emit[kind](vec, stamp)
         if self.core.done and self._finish_at is None:
             self._finish_at = time.monotonic() + FINISH_GRACE_S
+            self._publish_diagnostics()  # the final counters, delivered during the grace period
             self.get_logger().info(f"max_sim_time {self.params['max_sim_time']} s reached: finishing")
 
     def _warn_throttled(self, key: str, text: str, period: float = 5.0) -> None:
@@ -201,31 +205,28 @@ class SimNode(Node):  # type: ignore[misc]
             self.core.reject(exc.reason, str(exc))
             self._warn_throttled("reject", f"rejected cmd: {exc}")
             return
-        rejected_before = self.core.last_rejection
+        rejected_before = self.core.n_rejections
         self._publish(self.core.on_cmd(u, stamp, now))
-        if self.core.last_rejection is not rejected_before:
+        if self.core.n_rejections != rejected_before:
             self._warn_throttled("reject", f"rejected cmd: {self.core.last_rejection}")
 
     def _on_tick(self) -> None:
         self._publish(self.core.tick(time.monotonic_ns()))
 
-    def _on_watchdog(self) -> None:
+    def _on_housekeeping(self) -> None:
         outputs = self.core.poll(time.monotonic_ns())
         if outputs:
             self._warn_throttled("miss", f"lockstep: no valid cmd within {self.params['lockstep_timeout']} s; "
                                          "applied the held command / safe default")
-        self._publish(outputs)
+            self._publish(outputs)
+        if self._finish_at is not None and time.monotonic() >= self._finish_at and not self.done_future.done():
+            self.done_future.set_result(True)
 
     def _on_reset(self, request: Any, response: Any) -> Any:
         response.message = self.core.request_reset()
         response.success = True
         self.get_logger().info(response.message)
         return response
-
-    def _check_finished(self) -> None:
-        if self._finish_at is not None and time.monotonic() >= self._finish_at and not self.done_future.done():
-            self._publish_diagnostics()
-            self.done_future.set_result(True)
 
     def _publish_diagnostics(self) -> None:
         values = self.core.diagnostics()

@@ -10,7 +10,8 @@ paddle ball (event based) each impact publishes ``state``, ``applied_cmd`` and `
 ``--clock`` also publishes ``/clock`` = t_k. The trajectory is computed before publishing, so ``--rate``
 (steps per wall second, 0 = as fast as possible) is not limited by torch.
 
-Prints one JSON line at the end: ``{"published": {topic: count}, "transitions": n, "seconds": s}`` where
+``--events FILE`` publishes a roll-out saved by :func:`save_events` (the test computes it; this process then
+starts without importing torch). Prints one JSON line at the end: ``{"published": {topic: count}, "transitions": n, "seconds": s}`` where
 ``transitions`` is the number of transitions a correct learner pairs from what was published.
 """
 
@@ -29,7 +30,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from msg_schemas import get_schema  # noqa: E402
 from msg_schemas.telemetry import clock_to_msg, model_error_to_msg  # noqa: E402
 from saml_ros.bags import join_topic  # noqa: E402
-from saml_ros.core.systems import get_system  # noqa: E402
 
 
 def rollout(system_name: str, steps: int, episode_steps: int, seed: int, t0_ns: int) -> list[dict]:
@@ -37,6 +37,8 @@ def rollout(system_name: str, steps: int, episode_steps: int, seed: int, t0_ns: 
 
     ``u`` is present iff the next state continues the same episode (time-stepped) and ``y`` for event systems.
     """
+    from saml_ros.core.systems import get_system  # torch: only when rolling out here
+
     system = get_system(system_name)
     rng = np.random.default_rng(seed)
     schema = get_schema(system_name)
@@ -66,6 +68,29 @@ def rollout(system_name: str, steps: int, episode_steps: int, seed: int, t0_ns: 
     return events
 
 
+def save_events(path: Path, events: list[dict]) -> None:
+    """Store a roll-out for ``--events`` (so the publisher process need not import torch)."""
+    arrays: dict[str, np.ndarray] = {"stamp": np.array([e["stamp"] for e in events], dtype=np.int64)}
+    for key in ("x", "u", "y"):
+        rows = [e.get(key) for e in events]
+        width = next((len(r) for r in rows if r is not None), 0)
+        arrays[key] = np.array([r if r is not None else np.full(width, np.nan) for r in rows]).reshape(len(rows), width)
+        arrays["has_" + key] = np.array([r is not None for r in rows])
+    np.savez(path, **arrays)
+
+
+def load_events(path: Path) -> list[dict]:
+    data = np.load(path)
+    events = []
+    for k, stamp in enumerate(data["stamp"]):
+        ev: dict = {"stamp": int(stamp)}
+        for key in ("x", "u", "y"):
+            if data["has_" + key][k]:
+                ev[key] = data[key][k]
+        events.append(ev)
+    return events
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--system", default="friction")
@@ -79,8 +104,10 @@ def main() -> int:
     p.add_argument("--cmd", action="store_true", help="also publish cmd (like an MPC) with each applied_cmd")
     p.add_argument("--model-error-every", type=int, default=0, help="publish learner/model_error every N steps")
     p.add_argument("--wait-subscribers", type=int, default=0,
-                   help="before publishing, wait until every publisher has this many subscribers")
+                   help="before publishing, wait until the pairing topics (state, applied_cmd, target) have this "
+                        "many subscribers and every other topic one")
     p.add_argument("--wait-timeout", type=float, default=20.0)
+    p.add_argument("--events", type=Path, help="publish this saved roll-out (save_events) instead of rolling out")
     args = p.parse_args()
 
     import rclpy
@@ -91,7 +118,10 @@ def main() -> int:
 
     schema = get_schema(args.system)
     ns = args.namespace or f"/{args.system}"
-    events = rollout(args.system, args.steps, args.episode_steps, args.seed, int(args.t0 * 1e9))
+    if args.events:
+        events = load_events(args.events)
+    else:
+        events = rollout(args.system, args.steps, args.episode_steps, args.seed, int(args.t0 * 1e9))
 
     rclpy.init()
     node = Node("bag_publisher")
@@ -113,7 +143,12 @@ def main() -> int:
 
     if args.wait_subscribers:
         deadline = time.monotonic() + args.wait_timeout
-        while any(pub.get_subscription_count() < args.wait_subscribers for pub in pubs.values()):
+        pairing = {schema.state_topic, schema.applied_cmd_topic, schema.target_topic}
+
+        def enough(name: str) -> bool:
+            return pubs[name].get_subscription_count() >= (args.wait_subscribers if name in pairing else 1)
+
+        while not all(enough(name) for name in pubs):
             if time.monotonic() > deadline:
                 print("bag_publisher: timed out waiting for subscribers", file=sys.stderr)
                 return 1

@@ -9,7 +9,6 @@ checkpoints and keeps running.
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -20,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from ros_helpers import RosDomain, ros_env  # noqa: F401  (fixture by import)
 
 from saml_ros.core.checkpoint import CheckpointStore, atomic_write
 from saml_ros.core.model_io import save_checkpoint
@@ -31,6 +31,7 @@ from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
 from saml_ros.mpc_node import make_goal, parse_solver_options
 
 REPO = Path(__file__).resolve().parents[1]
+rclpy = pytest.importorskip("rclpy")
 
 
 def save_model(store: CheckpointStore, system_name: str, seed: int = 0) -> tuple[Path, int]:
@@ -140,3 +141,215 @@ def test_goal_and_solver_option_parsing() -> None:
     assert parse_solver_options("") == {}
     with pytest.raises(ValueError):
         parse_solver_options("[1, 2]")
+
+
+# --------------------------------------------------------------------------------------- node (ROS)
+DT_NS = 100_000_000  # quadrotor dt = 0.1 s
+T0_NS = 1_000_000_000
+
+
+class MPCProcess:
+    """``python -m saml_ros.entry mpc --ros-args ...`` in its own process group, log in a file."""
+
+    def __init__(self, tmp: Path, domain: int, params: dict[str, Any], ns: str = "/quadrotor") -> None:
+        self.log_path = tmp / f"mpc-{time.monotonic_ns()}.log"
+        args = [sys.executable, "-m", "saml_ros.entry", "mpc", "--ros-args", "-r", f"__ns:={ns}"]
+        if os.environ.get("TMP_MPC_DRIVER"):  # TEMPORARY
+            args[1:4] = [os.environ["TMP_MPC_DRIVER"]]
+        for k, v in params.items():
+            args += ["-p", f"{k}:={v}"]
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   PYTHONUNBUFFERED="1")
+        env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+        self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen(args, cwd=tmp, env=env, stdout=self._log, stderr=subprocess.STDOUT,
+                                     process_group=0)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
+        try:
+            if self.proc.poll() is None:
+                os.killpg(self.proc.pid, sig)
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(5)
+            raise AssertionError(f"mpc ignored {sig}:\n{self.log()}") from None
+        finally:
+            self._log.close()
+
+
+class Probe:
+    """The test's own rclpy node in the quadrotor namespace: publishes states, collects cmd / status / diagnostics."""
+
+    def __init__(self, domain: int) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+
+        from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, get_schema
+
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.schema = get_schema("quadrotor")
+        self.node = rclpy.create_node("probe", namespace="/quadrotor", context=self.ctx)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.cmds: dict[int, np.ndarray] = {}
+        self.status: list[dict[str, float]] = []
+        self.diag: dict[str, str] = {}
+        self.state_pub = self.node.create_publisher(RCLPY.cls(self.schema.state.msg_type), "state",
+                                                    DATA_QOS.to_rclpy())
+        self.ckpt_pub = self.node.create_publisher(String, "learner/checkpoint", CHECKPOINT_QOS.to_rclpy())
+        self.node.create_subscription(JointState, "cmd", self._on_cmd, DATA_QOS.to_rclpy())
+        self.node.create_subscription(JointState, "mpc/status", self._on_status, TELEMETRY_QOS.to_rclpy())
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, TELEMETRY_QOS.to_rclpy())
+
+    def _on_cmd(self, msg: Any) -> None:
+        u, stamp = self.schema.control_from_msg(msg)
+        assert stamp not in self.cmds, f"two commands for the state stamped {stamp}"
+        self.cmds[stamp] = u
+
+    def _on_status(self, msg: Any) -> None:
+        from msg_schemas.telemetry import mpc_status_from_msg
+
+        self.status.append(mpc_status_from_msg(msg)[0])
+
+    def _on_diag(self, msg: Any) -> None:
+        from msg_schemas.telemetry import diagnostics_from_msg
+
+        for entry in diagnostics_from_msg(msg)[0]:
+            if entry.name == "/quadrotor/mpc":
+                self.diag = dict(entry.values)
+
+    def spin_until(self, pred: Any, timeout: float, what: str, proc: MPCProcess | None = None) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}" + (f"\n{proc.log()}" if proc else ""))
+            if proc is not None and proc.proc.poll() is not None:
+                raise AssertionError(f"mpc exited ({proc.proc.returncode}) while waiting for {what}\n{proc.log()}")
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_connected(self, proc: MPCProcess, timeout: float = 60.0) -> None:
+        self.spin_until(lambda: self.state_pub.get_subscription_count() > 0
+                        and self.node.count_publishers("/quadrotor/cmd") > 0, timeout, "the MPC node", proc)
+
+    def step(self, x: np.ndarray, stamp: int, proc: MPCProcess, timeout: float = 10.0) -> np.ndarray:
+        """Publish state ``x`` stamped ``stamp`` and wait for the answer (like a lockstep simulator)."""
+        self.state_pub.publish(self.schema.state_to_msg(x, stamp))
+        self.spin_until(lambda: stamp in self.cmds, timeout, f"the cmd stamped {stamp}", proc)
+        return self.cmds[stamp]
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+def _hover(pos: tuple[float, float, float]) -> np.ndarray:
+    return get_system("quadrotor").hover_state(pos)  # type: ignore[attr-defined]
+
+
+@pytest.fixture
+def domain(ros_env: RosDomain) -> int:  # noqa: F811
+    """A private ROS domain (claimed by ros_helpers; Fast DDS leftovers are cleaned after the test)."""
+    return ros_env.domain_id
+
+
+def test_node_answers_every_state_with_its_stamp_within_bounds(tmp_path: Path, domain: int) -> None:
+    system = get_system("quadrotor")
+    proc = MPCProcess(tmp_path, domain, {"system": "quadrotor", "run_dir": str(tmp_path / "run")})
+    probe = Probe(domain)
+    try:
+        probe.wait_connected(proc)
+        rng = np.random.default_rng(0)
+        stamps = []
+        for k in range(15):
+            x = _hover((rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(0.5, 3)))
+            x[3:6] = rng.uniform(-1, 1, 3)
+            stamp = T0_NS + k * DT_NS
+            u = probe.step(x, stamp, proc)
+            stamps.append(stamp)
+            assert np.all(u >= system.control_low) and np.all(u <= system.control_high), u
+        # a state far above the target: the MPC must not command more than f_max nor less than 0
+        u = probe.step(_hover((0.0, 0.0, 30.0)), T0_NS + 20 * DT_NS, proc)
+        assert np.all((u >= 0) & (u <= 10.0))
+        bad = _hover((0.0, 0.0, 1.0))
+        bad[0] = np.nan
+        probe.state_pub.publish(probe.schema.state_to_msg(bad, T0_NS + 21 * DT_NS))
+        probe.step(_hover((0.0, 0.0, 1.0)), T0_NS + 22 * DT_NS, proc)
+        probe.spin_until(lambda: int(probe.diag.get("rejected/nan", "0")) >= 1, 10, "rejected/nan in /diagnostics",
+                         proc)
+        assert T0_NS + 21 * DT_NS not in probe.cmds  # never answered
+        assert set(stamps) <= set(probe.cmds)
+        probe.spin_until(lambda: len(probe.status) >= 17, 5, "mpc/status", proc)
+        assert all(s["model_version"] == 0 for s in probe.status)  # no checkpoint: the base model
+        assert all(s["solve_time_ms"] > 0 and s["iterations"] >= 1 for s in probe.status)
+    finally:
+        probe.close()
+        rc = proc.stop(signal.SIGINT)
+    assert rc == 0, proc.log()
+    assert "no checkpoint yet: running on the base model" in proc.log()
+
+
+def test_node_hot_swaps_checkpoints_and_refuses_bad_ones(tmp_path: Path, domain: int) -> None:
+    store = CheckpointStore(tmp_path / "run")
+    proc = MPCProcess(tmp_path, domain, {"system": "quadrotor", "run_dir": str(store.run_dir),
+                                         "poll_period": 0.2, "deadline_ms": 100.0})
+    probe = Probe(domain)
+    k = [0]
+
+    def fly_until(pred: Any, what: str, timeout: float = 20.0) -> None:
+        """Keep the loop running (one state per answer) until ``pred()``."""
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}\n{proc.log()}")
+            x = _hover((1.0, -1.0, 2.0 - 0.01 * (k[0] % 100)))
+            probe.step(x, T0_NS + k[0] * DT_NS, proc)
+            k[0] += 1
+
+    def last(name: str) -> float:
+        probe.executor.spin_once(timeout_sec=0.0)
+        return probe.status[-1][name] if probe.status else -1.0
+
+    try:
+        probe.wait_connected(proc)
+        fly_until(lambda: len(probe.status) >= 5, "the first solves")
+        assert last("model_version") == 0
+        good, _ = save_model(store, "quadrotor", seed=1)  # appears while the loop runs
+        fly_until(lambda: last("model_version") == 1, "the switch to version 1")
+        write_corrupt(store, good)  # version 2: truncated
+        fly_until(lambda: last("checkpoints_refused") >= 1, "the corrupt checkpoint to be refused")
+        save_model(store, "friction")  # version 3: another system
+        fly_until(lambda: last("checkpoints_refused") >= 2, "the foreign checkpoint to be refused")
+        fly_until(lambda: len(probe.status) >= k[0] - 1 and k[0] > 40, "more solves")
+        assert last("model_version") == 1  # kept its model
+        # a checkpoint announced on learner/checkpoint, in a directory the node does not poll
+        from msg_schemas.telemetry import CheckpointInfo, checkpoint_to_msg
+
+        other = CheckpointStore(tmp_path / "elsewhere")
+        save_model(other, "quadrotor", seed=5)
+        path, version = save_model(other, "quadrotor", seed=6)
+        probe.ckpt_pub.publish(checkpoint_to_msg(CheckpointInfo(str(path), version, get_system("quadrotor")
+                                                                .schema_hash(), 0.0)))
+        fly_until(lambda: last("model_version") == version, "the announced checkpoint")
+        probe.spin_until(lambda: int(probe.diag.get("checkpoints_refused", "0")) >= 2, 10, "diagnostics", proc)
+        assert int(probe.diag["checkpoints_refused/corrupt"]) == 1
+        assert int(probe.diag["checkpoints_refused/incompatible"]) == 1
+        assert "expected 'quadrotor'" in probe.diag["last_refusal"]
+        swaps = [s for s in probe.status if s["swap_ms"] > 0]
+        assert len(swaps) == 2
+        # the swap happens between two solves and costs next to nothing: no deadline missed
+        assert all(s["step_ms"] < 100.0 for s in swaps) and last("deadline_misses") == 0
+        assert sorted(probe.cmds) == [T0_NS + i * DT_NS for i in range(k[0])]  # every state answered, in order
+    finally:
+        probe.close()
+        rc = proc.stop(signal.SIGTERM)
+    assert rc == 0, proc.log()
+    log = proc.log()
+    assert "refused checkpoint (corrupt)" in log and "refused checkpoint (incompatible)" in log

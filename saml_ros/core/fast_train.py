@@ -46,8 +46,10 @@ SUPPORTED_LOSSES = frozenset(LOSS_TYPES)
 # Below this l2 norm the l2 / normalized loss gradient e / ||e|| is taken as 0 (PyTorch masks exactly ||e|| = 0;
 # a float32 error this small cannot occur unless the error is exactly zero).
 _TINY = 1e-30
-# Upper bound on floats gathered per chunk of epochs (~32 MB in float32).
-_CHUNK_FLOATS = 8_000_000
+# Floats gathered per chunk of epochs (at least one epoch): small enough to stay in cache (~4 MB in float32).
+_CHUNK_FLOATS = 1_000_000
+# PReLU forward kernel with a broadcastable weight (the public torch.prelu reshapes its weight first)
+_prelu_kernel: Callable[[Tensor, Tensor], Tensor] = getattr(torch, "_prelu_kernel", torch.ops.aten._prelu_kernel.default)
 
 
 # ------------------------------------------------------------------------------------------------- support
@@ -182,46 +184,27 @@ class _FlatOptimizer:
         p.addcdiv_(self.m, den, value=step_size)
 
 
-def _updater(primal: _FlatOptimizer, dual: _FlatOptimizer | None) -> Callable[[Tensor, Tensor | None], None]:
-    """``update(primal_grad, dual_grad)``: the primal step, then the dual step and the projection on lambda >= 0.
+def _merge_dual(primal: torch.optim.Optimizer, dual: torch.optim.Optimizer) -> float | None:
+    """``-dual_lr / primal_lr`` when the dual Adam can ride in the primal Adam's flat tensor, else ``None``.
 
-    Two Adams with equal betas, eps and step count run as one set of ``torch._foreach`` calls (the kernels
-    ``torch.optim.Adam(foreach=True)`` itself uses), which halves the number of dispatches.
+    Adam's update of a parameter is ``lr * m / (sqrt(v) + eps)`` with moments of its gradient, so lambda's
+    update equals the primal lr's update of ``u = lambda / k`` with ``k = -dual_lr / primal_lr`` and gradient
+    ``g`` (the minus sign turns descent on u into ascent on lambda; ``lambda >= 0`` is ``u <= 0``). This needs
+    the same betas, eps and step count, which :class:`PrimalDualTrainer`'s optimizers have.
     """
-    if (
-        dual is not None
-        and primal.kind == dual.kind == "adam"
-        and (primal.beta1, primal.beta2, primal.eps, primal.step_count)
-        == (dual.beta1, dual.beta2, dual.eps, dual.step_count)
-    ):
-        params, ms, vs = [primal.param, dual.param], [primal.m, dual.m], [primal.v, dual.v]
-        lam = dual.param
-        w1, b2, w2, eps = 1 - primal.beta1, primal.beta2, 1 - primal.beta2, primal.eps
+    if type(primal) is not torch.optim.Adam or type(dual) is not torch.optim.Adam:
+        return None
+    gp, gd = primal.param_groups[0], dual.param_groups[0]
+    if tuple(gp["betas"]) != tuple(gd["betas"]) or gp["eps"] != gd["eps"] or not (gd["lr"] > 0 and gp["lr"] > 0):
+        return None
 
-        def joint(gp: Tensor, gd: Tensor | None) -> None:
-            assert gd is not None
-            ss_p, bc2_sqrt = primal.scalars()
-            ss_d, _ = dual.scalars()
-            grads = [gp, gd]
-            torch._foreach_lerp_(ms, grads, w1)
-            torch._foreach_mul_(vs, b2)
-            torch._foreach_addcmul_(vs, grads, grads, w2)
-            den = torch._foreach_sqrt(vs)
-            torch._foreach_div_(den, bc2_sqrt)
-            torch._foreach_add_(den, eps)
-            torch._foreach_addcdiv_(params, ms, den, [ss_p, ss_d])
-            lam.clamp_(min=0.0)
+    def steps(opt: torch.optim.Optimizer) -> set[int]:
+        return {int(float(opt.state[p]["step"])) if "step" in opt.state.get(p, {}) else 0
+                for p in opt.param_groups[0]["params"]}
 
-        return joint
-
-    def separate(gp: Tensor, gd: Tensor | None) -> None:
-        primal.step(gp)
-        if dual is not None:
-            assert gd is not None
-            dual.step(gd)
-            dual.param.clamp_(min=0.0)
-
-    return separate
+    if len(steps(primal) | steps(dual)) != 1:
+        return None
+    return -float(gd["lr"]) / float(gp["lr"])
 
 
 # ------------------------------------------------------------------------------------------------- network
@@ -229,10 +212,11 @@ class _FlatNet:
     """The ensemble's parameters in one flat tensor ``flat`` (gradients in ``grad``, same layout).
 
     Layer ``i`` is ``w[i]`` ``(E, d_in + 1, d_out)`` (its last row is the bias); the PReLU slopes of all hidden
-    layers are contiguous at the end, ``slopes`` ``(L - 1, E)``, so one operation negates them all.
+    layers follow, ``slopes`` ``(L - 1, E)``, so one operation negates them all; then ``n_extra`` slots per
+    member (``extra`` ``(E, n_extra)``: the scaled dual variables when the dual Adam is merged in).
     """
 
-    def __init__(self, net: EnsembleMLP, dtype: torch.dtype) -> None:
+    def __init__(self, net: EnsembleMLP, dtype: torch.dtype, n_extra: int = 0) -> None:
         self.net = net
         e = net.n_models
         self.dims = [net.in_dim, *net.hidden, net.out_dim]
@@ -244,11 +228,15 @@ class _FlatNet:
             total += e * (a + 1) * b
         self.s_offset = total
         total += e * (self.n_layers - 1)
+        self.x_offset = total
+        self.n_extra = n_extra
+        total += e * n_extra
         self.size = total
         self.flat = torch.zeros(total, dtype=dtype)
         self.grad = torch.zeros(total, dtype=dtype)
         self.w, self.slopes = self._views(self.flat)
         self.gw, self.gslopes = self._views(self.grad)
+        self.extra, self.gextra = self.extra_view(self.flat), self.extra_view(self.grad)
         self.params = list(net.parameters())
         names = {id(q): n for n, q in net.named_parameters()}
         kinds = {"weights": "w", "biases": "b", "slopes": "s"}
@@ -260,7 +248,10 @@ class _FlatNet:
             buf[o : o + e * (a + 1) * b].view(e, a + 1, b)
             for o, a, b in zip(self.w_offsets, self.dims[:-1], self.dims[1:])
         ]
-        return ws, buf[self.s_offset :].view(self.n_layers - 1, e)
+        return ws, buf[self.s_offset : self.x_offset].view(self.n_layers - 1, e)
+
+    def extra_view(self, buf: Tensor) -> Tensor:
+        return buf[self.x_offset :].view(self.net.n_models, self.n_extra)
 
     def views(self, buf: Tensor) -> list[Tensor]:
         """One view of flat buffer ``buf`` per network parameter, shaped like the parameter."""
@@ -400,34 +391,50 @@ class FastEngine:
         self.T = len(self.terms)
         self.K = self.T - 1
         self.groups = _groups(self.terms)
-        self.net = _FlatNet(model.net, self.dtype)
+        # dual variables merged into the primal flat tensor as u = lambda / k (see _merge_dual), or separate
+        self.k_dual = _merge_dual(trainer.primal_opt, trainer.dual_opt) if self.K else None
+        self.net = _FlatNet(model.net, self.dtype, self.K if self.k_dual is not None else 0)
         self.popt = _FlatOptimizer(trainer.primal_opt, self.net.flat, maximize=False)
-        # coef = [1, lambda_1..K] per member; lambda is a view, updated in place by the dual optimizer
+        # coef = [1, lambda_1..K] per member; lambda is a view
         self.coef = torch.ones(self.E, self.T, dtype=self.dtype)
         self.lam = self.coef[:, 1:]
-        self.dopt = _FlatOptimizer(trainer.dual_opt, self.lam, maximize=True) if self.K else None
+        self.dopt = None
+        if self.K and self.k_dual is None:
+            self.dopt = _FlatOptimizer(trainer.dual_opt, self.lam, maximize=True)
         self.residual = model.kind == "residual"
         self._pending: list[Tensor] = []
         self._prepare_sources()
 
     # ------------------------------------------------------------------------------ state exchange
+    @torch.no_grad()
     def load_state(self) -> None:
         """Read parameters, lambda and optimizer states from the trainer."""
         self.net.load()
         self.popt.load(self.tr.primal_opt, self.net.views)
-        with torch.no_grad():
-            self.lam.copy_(self.tr.lam)
+        self.lam.copy_(self.tr.lam)
         if self.dopt is not None:
             self.dopt.load(self.tr.dual_opt, lambda buf: [buf])
+        if self.k_dual is not None:
+            self.net.extra.copy_(self.lam / self.k_dual)
+            st = self.tr.dual_opt.state.get(self.tr._lam_param, {})
+            if "exp_avg" in st:  # moments of the gradient -g (maximize) -> of g
+                self.net.extra_view(self.popt.m).copy_(-st["exp_avg"])
+                self.net.extra_view(self.popt.v).copy_(st["exp_avg_sq"])
 
+    @torch.no_grad()
     def store_state(self) -> None:
         """Write parameters, lambda and optimizer states back to the trainer."""
         self.net.store()
         self.popt.store(self.tr.primal_opt, self.net.views)
-        with torch.no_grad():
-            self.tr._lam_param.copy_(self.lam)
+        self.tr._lam_param.copy_(self.lam)
         if self.dopt is not None:
             self.dopt.store(self.tr.dual_opt, lambda buf: [buf])
+        if self.k_dual is not None and self.popt.step_count:
+            self.tr.dual_opt.state[self.tr._lam_param] = {
+                "step": torch.tensor(float(self.popt.step_count), dtype=torch.float32),
+                "exp_avg": -self.net.extra_view(self.popt.m).clone(),
+                "exp_avg_sq": self.net.extra_view(self.popt.v).clone(),
+            }
 
     # ------------------------------------------------------------------------------ data
     def _prepare_sources(self) -> None:
@@ -454,7 +461,7 @@ class FastEngine:
             self.src_masks: list[Tensor] = []
             self.src_ny: list[Tensor | None] = []
             for g in self.groups:
-                cols = [ones if d.masks[c] is None else d.masks[c].to(self.dtype).expand_as(ones) for c in g.cols]
+                cols = [ones if mc is None else mc.to(self.dtype).expand_as(ones) for mc in (d.masks[c] for c in g.cols)]
                 self.src_masks.append(torch.stack(cols, -1).reshape(-1, len(cols)))
                 if g.loss == "normalized":  # Term.per_sample's ||y|| on the same float data
                     ny = torch.linalg.vector_norm(d.y[..., list(g.fields)], dim=-1).clamp_min(1e-9)
@@ -515,6 +522,7 @@ class FastEngine:
         tr.model.train()
         self.load_state()
         self._pending = self._pending_from_trainer()
+        step = self._make_step(bsz)
         # Several epochs are drawn and gathered at once: rand(Q, E, N) consumes the generator exactly like Q
         # calls of rand(E, N). With a callback (which may look at the generator) one epoch at a time.
         per_floats = per_epoch * e * bsz * (self.src_z.shape[1] + 2 * self.src_y.shape[1] + self.T + 2)
@@ -526,8 +534,9 @@ class FastEngine:
             idx = perm[..., : per_epoch * bsz].reshape(q, e, per_epoch, bsz).permute(0, 2, 1, 3)
             batches = self._gather(idx.reshape(q * per_epoch, e, bsz))
             vals = torch.empty(q * per_epoch, e, self.T, dtype=self.dtype)
+            rows = vals.unbind(0)
             for k in range(q):
-                self._run(batches, vals, k * per_epoch, (k + 1) * per_epoch, per_epoch, log_every, bar)
+                self._run(step, batches, vals, rows, k * per_epoch, (k + 1) * per_epoch, per_epoch, log_every, bar)
                 tr.epochs_done = round(tr.epochs_done, 9)
                 if callback is not None:
                     self.store_state()
@@ -559,73 +568,90 @@ class FastEngine:
         self._pending = []
         self.tr._record(rows[:, :, 0].mean(0), rows[:, :, 1:].mean(0), self.lam.clone())
 
-    def _run(
-        self,
-        batches: tuple[list[Tensor], list[Tensor], list[Tensor] | None, list[list[_StepGroup]]],
-        vals: Tensor,
-        lo: int,
-        hi: int,
-        per_epoch: int,
-        log_every: int,
-        bar: Any,
-    ) -> None:
-        """Algorithm 1 on minibatches ``lo:hi`` of ``batches``; ``vals[j]`` receives step j's values ``(E, T)``."""
-        tr, net, e = self.tr, self.net, self.E
-        z_all, y_all, base_all, sg_all = batches
+    def _make_step(self, bsz: int) -> Callable[[Tensor, Tensor, Tensor | None, list[_StepGroup], Tensor], None]:
+        """``step(z, y, base, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member;
+        ``row`` ``(E, T)`` receives the minibatch term values (objective, then g_k)."""
+        net, e = self.net, self.E
         n_hidden = net.n_layers - 1
         w, gw, gslopes = net.w, net.gw, net.gslopes
         w_t = [wi[:, :-1, :].transpose(1, 2) for wi in w]  # W without its bias row, transposed
-        bsz = z_all[0].shape[1]
-        hid = net.dims[1:-1]
-        # activations with a trailing column of ones (the bias input), their transposes, and the views written
-        h_buf = [torch.ones(e, bsz, h + 1, dtype=self.dtype) for h in hid]
+        # activations with a trailing column of ones (the bias input), the views written, their transposes
+        h_buf = [torch.ones(e, bsz, h + 1, dtype=self.dtype) for h in net.dims[1:-1]]
         h_view = [hb[..., :-1] for hb in h_buf]
         h_t = [hb.transpose(1, 2) for hb in h_buf]
         gs_v = [gslopes[i].view(e, 1, 1) for i in range(n_hidden)]
         neg_slopes = torch.empty_like(net.slopes)
         ns_v = [neg_slopes[i].view(e, 1, 1) for i in range(n_hidden)]
-        an: list[Tensor] = [h_view[0]] * n_hidden  # min(a, 0) per hidden layer
-        dd: list[Tensor] = [h_view[0]] * n_hidden  # PReLU derivative per hidden layer
-        ostd = tr.model.out_std
-        coef, grad = self.coef, net.grad
-        update = _updater(self.popt, self.dopt)
-        fns = [_group_fn(g, y_all[0].shape[-1], len(self.groups) == 1) for g in self.groups]
-        has_dual = self.dopt is not None
+        an: list[Tensor] = list(h_view)  # min(a, 0) per hidden layer (placeholders until the first step)
+        dd: list[Tensor] = list(h_view)  # PReLU derivative per hidden layer
+        ostd = self.tr.model.out_std
+        coef, grad, slopes, lam = self.coef, net.grad, net.slopes, self.lam
+        popt, dopt = self.popt, self.dopt
+        u, gu, k_dual = net.extra, net.gextra, self.k_dual
+        fn0, *fns = [_group_fn(g, self.src_y.shape[-1], len(self.groups) == 1) for g in self.groups]
         one = torch.ones((), dtype=self.dtype)
-        next_log = tr.steps + (log_every - tr.steps % log_every)
-        inc = 1.0 / per_epoch
-        start = lo
-        bmm, mul, prelu, copysign = torch.bmm, torch.mul, torch.ops.aten._prelu_kernel.default, torch.copysign
-        for j in range(lo, hi):
-            z = z_all[j]
-            row = vals[j]
-            # forward; PReLU derivative d = where(a >= 0, 1, slope) as prelu(+-1, -slope)
-            torch.neg(net.slopes, out=neg_slopes)
+        bmm, mul, sum_, prelu = torch.bmm, torch.mul, torch.sum, _prelu_kernel
+        copysign, clamp_max, neg, addcmul = torch.copysign, torch.clamp_max, torch.neg, torch.addcmul
+
+        def step(z: Tensor, y: Tensor, base: Tensor | None, sgs: list[_StepGroup], row: Tensor) -> None:
+            # forward; the PReLU derivative d = where(a >= 0, 1, slope) is prelu(copysign(1, a), -slope)
+            neg(slopes, out=neg_slopes)
             h = z
             for i in range(n_hidden):
                 a = bmm(h, w[i])
-                an[i] = torch.clamp_max(a, 0)
+                an[i] = clamp_max(a, 0)
                 d = dd[i] = prelu(copysign(one, a), ns_v[i])
                 mul(a, d, out=h_view[i])
                 h = h_buf[i]
             out = bmm(h, w[-1])
-            pred = torch.addcmul(base_all[j], out, ostd) if base_all is not None else mul(out, ostd)
-            err = pred.sub_(y_all[j])
+            pred = addcmul(base, out, ostd) if base is not None else mul(out, ostd)
+            err = pred.sub_(y)
             # spec values (into row) and dL/dpred
-            sgs = sg_all[j]
-            dpred = fns[0](err, sgs[0], row, coef)
-            for fn, sg in zip(fns[1:], sgs[1:]):
+            dpred = fn0(err, sgs[0], row, coef)
+            for fn, sg in zip(fns, sgs[1:]):
                 dpred = dpred + fn(err, sg, row, coef)
             # backward
             g = dpred.mul_(ostd)
             for i in range(n_hidden, 0, -1):
                 bmm(h_t[i - 1], g, out=gw[i])
                 gh = bmm(g, w_t[i])
-                bmm(gh.view(e, 1, -1), an[i - 1].view(e, -1, 1), out=gs_v[i - 1])
+                sum_(gh * an[i - 1], dim=(1, 2), keepdim=True, out=gs_v[i - 1])
                 g = gh.mul_(dd[i - 1])
             bmm(z.transpose(1, 2), g, out=gw[0])
-            # primal step, dual step on the detached minibatch constraint estimates, projection
-            update(grad, row[:, 1:] if has_dual else None)
+            # primal step, dual step on the detached minibatch constraint estimates, projection on lambda >= 0
+            if k_dual is not None:
+                gu.copy_(row[:, 1:])
+                popt.step(grad)
+                u.clamp_(max=0.0)
+                mul(u, k_dual, out=lam)
+            else:
+                popt.step(grad)
+                if dopt is not None:
+                    dopt.step(row[:, 1:])
+                    lam.clamp_(min=0.0)
+
+        return step
+
+    def _run(
+        self,
+        step: Callable[[Tensor, Tensor, Tensor | None, list[_StepGroup], Tensor], None],
+        batches: tuple[list[Tensor], list[Tensor], list[Tensor] | None, list[list[_StepGroup]]],
+        vals: Tensor,
+        rows: tuple[Tensor, ...],
+        lo: int,
+        hi: int,
+        per_epoch: int,
+        log_every: int,
+        bar: Any,
+    ) -> None:
+        """Steps on minibatches ``lo:hi`` of ``batches``; ``rows[j] = vals[j]`` receives step j's values ``(E, T)``."""
+        tr = self.tr
+        z_all, y_all, base_all, sg_all = batches
+        next_log = tr.steps + (log_every - tr.steps % log_every)
+        inc = 1.0 / per_epoch
+        start = lo
+        for j in range(lo, hi):
+            step(z_all[j], y_all[j], None if base_all is None else base_all[j], sg_all[j], rows[j])
             tr.steps += 1
             tr.epochs_done += inc
             if tr.steps == next_log:

@@ -24,12 +24,17 @@ any thread. The model is guarded by one lock; the buffer and the recent window h
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
+import multiprocessing
+import os
+import signal
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -62,6 +67,32 @@ EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
 )
 #: history rows the trainer keeps in memory (older rows are dropped; online training never ends)
 HISTORY_ROWS = 1000
+
+
+def assemble_telemetry(
+    constraint_names: Sequence[str], status: Mapping[str, float], counts: Mapping[str, int]
+) -> dict[str, float]:
+    """``learner/model_error`` values in order: :func:`~msg_schemas.telemetry.model_error_names` first, then
+    :data:`EXTRA_METRICS` and ``n_in/<k>``.
+
+    Args:
+        constraint_names: the spec's constraint names.
+        status: :meth:`OnlineLearner.status` (missing model values are NaN).
+        counts: pairing counters (:meth:`OnlineLearner.counts` or :func:`~saml_ros.core.pairing.total_counts`).
+    """
+    out: dict[str, float] = {}
+    for n in model_error_names(constraint_names):
+        if n.startswith("rejected/"):
+            out[n] = float(counts.get(n.removeprefix("rejected/"), 0))
+        else:
+            out[n] = float(status.get(n, math.nan))
+    out["paired"] = float(counts.get("paired", 0))
+    for n, _, _ in EXTRA_METRICS:
+        if n != "paired":
+            out[n] = float(status.get(n, math.nan))
+    for c in constraint_names:
+        out[f"n_in/{c}"] = float(status.get(f"n_in/{c}", 0.0))
+    return out
 
 
 class ResumeError(RuntimeError):
@@ -147,6 +178,13 @@ class _Recent:
             row[:a], row[a:b], row[b:] = x, u, y
             self._n += 1
 
+    def add_batch(self, x: np.ndarray, u: np.ndarray, y: np.ndarray) -> None:
+        rows = np.concatenate([x, u, y], axis=1)[-len(self._rows):]
+        with self._lock:
+            idx = (self._n + np.arange(len(rows))) % len(self._rows)
+            self._rows[idx] = rows
+            self._n += len(rows)
+
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with self._lock:
             rows = self._rows[: min(self._n, len(self._rows))].copy()
@@ -230,14 +268,22 @@ class OnlineLearner:
             self.add(tr)
         return res
 
-    def reject(self, source: int, reason: str) -> None:
-        """Count a message of ``source`` dropped before pairing (``reason``: a SchemaError reason)."""
-        self._sources[source].reject(reason)
+    def reject(self, source: int, reason: str, kind: str | None = None) -> None:
+        """Count a ``kind`` message of ``source`` dropped before pairing (``reason``: a SchemaError reason)."""
+        self._sources[source].reject(reason, kind)
 
     def add(self, tr: Transition) -> None:
         """Add one paired transition to the buffer and the recent window."""
         self.buffer.add(tr.x, tr.u, tr.y, stamp=tr.stamp_ns * 1e-9, source=tr.source)
         self._recent.add(tr.x, tr.u, tr.y)
+
+    def add_batch(self, x: np.ndarray, u: np.ndarray, y: np.ndarray, stamp: Any = 0.0, source: Any = 0) -> None:
+        """Add ``B`` paired transitions at once: ``x (B, n_x)``, ``u (B, n_u)``, ``y (B, n_y)``, ``stamp`` in s and
+        ``source`` scalars or ``(B,)`` (much cheaper per row than :meth:`add`)."""
+        if len(x) == 0:
+            return
+        self.buffer.add_batch(x, u, y, stamp=stamp, source=source)
+        self._recent.add_batch(np.asarray(x, np.float64), np.asarray(u, np.float64), np.asarray(y, np.float64))
 
     def counts(self) -> dict[str, int]:
         """All sources' pairing and rejection counters, summed."""
@@ -340,33 +386,25 @@ class OnlineLearner:
         self._metrics = out
         return dict(out)
 
-    def telemetry(self) -> dict[str, float]:
-        """The full ``learner/model_error`` values: canonical names first (``model_error_names``), then
-        :data:`EXTRA_METRICS` and ``n_in/<k>``. Model values come from the last :meth:`compute_model_metrics`;
-        counters, buffer size and update count are live."""
-        names = self.spec.constraint_names
-        m = self._metrics
-        counts = self.counts()
-        live = {
-            "buffer_size": float(len(self.buffer)),
-            "updates": float(self.updates),
-            "model_version": float(self.model_version),
-            "paired": float(counts.get("paired", 0)),
-            "training": 1.0 if self.training else 0.0,
-        }
-        out: dict[str, float] = {}
-        for n in model_error_names(names):
-            if n in live:
-                out[n] = live[n]
-            elif n.startswith("rejected/"):
-                out[n] = float(counts.get(n.removeprefix("rejected/"), 0))
-            else:
-                out[n] = m.get(n, math.nan)
-        for n, _, _ in EXTRA_METRICS:
-            out[n] = live[n] if n in live else m.get(n, math.nan)
-        for c in names:
-            out[f"n_in/{c}"] = m.get(f"n_in/{c}", 0.0)
+    def status(self) -> dict[str, float]:
+        """The last :meth:`compute_model_metrics` plus live buffer size, update count, model version,
+        training flag and checkpoint counters (what a training process reports to its node)."""
+        out = dict(self._metrics)
+        out.update(
+            buffer_size=float(len(self.buffer)),
+            updates=float(self.updates),
+            model_version=float(self.model_version),
+            training=1.0 if self.training else 0.0,
+            checkpoints_written=float(self.checkpoints_written),
+            checkpoints_skipped=float(self.checkpoints_skipped),
+        )
         return out
+
+    def telemetry(self) -> dict[str, float]:
+        """The full ``learner/model_error`` values (:func:`assemble_telemetry` of :meth:`status` and
+        :meth:`counts`). Model values come from the last :meth:`compute_model_metrics`; counters, buffer size
+        and update count are live."""
+        return assemble_telemetry(self.spec.constraint_names, self.status(), self.counts())
 
     # ------------------------------------------------------------------------------------------ checkpoints
     @property
@@ -501,3 +539,404 @@ def _trim_history(tr: PrimalDualTrainer) -> None:
     if extra > 0:
         for name in ("step", "epoch", "objective", "constraints", "lambdas", "lagrangian", "wall_time"):
             del getattr(h, name)[:extra]
+
+
+# ------------------------------------------------------------------------------------ training process
+@dataclass(frozen=True)
+class LoopConfig:
+    """How a training loop paces itself.
+
+    Attributes:
+        updates_per_second: primal-dual updates per wall-clock second; 0 = as fast as possible.
+        telemetry_rate: model metrics computed (and reported) per second, Hz.
+        checkpoint_period: wall-clock seconds between checkpoints (only when there are new updates).
+        chunk: updates between two looks at the inbox and the clocks.
+    """
+
+    updates_per_second: float = 0.0
+    telemetry_rate: float = 5.0
+    checkpoint_period: float = 10.0
+    chunk: int = 10
+
+    def __post_init__(self) -> None:
+        if self.updates_per_second < 0 or self.telemetry_rate <= 0 or self.checkpoint_period <= 0 or self.chunk < 1:
+            raise ValueError(f"invalid loop configuration {self}")
+
+
+@dataclass(frozen=True)
+class LearnerSetup:
+    """Everything a training process needs to build its :class:`OnlineLearner` (picklable).
+
+    Attributes:
+        system, system_params: ``get_system(system, **system_params)``.
+        spec: the problem spec as a dict (``ProblemSpec.to_dict()``).
+        config: the learner configuration.
+        run_dir: checkpoint directory (``None``: no checkpoints).
+        resume: resume from the newest valid checkpoint of ``run_dir``.
+        loop: pacing of the training loop.
+        niceness: added to the training process's nice value, so the OS runs ingest (and simulators, MPC)
+            first when CPUs are short; 0 keeps the parent's priority.
+    """
+
+    system: str
+    system_params: dict[str, Any]
+    spec: dict[str, Any]
+    config: OnlineConfig
+    run_dir: str | None = None
+    resume: bool = True
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    niceness: int = 10
+
+    def build(self) -> OnlineLearner:
+        from saml_ros.core.systems import get_system
+
+        system = get_system(self.system, **self.system_params)
+        spec = ProblemSpec.for_system(self.spec, system)
+        store = None if self.run_dir is None else CheckpointStore(self.run_dir, keep=self.config.checkpoint_keep)
+        return OnlineLearner(system, spec, self.config, store=store, resume=self.resume)
+
+
+def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable[[tuple[Any, ...]], None]) -> None:
+    """The training loop of a training process (or any thread owning ``learner``).
+
+    ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)`` and
+    ``("stop",)``; ``send`` reports ``("status", dict)`` at ``loop.telemetry_rate``, ``("checkpoint", path,
+    version)`` after each save, ``("error", what, message)`` and, on stop, ``("stopped", path | None, version,
+    updates)`` after a final checkpoint (when there are updates not yet saved). Returns after a stop.
+    """
+    metrics_period = 1.0 / loop.telemetry_rate
+    next_metrics = 0.0
+    paced_from: float | None = None
+    paced_done = 0
+    while True:
+        while conn.poll():
+            msg = conn.recv()
+            if msg[0] == "batch":
+                learner.add_batch(*msg[1:])
+            elif msg[0] == "stop":
+                saved = _save(learner, send) if learner.dirty else None
+                learner.compute_model_metrics()
+                send(("status", learner.status()))
+                path = str(saved[0]) if saved else None
+                send(("stopped", path, learner.model_version, learner.updates))
+                return
+        now = time.monotonic()
+        if now >= next_metrics:
+            learner.compute_model_metrics()
+            send(("status", learner.status()))
+            next_metrics = now + metrics_period
+        if learner.checkpoint_due(loop.checkpoint_period):
+            _save(learner, send)
+        if not learner.training:
+            paced_from = None
+            conn.poll(0.05)  # an interruptible sleep: wakes up when data arrives
+            continue
+        n = loop.chunk
+        if loop.updates_per_second > 0:
+            if paced_from is None:
+                paced_from, paced_done = now, 0
+            due = int((now - paced_from) * loop.updates_per_second) - paced_done
+            if due <= 0:
+                conn.poll(min(metrics_period, (paced_done + 1) / loop.updates_per_second - (now - paced_from)))
+                continue
+            n = min(due, loop.chunk)
+            paced_done += n
+        try:
+            learner.update(n)
+        except Exception as exc:  # noqa: BLE001 - report, back off, keep going
+            send(("error", "training", f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s"))
+            time.sleep(1.0)
+
+
+def _save(learner: OnlineLearner, send: Callable[[tuple[Any, ...]], None]) -> tuple[Path, int] | None:
+    try:
+        saved = learner.save_checkpoint()
+    except OSError as exc:
+        run_dir = learner.store.run_dir if learner.store else "?"
+        send(("error", "checkpoint", f"cannot write a checkpoint into {run_dir}: {exc}"))
+        return None
+    if saved is not None:
+        send(("checkpoint", str(saved[0]), saved[1]))
+    return saved
+
+
+class _PipeLogHandler(logging.Handler):
+    """Ships ``saml_ros.*`` log records of the training process to its parent as ``("log", level, text)``."""
+
+    def __init__(self, send: Callable[[tuple[Any, ...]], None]) -> None:
+        super().__init__()
+        self._send = send
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self._send(("log", record.levelno, self.format(record)))
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGKILL this process when its parent dies (a killed learner never leaves a trainer behind that
+    keeps writing checkpoints into the run directory)."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+        if os.getppid() == 1:  # the parent died before prctl took effect
+            os._exit(0)
+
+
+def _child_main(conn: Any, setup: LearnerSetup) -> None:
+    """Entry point of a training process (spawned by :class:`TrainingProcess`)."""
+    _die_with_parent()
+    # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if setup.niceness:
+        with contextlib.suppress(OSError):
+            os.nice(setup.niceness)
+    torch.set_num_threads(1)  # small networks: intra-op threads cost more than they give, and steal CPUs
+    lock = threading.Lock()
+
+    def send(msg: tuple[Any, ...]) -> None:
+        with lock:
+            conn.send(msg)
+
+    handler = _PipeLogHandler(send)
+    root = logging.getLogger("saml_ros")
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+    try:
+        try:
+            learner = setup.build()
+        except ResumeError as exc:
+            send(("fatal", "resume", str(exc)))
+            return
+        except Exception as exc:  # noqa: BLE001 - reported to the parent, which exits with a message
+            send(("fatal", "error", f"{type(exc).__name__}: {exc}"))
+            return
+        r = learner.resumed
+        info = None if r is None else {"path": str(r.path), "version": r.version, "updates": r.updates,
+                                       "lam": r.lam, "skipped": [(str(p), why) for p, why in r.skipped]}
+        send(("ready", info, list(learner.model.hidden), learner.status()))
+        run_loop(learner, setup.loop, conn, send)
+    except (EOFError, OSError):
+        return  # the parent is gone
+
+
+@dataclass
+class ReadyInfo:
+    """What a training process reported when it was ready.
+
+    Attributes:
+        resumed: ``{"path", "version", "updates", "lam", "skipped"}`` of the checkpoint it resumed from, or None.
+        hidden: the model's hidden layer sizes.
+        status: its first :meth:`OnlineLearner.status`.
+    """
+
+    resumed: dict[str, Any] | None
+    hidden: list[int]
+    status: dict[str, float]
+
+
+class TrainingProcess:
+    """Runs the training side of an :class:`OnlineLearner` in a child process fed with transitions.
+
+    Why a process: the learner's ingest (rclpy callbacks: decode, pair) and primal-dual training are both
+    Python; in one process they share the GIL, and training would take CPU time from ingest (measured: the
+    node then loses messages at under a third of a bare subscriber's rate). In a child process training runs
+    on another CPU when there is one, and at a higher nice value (:attr:`LearnerSetup.niceness`) it yields
+    the CPU to ingest when there is not.
+
+    The child owns the buffer, model, trainer, checkpoints and resume; this handle ships transitions to it in
+    batches (a shipper thread, so :meth:`submit` never blocks) and receives status, checkpoint
+    announcements, log records and errors (a reader thread, calling the callbacks). If the child dies
+    unexpectedly it is restarted (resuming from the newest checkpoint) and ``on_error`` is told.
+
+    Args:
+        setup: how to build the learner in the child.
+        on_status: called with each status dict (:meth:`OnlineLearner.status`).
+        on_checkpoint: called with ``(path, version)`` after each checkpoint.
+        on_log: called with ``(level, text)`` for the child's log records.
+        on_error: called with ``(what, message)`` for training / checkpoint errors and restarts.
+        max_queue: transitions held while the child cannot take them; beyond that they are dropped
+            (counted in :attr:`dropped`).
+    """
+
+    def __init__(
+        self,
+        setup: LearnerSetup,
+        *,
+        on_status: Callable[[dict[str, float]], None] | None = None,
+        on_checkpoint: Callable[[str, int], None] | None = None,
+        on_log: Callable[[int, str], None] | None = None,
+        on_error: Callable[[str, str], None] | None = None,
+        max_queue: int = 1_000_000,
+    ) -> None:
+        self.setup = setup
+        self.on_status = on_status or (lambda s: None)
+        self.on_checkpoint = on_checkpoint or (lambda p, v: None)
+        self.on_log = on_log or (lambda lvl, text: log.log(lvl, text))
+        self.on_error = on_error or (lambda what, text: log.error(text))
+        self.max_queue = max_queue
+        self.status: dict[str, float] = {}
+        self.dropped = 0
+        self.restarts = 0
+        self.errors = 0
+        self._outbox: deque[Transition] = deque()
+        self._send_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._stopped = threading.Event()
+        self._final: tuple[str | None, int, int] | None = None
+        self._ctx = multiprocessing.get_context("spawn")
+        self._proc: Any = None
+        self._conn: Any = None
+        self._threads: list[threading.Thread] = []
+
+    # ---------------------------------------------------------------------------------------- lifecycle
+    def start(self, timeout: float = 120.0) -> ReadyInfo:
+        """Start the child and wait until it has built its learner (and resumed).
+
+        Raises:
+            ResumeError: the run directory contradicts the configuration.
+            RuntimeError: the child could not build its learner or did not answer within ``timeout`` s.
+        """
+        ready = self._spawn(self.setup, timeout)
+        for target, name in ((self._ship, "learner-ship"), (self._read, "learner-read")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        return ready
+
+    def _spawn(self, setup: LearnerSetup, timeout: float) -> ReadyInfo:
+        parent, child = self._ctx.Pipe(duplex=True)
+        proc = self._ctx.Process(target=_child_main, args=(child, setup), name="saml_ros-learner-train", daemon=True)
+        proc.start()
+        child.close()
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0 or not parent.poll(left):
+                proc.kill()
+                raise RuntimeError(f"the training process did not start within {timeout:.0f} s")
+            try:
+                msg = parent.recv()
+            except (EOFError, OSError):
+                proc.join(5)
+                raise RuntimeError(f"the training process exited during start-up (exit code {proc.exitcode})") from None
+            if msg[0] == "log":
+                self.on_log(msg[1], msg[2])
+            elif msg[0] == "fatal":
+                proc.join(10)
+                raise (ResumeError if msg[1] == "resume" else RuntimeError)(msg[2])
+            elif msg[0] == "ready":
+                self._proc, self._conn = proc, parent
+                self.status = msg[3]
+                return ReadyInfo(msg[1], msg[2], msg[3])
+
+    def stop(self, timeout: float = 60.0) -> tuple[str | None, int, int] | None:
+        """Ship what is queued, ask the child for a final checkpoint and wait for it to exit.
+
+        Returns ``(path of the final checkpoint or None if nothing was new, model version, updates)``, or None
+        if the child did not answer within ``timeout`` s (it is then killed).
+        """
+        self._stopping.set()
+        for t in self._threads:
+            if t.name == "learner-ship":
+                t.join(timeout)
+        try:
+            with self._send_lock:
+                self._conn.send(("stop",))
+        except (OSError, ValueError):
+            pass
+        self._stopped.wait(timeout)
+        if self._proc is not None:
+            self._proc.join(5.0 if self._stopped.is_set() else 0.1)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join(5.0)
+        return self._final
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else int(self._proc.pid)
+
+    # ---------------------------------------------------------------------------------------- data
+    def submit(self, tr: Transition) -> None:
+        """Queue one transition for the child (never blocks; see ``max_queue``)."""
+        if len(self._outbox) >= self.max_queue:
+            self.dropped += 1
+            return
+        self._outbox.append(tr)
+
+    @property
+    def queued(self) -> int:
+        return len(self._outbox)
+
+    def _ship(self) -> None:
+        """Send queued transitions in batches every few ms (a blocking pipe write stalls this thread only)."""
+        while True:
+            stopping = self._stopping.is_set()
+            n = len(self._outbox)
+            if n:
+                trs = [self._outbox.popleft() for _ in range(n)]
+                batch = (
+                    "batch",
+                    np.stack([t.x for t in trs]),
+                    np.stack([t.u for t in trs]),
+                    np.stack([t.y for t in trs]),
+                    np.array([t.stamp_ns for t in trs], dtype=np.float64) * 1e-9,
+                    np.array([t.source for t in trs], dtype=np.int64),
+                )
+                try:
+                    with self._send_lock:
+                        self._conn.send(batch)
+                except (OSError, ValueError):  # the child is being restarted: keep the batch
+                    self._outbox.extendleft(reversed(trs))
+                    time.sleep(0.1)
+            if stopping and not self._outbox:
+                return
+            time.sleep(0.005)
+
+    def _read(self) -> None:
+        while True:
+            conn = self._conn
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                if self._stopping.is_set():
+                    self._stopped.set()
+                    return
+                self._restart()
+                continue
+            kind = msg[0]
+            if kind == "status":
+                self.status = msg[1]
+                self.on_status(msg[1])
+            elif kind == "checkpoint":
+                self.on_checkpoint(msg[1], msg[2])
+            elif kind == "log":
+                self.on_log(msg[1], msg[2])
+            elif kind == "error":
+                self.errors += 1
+                self.on_error(msg[1], msg[2])
+            elif kind == "stopped":
+                self._final = (msg[1], msg[2], msg[3])
+                self._stopped.set()
+                return
+
+    def _restart(self) -> None:
+        code = None if self._proc is None else self._proc.exitcode
+        self.errors += 1
+        self.restarts += 1
+        self.on_error("process", f"the training process exited unexpectedly (exit code {code}); restarting it "
+                                 "from the newest checkpoint (the replay buffer starts empty)")
+        time.sleep(1.0)
+        setup = dataclasses.replace(self.setup, resume=True)
+        while not self._stopping.is_set():
+            try:
+                with self._send_lock:
+                    self._spawn(setup, 120.0)
+                return
+            except Exception as exc:  # noqa: BLE001 - keep trying; ingest goes on meanwhile
+                self.on_error("process", f"restarting the training process failed: {exc}; retrying in 5 s")
+                time.sleep(5.0)

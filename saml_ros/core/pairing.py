@@ -8,31 +8,41 @@ One :class:`StampPairer` serves one source (one robot / simulator namespace). It
   stamped t, ``y`` = the ``state`` stamped t + dt. ``target`` events are not used in this mode.
 * ``mode="same"`` (event systems, the paddle ball): ``state``, ``applied_cmd`` and ``target`` with the same stamp.
 
-Two stamps are "the same" when they differ by at most ``tolerance_ns`` (default 1 us). Events may arrive in
-any interleaving across kinds; within one kind stamps must increase. Rules, in the order they are checked
-(each rejection is counted under its reason and the event is dropped, never paired):
+Two stamps are "the same" when they differ by at most ``tolerance_ns`` (default 1 us). Events of different
+kinds may arrive in any interleaving; within one kind, stamps must increase (DDS keeps each topic in publish
+order). A transition is emitted exactly once, as soon as its last message arrives, whatever the order.
 
-1. ``stamp``: the stamp is not an int >= 0. ``shape``: the vector has the wrong length. ``nan``: NaN/Inf.
-2. ``duplicate``: an event of this kind with the same stamp was already accepted (and is still remembered).
-3. A ``state`` stamped more than ``horizon_ns`` before the newest ``state`` means the source's clock was
-   restarted (a new simulator run): every pending entry is dropped (counted as ``unpaired`` if it never
-   contributed to a transition), ``time_resets`` is incremented and the event is accepted.
-4. ``late``: any event stamped more than ``horizon_ns`` before the newest accepted ``state`` of the source
-   (its partners have already been forgotten). ``stamp``: an ``applied_cmd`` / ``target`` stamped more than
-   ``horizon_ns`` after the newest ``state`` (it answers a state that was never published).
-5. ``out_of_order``: the stamp is before the newest accepted stamp of the same kind.
+Retention (bounded memory): the pairer remembers the stamps of the newest ``window`` accepted states and every
+entry not older than the oldest of them; older entries are dropped. Retention counts states, not seconds, so
+it does not depend on how fast stamps advance (a lockstep simulator may run far faster than real time) and
+covers any backlog between topics shorter than ``window`` steps (a DDS reader queue holds at most its depth).
+At most ``max_slots`` stamps are remembered in total (the oldest go first), whatever the stamps.
 
-Accepted events are kept in *slots* (one per stamp) until they fall more than ``horizon_ns`` behind the
-newest ``state``; then the slot is dropped. The ``state`` stream is the source's clock: a bogus far-future
-stamp on another kind only occupies one slot, and a bogus far-future ``state`` is undone by rule 3. Messages in a dropped slot that never became part of a transition are
-counted as ``unpaired`` (orphaned), and a dropped slot that was not complete counts in ``stale_slots``. At
-most ``max_slots`` slots are kept (the oldest go first, counted in ``overflow_slots``), so memory is bounded
-whatever the stamps. A valid transition is emitted exactly once, as soon as its last message arrives.
+Each event is checked in this order; a rejected event is counted under its reason and dropped, never paired:
+
+1. ``stamp``: not an int >= 0. ``shape``: wrong vector length. ``nan``: NaN or Inf in the vector.
+2. ``duplicate``: an event of this kind with the same stamp is already remembered.
+3. ``late``: stamped at or before the newest dropped entry (its partners were forgotten).
+4. ``out_of_order``: stamped before the newest accepted event of the same kind.
+
+Re-anchoring: ``reanchor`` (default 3) consecutive rejected events of one kind (``duplicate``, ``late`` or
+``out_of_order``) whose stamps increase among themselves are not noise but a new clock: a restarted simulator,
+or one earlier bogus far-future stamp that every later event now looks "out of order" against. For ``state``
+this is a clock restart: everything pending is dropped (``time_resets``); for another kind only that kind's
+order reference is forgotten (``reanchors``). The events of the run are then fed again (and removed from the
+rejection counters if they are accepted), so a restart loses nothing but the steps spanning it.
+
+Counters (:attr:`StampPairer.counts`, see :data:`COUNTERS`): ``received/<kind>`` every event of that kind,
+``paired`` transitions emitted, one counter per rejection reason, ``unpaired`` messages dropped from memory
+without ever being part of a transition (orphans: a command whose state never came, a state with neither a
+command nor a predecessor), ``expired`` incomplete stamps dropped (informational: the last state before an
+episode reset is one), ``overflow`` stamps dropped by the ``max_slots`` cap, ``time_resets``, ``reanchors``.
 """
 
 from __future__ import annotations
 
 import bisect
+from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -42,12 +52,14 @@ import numpy as np
 KINDS: tuple[str, ...] = ("state", "applied_cmd", "target")
 MODES: tuple[str, ...] = ("next", "same")
 
-#: reasons a single event is dropped by :meth:`StampPairer.add` (subset of msg_schemas' REJECT_REASONS)
+#: reasons a single event is dropped by :meth:`StampPairer.add` (a subset of msg_schemas' REJECT_REASONS)
 EVENT_REJECTS: tuple[str, ...] = ("stamp", "shape", "nan", "duplicate", "late", "out_of_order")
+#: rejections that may reveal a new clock (see "Re-anchoring" in the module docstring)
+_ORDER_REJECTS = frozenset({"duplicate", "late", "out_of_order"})
 #: every counter a :class:`StampPairer` keeps (all start at 0)
 COUNTERS: tuple[str, ...] = (
     "received/state", "received/applied_cmd", "received/target", "paired",
-    *EVENT_REJECTS, "unpaired", "stale_slots", "overflow_slots", "time_resets",
+    *EVENT_REJECTS, "unpaired", "expired", "overflow", "time_resets", "reanchors",
 )  # fmt: skip
 
 NS_PER_S = 1_000_000_000
@@ -75,10 +87,10 @@ class AddResult(NamedTuple):
     """What one :meth:`StampPairer.add` call did.
 
     Attributes:
-        transitions: transitions completed by this event (0, 1 or 2; 2 when a ``state`` both closes the
-            previous step and completes its own).
+        transitions: transitions completed by this event (usually 0 or 1; a ``state`` may close the previous
+            step and complete its own, and a re-anchoring may complete several).
         rejected: the reason the event was dropped (one of :data:`EVENT_REJECTS`), or ``None`` if accepted.
-        detail: a human-readable explanation for a rejection or a clock restart (empty otherwise).
+        detail: explanation of a rejection or of a re-anchoring (empty otherwise).
     """
 
     transitions: list[Transition]
@@ -95,8 +107,9 @@ class PairingConfig:
         n_x, n_u, n_y: vector lengths of ``state``, ``applied_cmd`` and the target.
         dt_ns: sampling period in ns (``"next"`` only; must exceed 2 * tolerance_ns).
         tolerance_ns: two stamps closer than this (inclusive) are the same stamp; default 1 us.
-        horizon_ns: how long (in stamp time) an incomplete entry waits for its partners; default 2 s.
-        max_slots: hard cap on remembered stamps per source.
+        window: newest accepted states whose stamps (and everything newer) are remembered.
+        max_slots: hard cap on remembered stamps.
+        reanchor: consecutive increasing rejected events of one kind that re-anchor its clock (>= 2).
     """
 
     mode: str
@@ -105,8 +118,9 @@ class PairingConfig:
     n_y: int
     dt_ns: int = 0
     tolerance_ns: int = 1_000
-    horizon_ns: int = 2 * NS_PER_S
-    max_slots: int = 100_000
+    window: int = 1000
+    max_slots: int = 10_000
+    reanchor: int = 3
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -120,19 +134,17 @@ class PairingConfig:
                 f"pairing mode 'next' needs dt_ns > 2 * tolerance_ns, got dt_ns={self.dt_ns}, "
                 f"tolerance_ns={self.tolerance_ns}"
             )
-        min_horizon = self.dt_ns + self.tolerance_ns if self.mode == "next" else self.tolerance_ns
-        if self.horizon_ns <= min_horizon:
-            raise ValueError(
-                f"horizon_ns ({self.horizon_ns}) must exceed {'dt + tolerance' if self.mode == 'next' else 'the tolerance'}"
-                f" ({min_horizon} ns), or nothing can ever be paired"
-            )
-        if self.max_slots < 2:
-            raise ValueError(f"max_slots must be >= 2, got {self.max_slots}")
+        if self.window < 2:
+            raise ValueError(f"window must be >= 2 states (x_t and x_t+dt), got {self.window}")
+        if self.max_slots < self.window:
+            raise ValueError(f"max_slots ({self.max_slots}) must be >= window ({self.window})")
+        if self.reanchor < 2:
+            raise ValueError(f"reanchor must be >= 2, got {self.reanchor}")
 
     @classmethod
     def for_system(cls, system: Any, target_pairing: str, *, dt: float | None = None, tolerance: float = 1e-6,
-                   horizon: float = 2.0, max_slots: int = 100_000) -> PairingConfig:
-        """Config for a :class:`~saml_ros.core.systems.base.System` (``dt``, ``tolerance``, ``horizon`` in s).
+                   window: int = 1000, max_slots: int = 10_000, reanchor: int = 3) -> PairingConfig:
+        """Config for a :class:`~saml_ros.core.systems.base.System` (``dt``, ``tolerance`` in s).
 
         ``target_pairing`` is ``SystemSchema.target_pairing``; ``dt`` defaults to ``system.dt``.
         """
@@ -144,8 +156,9 @@ class PairingConfig:
             n_y=system.target.size,
             dt_ns=round(step * NS_PER_S) if target_pairing == "next" else 0,
             tolerance_ns=round(tolerance * NS_PER_S),
-            horizon_ns=round(horizon * NS_PER_S),
+            window=window,
             max_slots=max_slots,
+            reanchor=reanchor,
         )
 
 
@@ -172,9 +185,7 @@ class _Slot:
         return n
 
     def complete(self, mode: str) -> bool:
-        if mode == "same":
-            return self.emitted
-        return self.emitted and self.x_used
+        return self.emitted and (mode == "same" or self.x_used)
 
 
 class StampPairer:
@@ -196,8 +207,10 @@ class StampPairer:
         self._sizes = {"state": config.n_x, "applied_cmd": config.n_u, "target": config.n_y}
         self._keys: list[int] = []  # stamps of the slots, ascending
         self._slots: dict[int, _Slot] = {}
+        self._states: deque[int] = deque()  # stamps of the newest accepted states, ascending
+        self._floor: int | None = None  # newest stamp dropped from memory
         self._last: dict[str, int | None] = dict.fromkeys(KINDS, None)
-        self._newest: int | None = None  # newest accepted state stamp
+        self._runs: dict[str, list[tuple[int, np.ndarray, str]]] = {k: [] for k in KINDS}
 
     # ------------------------------------------------------------------------------------------ public
     @property
@@ -205,15 +218,17 @@ class StampPairer:
         """Remembered stamps (slots), complete or not."""
         return len(self._keys)
 
-    def reject(self, reason: str) -> None:
-        """Count an event dropped before it reached the pairer (e.g. a malformed message)."""
+    def reject(self, reason: str, kind: str | None = None) -> None:
+        """Count an event of ``kind`` dropped before it reached the pairer (e.g. a malformed message) under
+        ``reason``; ``received/<kind>`` counts it too, so it counts every message of that kind."""
+        if kind in self._sizes:
+            self.counts["received/" + kind] += 1
         self.counts[reason] = self.counts.get(reason, 0) + 1
 
     def add(self, kind: str, stamp_ns: int, vector: Any) -> AddResult:
         """Feed one event; returns the transitions it completed, or why it was dropped."""
-        cfg = self.config
-        if kind not in self._sizes or (kind == "target" and cfg.mode == "next"):
-            raise ValueError(f"{self.name}: unknown event kind {kind!r} for pairing mode {cfg.mode!r}")
+        if kind not in self._sizes or (kind == "target" and self.config.mode == "next"):
+            raise ValueError(f"{self.name}: unknown event kind {kind!r} for pairing mode {self.config.mode!r}")
         self.counts["received/" + kind] += 1
         if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, int | np.integer) or stamp_ns < 0:
             return self._drop("stamp", f"{kind} stamp must be an int >= 0 (ns), got {stamp_ns!r}")
@@ -224,49 +239,76 @@ class StampPairer:
             return self._drop("shape", f"{kind} at {_fmt(stamp)}: expected {size} values, got shape {vec.shape}")
         if not np.isfinite(vec).all():
             return self._drop("nan", f"{kind} at {_fmt(stamp)}: non-finite value(s) {vec.tolist()}")
-
-        tol = cfg.tolerance_ns
-        slot = self._find(stamp)
-        if slot is not None and _get(slot, kind) is not None:
-            return self._drop("duplicate", f"{kind} at {_fmt(stamp)} was already received")
-        detail = ""
-        last = self._last[kind]
-        if kind == "state" and last is not None and stamp < last - cfg.horizon_ns:
-            detail = (
-                f"state stamp jumped back from {_fmt(last)} to {_fmt(stamp)}: clock restart, "
-                f"{len(self._keys)} pending stamp(s) dropped"
-            )
-            self._reset()
-            self.counts["time_resets"] += 1
-            slot, last = None, None
-        elif self._newest is not None and stamp < self._newest - cfg.horizon_ns:
-            return self._drop(
-                "late", f"{kind} at {_fmt(stamp)} is more than the horizon behind the newest state {_fmt(self._newest)}"
-            )
-        elif kind != "state" and self._newest is not None and stamp > self._newest + cfg.horizon_ns:
-            return self._drop(
-                "stamp", f"{kind} at {_fmt(stamp)} is more than the horizon ahead of the newest state {_fmt(self._newest)}"
-            )
-        if kind != "state" and last is not None and self._newest is not None and last > self._newest + cfg.horizon_ns:
-            last = None  # accepted before the first state arrived, and implausible now: do not let it block
-        if not detail and last is not None and stamp < last - tol:
-            return self._drop("out_of_order", f"{kind} at {_fmt(stamp)} arrived after {kind} at {_fmt(last)}")
-
-        if slot is None:
-            slot = self._insert(stamp)
-        _set(slot, kind, vec)
-        self._last[kind] = stamp if last is None else max(last, stamp)
-        out = self._pair(slot, kind)
-        if kind == "state" and (self._newest is None or stamp > self._newest):
-            self._newest = stamp
-            self._evict(stamp - cfg.horizon_ns)
-        elif len(self._keys) > cfg.max_slots:
-            self._evict(None)
-        return AddResult(out, None, detail)
+        reason, detail = self._classify(kind, stamp)
+        run = self._runs[kind]
+        if reason is None:
+            run.clear()
+            return AddResult(self._accept(kind, stamp, vec))
+        result = self._drop(reason, detail)
+        if run and stamp <= run[-1][0] + self.config.tolerance_ns:
+            run.clear()  # not increasing: noise, not a new clock
+        run.append((stamp, vec, reason))
+        if len(run) >= self.config.reanchor:
+            return self._reanchor(kind)
+        return result
 
     def flush(self) -> None:
-        """Forget every pending entry (counting orphans), e.g. at shutdown or when a source goes away."""
+        """Forget every pending entry (counting orphans), e.g. when a source goes away."""
         self._reset()
+
+    # ------------------------------------------------------------------------------------------ rules
+    def _classify(self, kind: str, stamp: int) -> tuple[str | None, str]:
+        tol = self.config.tolerance_ns
+        slot = self._find(stamp)
+        if slot is not None and _get(slot, kind) is not None:
+            return "duplicate", f"{kind} at {_fmt(stamp)} was already received"
+        if slot is None and self._floor is not None and stamp <= self._floor + tol:
+            return "late", (f"{kind} at {_fmt(stamp)} is older than everything still remembered (up to "
+                            f"{_fmt(self._floor)}; pairing window = {self.config.window} states)")
+        last = self._last[kind]
+        if last is not None and stamp < last - tol:
+            return "out_of_order", f"{kind} at {_fmt(stamp)} arrived after {kind} at {_fmt(last)}"
+        return None, ""
+
+    def _accept(self, kind: str, stamp: int, vec: np.ndarray) -> list[Transition]:
+        slot = self._find(stamp) or self._insert(stamp)
+        _set(slot, kind, vec)
+        last = self._last[kind]
+        self._last[kind] = stamp if last is None else max(last, stamp)
+        out = self._pair(slot, kind)
+        if kind == "state":
+            self._states.append(stamp)
+            if len(self._states) > self.config.window:
+                self._evict(self._states.popleft())
+        if len(self._keys) > self.config.max_slots:
+            self._evict(None)
+        return out
+
+    def _reanchor(self, kind: str) -> AddResult:
+        kinds = list(KINDS) if kind == "state" else [kind]
+        runs = {k: self._runs[k] for k in kinds}
+        self._runs.update({k: [] for k in kinds})
+        if kind == "state":
+            first = runs["state"][0][0]
+            detail = (f"{self.name}: state stamps restarted at {_fmt(first)} (before {_fmt(self._last['state'] or 0)}):"
+                      f" new clock, {len(self._keys)} pending stamp(s) dropped")
+            self._reset()
+            self.counts["time_resets"] += 1
+        else:
+            detail = (f"{self.name}: {kind} stamps continue at {_fmt(runs[kind][0][0])}, before the {kind} at "
+                      f"{_fmt(self._last[kind] or 0)}: that one was bogus; {kind} order re-anchored")
+            self._last[kind] = None
+            self.counts["reanchors"] += 1
+        out: list[Transition] = []
+        for k in kinds:
+            for stamp, vec, reason in runs[k]:
+                self.counts[reason] -= 1  # counted as rejected when it arrived; decided again now
+                again, _ = self._classify(k, stamp)
+                if again is None:
+                    out += self._accept(k, stamp, vec)
+                else:
+                    self.counts[again] += 1
+        return AddResult(out, None, detail)
 
     # ------------------------------------------------------------------------------------------ pairing
     def _pair(self, slot: _Slot, kind: str) -> list[Transition]:
@@ -314,29 +356,33 @@ class StampPairer:
         return slot
 
     def _evict(self, cutoff: int | None) -> None:
-        """Drop slots older than ``cutoff`` (stamp ns) and, beyond ``max_slots``, the oldest ones."""
+        """Drop slots stamped at or before ``cutoff`` and, beyond ``max_slots``, the oldest ones."""
         keys, n = self._keys, 0
         cap = self.config.max_slots
-        while n < len(keys) and ((cutoff is not None and keys[n] < cutoff) or len(keys) - n > cap):
-            if cutoff is None or keys[n] >= cutoff:
-                self.counts["overflow_slots"] += 1
+        while n < len(keys) and ((cutoff is not None and keys[n] <= cutoff) or len(keys) - n > cap):
+            if cutoff is None or keys[n] > cutoff:
+                self.counts["overflow"] += 1
             self._forget(self._slots.pop(keys[n]))
             n += 1
         if n:
+            self._floor = max(keys[n - 1], self._floor if self._floor is not None else keys[n - 1])
             del keys[:n]
+        while self._states and self._floor is not None and self._states[0] <= self._floor:
+            self._states.popleft()
 
     def _forget(self, slot: _Slot) -> None:
         self.counts["unpaired"] += slot.orphans(self.config.mode)
         if not slot.complete(self.config.mode):
-            self.counts["stale_slots"] += 1
+            self.counts["expired"] += 1
 
     def _reset(self) -> None:
         for key in self._keys:
             self._forget(self._slots[key])
         self._keys.clear()
         self._slots.clear()
+        self._states.clear()
+        self._floor = None
         self._last = dict.fromkeys(KINDS, None)
-        self._newest = None
 
     def _drop(self, reason: str, detail: str) -> AddResult:
         self.counts[reason] += 1

@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 from scipy.linalg.lapack import dpotrf as _dpotrf
 from scipy.linalg.lapack import dpotrs as _dpotrs
 
@@ -32,7 +31,12 @@ class QPResult:
 def solve_box_qp(
     hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 30, tol: float = 1e-10
 ) -> QPResult:
-    """``min 1/2 d'Hd + g'd  s.t.  lo <= d <= hi`` (``lo <= 0 <= hi`` not required); shapes ``(n, n), (n,)``."""
+    """``min 1/2 d'Hd + g'd  s.t.  lo <= d <= hi`` (``lo <= hi``); shapes ``(n, n), (n,)``.
+
+    Projected Newton: each iteration takes a Newton step on the variables not held at a bound by their
+    gradient, then a projected Armijo backtracking; when that fails (the projected Newton step is not a
+    descent direction), an exact projected-gradient (Cauchy) step instead.
+    """
     d = np.clip(np.zeros_like(grad), lo, hi)
     f = 0.5 * d @ hess @ d + grad @ d
     gscale = tol * (1.0 + np.abs(grad).max())
@@ -47,17 +51,25 @@ def solve_box_qp(
             break
         step = np.zeros_like(d)
         hff = hess[np.ix_(free, free)]
-        step[free] = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(hff, check_finite=False), gr[free],
-                                             check_finite=False)
+        chol, info = _dpotrf(hff, lower=1, clean=0)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"box QP: Hessian not positive definite (dpotrf info={info})")
+        step[free] = -_dpotrs(chol, gr[free], lower=1)[0]
         alpha = 1.0
-        for _ in range(30):
+        for _ in range(20):
             cand = np.clip(d + alpha * step, lo, hi)
             fc = 0.5 * cand @ hess @ cand + grad @ cand
             if fc <= f + 1e-4 * (gr @ (cand - d)):
                 break
             alpha *= 0.5
         else:
-            break
+            # Cauchy step along the projected gradient (exact minimiser of the quadratic on that ray)
+            sg = np.where(free, -gr, 0.0)
+            curv = float(sg @ hess @ sg)
+            cand = np.clip(d + (float(sg @ sg) / curv) * sg, lo, hi)
+            fc = 0.5 * cand @ hess @ cand + grad @ cand
+            if fc >= f:
+                break
         moved = np.abs(cand - d).max()
         d, f = cand, fc
         if moved <= 1e-14 * (1.0 + np.abs(d).max()):
@@ -106,14 +118,20 @@ def solve_qp(
     z = np.zeros(nz)
     z[:n] = np.clip(0.0, lo, hi)
     z[n:] = np.maximum(g_mat @ z[:n] - h_vec, 0.0) + 1.0
-    s = np.maximum(c_vec - c_mat @ z, 1.0)
-    lam = np.ones(m)
+    # slacks and multipliers in one array, so that one call finds the step to the boundary of both
+    sl = np.empty(2 * m)
+    s, lam = sl[:m], sl[m:]
+    s[:] = np.maximum(c_vec - c_mat @ z, 1.0)
+    lam[:] = 1.0
     # the elastic pair (G d - s <= h, -s <= 0) has multipliers summing to `penalty` at the solution
     lam[2 * n : 2 * n + k] = 0.5 * pen
     lam[2 * n + k :] = 0.5 * pen
+    dsl = np.empty(2 * m)
+    ds, dlam = dsl[:m], dsl[m:]
     kkt0 = np.zeros((nz, nz))
     kkt0[:n, :n] = hess
     diag = np.arange(nz)
+    wd = np.empty(nz)
     scale = 1.0 + max(np.abs(q).max(), np.abs(c_vec).max())
     stop = tol * scale
     converged = False
@@ -129,7 +147,6 @@ def solve_qp(
         # C' W C without the dense product: the bound rows only touch the diagonal
         kkt = (g_rows.T * w[2 * n : 2 * n + k]) @ g_rows
         kkt += kkt0
-        wd = np.empty(nz)
         wd[:n] = w[:n] + w[n : 2 * n] + 1e-12
         wd[n:] = w[2 * n + k :]
         kkt[diag, diag] += wd
@@ -139,26 +156,24 @@ def solve_qp(
         r_dw = -r_d - c_t @ (w * r_p)
         # predictor (affine scaling), then Mehrotra's corrector with the same factorisation
         dz = _dpotrs(chol, r_dw + c_t @ lam, lower=1)[0]
-        dlam = w * (c_mat @ dz + r_p) - lam
-        ds = -s - s * dlam / lam
-        a_aff = min(_max_step(s, ds), _max_step(lam, dlam))
+        dlam[:] = w * (c_mat @ dz + r_p) - lam
+        ds[:] = -s - s * dlam / lam
+        a_aff = _max_step(sl, dsl)
         mu_aff = ((s + a_aff * ds) @ (lam + a_aff * dlam)) / m
         sigma = (mu_aff / mu) ** 3
         r_c = s * lam + ds * dlam - sigma * mu
-        dz = _dpotrs(chol, r_dw + c_t @ (r_c / s), lower=1)[0]
-        dlam = w * (c_mat @ dz + r_p) - r_c / s
-        ds = -(r_c + s * dlam) / lam
-        alpha = min(1.0, 0.99 * min(_max_step(s, ds), _max_step(lam, dlam)))
+        r_cs = r_c / s
+        dz = _dpotrs(chol, r_dw + c_t @ r_cs, lower=1)[0]
+        dlam[:] = w * (c_mat @ dz + r_p) - r_cs
+        ds[:] = -(r_c + s * dlam) / lam
+        alpha = min(1.0, 0.99 * _max_step(sl, dsl))
         z += alpha * dz
-        s += alpha * ds
-        lam += alpha * dlam
+        sl += alpha * dsl
     d = np.clip(z[:n], lo, hi)
-    return QPResult(d, np.maximum(z[n:], 0.0), lam[2 * n : 2 * n + k], it, converged)
+    return QPResult(d, np.maximum(z[n:], 0.0), lam[2 * n : 2 * n + k].copy(), it, converged)
 
 
 def _max_step(v: np.ndarray, dv: np.ndarray) -> float:
-    """Largest alpha in (0, 1] with ``v + alpha dv >= 0`` (for ``v > 0``)."""
-    neg = dv < 0.0
-    if not neg.any():
-        return 1.0
-    return min(1.0, float((v[neg] / -dv[neg]).min()))
+    """Largest alpha in (0, 1] with ``v + alpha dv >= 0`` (for ``v > 0``): ``1 / max(-dv / v)``."""
+    worst = -float((dv / v).min())
+    return 1.0 if worst <= 1.0 else 1.0 / worst

@@ -33,7 +33,7 @@ import scipy.optimize
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.qp import solve_qp
+from saml_ros.core.mpc.qp import solve_box_qp, solve_qp
 from saml_ros.core.mpc.tasks import ShootingTask, make_task
 from saml_ros.core.mpc.types import MPCResult
 from saml_ros.core.systems.base import System
@@ -102,7 +102,7 @@ class ShootingMPC:
         ok = worst <= self.feas_tol
         if not ok:
             i = int(np.argmax(viol))
-            msg = f"{msg}; {task.cons_name[i]} violated by {worst:.3g}"
+            msg = f"{msg}; {task.names[i]} violated by {worst:.3g}"
         self._plan_u, self._plan_x = plan_u, plan_x
         return MPCResult(
             u=plan_u[0].copy(),
@@ -164,10 +164,17 @@ class SQPShootingMPC(ShootingMPC):
 
     Args (beyond :class:`ShootingMPC`'s):
         max_iter: SQP iteration cap per solve.
-        tol: relative tolerance on the predicted merit decrease.
-        eps: smoothing of the norms (cost units); the plan's reported cost is the exact, unsmoothed one.
-        penalty: price of one unit of state-constraint violation (elastic QP and merit function).
-        rho0: initial Levenberg-Marquardt weight, relative to the mean diagonal of the Gauss-Newton Hessian.
+        tol: stop when the QP predicts a merit decrease below ``tol * (1 + merit)``.
+        max_time: optional wall-clock budget per solve (s); the best plan so far is returned when it runs out.
+        eps: smoothing of the Euclidean norms (cost units); the reported cost is always the exact one.
+        penalty: initial price of one unit of state-constraint violation (elastic QP and merit); multiplied by
+            10 (up to ``penalty_max``) when the solver converges to a plan that still violates a constraint.
+        rho0: initial Levenberg-Marquardt weight relative to the mean diagonal of the Gauss-Newton Hessian;
+            adapted by the ratio of actual to predicted decrease and carried over between solves.
+        lm_floor: absolute Levenberg-Marquardt term (cost units per control unit squared): keeps controls that
+            barely affect the cost (the last ones of the horizon) from drifting.
+        radial: weight of the radial curvature term of the Euclidean norm (1 = the exact Hessian of the
+            smoothed norm, 0 = iteratively reweighted least squares).
     """
 
     def __init__(
@@ -175,40 +182,52 @@ class SQPShootingMPC(ShootingMPC):
         system: System,
         model: DynamicsModel | None = None,
         horizon: int = 10,
-        max_iter: int = 30,
-        tol: float = 1e-5,
+        max_iter: int = 20,
+        tol: float = 3e-4,
+        max_time: float | None = None,
         eps: float = 1e-3,
-        penalty: float = 100.0,
+        penalty: float = 10.0,
+        penalty_max: float = 1e4,
         rho0: float = 1e-3,
+        lm_floor: float = 1e-3,
         radial: float = 1.0,
         **kwargs: Any,
     ) -> None:
         super().__init__(system, model, horizon, **kwargs)
-        self.max_iter, self.tol, self.eps, self.penalty, self.rho0 = max_iter, tol, eps, penalty, rho0
-        self.radial = radial
+        self.max_iter, self.tol, self.max_time = max_iter, tol, max_time
+        self.eps, self.penalty, self.penalty_max = eps, penalty, penalty_max
+        self.rho0, self.lm_floor, self.radial = rho0, lm_floor, radial
         self._rho = rho0
-        # LM scale when the smooth part is zero (exact l1 model): the stage rows' curvature is ~ ||J||^2
-        self._scale_floor = 1e-6
+        self._ipm_first = False  # the last QP had active state constraints: skip the box-only attempt
         nu = self.horizon * self.m
         self._sens = np.zeros((self.horizon + 1, self.n, nu))
         self._eye = np.eye(nu)
+        #: per-solve counters (iterations, QPs, rollouts, ...) of the last solve, for profiling
+        self.stats: dict[str, int] = {}
+        #: set to a list to record (iteration, merit, predicted, actual decrease, step, |d|, rho, penalty)
+        self.trace: list[tuple[Any, ...]] | None = None
 
-    def _merit(self, xs: np.ndarray, task: ShootingTask) -> tuple[float, np.ndarray, np.ndarray]:
-        """Merit (smoothed cost + penalty * violation), residuals ``(T, k)`` and constraint values ``(nc,)``."""
+    def reset(self) -> None:
+        super().reset()
+        self._rho = self.rho0
+        self._ipm_first = False
+
+    def _merit(self, xs: np.ndarray, task: ShootingTask, penalty: float) -> tuple[float, np.ndarray, np.ndarray]:
+        """Merit (cost, norms smoothed + penalty * violation), residuals ``(T, k)``, constraint values."""
         r = xs[1:, task.res_idx] - task.target
-        c = task.violations(xs)
+        c, _ = task.solver_violations(xs)
         if r.shape[1] == 1:
             merit = float(np.abs(r).sum())
         else:
             merit = float(np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2).sum())
         if c.size:
-            merit += self.penalty * float(np.maximum(c, 0.0).sum())
+            merit += penalty * float(np.maximum(c, 0.0).sum())
         if not np.isfinite(merit):
             merit = float("inf")
         return merit, r, c
 
     def _sensitivities(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """``S[t] = dx_t/dU`` ``(T+1, n, T m)`` (``S[0] = 0``); columns beyond ``(t) m`` stay zero."""
+        """``S[t] = dx_t/dU`` ``(T+1, n, T m)`` (``S[0] = 0``); columns beyond ``t m`` stay zero."""
         s, m = self._sens, self.m
         for t in range(self.horizon):
             if t:
@@ -217,37 +236,60 @@ class SQPShootingMPC(ShootingMPC):
         return s
 
     def _subproblem(
-        self, sens: np.ndarray, r: np.ndarray, c: np.ndarray, task: ShootingTask
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Model of the step d: ``hess, grad`` (smooth part) and elastic rows ``G d <= h`` priced ``pen``, plus
-        the model's value at d = 0 split as (stage rows, constraint rows) for the predicted decrease."""
+        self, sens: np.ndarray, xs: np.ndarray, r: np.ndarray, c: np.ndarray, task: ShootingTask, penalty: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Model of the step d: smooth part ``hess, grad`` and elastic rows ``G d <= h`` priced ``pen``."""
         T, k = self.horizon, task.res_idx.size
         jac = sens[1:, task.res_idx, :]  # (T, k, Tm)
         g_con = task.cons_sign[:, None] * sens[task.cons_t, task.cons_idx, :]
+        if task.att_tol is not None:
+            _, dqv = task.solver_violations(xs)
+            assert dqv is not None
+            g_con = np.vstack((g_con, dqv @ sens[task.horizon, list(task.att_qv), :]))
+        pen_c = np.full(c.size, penalty)
         if k == 1:
             # exact l1 model: |r_t + J_t d| through a pair of elastic rows per stage, no smooth part
-            j1 = jac[:, 0, :]
-            r1 = r[:, 0]
+            j1, r1 = jac[:, 0, :], r[:, 0]
             g_mat = np.vstack((j1, -j1, g_con))
             h_vec = np.concatenate((-r1, r1, -c))
-            pen = np.concatenate((np.ones(2 * T), np.full(c.size, self.penalty)))
-            hess = np.zeros((j1.shape[1], j1.shape[1]))
-            grad = np.zeros(j1.shape[1])
-        else:
-            f = np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2)
-            jf = jac.reshape(T * k, -1)
-            v = np.einsum("tk,tkj->tj", r, jac)  # J_t' r_t
-            grad = (v / f[:, None]).sum(0)
-            # generalised Gauss-Newton: J' [(I - r r'/f^2) / f] J, the Hessian of the smoothed norm
-            hess = (jf.T * np.repeat(1.0 / f, k)) @ jf - (v.T * (self.radial / f**3)) @ v
-            g_mat, h_vec, pen = g_con, -c, np.full(c.size, self.penalty)
-        return hess, grad, g_mat, h_vec, pen, -h_vec
+            pen = np.concatenate((np.ones(2 * T), pen_c))
+            nu = j1.shape[1]
+            return np.zeros((nu, nu)), np.zeros(nu), g_mat, h_vec, pen
+        f = np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2)
+        jf = jac.reshape(T * k, -1)
+        v = np.einsum("tk,tkj->tj", r, jac)  # J_t' r_t
+        grad = (v / f[:, None]).sum(0)
+        # generalised Gauss-Newton: J' [(I - radial r r'/f^2) / f] J, the Hessian of the smoothed norm
+        hess = (jf.T * np.repeat(1.0 / f, k)) @ jf - (v.T * (self.radial / f**3)) @ v
+        return hess, grad, g_con, -c, pen_c
+
+    def _qp(
+        self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray,
+        h_vec: np.ndarray, pen: np.ndarray, stage_rows: bool,
+    ) -> np.ndarray:
+        """The QP step: projected Newton on the box alone when that also satisfies the elastic rows (the state
+        constraints are inactive), the interior point method otherwise."""
+        if not stage_rows and not self._ipm_first:
+            box = solve_box_qp(hess, grad, lo, hi)
+            self.stats["box_qp"] += 1
+            if box.converged and (not h_vec.size or (g_mat @ box.d - h_vec).max() <= 1e-9):
+                return box.d
+        self.stats["ipm_qp"] += 1
+        qp = solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen)
+        if not stage_rows:
+            # stay on the interior point method while a state constraint is (nearly) active
+            self._ipm_first = bool((g_mat @ qp.d - h_vec).max() > -1e-6)
+        return qp.d
 
     def _optimize(self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, int, bool, str]:
+        start = time.perf_counter()
         T, m = self.horizon, self.m
+        self.stats = dict.fromkeys(("iterations", "box_qp", "ipm_qp", "rollouts", "jacobians"), 0)
+        stage_rows = task.res_idx.size == 1
+        penalty = self.penalty
         u = u0.copy()
         xs = self.rollout(x0, u)
-        merit, r, c = self._merit(xs, task)
+        merit, r, c = self._merit(xs, task, penalty)
         if not np.isfinite(merit):
             raise FloatingPointError("the warm start's prediction is not finite")
         rho = self._rho
@@ -255,28 +297,31 @@ class SQPShootingMPC(ShootingMPC):
         it = 0
         for it in range(1, self.max_iter + 1):  # noqa: B007
             _, a, b = self.dyn.step_jac(xs[:-1], u)
+            self.stats["jacobians"] += 1
             sens = self._sensitivities(a, b)
-            hess, grad, g_mat, h_vec, pen, row0 = self._subproblem(sens, r, c, task)
+            hess, grad, g_mat, h_vec, pen = self._subproblem(sens, xs, r, c, task, penalty)
             lo, hi = self._u_lo - u.reshape(-1), self._u_hi - u.reshape(-1)
-            scale = max(float(np.trace(hess)) / hess.shape[0], self._scale_floor)
-            rows0 = float(pen @ np.maximum(row0, 0.0))
+            scale = max(float(np.trace(hess)) / hess.shape[0], 1e-6)
+            rows0 = float(pen @ np.maximum(-h_vec, 0.0))
             accepted = False
             while True:
-                qp = solve_qp(hess + (rho * scale) * self._eye, grad, lo, hi, g_mat, h_vec, pen)
-                d = qp.d
+                d = self._qp(hess + (rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec, pen,
+                             stage_rows)
                 pred = -(grad @ d + 0.5 * d @ hess @ d) + rows0 - float(pen @ np.maximum(g_mat @ d - h_vec, 0.0))
-                if pred <= self.tol * (1.0 + abs(merit)) or np.abs(d).max() <= 1e-9 * (1.0 + np.abs(u).max()):
-                    converged, msg = True, "converged"
+                if pred <= self.tol * (1.0 + abs(merit)):
+                    converged = True
                     break
-                alpha = 1.0
-                while alpha >= 1.0 / 16.0:
+                for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):
                     u_new = u + alpha * d.reshape(T, m)
                     xs_new = self.rollout(x0, u_new)
-                    merit_new, r_new, c_new = self._merit(xs_new, task)
+                    self.stats["rollouts"] += 1
+                    merit_new, r_new, c_new = self._merit(xs_new, task, penalty)
                     if merit_new <= merit - 1e-4 * alpha * pred:
                         accepted = True
                         break
-                    alpha *= 0.5
+                if self.trace is not None:
+                    self.trace.append((it, round(merit, 5), round(pred, 6), round(merit - merit_new, 6),
+                                       alpha if accepted else 0.0, round(float(np.abs(d).max()), 3), rho, penalty))
                 if accepted:
                     ratio = (merit - merit_new) / pred
                     if alpha == 1.0 and ratio > 0.75:
@@ -284,19 +329,29 @@ class SQPShootingMPC(ShootingMPC):
                     elif alpha < 1.0 or ratio < 0.25:
                         rho *= 2.0
                     break
-                rho *= 10.0
-                if rho > 1e8:
+                rho = max(rho, 1e-3) * 10.0
+                if rho > 1e3:
                     msg = "line search failed"
                     break
+            if converged:
+                viol = float(np.maximum(c, 0.0).max()) if c.size else 0.0
+                if viol > self.feas_tol and penalty < self.penalty_max:
+                    # converged to a point that still violates a constraint: make violations dearer, go on
+                    penalty *= 10.0
+                    merit, r, c = self._merit(xs, task, penalty)
+                    converged = False
+                    continue
+                msg = "converged"
+                break
             if not accepted:
                 break
             u, xs, merit, r, c = u_new, xs_new, merit_new, r_new, c_new
+            if self.max_time is not None and time.perf_counter() - start > self.max_time:
+                msg = "time budget"
+                break
         self._rho = rho
+        self.stats["iterations"] = it
         return u, it, converged, msg
-
-    def reset(self) -> None:
-        super().reset()
-        self._rho = self.rho0
 
 
 class SLSQPShootingMPC(ShootingMPC):

@@ -9,6 +9,12 @@ Both are single-shooting problems over the controls ``U = (u_0, ..., u_{T-1})`` 
 
 The current state x_0 is not in the sum (no control can change it). See ``docs/mpc.md`` for how this maps
 onto the paper's equations.
+
+The quadrotor's attitude constraint ``|qw_T - 1| <= tol`` is handed to the fast solver as the equivalent
+``||(qx, qy, qz)_T||_2 <= sqrt(1 - (1 - tol)^2)`` (equal for unit quaternions with ``qw >= 0``, which the
+normalised Euler step keeps for any tilt below 180 degrees): near the level attitude ``qw = cos(tilt / 2)``
+has a zero gradient, so its linearisation tells an SQP nothing, while the norm of the vector part grows
+linearly with the tilt. Plans are always *checked* with the paper's form (:meth:`ShootingTask.violations`).
 """
 
 from __future__ import annotations
@@ -39,10 +45,19 @@ class ShootingTask:
     cons_sign: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: (nc,) +1 (upper) or -1 (lower bound)
     cons_bound: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: (nc,)
     cons_name: tuple[str, ...] = ()  #: (nc,) for messages
+    #: attitude constraint |qw_T - 1| <= att_tol at step T (quadrotor); None = no attitude constraint
+    att_tol: float | None = None
+    att_qw: int = 6  #: state index of qw
+    att_qv: tuple[int, int, int] = (7, 8, 9)  #: state indices of (qx, qy, qz)
 
     @property
     def n_cons(self) -> int:
-        return int(self.cons_t.size)
+        """Number of state constraints (linear rows plus the attitude constraint)."""
+        return int(self.cons_t.size) + (self.att_tol is not None)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.cons_name + ((f"attitude |qw_{self.horizon} - 1|",) if self.att_tol is not None else ())
 
     def with_target(self, target: np.ndarray) -> ShootingTask:
         target = np.asarray(target, dtype=np.float64).reshape(-1)
@@ -60,8 +75,23 @@ class ShootingTask:
         return float(self.stage_costs(xs[1:]).sum())
 
     def violations(self, xs: np.ndarray) -> np.ndarray:
-        """``sign * x_t[idx] - bound`` per state constraint (> 0 = violated); ``(T+1, n) -> (nc,)``."""
-        return self.cons_sign * xs[self.cons_t, self.cons_idx] - self.cons_bound
+        """The paper's constraints ``g(x) <= 0`` of a trajectory (> 0 = violated): ``sign * x_t[idx] - bound``
+        per linear row, then ``|qw_T - 1| - tol``; ``(T+1, n) -> (n_cons,)``."""
+        lin = self.cons_sign * xs[self.cons_t, self.cons_idx] - self.cons_bound
+        if self.att_tol is None:
+            return lin
+        return np.append(lin, abs(xs[self.horizon, self.att_qw] - 1.0) - self.att_tol)
+
+    def solver_violations(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The constraints in the form the SQP linearises: the linear rows as in :meth:`violations`, the
+        attitude as ``||q_v,T|| - sqrt(1 - (1 - tol)^2)``; also returns ``d/dq_v`` of that row, shape (3,)."""
+        lin = self.cons_sign * xs[self.cons_t, self.cons_idx] - self.cons_bound
+        if self.att_tol is None:
+            return lin, None
+        qv = xs[self.horizon, list(self.att_qv)]
+        norm = float(np.sqrt(qv @ qv + 1e-12))
+        bound = float(np.sqrt(1.0 - (1.0 - self.att_tol) ** 2))
+        return np.append(lin, norm - bound), qv / norm
 
 
 def friction_task(system: FrictionDoubleIntegrator, horizon: int = 10) -> ShootingTask:
@@ -94,11 +124,14 @@ def quadrotor_task(
         res_idx=np.array([system.state.index(n) for n in ("px", "py", "pz")]),
         target=np.zeros(3),
         u_default=system.hover_thrust(),
-        cons_t=np.concatenate((t, [horizon])),
-        cons_idx=np.concatenate((np.full(horizon, iz), [iqw])),
-        cons_sign=np.full(horizon + 1, -1.0),
-        cons_bound=np.concatenate((np.full(horizon, -min_height), [-(1.0 - qw_tol)])),
-        cons_name=tuple([f"height x_{i}" for i in t] + [f"attitude qw_{horizon}"]),
+        cons_t=t,
+        cons_idx=np.full(horizon, iz),
+        cons_sign=np.full(horizon, -1.0),
+        cons_bound=np.full(horizon, -min_height),
+        cons_name=tuple(f"height pz_{i}" for i in t),
+        att_tol=qw_tol,
+        att_qw=iqw,
+        att_qv=(iqw + 1, iqw + 2, iqw + 3),
     )
 
 

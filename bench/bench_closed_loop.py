@@ -1,0 +1,173 @@
+"""Closed-loop latency: quadrotor simulator (lockstep) + MPC node (+ learner), state -> command.
+
+    ./dev python -m bench.bench_closed_loop                # 30 s of simulated time, learner running
+    ./dev python -m bench.bench_closed_loop --no-learner --sim-time 20
+
+Starts the nodes as separate processes (the bringup machinery, private ROS_DOMAIN_ID unless one is set) and
+subscribes to ``state`` and ``cmd`` itself: the latency of a step is the arrival time of the ``cmd`` stamped
+t_k minus the arrival time of the ``state`` stamped t_k, both in this process (so it includes the MPC's
+receive, solve and publish, and one extra DDS hop of the state, which the MPC receives at about the same
+time). Also reports the MPC's own control-step time (``mpc/status`` ``step_ms``), its solve time, the lockstep
+rate and the steps in which a new model was swapped in. Target: median state -> cmd latency < 10 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from saml_ros.bringup import ProcessGroup, child_env, node_argv, ros_params_file
+
+TARGET_MEDIAN_MS = 10.0
+
+
+def _percentiles(values: Sequence[float]) -> str:
+    if not values:
+        return "n/a"
+    v = np.asarray(values)
+    return f"median {np.median(v):6.2f} ms  p99 {np.percentile(v, 99):6.2f} ms  max {v.max():7.2f} ms  (n={v.size})"
+
+
+def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Path) -> dict[str, Any]:
+    """Run the loop for ``sim_time`` simulated seconds; returns the measurements (ms)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import JointState
+
+    from msg_schemas import DATA_QOS, RCLPY, TELEMETRY_QOS, get_schema
+    from msg_schemas.telemetry import mpc_status_from_msg
+
+    env = child_env(domain_id)
+    os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = env["ROS_AUTOMATIC_DISCOVERY_RANGE"]
+    schema = get_schema("quadrotor")
+    ckpt_dir = workdir / "checkpoints"
+    params = {
+        "sim": {"mode": "lockstep", "episode_steps": 50, "seed": 0, "lockstep_timeout": 5.0,
+                "max_sim_time": 0.0},
+        "mpc": {"system": "quadrotor", "solver": solver, "run_dir": str(ckpt_dir), "use_sim_time": True},
+        "learner": {"system": "quadrotor", "run_dir": str(ckpt_dir), "use_sim_time": True, "min_transitions": 200,
+                    "checkpoint_period": 2.0},
+    }
+    files = {}
+    for name, values in params.items():
+        files[name] = workdir / f"{name}.yaml"
+        files[name].write_text(ros_params_file(values))
+    procs = ProcessGroup()
+    state_t: dict[int, int] = {}
+    lat: list[float] = []
+    step_ms: list[float] = []
+    solve_ms: list[float] = []
+    swap_steps: list[float] = []
+    versions: set[int] = set()
+    rclpy.init(args=["bench"], signal_handler_options=SignalHandlerOptions.NO)
+    node = Node("bench_closed_loop", namespace="/quadrotor")
+    first: list[int] = []
+    last = [0]
+
+    def on_state(msg: Any) -> None:
+        now = time.perf_counter_ns()
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        state_t[stamp] = now
+        if not first:
+            first.append(stamp)
+        last[0] = stamp
+
+    def on_cmd(msg: Any) -> None:
+        now = time.perf_counter_ns()
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        t = state_t.pop(stamp, None)
+        if t is not None:
+            lat.append((now - t) * 1e-6)
+
+    def on_status(msg: Any) -> None:
+        values, _ = mpc_status_from_msg(msg)
+        step_ms.append(values.get("step_ms", float("nan")))
+        solve_ms.append(values["solve_time_ms"])
+        versions.add(int(values["model_version"]))
+        if values.get("swap_ms", 0.0) > 0:
+            swap_steps.append(values["step_ms"])
+
+    node.create_subscription(RCLPY.cls(schema.state.msg_type), "state", on_state, DATA_QOS.to_rclpy())
+    node.create_subscription(JointState, "cmd", on_cmd, DATA_QOS.to_rclpy())
+    node.create_subscription(JointState, "mpc/status", on_status, TELEMETRY_QOS.to_rclpy())
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    logs = workdir / "logs"
+    phases: dict[str, float] = {}
+    t_start = time.monotonic()
+    try:
+        if learner:
+            procs.start("learner", node_argv("learner", "/quadrotor", files["learner"]), env, logs / "learner.log")
+        procs.start("mpc", node_argv("mpc", "/quadrotor", files["mpc"]), env, logs / "mpc.log")
+        want = 2 + int(learner)
+        deadline = time.monotonic() + 90
+        while node.count_subscribers("/quadrotor/state") < want:
+            executor.spin_once(timeout_sec=0.1)
+            if time.monotonic() > deadline or procs.exited():
+                raise RuntimeError("nodes did not come up; see " + str(logs))
+        phases["nodes up"] = time.monotonic() - t_start
+        procs.start("sim", node_argv("quadrotor_sim", "/quadrotor", files["sim"]), env, logs / "sim.log")
+        t0 = None
+        while not first or (last[0] - first[0]) * 1e-9 < sim_time:
+            executor.spin_once(timeout_sec=0.05)
+            if first and t0 is None:
+                t0 = time.monotonic()
+                phases["first state"] = t0 - t_start
+            if procs.exited():
+                raise RuntimeError(f"a node exited early; see {logs}")
+        wall = time.monotonic() - (t0 or time.monotonic())
+    finally:
+        t_stop = time.monotonic()
+        codes = procs.stop()
+        phases["shutdown"] = time.monotonic() - t_stop
+        node.destroy_node()
+        rclpy.try_shutdown()
+    steps = len(lat)
+    return {"latency": lat, "step_ms": step_ms, "solve_ms": solve_ms, "swap_steps": swap_steps,
+            "versions": sorted(versions), "wall": wall, "steps": steps, "codes": codes, "phases": phases}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="bench_closed_loop", description=__doc__.splitlines()[0])
+    p.add_argument("--sim-time", type=float, default=30.0, help="simulated seconds (dt = 0.1 s per step)")
+    p.add_argument("--no-learner", action="store_true", help="simulator + MPC only")
+    p.add_argument("--solver", default="fast", choices=("fast", "slsqp"))
+    p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: env or random 30..90)")
+    args = p.parse_args(argv)
+    domain = args.domain_id
+    if domain is None:
+        domain = int(os.environ["ROS_DOMAIN_ID"]) if "ROS_DOMAIN_ID" in os.environ else random.randint(30, 90)
+    with tempfile.TemporaryDirectory(prefix="bench_closed_loop_") as tmp:
+        r = run(args.sim_time, not args.no_learner, domain, args.solver, Path(tmp))
+    lat = r["latency"][5:]  # the first solves include import / allocation warm-up
+    print(f"closed loop: quadrotor_sim (lockstep) + mpc ({args.solver})"
+          f"{' + learner' if not args.no_learner else ''}; {r['steps']} steps in {r['wall']:.1f} s wall "
+          f"({r['steps'] / max(r['wall'], 1e-9):.0f} steps/s); model versions used {r['versions']}")
+    print(f"  state -> cmd latency (this process):  {_percentiles(lat)}")
+    print(f"  MPC control step (mpc/status step_ms): {_percentiles(r['step_ms'][5:])}")
+    print(f"  MPC solve time:                       {_percentiles(r['solve_ms'][5:])}")
+    print(f"  MPC step that swapped a model in:      {_percentiles(r['swap_steps'])}")
+    med = float(np.median(lat)) if lat else float("nan")
+    verdict = "meets" if med < TARGET_MEDIAN_MS else "MISSES"
+    print(f"  median latency {med:.2f} ms {verdict} the target of < {TARGET_MEDIAN_MS:g} ms")
+    print("  set-up and shutdown (s): " + ", ".join(f"{k} {v:.1f}" for k, v in r["phases"].items()))
+    bad = {k: v for k, v in r["codes"].items() if v != 0}
+    if bad:
+        print(f"  warning: non-zero exit codes {bad}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

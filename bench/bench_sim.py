@@ -1,0 +1,164 @@
+"""Lockstep simulator speed: ``./dev python -m bench.bench_sim [--system quadrotor] [--steps 3000]``.
+
+Prints three numbers measured in one run, each as steps per second and as a multiple of real time
+(steps/s * dt):
+
+1. ``core``: the ROS-free :class:`~sim_nodes.sim_core.SteppedSim` answered in a Python loop (the simulator's
+   own cost: validation, ``true_step``, ground contact, stamping);
+2. ``core + messages``: the same plus every message conversion a lockstep step makes (``msg_schemas``:
+   decode ``cmd``, encode ``applied_cmd``, ``/clock`` and ``state``), still without DDS;
+3. ``node``: the real simulator node (``<system>_sim`` in lockstep, its own process) answered by a minimal
+   responder node in this process that replies to each state with the safe default (hover thrust for the
+   quadrotor), stamped with the state's stamp: the loop a lockstep MPC closes, with an instant MPC.
+
+Runs in a private ROS domain (ROS_DOMAIN_ID from the pid, LOCALHOST discovery) and stops the node it started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def bench_core(system_name: str, steps: int, with_messages: bool) -> float:
+    """Steps per second of the lockstep core answered in-process (optionally with message conversions)."""
+    from msg_schemas import get_schema
+    from msg_schemas.telemetry import clock_to_msg
+    from saml_ros.core.systems import get_system
+    from sim_nodes.sim_core import APPLIED, CLOCK, STATE, SimConfig, build_stepped_sim
+
+    system = get_system(system_name)
+    schema = get_schema(system_name)
+    start = (0.0, 0.0, 2.0) + (0.0,) * 3 + (1.0, 0.0, 0.0, 0.0) + (0.0,) * 3 if system_name == "quadrotor" else (1.0, 0.0)
+    sim = build_stepped_sim(system, SimConfig(mode="lockstep", initial_state=start))
+    answer = sim.holder.safe_default.copy()
+    encode = {
+        STATE: lambda v, t: schema.state_to_msg(v, t),
+        APPLIED: lambda v, t: schema.control_to_msg(v, t),
+        CLOCK: lambda v, t: clock_to_msg(t),
+    }
+    outputs = sim.begin(time.monotonic_ns())
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        stamp = outputs[-1][2]
+        if with_messages:
+            for kind, vec, t in outputs:
+                encode[kind](vec, t)
+            u, stamp = schema.control_from_msg(schema.control_to_msg(answer, stamp))
+        else:
+            u = answer
+        outputs = sim.on_cmd(u, stamp, time.monotonic_ns())
+    return steps / (time.perf_counter() - t0)
+
+
+def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
+               publish_clock: bool = True) -> tuple[float, dict[str, str]]:
+    """Steps per second of the lockstep simulator node answered by a responder node in this process."""
+    import rclpy
+    from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+    from rclpy.executors import SingleThreadedExecutor
+
+    from msg_schemas import DATA_QOS, RCLPY, get_schema
+    from msg_schemas.telemetry import DIAGNOSTICS_TOPIC, TELEMETRY_QOS, diagnostics_from_msg
+    from saml_ros.core.systems import get_system
+    from sim_nodes.sim_core import SimConfig, build_stepped_sim
+
+    system = get_system(system_name)
+    schema = get_schema(system_name)
+    answer = build_stepped_sim(system, SimConfig()).holder.safe_default.copy()
+    start = "[0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]" if system_name == "quadrotor" \
+        else "[1.0, 0.0]"
+    cmd = [sys.executable, "-m", "saml_ros.entry", f"{system_name}_sim", "--ros-args",
+           "-p", "mode:=lockstep", "-p", f"initial_state:={start}", "-p", "start_delay:=0.2",
+           "-p", "lockstep_timeout:=2.0", "-p", "diagnostics_period:=0.5",
+           "-p", f"publish_clock:={str(publish_clock).lower()}"]
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    sim = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+
+    rclpy.init()
+    node = rclpy.create_node("bench_responder", namespace=f"/{system_name}", start_parameter_services=False,
+                             enable_rosout=False)
+    qos = DATA_QOS.to_rclpy()
+    pub = node.create_publisher(RCLPY.cls(schema.control.msg_type), schema.cmd_topic, qos,
+                                event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
+    times: list[float] = []
+    diag: dict[str, str] = {}
+
+    def on_state(msg: object) -> None:
+        _, stamp = schema.state_from_msg(msg)
+        pub.publish(schema.control_to_msg(answer, stamp))
+        times.append(time.perf_counter())
+
+    def on_diag(msg: object) -> None:
+        entries, _ = diagnostics_from_msg(msg)
+        for e in entries:
+            if e.name.endswith(f"{system_name}_sim"):
+                diag.update(e.values)
+
+    node.create_subscription(RCLPY.cls(schema.state.msg_type), schema.state_topic, on_state, qos,
+                             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
+    node.create_subscription(RCLPY.cls("diagnostic_msgs/msg/DiagnosticArray"), DIAGNOSTICS_TOPIC, on_diag,
+                             TELEMETRY_QOS.to_rclpy())
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + timeout
+        while len(times) < warmup + steps and time.monotonic() < deadline and sim.poll() is None:
+            executor.spin_once(timeout_sec=0.1)
+        if len(times) < warmup + steps:
+            err = sim.stderr.read().decode(errors="replace")[-2000:] if sim.poll() is not None and sim.stderr else ""
+            raise RuntimeError(f"only {len(times)} states within {timeout} s {err}")
+        rate = steps / (times[warmup + steps - 1] - times[warmup - 1])
+        end = time.monotonic() + 1.5  # one more diagnostics message
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        sim.send_signal(signal.SIGINT)
+        try:
+            sim.wait(10)
+        except subprocess.TimeoutExpired:
+            os.killpg(sim.pid, signal.SIGKILL)
+            sim.wait(10)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return rate, diag
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--system", default="quadrotor", choices=["quadrotor", "friction"])
+    parser.add_argument("--steps", type=int, default=3000, help="measured lockstep steps through ROS")
+    parser.add_argument("--warmup", type=int, default=200)
+    parser.add_argument("--timeout", type=float, default=120.0, help="s before giving up on the node")
+    parser.add_argument("--no-clock", action="store_true", help="run the node with publish_clock:=false")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+    import torch
+
+    torch.set_num_threads(1)
+    from saml_ros.core.systems import get_system
+
+    dt = get_system(args.system).dt
+    core = bench_core(args.system, 5 * args.steps, with_messages=False)
+    core_msgs = bench_core(args.system, args.steps, with_messages=True)
+    node, diag = bench_node(args.system, args.steps, args.warmup, args.timeout, publish_clock=not args.no_clock)
+    print(f"{args.system} lockstep (dt = {dt} s), {os.cpu_count()} CPUs, load average "
+          f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    for label, rate in (("core", core), ("core + messages", core_msgs), (f"node{'' if args.no_clock else ' + /clock'} + responder (2 procs)", node)):
+        print(f"  {label:<32} {rate:9.0f} steps/s = {rate * dt:8.0f} x real time")
+    misses = {k: v for k, v in diag.items() if k.startswith(("rejected/", "lockstep_misses", "cmd_timeouts"))}
+    print(f"  node counters: steps {diag.get('steps', '?')}, misses/rejections/timeouts {misses or 'none'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,86 @@
+"""The recorder with real processes: a stock rclpy publisher process (bag_publisher.py) and ``record``, each test
+in a private ROS domain (ros_helpers). Playback: test_bag_play.py; with the learner: test_bag_closed_loop.py.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+from bag_publisher import rollout
+from bag_test_helpers import expected, publish, ros_env_fixture, start_publisher, start_recorder, unique_ns  # noqa: F401
+from ros_helpers import RosDomain, wait_for
+
+from msg_schemas import get_schema
+from saml_ros.bag_data import extract_transitions
+from saml_ros.bags import Bag, repair_bag
+
+
+# ------------------------------------------------------------------------------------------ record
+def test_recorder_follows_late_and_vanishing_publishers_and_finishes_on_sigterm(ros_env: RosDomain,
+                                                                              tmp_path: Path) -> None:
+    """Two publisher processes one after the other (topics appear after the recorder started, vanish, come
+    back); SIGTERM finishes the bag; every message and exactly the published transitions are in it."""
+    bag, ns = tmp_path / "bag", unique_ns()
+    rec = start_recorder(ros_env, bag, "--system", "friction", "--namespace", ns)
+    runs = [("1", 120, 40, 1.0), ("2", 80, 0, 100.0)]
+    reports = []
+    events = [rollout("friction", steps, episode, int(seed), int(t0 * 1e9)) for seed, steps, episode, t0 in runs]
+    for ev in events:
+        reports.append(publish(ev, tmp_path, "--system", "friction", "--namespace", ns, "--rate", "400", "--clock",
+                               "--cmd", "--model-error-every", "10", "--wait-subscribers", "1"))
+    time.sleep(0.5)
+    rec.signal(signal.SIGTERM)
+    assert rec.wait(20) == 0, rec.output()
+    with Bag(bag) as b:
+        assert b.version == 9 and b.custom_data["saml_ros.system"] == "friction"
+        for topic in reports[0]["published"]:
+            n = sum(r["published"][topic] for r in reports)
+            if topic.startswith(ns):
+                assert b.topics[topic].message_count == n, (topic, rec.output())
+            else:  # /clock: shared with any other process of this ROS domain
+                assert b.topics[topic].message_count >= n, topic
+        assert b.topics[f"{ns}/state"].qos[0].reliability.name == "RELIABLE"
+        assert b.topics["/diagnostics"].message_count >= 1  # the recorder's own counters
+    out = extract_transitions([bag], "friction")
+    assert [s.namespace for s in out.sources] == [ns]
+    assert len(out) == sum(r["transitions"] for r in reports)
+    ex, eu, ey = expected(events[0] + events[1])
+    np.testing.assert_array_equal(out.x, ex)
+    np.testing.assert_array_equal(out.u, eu)
+    np.testing.assert_array_equal(out.y, ey)
+
+
+def test_sigkill_loses_at_most_the_last_second(ros_env: RosDomain, tmp_path: Path) -> None:
+    """SIGKILL the recorder mid-stream: `repair_bag` recovers every message older than 1 s before the kill."""
+    bag, ns = tmp_path / "bag", unique_ns()
+    rec = start_recorder(ros_env, bag, "--system", "friction", "--namespace", ns)
+    events = rollout("friction", 3000, 0, 0, 10**9)
+    pub = start_publisher(events, tmp_path, "--namespace", ns, "--rate", "250", "--wait-subscribers", "1",
+                          "--wait-timeout", "60")
+    try:
+        mcap = bag / "bag.mcap"
+        wait_for(lambda: mcap.exists() and mcap.stat().st_size > 20_000, timeout=60, what="flushed data")
+        time.sleep(2.0)
+        killed_at = time.time_ns()
+        rec.signal(signal.SIGKILL)
+        assert rec.wait(10) == -signal.SIGKILL
+    finally:
+        pub.kill()
+        pub.wait(10)
+    assert not (bag / "metadata.yaml").exists()
+    res = repair_bag(bag)
+    with Bag(res.path) as b:
+        states = list(b.messages([f"{ns}/state"]))
+    assert len(states) > 0
+    assert states[-1].log_time_ns <= killed_at
+    assert killed_at - states[-1].log_time_ns < 1_000_000_000, "more than the last second was lost"
+    # ... and nothing before it is missing: the recovered states are the rollout's first ones, in order
+    schema = get_schema("friction")
+    with Bag(res.path) as b:
+        for k, m in enumerate(states):
+            x, stamp = schema.state_from_msg(b.decode(m), m.topic)
+            assert stamp == events[k]["stamp"]
+            np.testing.assert_array_equal(x, events[k]["x"])

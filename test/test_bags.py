@@ -1,0 +1,373 @@
+"""Bag I/O, offline pairing and bag errors (saml_ros.bags, saml_ros.bag_data, bag_info, train --bag); no ROS graph.
+
+Bags are written with :class:`saml_ros.bags.BagWriter` from roll-outs of the systems' true dynamics
+(``bag_publisher.rollout``, the same events the publisher process sends), and checked with the independent
+``mcap`` + ``mcap-ros2-support`` readers as well as with our reader.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from bag_publisher import rollout
+
+from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, TypestoreFactory, get_schema
+from msg_schemas.telemetry import CheckpointInfo, checkpoint_to_msg, model_error_to_msg
+from saml_ros import bag_info
+from saml_ros.bag_data import extract_transitions, infer_system, transitions_from_bags
+from saml_ros.bags import Bag, BagError, BagWriter, jazzy_typestore, repair_bag, saml_topics
+from saml_ros.core.spec import ProblemSpec
+from saml_ros.core.systems import get_system
+
+REPO = Path(__file__).resolve().parents[1]
+FACTORY = TypestoreFactory(jazzy_typestore())
+T0 = 2 * 10**9
+
+
+def write_rollout(path: Path, system: str, events: list[dict], *, namespace: str | None = None,
+                  writer: BagWriter | None = None, extra: bool = False) -> None:
+    """Write ``events`` (bag_publisher.rollout) like a simulator + recorder would: log time = stamp + 1 ms."""
+    schema = get_schema(system)
+    ns = namespace or f"/{system}"
+    own = writer is None
+    w = writer if writer is not None else BagWriter(path)
+    topics = saml_topics(system, ns)
+    names = [f"{ns}/{schema.state_topic}", f"{ns}/{schema.applied_cmd_topic}", f"{ns}/{schema.target_topic}",
+             "/clock"]
+    for name in dict.fromkeys(names):
+        w.add_topic(name, topics[name].msg_type, topics[name].qos)
+    if extra:
+        w.add_topic(f"{ns}/learner/model_error", "sensor_msgs/msg/JointState", TELEMETRY_QOS)
+        w.add_topic(f"{ns}/learner/checkpoint", "std_msgs/msg/String", CHECKPOINT_QOS)
+    from msg_schemas.telemetry import clock_to_msg
+
+    for k, ev in enumerate(events):
+        t = ev["stamp"]
+        w.write_msg("/clock", clock_to_msg(t, factory=FACTORY), t + 1_000_000)
+        w.write_msg(f"{ns}/{schema.state_topic}", schema.state_to_msg(ev["x"], t, factory=FACTORY), t + 1_000_000)
+        if "u" in ev:
+            w.write_msg(f"{ns}/{schema.applied_cmd_topic}", schema.control_to_msg(ev["u"], t, factory=FACTORY),
+                        t + 1_000_000)
+        if "y" in ev:
+            w.write_msg(f"{ns}/{schema.target_topic}", schema.target_to_msg(ev["y"], t, factory=FACTORY),
+                        t + 1_000_000)
+        if extra and k % 5 == 0:
+            metrics = {"objective": 1.0 / (k + 1), "lambda/near_origin": 0.1 * k, "buffer_size": float(k),
+                       "error_in/near_origin": float("nan") if k < 10 else 0.5}
+            w.write_msg(f"{ns}/learner/model_error", model_error_to_msg(metrics, t, factory=FACTORY), t + 2_000_000)
+    if extra:
+        info = CheckpointInfo("/tmp/ckpt-000001.saml", 1, "abc", 1.0)
+        w.write_msg(f"{ns}/learner/checkpoint", checkpoint_to_msg(info, factory=FACTORY), T0)
+    if own:
+        w.close()
+
+
+def expected(system: str, events: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The transitions a correct learner pairs from ``events``."""
+    xs, us, ys = [], [], []
+    for k, ev in enumerate(events):
+        if "u" in ev:
+            xs.append(ev["x"])
+            us.append(ev["u"])
+            ys.append(ev["y"] if "y" in ev else events[k + 1]["x"])
+    return np.array(xs), np.array(us), np.array(ys)
+
+
+@pytest.fixture(scope="module")
+def friction_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[dict]]:
+    path = tmp_path_factory.mktemp("bags") / "friction"
+    events = rollout("friction", 120, 40, seed=3, t0_ns=T0)
+    write_rollout(path, "friction", events, extra=True)
+    return path, events
+
+
+# ------------------------------------------------------------------------------------------ format
+def test_written_bag_is_jazzy_format_with_offered_qos(friction_bag: tuple[Path, list[dict]]) -> None:
+    path, events = friction_bag
+    meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == 9
+    assert meta["storage_identifier"] == "mcap"
+    assert meta["relative_file_paths"] == [f"{path.name}.mcap"]
+    topics = {t["topic_metadata"]["name"]: t for t in meta["topics_with_message_count"]}
+    assert topics["/friction/state"]["message_count"] == len(events)
+    for name, qos in [("/friction/state", DATA_QOS), ("/friction/learner/model_error", TELEMETRY_QOS),
+                      ("/friction/learner/checkpoint", CHECKPOINT_QOS)]:
+        md = topics[name]["topic_metadata"]
+        (profile,) = md["offered_qos_profiles"]  # version 9: a list of mappings, not a YAML string
+        assert profile["reliability"] == "reliable"
+        assert profile["durability"] == ("transient_local" if qos.transient_local else "volatile")
+        assert profile["history"] == "keep_last" and profile["depth"] == qos.depth
+        assert md["serialization_format"] == "cdr"
+        assert md["type_description_hash"] == jazzy_typestore().hash_rihs01(md["type"])
+
+
+def test_independent_mcap_reader_decodes_every_message(friction_bag: tuple[Path, list[dict]]) -> None:
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    path, events = friction_bag
+    schema = get_schema("friction")
+    states = []
+    with open(path / f"{path.name}.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        n_all = summary.statistics.message_count
+        for _schema, channel, _message, decoded in reader.iter_decoded_messages():
+            if channel.topic == "/friction/state":
+                states.append(schema.state_from_msg(decoded, channel.topic))
+            if channel.topic == "/friction/learner/checkpoint":
+                assert json.loads(decoded.data)["version"] == 1
+            assert "offered_qos_profiles" in channel.metadata
+    assert n_all == Bag(path).message_count
+    assert len(states) == len(events)
+    for (x, stamp), ev in zip(states, events, strict=True):
+        assert stamp == ev["stamp"]
+        np.testing.assert_array_equal(x, ev["x"])
+
+
+def test_reader_reports_topics_counts_and_duration(friction_bag: tuple[Path, list[dict]]) -> None:
+    path, events = friction_bag
+    with Bag(path) as bag:
+        assert bag.version == 9 and bag.storage == "mcap"
+        assert bag.topics["/friction/state"].msg_type == "sensor_msgs/msg/JointState"
+        assert bag.topics["/friction/applied_cmd"].message_count == sum("u" in e for e in events)
+        assert bag.topics["/friction/state"].qos[0].depth == DATA_QOS.depth
+        assert bag.start_ns == T0  # the checkpoint announcement
+        assert bag.end_ns == events[-1]["stamp"] + 1_000_000
+        assert bag.duration_ns == bag.end_ns - bag.start_ns
+
+
+# ------------------------------------------------------------------------------------------ pairing
+@pytest.mark.parametrize("system", ["friction", "quadrotor", "paddle_ball"])
+def test_transitions_are_exactly_the_rollouts(tmp_path: Path, system: str) -> None:
+    events = rollout(system, 60, 25, seed=1, t0_ns=T0)
+    write_rollout(tmp_path / "b", system, events)
+    x, u, y = transitions_from_bags([tmp_path / "b"], get_system(system))
+    ex, eu, ey = expected(system, events)
+    assert len(x) == len(ex) > 0
+    # exact, except the quadrotor's velocities, which go through R(q)^T (message) and R(q) (back)
+    tol = 1e-12 if system == "quadrotor" else 0.0
+    np.testing.assert_allclose(x, ex, rtol=0, atol=tol)
+    np.testing.assert_array_equal(u, eu)
+    np.testing.assert_allclose(y, ey, rtol=0, atol=tol)
+    with Bag(tmp_path / "b") as bag:
+        assert infer_system(bag) == system
+
+
+def test_several_namespaces_and_bags_pair_separately(tmp_path: Path) -> None:
+    ev_a = rollout("friction", 50, 0, seed=1, t0_ns=T0)
+    ev_b = rollout("friction", 30, 0, seed=2, t0_ns=T0)  # same stamps as robot a: must not mix
+    with BagWriter(tmp_path / "two") as w:
+        write_rollout(tmp_path, "friction", ev_a, namespace="/r1", writer=w)
+        write_rollout(tmp_path, "friction", ev_b, namespace="/r2", writer=w)
+    ev_c = rollout("friction", 20, 0, seed=4, t0_ns=T0 + 10**10)
+    write_rollout(tmp_path / "one", "friction", ev_c, namespace="/r1")
+    out = extract_transitions([tmp_path / "two", tmp_path / "one"], "friction")
+    assert [(s.namespace, s.transitions) for s in out.sources] == [("/r1", 49), ("/r2", 29), ("/r1", 19)]
+    for i, ev in enumerate((ev_a, ev_b, ev_c)):
+        ex, eu, ey = expected("friction", ev)
+        sel = out.source == i
+        np.testing.assert_array_equal(out.x[sel], ex)
+        np.testing.assert_array_equal(out.y[sel], ey)
+    only = extract_transitions([tmp_path / "two"], "friction", namespaces=["r2"])
+    assert len(only) == 29
+
+
+def test_malformed_messages_are_dropped_and_counted_like_the_learner(tmp_path: Path) -> None:
+    events = rollout("friction", 30, 0, seed=5, t0_ns=T0)
+    events[10]["x"] = np.array([np.nan, 0.0])  # breaks transitions 9 (as target) and 10 (as start)
+    schema = get_schema("friction")
+    with BagWriter(tmp_path / "b") as w:
+        write_rollout(tmp_path, "friction", events, writer=w)
+        # a state with foreign joint names at a fresh stamp: rejected as "names", pairs nothing
+        js = FACTORY.make("sensor_msgs/msg/JointState", header=schema.state_to_msg(events[0]["x"], 1, factory=FACTORY).header,
+                          name=["wheel"], position=np.zeros(1), velocity=np.zeros(1), effort=np.zeros(0))
+        w.write_msg("/friction/state", js, events[-1]["stamp"] + 10**9)
+    out = extract_transitions([tmp_path / "b"], "friction")
+    assert len(out) == 29 - 2
+    assert out.counts["nan"] == 1 and out.counts["names"] == 1
+    ex, eu, ey = expected("friction", events)
+    keep = [k for k in range(29) if k not in (9, 10)]
+    np.testing.assert_array_equal(out.x, ex[keep])
+    np.testing.assert_array_equal(out.y, ey[keep])
+
+
+# ------------------------------------------------------------------------------------------ bad bags
+def make_bad_bags(root: Path, good: Path) -> dict[str, tuple[Path, str]]:
+    """Bad bags and a fragment their error message must contain."""
+    bad: dict[str, tuple[Path, str]] = {}
+    # truncated: metadata.yaml intact, MCAP file cut in the middle
+    trunc = root / "truncated"
+    shutil.copytree(good, trunc)
+    mcap = trunc / f"{good.name}.mcap"
+    mcap.rename(trunc / "truncated.mcap")
+    meta = (trunc / "metadata.yaml").read_text().replace(f"{good.name}.mcap", "truncated.mcap")
+    (trunc / "metadata.yaml").write_text(meta)
+    data = (trunc / "truncated.mcap").read_bytes()
+    (trunc / "truncated.mcap").write_bytes(data[: len(data) // 2])
+    bad["truncated"] = (trunc, "truncated")
+    # no metadata.yaml: a recorder that was killed
+    unfinished = root / "unfinished"
+    unfinished.mkdir()
+    shutil.copy(trunc / "truncated.mcap", unfinished / "unfinished.mcap")
+    bad["unfinished"] = (unfinished, "--repair")
+    # bag without the needed topics
+    with BagWriter(root / "notopics") as w:
+        w.add_topic("/clock", "rosgraph_msgs/msg/Clock", DATA_QOS)
+        from msg_schemas.telemetry import clock_to_msg
+
+        w.write_msg("/clock", clock_to_msg(5, factory=FACTORY), 5)
+    bad["notopics"] = (root / "notopics", "missing topic(s) /friction/state, /friction/applied_cmd")
+    # state recorded as Odometry: the type does not match the schema
+    with BagWriter(root / "wrongtype") as w:
+        w.add_topic("/friction/state", "nav_msgs/msg/Odometry", DATA_QOS)
+        w.add_topic("/friction/applied_cmd", "sensor_msgs/msg/JointState", DATA_QOS)
+        odom = get_schema("quadrotor").state_to_msg(np.r_[np.zeros(6), 1.0, np.zeros(6)], 7, factory=FACTORY)
+        w.write_msg("/friction/state", odom, 7)
+    bad["wrongtype"] = (root / "wrongtype", "/friction/state has message type nav_msgs/msg/Odometry")
+    # empty: a finished bag without a single message
+    with BagWriter(root / "empty") as w:
+        w.add_topic("/friction/state", "sensor_msgs/msg/JointState", DATA_QOS)
+    bad["empty"] = (root / "empty", "empty")
+    bad["missing"] = (root / "does_not_exist", "does not exist")
+    # messages present, but no transition in them (only states)
+    with BagWriter(root / "nopairs") as w:
+        for t in ("/friction/state", "/friction/applied_cmd"):
+            w.add_topic(t, "sensor_msgs/msg/JointState", DATA_QOS)
+        w.write_msg("/friction/state", get_schema("friction").state_to_msg([0.0, 0.0], 9, factory=FACTORY), 9)
+    bad["nopairs"] = (root / "nopairs", "no complete friction transition")
+    return bad
+
+
+@pytest.fixture(scope="module")
+def bad_bags(tmp_path_factory: pytest.TempPathFactory, friction_bag: tuple[Path, list[dict]]) -> dict:
+    return make_bad_bags(tmp_path_factory.mktemp("bad"), friction_bag[0])
+
+
+@pytest.mark.parametrize("kind", ["truncated", "unfinished", "notopics", "wrongtype", "empty", "missing", "nopairs"])
+def test_bad_bag_raises_bag_error_naming_bag_and_problem(bad_bags: dict, kind: str) -> None:
+    path, fragment = bad_bags[kind]
+    with pytest.raises(BagError) as err:
+        transitions_from_bags([path], get_system("friction"))
+    assert isinstance(err.value, ValueError)
+    assert str(path) in str(err.value) and fragment in str(err.value)
+
+
+def test_writer_refuses_existing_path_and_unknown_type(tmp_path: Path) -> None:
+    (tmp_path / "x").mkdir()
+    with pytest.raises(BagError, match="already exists"):
+        BagWriter(tmp_path / "x")
+    with BagWriter(tmp_path / "y") as w, pytest.raises(BagError, match="unknown message type"):
+        w.add_topic("/a", "my_msgs/msg/Nope", DATA_QOS)
+    with BagWriter(tmp_path / "z") as w, pytest.raises(BagError, match="type hash"):
+        w.add_topic("/a", "sensor_msgs/msg/JointState", DATA_QOS, type_hash="RIHS01_" + "0" * 64)
+
+
+# ------------------------------------------------------------------------------------------ repair
+def test_repair_recovers_every_flushed_chunk_of_an_unfinished_bag(tmp_path: Path) -> None:
+    """A writer "killed" after flushes: copy its file before close(), then cut it inside the last chunk."""
+    events = rollout("friction", 300, 0, seed=2, t0_ns=T0)
+    schema = get_schema("friction")
+    w = BagWriter(tmp_path / "live", flush_period=3600)
+    w.add_topic("/friction/state", "sensor_msgs/msg/JointState", DATA_QOS)
+    w.add_topic("/friction/applied_cmd", "sensor_msgs/msg/JointState", DATA_QOS)
+    for k, ev in enumerate(events):
+        w.write_msg("/friction/state", schema.state_to_msg(ev["x"], ev["stamp"], factory=FACTORY), ev["stamp"])
+        if "u" in ev:
+            w.write_msg("/friction/applied_cmd", schema.control_to_msg(ev["u"], ev["stamp"], factory=FACTORY),
+                        ev["stamp"])
+        if k == 199:
+            w.flush()
+            flushed = (tmp_path / "live" / "live.mcap").read_bytes()
+    w.flush()
+    full = (tmp_path / "live" / "live.mcap").read_bytes()
+    w.close()
+    dead = tmp_path / "dead"
+    dead.mkdir()
+    # the process died while writing the second chunk: half of it reached the disk
+    (dead / "dead.mcap").write_bytes(full[: len(flushed) + (len(full) - len(flushed)) // 2])
+    with pytest.raises(BagError, match="no metadata.yaml"):
+        Bag(dead)
+    res = repair_bag(dead)
+    assert res.path == tmp_path / "dead_repaired" and not res.complete and res.problem
+    assert res.topics == {"/friction/state": 200, "/friction/applied_cmd": 200}
+    out = extract_transitions([res.path], "friction")
+    ex, eu, ey = expected("friction", events)
+    assert len(out) == 199  # the 200th state's successor was in the lost chunk
+    np.testing.assert_array_equal(out.x, ex[:199])
+    np.testing.assert_array_equal(out.y, ey[:199])
+    with pytest.raises(BagError, match="already exists"):
+        repair_bag(dead)
+    # a complete bag repairs to an identical copy
+    again = repair_bag(tmp_path / "live", tmp_path / "copy")
+    assert again.complete and again.messages == Bag(tmp_path / "live").message_count
+
+
+# ------------------------------------------------------------------------------------------ bag_info
+def test_bag_info_reports_transitions_and_paper_spec_regions(friction_bag: tuple[Path, list[dict]],
+                                                             tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    path, events = friction_bag
+    assert bag_info.main([str(path), "--json", "--plot", str(tmp_path / "err.png")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    ex, eu, ey = expected("friction", events)
+    assert info["system"] == "friction" and info["transitions"] == len(ex)
+    assert info["topics"]["/friction/state"] == {"type": "sensor_msgs/msg/JointState", "count": len(events),
+                                                 "qos": "reliable, volatile"}
+    system = get_system("friction")
+    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    masks = spec.masks(torch.as_tensor(ex), torch.as_tensor(eu), torch.as_tensor(ey))[1:]
+    for term, mask in zip(spec.constraints, masks, strict=True):
+        assert info["regions"][term.name] == pytest.approx(float(mask.double().mean()))
+    png = (tmp_path / "err.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    assert bag_info.main([str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "transitions: " + str(len(ex)) in text and "near_origin" in text
+
+
+def test_bag_info_fails_clearly(bad_bags: dict, capsys: pytest.CaptureFixture) -> None:
+    path, fragment = bad_bags["truncated"]
+    assert bag_info.main([str(path)]) == 1
+    assert fragment in capsys.readouterr().err
+    empty, _ = bad_bags["notopics"]
+    assert bag_info.main([str(empty), "--plot", "/nonexistent/x.png"]) == 1
+    assert "no learner/model_error topic" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------ train --bag
+def test_train_from_bags_fails_cleanly_on_bad_bags_and_trains_on_a_good_one(
+    bad_bags: dict, friction_bag: tuple[Path, list[dict]], tmp_path: Path
+) -> None:
+    """``train --bag`` as a process: bad bag -> non-zero exit, the message, no checkpoint; good bag -> checkpoint."""
+    runs = {}
+    for kind, (path, _) in bad_bags.items():
+        out = tmp_path / kind
+        runs[kind] = subprocess.Popen(
+            [sys.executable, "-m", "saml_ros.entry", "train", "--system", "friction", "--bag", str(path),
+             "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    good = subprocess.run(
+        [sys.executable, "-m", "saml_ros.entry", "train", "--system", "friction", "--bag", str(friction_bag[0]),
+         "--out", str(tmp_path / "good"), "--epochs", "2", "--no-progress"],
+        cwd=REPO, capture_output=True, text=True, timeout=120)
+    for kind, proc in runs.items():
+        _, err = proc.communicate(timeout=120)
+        path, fragment = bad_bags[kind]
+        assert proc.returncode != 0, kind
+        assert fragment in err and str(path) in err, (kind, err)
+        out = tmp_path / kind
+        assert not out.exists() or not any(out.glob("ckpt-*")) and not (out / "latest").exists()
+    assert good.returncode == 0, good.stderr
+    assert (tmp_path / "good" / "latest").read_text().strip().startswith("ckpt-")
+    metrics = json.loads((tmp_path / "good" / "metrics.json").read_text())
+    n = len(expected("friction", friction_bag[1])[0])
+    assert metrics["source"] == f"{n} transitions from 1 bag(s)"

@@ -1,0 +1,219 @@
+"""bringup: configuration, episode bookkeeping, process groups, and whole closed loops in real processes.
+
+The closed-loop tests run the double integrator with friction (its MPC is the cheapest) in a private ROS domain:
+the learner's in-region model error falls and the MPC switches checkpoints while the loop runs; SIGINT, SIGTERM,
+the end of the simulated time and even SIGKILL of bringup leave no process of the loop behind.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from ros_helpers import Process, RosDomain, ros_env, wait_for  # noqa: F401  (fixture by import)
+
+from saml_ros.bringup import (
+    DEFAULTS,
+    BringupResult,
+    Episode,
+    EpisodeTracker,
+    ProcessGroup,
+    apply_sets,
+    child_env,
+    format_summary,
+    load_config,
+    ros_params_file,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+DT_NS = 100_000_000
+
+
+# ------------------------------------------------------------------------------------------ ROS-free
+def test_config_file_matches_the_embedded_defaults() -> None:
+    path = REPO / "config" / "bringup_quadrotor.yaml"
+    assert load_config(path, None) == DEFAULTS["quadrotor"]
+    assert yaml.safe_load(path.read_text())["system"] == "quadrotor"
+
+
+def test_config_overrides_and_errors(tmp_path: Path) -> None:
+    cfg = apply_sets(load_config(None, "friction"), ["mpc.solver=slsqp", "sim.episode_steps=7", "sim_time=12"])
+    assert cfg["mpc"]["solver"] == "slsqp" and cfg["sim"]["episode_steps"] == 7 and cfg["sim_time"] == 12
+    assert cfg["mpc"]["horizon"] == DEFAULTS["friction"]["mpc"]["horizon"]  # the rest is kept
+    with pytest.raises(ValueError, match="section.param=value"):
+        apply_sets(cfg, ["nonsense"])
+    with pytest.raises(ValueError, match="must be sim_time or one of"):
+        apply_sets(cfg, ["bogus.x=1"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("system: friction\nsimulator: {mode: lockstep}\n")
+    with pytest.raises(ValueError, match="unknown config key 'simulator'"):
+        load_config(bad, None)
+    with pytest.raises(ValueError, match="contradicts"):
+        load_config(bad, "quadrotor")
+    text = ros_params_file({"goal.position": (1.0, 2.0, 3.0), "solver": "fast"})
+    assert yaml.safe_load(text) == {"/**": {"ros__parameters": {"goal.position": [1.0, 2.0, 3.0], "solver": "fast"}}}
+
+
+def test_child_env_respects_the_user_and_defaults_to_localhost(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    env = child_env(None)
+    assert env["ROS_DOMAIN_ID"] == "42" and env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert child_env(7)["ROS_DOMAIN_ID"] == "7"
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")
+    assert child_env(None)["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+
+
+def test_episode_tracker_splits_at_resets_and_measures_the_final_error() -> None:
+    goal = np.zeros(3)
+    tr = EpisodeTracker("quadrotor", 0.1, goal)
+    x = np.zeros(13)
+    k = 0
+    for final, version in (((0.3, 0.4, 0.2), 0), ((0.0, 0.1, 0.2), 2)):
+        for i in range(10):
+            x = x.copy()
+            x[0:3] = np.array(final) * (1 + (9 - i))
+            assert tr.add(x, 10**9 + k * DT_NS, version) is None or i == 0
+            k += 1
+        k += 1  # a reset: the next start is stamped 2 dt later
+    tr.add(np.zeros(13), 10**9 + (k + 1) * DT_NS, 2)
+    assert [e.steps for e in tr.episodes] == [10, 10]
+    first, second = tr.episodes
+    assert first.error == pytest.approx(np.linalg.norm([0.3, 0.4, 0.2]))
+    assert first.xy_error == pytest.approx(0.5)
+    assert (first.model_first, second.model_first) == (0, 2)
+    assert tr.sim_time == pytest.approx((k + 1) * 0.1)
+
+
+def test_summary_compares_base_and_learned_episodes() -> None:
+    res = BringupResult("quadrotor", Path("/tmp/run"), sim_time=10.0, wall_time=5.0, stop_reason="sim_time")
+    z = np.zeros(13)
+    res.episodes = [Episode(i, 0, 1, 10, z, z, err, err, v, v) for i, (err, v) in
+                    enumerate(((0.5, 0), (0.4, 0), (0.3, 0), (0.2, 1), (0.1, 3)))]
+    res.model_error = [(0, float("nan")), (0, 0.1), (0, 0.12), (10, 0.05), (20, 0.01), (30, 0.02)]
+    res.constraint, res.model_versions = "near_ground", [0, 1, 3]
+    text = format_summary(res, n_last=2)
+    assert "base model 0.12 -> 0.02 after 30 learner updates" in text
+    assert "base model f_hat:   0.400 +- 0.082 m over 3 episode(s)" in text
+    assert "last learned models: 0.150 +- 0.050 m over 2 episode(s)" in text
+    assert "MPC models used: 3 (0 -> 3)" in text
+
+
+def test_process_group_escalates_and_kills_the_whole_group(tmp_path: Path) -> None:
+    # a child that ignores SIGINT and SIGTERM and has a grandchild in its process group
+    code = ("import signal, subprocess, sys, time\n"
+            "signal.signal(signal.SIGINT, signal.SIG_IGN); signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+            "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
+            "print(p.pid, flush=True); time.sleep(60)\n")
+    group = ProcessGroup()
+    child = group.start("stubborn", [sys.executable, "-c", code], dict(os.environ), tmp_path / "stubborn.log")
+    grandchild = int(wait_for(lambda: (tmp_path / "stubborn.log").read_text().strip(), 20, what="grandchild pid"))
+    assert os.getpgid(grandchild) == child.pid  # same group as its parent, not ours
+    t0 = time.monotonic()
+    codes = group.stop(grace_int=0.5, grace_term=0.5)
+    assert codes["stubborn"] == -signal.SIGKILL and time.monotonic() - t0 < 10
+    assert_group_gone(child.pid)
+
+
+# ------------------------------------------------------------------------------------- processes
+def assert_group_gone(pgid: int, timeout: float = 10.0) -> None:
+    """No process of process group ``pgid`` is left (waits up to ``timeout`` s for the kernel to finish)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return
+        if time.monotonic() > deadline:
+            left = subprocess.run(["ps", "-o", "pid,pgid,stat,args", "-g", str(pgid)], capture_output=True, text=True)
+            raise AssertionError(f"process group {pgid} still has processes:\n{left.stdout}")
+        time.sleep(0.1)
+
+
+def child_pids(output: str) -> dict[str, int]:
+    """``{name: pid}`` of the children bringup reported starting."""
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"(\w+) \(pid (\d+)\)", output)}
+
+
+FRICTION = ["--system", "friction", "--progress-period", "0.5",
+            "--set", "learner.min_transitions=100", "--set", "learner.checkpoint_period=1.0",
+            "--set", "learner.telemetry_rate=10.0", "--set", "sim.episode_steps=60"]
+
+
+def start_bringup(ros_env: RosDomain, tmp_path: Path, *extra: str) -> Process:  # noqa: F811
+    return ros_env.launch("bringup", args=[*FRICTION, "--run-dir", str(tmp_path / "run"), *extra])
+
+
+def progress_value(output: str, pattern: str) -> list[float]:
+    return [float(v) for v in re.findall(pattern, output)]
+
+
+def test_closed_loop_learns_switches_models_and_stops_on_sigint(ros_env: RosDomain, tmp_path: Path) -> None:  # noqa: F811
+    proc = start_bringup(ros_env, tmp_path, "--sim-time", "0")
+    try:
+        # wait until the MPC flies a learned model and the learner has trained a while
+        wait_for(lambda: (v := progress_value(proc.output(), r"MPC model v(\d+)")) and v[-1] >= 2
+                 or not proc.alive(), 150, what="the MPC to switch to a learned model")
+        assert proc.alive(), proc.output()
+        pids = child_pids(proc.output())
+        assert {"learner", "mpc", "friction_sim"} <= set(pids), proc.output()
+        proc.signal(signal.SIGINT)
+        assert proc.wait(40) == 0, proc.output()
+    finally:
+        proc.stop()
+    out = proc.output()
+    before, after = map(float, re.search(r"model error \(near_origin, learner/model_error\): base model (\S+) -> "
+                                         r"(\S+) after", out).groups())
+    assert after < before, out
+    versions = re.search(r"MPC models used: (\d+) \((\d+) -> (\d+)\)", out)
+    assert versions is not None and int(versions.group(2)) == 0 and int(versions.group(3)) >= 2, out
+    assert "stopped by signal SIGINT" in out and "children exited cleanly" in out
+    for pid in pids.values():
+        assert_group_gone(pid)
+    assert list((tmp_path / "run" / "checkpoints").glob("ckpt-*.saml"))
+
+
+def test_bringup_stops_after_the_simulated_time_and_on_sigterm(ros_env: RosDomain, tmp_path: Path) -> None:  # noqa: F811
+    proc = start_bringup(ros_env, tmp_path, "--no-learner", "--sim-time", "3")
+    try:
+        assert proc.wait(120) == 0, proc.output()
+    finally:
+        proc.stop()
+    out = proc.output()
+    assert "stopped by sim_time" in out and "children exited cleanly" in out
+    sim = float(re.search(r"summary \(friction\): (\S+) s simulated", out).group(1))
+    assert 3.0 <= sim < 4.0
+    for pid in child_pids(out).values():
+        assert_group_gone(pid)
+    proc = start_bringup(ros_env, tmp_path, "--no-learner", "--sim-time", "0")
+    try:
+        # a SIGTERM while the simulator is still starting: bringup lets it come up, then stops everything
+        wait_for(lambda: "friction_sim (pid" in proc.output() or not proc.alive(), 90, what="the simulator")
+        proc.signal(signal.SIGTERM)
+        assert proc.wait(40) == 0, proc.output()
+    finally:
+        proc.stop()
+    assert "stopped by signal SIGTERM" in proc.output()
+    for pid in child_pids(proc.output()).values():
+        assert_group_gone(pid)
+
+
+def test_sigkill_of_bringup_takes_the_children_down(ros_env: RosDomain, tmp_path: Path) -> None:  # noqa: F811
+    proc = start_bringup(ros_env, tmp_path, "--no-learner", "--sim-time", "0")
+    try:
+        wait_for(lambda: "friction_sim (pid" in proc.output() or not proc.alive(), 90, what="the simulator")
+        pids = child_pids(proc.output())
+        proc.signal(signal.SIGKILL)  # no chance to clean up: the kernel's parent-death signal must do it
+        proc.wait(10)
+        for pid in pids.values():
+            assert_group_gone(pid, timeout=30)
+    finally:
+        proc.stop()

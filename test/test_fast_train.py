@@ -1,0 +1,232 @@
+"""The fast training engine computes the same Algorithm 1 as the plain autograd loop.
+
+Every comparison runs both engines from the same initial weights, data and generator seed, so they see the
+same minibatches in the same order. In float64 the two differ only by summation order (about 1e-16 relative;
+Adam can amplify a near-cancelling gradient component, hence the 1e-8 bounds, still far below any algorithmic
+difference, which shows up at 1e-3 or more). In float32, the default, see the tolerances stated per test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from saml_ros.core import fast_train
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.spec import ProblemSpec
+from saml_ros.core.systems import get_system
+from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.offline import evaluate_models
+
+FRICTION = get_system("friction")
+NEAR = {"norm": {"fields": ["x.p", "x.v"], "ord": "inf", "max": 0.5}}
+FAST_V = {"box": {"x.v": [1.0, None]}}
+
+
+def _spec(objective: dict[str, Any], *constraints: dict[str, Any]) -> dict[str, Any]:
+    return {"name": "t", "objective": objective, "constraints": list(constraints)}
+
+
+SPECS = {
+    "paper": FRICTION.paper_spec(),
+    "uniform": _spec({"loss": "l2"}),
+    "unconditional": _spec({"loss": "l2"}, {"name": "c", "loss": "l2", "eps": 0.002, "region": NEAR,
+                                             "mean": "unconditional"}),
+    "squared_l2": _spec({"loss": "squared_l2"}, {"name": "c", "loss": "squared_l2", "eps": 1e-3, "region": NEAR}),
+    "huber_l1_fields": _spec({"loss": "huber", "huber_delta": 0.05, "fields": ["v"]},
+                             {"name": "c", "loss": "l1", "eps": 0.02, "region": NEAR, "fields": ["v"]}),
+    # objective region + normalized loss, like the paddle ball's spec
+    "normalized": _spec({"loss": "normalized", "region": {"not": NEAR}},
+                        {"name": "c", "loss": "l2", "eps": 0.05, "region": NEAR}),
+    # three groups, the l2 group's terms are not contiguous (columns 0 and 2); one region is often empty
+    "mixed": _spec({"loss": "l2"}, {"name": "a", "loss": "l1", "eps": 0.05, "region": NEAR},
+                   {"name": "b", "loss": "l2", "eps": 0.03, "region": FAST_V, "mean": "unconditional"},
+                   {"name": "c", "loss": "squared_l2", "eps": 1e-3,
+                    "region": {"box": {"x.p": [1.9, None], "x.v": [2.4, None]}}}),
+}
+
+
+def _data(n: int, seeds: list[int] | None, noise: float = 0.0) -> tuple[np.ndarray, ...]:
+    noise_d = {"v": noise} if noise else None
+    if seeds is None:
+        return FRICTION.make_dataset(n, np.random.default_rng(0), noise_d)
+    parts = [FRICTION.make_dataset(n, np.random.default_rng(s), noise_d) for s in seeds]
+    return tuple(np.stack([p[i] for p in parts]) for i in range(3))
+
+
+def _pair(
+    spec_dict: dict[str, Any], cfg: TrainConfig, n: int = 240, hidden: tuple[int, ...] = (4, 2),
+    e: int = 1, per_member: bool = False, kind: str = "residual",
+) -> tuple[PrimalDualTrainer, PrimalDualTrainer, Transitions, Transitions]:
+    """Two identical trainers (engine "plain" and "fast") and their datasets."""
+    spec = ProblemSpec.for_system(spec_dict, FRICTION)
+    x, u, y = _data(n, list(range(e)) if per_member else None)
+    out = []
+    for engine in ("plain", "fast"):
+        model = DynamicsModel(FRICTION, hidden, kind, n_models=e, seed=7)
+        model.fit_normalization(x, u, y)
+        c = replace(cfg, engine=engine)
+        tr = PrimalDualTrainer(model, spec, c)
+        out.append((tr, Transitions(model, spec, x, u, y)))
+    return out[0][0], out[1][0], out[0][1], out[1][1]
+
+
+def _assert_same(plain: PrimalDualTrainer, fast: PrimalDualTrainer, rtol: float, atol: float) -> None:
+    assert plain.engine_used == "plain" and fast.engine_used == "fast"
+    assert plain.steps == fast.steps and plain.epochs_done == fast.epochs_done
+    torch.testing.assert_close(plain.rng.get_state(), fast.rng.get_state(), rtol=0, atol=0)
+    for (name, a), b in zip(plain.model.named_parameters(), fast.model.parameters()):
+        torch.testing.assert_close(b, a, rtol=rtol, atol=atol, msg=lambda m, n=name: f"{n}: {m}")
+    torch.testing.assert_close(fast.lam, plain.lam, rtol=rtol, atol=atol)
+    for opt_p, opt_f in ((plain.primal_opt, fast.primal_opt), (plain.dual_opt, fast.dual_opt)):
+        sp, sf = opt_p.state_dict()["state"], opt_f.state_dict()["state"]
+        assert sp.keys() == sf.keys()
+        for k in sp:
+            for key in sp[k]:
+                torch.testing.assert_close(sf[k][key], sp[k][key], rtol=rtol, atol=atol * 1e-2)
+    hp, hf = plain.history.as_arrays(), fast.history.as_arrays()
+    assert plain.history.step == fast.history.step and plain.history.epoch == fast.history.epoch
+    for key in ("objective", "constraints", "lambdas", "lagrangian"):
+        np.testing.assert_allclose(hf[key], hp[key], rtol=rtol, atol=atol, err_msg=key)
+
+
+@pytest.mark.parametrize("name", sorted(SPECS))
+def test_fast_equals_plain_for_every_loss_and_mean(name):
+    """~250 steps of Adam (the paper's optimizer) in float64: same weights, lambdas, optimizer state, history."""
+    cfg = TrainConfig(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
+                      log_every=7)
+    plain, fast, dp, df = _pair(SPECS[name], cfg)
+    assert fast_train.unsupported_reason(fast, df) is None
+    plain.fit(dp)
+    fast.fit(df)
+    assert plain.steps == 8 * 30
+    if name != "uniform":
+        assert plain.history.as_arrays()["lambdas"].max() > 0, "the test should exercise an active multiplier"
+    _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    "variant",
+    ["ensemble_shared", "ensemble_per_member", "full_model", "sgd", "adam_primal_sgd_dual", "linear_model"],
+)
+def test_fast_equals_plain_for_models_and_optimizers(variant):
+    kw: dict[str, Any] = {}
+    cfg = TrainConfig(epochs=6, batch_size=16, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=2)
+    if variant == "ensemble_shared":
+        kw = {"e": 3}
+    elif variant == "ensemble_per_member":
+        kw = {"e": 3, "per_member": True}
+    elif variant == "full_model":
+        kw = {"kind": "full", "hidden": (8, 4)}
+    elif variant == "sgd":
+        cfg = replace(cfg, primal_optimizer="sgd", dual_optimizer="sgd", primal_lr=0.05)
+    elif variant == "adam_primal_sgd_dual":
+        cfg = replace(cfg, dual_optimizer="sgd", dual_lr=1.0)
+    else:
+        kw = {"hidden": ()}
+    plain, fast, dp, df = _pair(SPECS["paper"], cfg, **kw)
+    plain.fit(dp)
+    fast.fit(df)
+    _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
+
+
+def test_float32_paper_setting_matches_to_rounding():
+    """The default dtype: 300 steps of the paper's friction problem (4-2 net, Adam 1e-3 / dual Adam).
+
+    float32 rounding (about 6e-8 relative per operation) enters every step and Adam rescales each gradient
+    component by its running RMS, so differences grow over training; after 300 steps they stay below 1e-5
+    on weights of size ~0.5 and 1e-6 on lambda, where any real difference in the algorithm gives > 1e-3.
+    """
+    cfg = TrainConfig(epochs=10, batch_size=100, dual_lr=1e-2, seed=1)
+    plain, fast, dp, df = _pair(SPECS["paper"], cfg, n=3000)
+    plain.fit(dp)
+    fast.fit(df)
+    assert plain.steps == 300
+    _assert_same(plain, fast, rtol=1e-4, atol=1e-5)
+
+
+def test_heldout_metrics_match_after_a_full_short_training():
+    """The convergence experiment's setting (noise sigma = 0.2 on v, 8-4 nets, 3 datasets as one ensemble),
+    trained to the end in float32 with each engine: held-out objective, constraint and per-region errors agree
+    to 1e-4 (they are ~0.2 and differ between seeds by ~1e-2)."""
+    spec = ProblemSpec.for_system(FRICTION.paper_spec(), FRICTION)
+    x, u, y = _data(1500, [0, 1, 2], noise=0.2)
+    xt, ut, yt = FRICTION.make_dataset(5000, np.random.default_rng(99), {"v": 0.2})
+    evals = []
+    for engine in ("plain", "fast"):
+        model = DynamicsModel(FRICTION, (8, 4), n_models=3, seed=3)
+        model.fit_normalization(x, u, y)
+        tr = PrimalDualTrainer(model, spec, TrainConfig(epochs=25, batch_size=128, dual_lr=1e-2, engine=engine))
+        tr.fit(Transitions(model, spec, x, u, y))
+        assert tr.engine_used == engine
+        evals.append(evaluate_models(model, spec, xt, ut, yt))
+    plain, fast = evals
+    np.testing.assert_allclose(fast.objective, plain.objective, atol=1e-4)
+    np.testing.assert_allclose(fast.constraints, plain.constraints, atol=1e-4)
+    for rp, rf in zip(plain.regions, fast.regions):
+        np.testing.assert_allclose(rf.inside, rp.inside, atol=1e-4)
+        np.testing.assert_allclose(rf.outside, rp.outside, atol=1e-4)
+    assert np.ptp(plain.objective) > 1e-3  # the seeds differ far more than the engines
+
+
+def test_unsupported_settings_fall_back_to_the_plain_loop():
+    """AMSGrad has no fast implementation: fit() must run the plain loop, with plain results."""
+    cfg = TrainConfig(epochs=3, batch_size=16, dual_lr=1e-2, dtype="float64")
+    reference, fast, dr, df = _pair(SPECS["paper"], replace(cfg, engine="plain"))
+    for tr in (reference, fast):
+        tr.primal_opt.param_groups[0]["amsgrad"] = True
+    fast.config = replace(cfg, engine="fast")
+    reason = fast_train.unsupported_reason(fast, df)
+    assert reason is not None and "amsgrad" in reason
+    with pytest.raises(ValueError, match="amsgrad"):
+        fast_train.FastEngine(fast, df)
+    reference.fit(dr)
+    fast.fit(df)
+    assert fast.engine_used == "plain"
+    for a, b in zip(reference.model.parameters(), fast.model.parameters()):
+        assert torch.equal(a, b)
+    # the same trainer without AMSGrad takes the fast path and ends elsewhere
+    _, other, _, do = _pair(SPECS["paper"], cfg)
+    other.fit(do)
+    assert other.engine_used == "fast"
+    diff = max(float((a - b).abs().max()) for a, b in zip(other.model.state_dict().values(),
+                                                           fast.model.state_dict().values()))
+    assert diff > 1e-6  # AMSGrad changed the result: the fallback did run it
+
+
+def test_engines_can_be_mixed_and_resumed():
+    """Optimizer state goes through the torch optimizers: fast, then plain, then fast again (with values from
+    online steps pending in between) equals plain all the way; a callback sees the current model."""
+    cfg = TrainConfig(epochs=2, batch_size=16, dual_lr=5e-2, dtype="float64", seed=4, log_every=5)
+    plain, mixed, dp, dm = _pair(SPECS["paper"], cfg)
+    seen: dict[str, list[float]] = {"plain": [], "fast": []}
+
+    def probe(tr: PrimalDualTrainer) -> None:
+        seen[tr.config.engine].append(float(tr.evaluate(dm)["lagrangian"][0]))
+
+    plain.fit(dp, callback=probe)
+    mixed.fit(dm, callback=probe)
+    assert len(seen["plain"]) == len(seen["fast"]) == 2
+    np.testing.assert_allclose(seen["fast"], seen["plain"], rtol=1e-9)
+    x, u, y = (torch.as_tensor(a[:16]) for a in _data(16, None))
+    for tr in (plain, mixed):
+        tr.step(x, u, y)  # an online step: its values are pending when fit() starts
+    mixed.config = replace(cfg, engine="plain")
+    plain.fit(dp)
+    mixed.fit(dm)
+    mixed.config = replace(cfg, engine="fast")
+    plain.fit(dp)
+    mixed.fit(dm)
+    assert [mixed.engine_used, plain.engine_used] == ["fast", "plain"]
+    plain.engine_used = "plain"
+    mixed.engine_used = "fast"
+    _assert_same(plain, mixed, rtol=1e-7, atol=1e-8)
+    # a checkpoint-style round trip of the state restores the same trainer
+    restored, _, _, _ = _pair(SPECS["paper"], cfg)
+    restored.load_state(mixed.state())
+    for a, b in zip(restored.model.parameters(), mixed.model.parameters()):
+        assert torch.equal(a, b)

@@ -1,0 +1,566 @@
+"""The learner node in real processes over real rclpy / Fast DDS (private ROS_DOMAIN_ID per learner).
+
+The test process feeds the learner with stock rclpy publishers (messages built by msg_schemas from the
+friction system's true dynamics), so it controls exactly what is sent: exact pairing across interleavings and
+two namespaces, learning in the constrained region, decoding model_error with nothing but sensor_msgs, bad
+input of each kind, configuration errors, resuming past a corrupt checkpoint, SIGKILL while checkpointing and
+restart, SIGTERM with a final checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import ros_helpers  # test/ is on sys.path under pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DT_NS = 100_000_000  # friction dt = 0.1 s
+SYSTEM = "friction"
+#: processes this file SIGKILLs use UDP only, so they leave no Fast DDS shared-memory segments in /dev/shm
+NO_SHM = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+
+rclpy = pytest.importorskip("rclpy")
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+ros_env = ros_helpers.ros_env  # fixture: a claimed private ROS domain; processes stopped at teardown
+
+
+class Learner:
+    """One learner process (``python -m saml_ros.entry learner --ros-args -r __ns:=... -p ...``)."""
+
+    def __init__(self, dom: ros_helpers.RosDomain, params: dict[str, Any], ns: str = "/friction",
+                 env: dict[str, str] | None = None) -> None:
+        self.domain = dom.domain_id
+        args: list[str] = []
+        for k, v in params.items():
+            args += ["-p", f"{k}:={_param(v)}"]
+        self.proc = dom.launch("learner", *args, namespace=ns, env=env)
+
+    def log(self) -> str:
+        return self.proc.output()
+
+    def wait_log(self, text: str, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while text not in self.log():
+            if not self.proc.alive() or time.monotonic() > deadline:
+                raise AssertionError(f"{text!r} not in the learner log (rc={self.proc.popen.poll()}):\n{self.log()}")
+            time.sleep(0.05)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 30.0) -> int:
+        """Send ``sig`` and return the exit status (negative: killed by a signal)."""
+        self.proc.signal(sig)
+        rc = self.proc.wait(timeout)
+        if rc is None:
+            self.proc.stop(1.0)
+            raise AssertionError(f"learner ignored signal {sig}:\n{self.log()}")
+        return rc
+
+
+def _param(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_param(x) for x in v) + "]"
+    return str(v)
+
+
+class RosSide:
+    """The test side: an rclpy context on the learner's domain, publishers per namespace, telemetry log."""
+
+    def __init__(self, domain: int, learner_ns: str = "/friction") -> None:
+        from rclpy.executors import SingleThreadedExecutor
+
+        import msg_schemas.telemetry as tele
+        from msg_schemas import DATA_QOS, TELEMETRY_QOS, get_schema
+
+        self.tele = tele
+        self.schema = get_schema(SYSTEM)
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = rclpy.create_node("tester", context=self.ctx)
+        self.qos = DATA_QOS.to_rclpy()
+        self.pubs: dict[str, tuple[Any, Any]] = {}
+        self.lock = threading.Lock()
+        self.telemetry: list[dict[str, float]] = []
+        self.diag: dict[str, str] = {}
+        self.checkpoints: list[Any] = []
+        jt = tele.RCLPY.cls(tele.JOINT_STATE)
+        self.node.create_subscription(jt, f"{learner_ns}/{tele.MODEL_ERROR_TOPIC}", self._on_error,
+                                      TELEMETRY_QOS.to_rclpy())
+        self.node.create_subscription(tele.RCLPY.cls(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, self._on_diag,
+                                      TELEMETRY_QOS.to_rclpy())
+        from msg_schemas import CHECKPOINT_QOS
+
+        self.node.create_subscription(tele.RCLPY.cls(tele.STRING), f"{learner_ns}/{tele.CHECKPOINT_TOPIC}",
+                                      self._on_ckpt, CHECKPOINT_QOS.to_rclpy())
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+        self.sent: dict[tuple[str, str], int] = {}
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 - context shut down at close()
+            pass
+
+    def _on_error(self, msg: Any) -> None:
+        values, _ = self.tele.model_error_from_msg(msg)
+        with self.lock:
+            self.telemetry.append(values)
+
+    def _on_diag(self, msg: Any) -> None:
+        entries, _ = self.tele.diagnostics_from_msg(msg)
+        for e in entries:
+            if e.name.endswith("/learner"):
+                with self.lock:
+                    self.diag = dict(e.values)
+
+    def _on_ckpt(self, msg: Any) -> None:
+        with self.lock:
+            self.checkpoints.append(self.tele.checkpoint_from_msg(msg))
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+        self.thread.join(2.0)
+
+    # -------------------------------------------------------------------------------------- reading
+    def last(self) -> dict[str, float]:
+        with self.lock:
+            return dict(self.telemetry[-1]) if self.telemetry else {}
+
+    def counter(self, key: str) -> int:
+        with self.lock:
+            return int(self.diag.get(key, "-1"))
+
+    def wait(self, pred: Callable[[], bool], timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}; last telemetry {self.last()}, diag {self.diag}")
+            time.sleep(0.02)
+
+    # -------------------------------------------------------------------------------------- sending
+    def reset(self) -> None:
+        """Forget what the previous learner reported (before talking to a restarted one)."""
+        with self.lock:
+            self.telemetry.clear()
+            self.diag = {}
+            self.checkpoints.clear()
+        self.sent.clear()
+
+    def connect(self, ns: str, timeout: float = 15.0) -> None:
+        """Publishers for ``ns``, once the learner reports (on /diagnostics) that it has matched them: a
+        killed learner's subscriptions linger in discovery, so our own publisher's match count is not enough."""
+        from sensor_msgs.msg import JointState
+
+        if ns not in self.pubs:
+            st = self.node.create_publisher(JointState, f"{ns}/state", self.qos)
+            cmd = self.node.create_publisher(JointState, f"{ns}/applied_cmd", self.qos)
+            self.pubs[ns] = (st, cmd)
+        self.wait(lambda: self.counter(f"{ns}/publishers/state") > 0 and self.counter(f"{ns}/publishers/applied_cmd") > 0,
+                  timeout, f"the learner to match our publishers on {ns}")
+
+    def publish(self, ns: str, kind: str, msg: Any, max_outstanding: int = 40) -> None:
+        """Publish with flow control: at most ``max_outstanding`` messages per topic not yet counted as received
+        by the learner (its /diagnostics counters), so the learner's reader queue (depth 100) never overflows."""
+        key = (ns, kind)
+        n = self.sent.get(key, 0)
+        recv_key = f"{ns}/received/{kind}"
+        self.wait(lambda: n - self.counter(recv_key) < max_outstanding, 20.0, f"the learner to receive {key}")
+        self.pubs[ns][0 if kind == "state" else 1].publish(msg)
+        self.sent[key] = n + 1
+
+    def send(self, ns: str, events: list[tuple[str, int, np.ndarray]]) -> None:
+        sc = self.schema
+        for kind, stamp, vec in events:
+            msg = sc.state_to_msg(vec, stamp) if kind == "state" else sc.control_to_msg(vec, stamp)
+            self.publish(ns, kind, msg)
+
+    def wait_received(self, ns: str, timeout: float = 20.0) -> None:
+        for kind in ("state", "applied_cmd"):
+            n = self.sent.get((ns, kind), 0)
+            self.wait(lambda k=kind, n=n: self.counter(f"{ns}/received/{k}") >= n, timeout,
+                      f"{ns} to receive {n} {kind}")
+
+
+def episodes(n_transitions: int, rng: np.random.Generator, t0: int, ep_len: int = 6,
+             interleave: bool = True) -> list[tuple[str, int, np.ndarray]]:
+    """Friction episodes from the paper's input distribution, in a publish order with interleavings.
+
+    Follows the simulator contract: the last state of an episode has no applied_cmd and the next episode starts
+    3 dt later. With ``interleave`` some commands go before their state and some after the next state.
+    """
+    from saml_ros.core.systems import get_system
+
+    system = get_system(SYSTEM)
+    events: list[tuple[str, int, np.ndarray]] = []
+    t, done = t0, 0
+    while done < n_transitions:
+        x, _ = system.sample_inputs(1, rng)
+        xk = x[0]
+        steps = min(ep_len, n_transitions - done)
+        ep: list[tuple[str, int, np.ndarray]] = []
+        for _ in range(steps):
+            _, u = system.sample_inputs(1, rng)
+            ep += [("state", t, xk), ("applied_cmd", t, u[0])]
+            xk = system.true_step_np(xk, u[0])
+            t += DT_NS
+            done += 1
+        ep.append(("state", t, xk))
+        if interleave:  # reorder across the two topics only: each topic stays in stamp order, as DDS keeps it
+            keys, last_cmd = [], -1.0
+            for i, (kind, _, _) in enumerate(ep):
+                k = i // 2
+                if kind == "state":
+                    keys.append(10.0 * k)
+                else:
+                    key = 10.0 * k + float(rng.choice([-1.0, 1.0, 11.0]))  # before, after its state, after the next
+                    last_cmd = max(key, last_cmd + 0.1)
+                    keys.append(last_cmd)
+            ep = [e for _, e in sorted(zip(keys, ep), key=lambda p: p[0])]
+        events += ep
+        t += 3 * DT_NS
+    return events
+
+
+BASE_PARAMS: dict[str, Any] = {
+    "telemetry_rate": 20.0,
+    "diagnostics_rate": 20.0,
+    "checkpoint_period": 1.0,
+    "train.batch_size": 128,
+    "train.primal_lr": 0.003,
+    "train.dual_lr": 0.01,
+}
+
+
+# ---------------------------------------------------------------------------- the shared learner
+SHARED_NS = ["/friction", "/exact_a", "/exact_b", "/nan_ns", "/shape_ns", "/order_ns"]
+
+
+@pytest.fixture(scope="module")
+def shared(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Learner, RosSide, Path]]:
+    """One learner with several namespaces (each test feeds its own, so counters are independent)."""
+    tmp = tmp_path_factory.mktemp("shared")
+    with ros_helpers.ros_domain("learner_shared") as dom:
+        params = dict(BASE_PARAMS, namespaces=SHARED_NS, min_transitions=400, run_dir=str(tmp / "run"))
+        learner = Learner(dom, params)
+        tester = RosSide(dom.domain_id)
+        try:
+            learner.wait_log("training starts after")
+            yield learner, tester, tmp
+        finally:
+            tester.close()
+            print(f"--- shared learner log ---\n{learner.log()[-4000:]}")
+
+
+def test_transitions_are_paired_exactly_per_namespace(shared: tuple[Learner, RosSide, Path]) -> None:
+    """Two namespaces feeding one learner, interleaved with each other and within each (commands before their
+    state, after the next state): the paired count of each equals what was sent."""
+    _, tester, _ = shared
+    rng = np.random.default_rng(1)
+    a = episodes(150, rng, t0=10**9)
+    b = episodes(120, rng, t0=10**9)  # the same stamps in another namespace: paired separately
+    for ns in ("/exact_a", "/exact_b"):
+        tester.connect(ns)
+    i = j = 0
+    while i < len(a) or j < len(b):  # interleave the namespaces in random chunks
+        if j >= len(b) or (i < len(a) and rng.random() < 0.5):
+            tester.send("/exact_a", a[i : i + 7])
+            i += 7
+        else:
+            tester.send("/exact_b", b[j : j + 5])
+            j += 5
+    for ns, n in (("/exact_a", 150), ("/exact_b", 120)):
+        tester.wait_received(ns)
+        tester.wait(lambda ns=ns, n=n: tester.counter(f"{ns}/paired") == n, 5.0, f"{ns}/paired == {n}")
+    for ns in ("/exact_a", "/exact_b"):
+        for reason in ("duplicate", "out_of_order", "late", "unpaired", "nan", "shape"):
+            assert tester.counter(f"{ns}/rejected/{reason}") == 0
+    time.sleep(0.3)  # nothing more appears later
+    assert tester.counter("/exact_a/paired") == 150 and tester.counter("/exact_b/paired") == 120
+
+
+def test_model_error_in_the_constrained_region_falls(shared: tuple[Learner, RosSide, Path]) -> None:
+    _, tester, _ = shared
+    tester.connect("/friction")
+    rng = np.random.default_rng(2)
+    tester.send("/friction", episodes(1000, rng, t0=10**9, ep_len=3))
+    tester.wait_received("/friction")
+
+    with tester.lock:  # the untrained model (training starts at min_transitions = 400) on >= 200 transitions
+        first = next(m for m in tester.telemetry if m["n_in/near_origin"] > 0 and m["window"] >= 200)
+    assert first["updates"] == 0.0
+    e0 = first["error_in/near_origin"]
+    assert e0 > 0.07  # the base model misses the sticky friction patch near the origin (eps = 0.035)
+    tester.wait(lambda: tester.last().get("error_in/near_origin", 1.0) < 0.5 * e0, 30.0,
+                f"the in-region error to halve from {e0:.4f}")
+    last = tester.last()
+    assert last["updates"] > 0 and last["lambda/near_origin"] > 0 and last["training"] == 1.0
+    assert np.isfinite(last["objective"]) and np.isfinite(last["lagrangian"])
+    assert last["buffer_size"] >= 1000 and tester.counter("/friction/paired") == 1000
+
+
+STOCK_SUBSCRIBER = textwrap.dedent(
+    """
+    import json, sys, time
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    rclpy.init()
+    node = rclpy.create_node("stock_listener")
+    got = []
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(JointState, "/friction/learner/model_error", got.append, qos)
+    deadline = time.monotonic() + 20
+    while not got and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    assert got, "no learner/model_error message"
+    msg = got[-1]
+    values = dict(zip(msg.name, msg.position))
+    foreign = sorted(m for m in sys.modules if m.split(".")[0] in ("saml_ros", "msg_schemas"))
+    print(json.dumps({"values": values, "stamp": [msg.header.stamp.sec, msg.header.stamp.nanosec],
+                      "velocity": len(msg.velocity), "effort": len(msg.effort), "foreign": foreign}))
+    """
+)
+
+
+def test_stock_subscriber_decodes_model_error_from_the_message_type_alone(
+    shared: tuple[Learner, RosSide, Path],
+) -> None:
+    learner, _, tmp = shared
+    env = dict(os.environ, ROS_DOMAIN_ID=str(learner.domain), PYTHONPATH="")
+    out = subprocess.run([sys.executable, "-c", STOCK_SUBSCRIBER], env=env, cwd=tmp, capture_output=True,
+                         text=True, timeout=40)
+    assert out.returncode == 0, out.stderr
+    data = json.loads(out.stdout.strip().splitlines()[-1])
+    assert data["foreign"] == []
+    values = data["values"]
+    for name in ("objective", "lagrangian", "buffer_size", "updates", "model_version", "constraint/near_origin",
+                 "lambda/near_origin", "error_in/near_origin", "error_out/near_origin", "rejected/nan",
+                 "rejected/duplicate", "paired"):
+        assert name in values, name
+    assert values["buffer_size"] >= 0 and data["velocity"] == 0 and data["effort"] == 0
+
+
+def _feed_with_bad(tester: RosSide, ns: str, bad: Callable[[list[tuple[str, int, np.ndarray]]], None],
+                   n: int = 40) -> None:
+    """Send ``n`` good transitions on ``ns``, calling ``bad(events)`` halfway to inject bad messages."""
+    tester.connect(ns)
+    ev = episodes(n, np.random.default_rng(3), t0=10**9, interleave=False)
+    half = len(ev) // 2
+    tester.send(ns, ev[:half])
+    bad(ev)
+    tester.send(ns, ev[half:])
+    tester.wait_received(ns)
+    tester.wait(lambda: tester.counter(f"{ns}/paired") == n, 5.0, f"{ns}/paired == {n}")
+
+
+def test_nan_and_inf_states_are_rejected_counted_and_logged(shared: tuple[Learner, RosSide, Path]) -> None:
+    learner, tester, _ = shared
+    ns = "/nan_ns"
+    sc = tester.schema
+
+    def bad(ev: list[tuple[str, int, np.ndarray]]) -> None:
+        stamp = ev[len(ev) // 2][1]  # the stamp of the next good message: the bad one comes first
+        tester.publish(ns, "state", sc.state_to_msg(np.array([np.nan, 0.0]), stamp))
+        tester.publish(ns, "state", sc.state_to_msg(np.array([0.1, np.inf]), stamp + DT_NS // 2))
+
+    _feed_with_bad(tester, ns, bad)
+    assert tester.counter(f"{ns}/rejected/nan") == 2
+    learner.wait_log("rejected/nan")
+    assert "is nan" in learner.log() or "is inf" in learner.log()
+
+
+def test_wrong_length_and_wrong_names_are_rejected(shared: tuple[Learner, RosSide, Path]) -> None:
+    from sensor_msgs.msg import JointState
+
+    learner, tester, _ = shared
+    ns = "/shape_ns"
+
+    def bad(ev: list[tuple[str, int, np.ndarray]]) -> None:
+        stamp = ev[len(ev) // 2][1]
+        msg = tester.schema.state_to_msg(np.array([0.1, 0.2]), stamp)
+        msg.position = [0.1, 0.2, 0.3]  # three positions for one joint
+        tester.publish(ns, "state", msg)
+        cmd = tester.schema.control_to_msg(np.array([1.0]), stamp)
+        cmd.name = ["cart", "pole"]
+        tester.publish(ns, "applied_cmd", cmd)
+        tester.publish(ns, "applied_cmd", JointState())  # empty: no names at all
+
+    _feed_with_bad(tester, ns, bad)
+    assert tester.counter(f"{ns}/rejected/shape") == 1
+    assert tester.counter(f"{ns}/rejected/names") == 2
+    learner.wait_log("rejected/shape")
+    learner.wait_log("rejected/names")
+
+
+def test_duplicate_and_out_of_order_stamps_are_rejected(shared: tuple[Learner, RosSide, Path]) -> None:
+    learner, tester, _ = shared
+    ns = "/order_ns"
+    sc = tester.schema
+
+    def bad(ev: list[tuple[str, int, np.ndarray]]) -> None:
+        k = len(ev) // 2 - 2
+        kind, stamp, vec = ev[k]  # a message already sent: duplicate
+        tester.publish(ns, kind, sc.state_to_msg(vec, stamp) if kind == "state" else sc.control_to_msg(vec, stamp))
+        first = ev[0]  # an old stamp between two states: out of order
+        tester.publish(ns, "applied_cmd", sc.control_to_msg(np.array([0.5]), first[1] + DT_NS // 2))
+
+    _feed_with_bad(tester, ns, bad)
+    assert tester.counter(f"{ns}/rejected/duplicate") == 1
+    assert tester.counter(f"{ns}/rejected/out_of_order") == 1
+    learner.wait_log("rejected/duplicate")
+    learner.wait_log("rejected/out_of_order")
+
+
+def test_sigterm_writes_a_final_checkpoint_and_exits_0(shared: tuple[Learner, RosSide, Path]) -> None:
+    learner, tester, tmp = shared
+    from saml_ros.core.checkpoint import CheckpointStore
+
+    assert tester.last().get("updates", 0) > 0
+    rc = learner.stop(signal.SIGTERM)
+    assert rc == 0, learner.log()
+    assert "final checkpoint" in learner.log() or "is current" in learner.log()
+    found = CheckpointStore(tmp / "run").load_latest_valid()
+    assert found is not None and found.meta["updates"] >= tester.last()["updates"]
+    with tester.lock:
+        announced = [c.version for c in tester.checkpoints]
+    assert announced and announced[-1] == found.version
+
+
+# ---------------------------------------------------------------------------- configuration errors
+def test_unknown_system_and_bad_spec_exit_with_a_clear_message(tmp_path: Path, ros_env: ros_helpers.RosDomain) -> None:
+    """Unrecoverable configuration errors: the node logs what is wrong and exits with status 2 (a learner
+    that cannot learn should not sit idle looking healthy; a supervisor sees the exit)."""
+    bad_spec = tmp_path / "bad_spec.yaml"
+    bad_spec.write_text("objective: {loss: l2}\nconstraints:\n- {name: c, region: {box: {x.q: [0, 1]}}, eps: 0.1}\n")
+    runs = [
+        (Learner(ros_env, {"system": "nosuch", "run_dir": str(tmp_path / "r1")}, ns="/nosuch"),
+         ["configuration error", "unknown system 'nosuch'", "friction"]),
+        (Learner(ros_env, {"spec_file": str(bad_spec), "run_dir": str(tmp_path / "r2")}),
+         ["configuration error", "spec_file", "x.q"]),
+        (Learner(ros_env, {"spec_file": str(tmp_path / "missing.yaml"), "run_dir": str(tmp_path / "r3")}),
+         ["configuration error", "no such file"]),
+    ]
+    for learner, expected in runs:
+        rc = learner.proc.wait(60)
+        log = learner.log()
+        assert rc == 2, log
+        for text in expected:
+            assert text in log, (text, log)
+
+
+# ---------------------------------------------------------------------------- checkpoints and faults
+def _make_run_dir(run_dir: Path, steps: tuple[int, ...]) -> list[tuple[Path, int, int, float]]:
+    """Real checkpoints of a learner trained in-process: ``[(path, version, updates, lambda), ...]``."""
+    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.online import OnlineConfig, OnlineLearner
+    from saml_ros.core.pairing import PairingConfig
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.systems import get_system
+    from saml_ros.core.trainer import TrainConfig
+
+    system = get_system(SYSTEM)
+    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    cfg = OnlineConfig(min_transitions=200, train=TrainConfig(batch_size=128, primal_lr=0.003, dual_lr=0.01))
+    learner = OnlineLearner(system, spec, cfg, store=CheckpointStore(run_dir, keep=5))
+    src = learner.add_source("/friction", PairingConfig.for_system(system, "next"))
+    for kind, stamp, vec in episodes(300, np.random.default_rng(5), t0=10**9, interleave=False):
+        learner.ingest(src, kind, stamp, vec)
+    out = []
+    for n in steps:
+        learner.update(n)
+        saved = learner.save_checkpoint()
+        assert saved is not None
+        out.append((saved[0], saved[1], learner.updates, float(learner.lam[0])))
+    return out
+
+
+def test_resume_skips_a_corrupt_checkpoint_and_loads_the_last_good_one(
+    tmp_path: Path, ros_env: ros_helpers.RosDomain
+) -> None:
+    from saml_ros.core.checkpoint import atomic_write
+
+    run_dir = tmp_path / "run"
+    saved = _make_run_dir(run_dir, (60, 40))  # versions 1 and 2
+    good_path, good_version, good_updates, good_lam = saved[-1]
+    bad = run_dir / f"ckpt-{good_version + 1:06d}.saml"  # a newer, truncated checkpoint, named by `latest`
+    bad.write_bytes(good_path.read_bytes()[: good_path.stat().st_size // 2])
+    atomic_write(run_dir / "latest", lambda f: f.write(f"{bad.name} {good_version + 1}\n".encode()))
+    learner = Learner(ros_env, dict(BASE_PARAMS, run_dir=str(run_dir), min_transitions=100, checkpoint_period=0.2))
+    tester = RosSide(ros_env.domain_id)
+    try:
+        learner.wait_log("resumed from version")
+        log = learner.log()
+        assert f"skipped {bad}" in log and "truncated" in log
+        tester.wait(lambda: tester.counter("checkpoints_skipped") == 1, 10.0, "checkpoints_skipped == 1")
+        first = tester.last()
+        assert first["model_version"] == good_version and first["updates"] == good_updates
+        assert first["lambda/near_origin"] == good_lam and good_lam > 0
+        # it keeps running: new data is paired, training continues, the next checkpoint goes above the bad one
+        tester.connect("/friction")
+        tester.send("/friction", episodes(150, np.random.default_rng(6), t0=10**9))
+        tester.wait_received("/friction")
+        tester.wait(lambda: tester.counter("/friction/paired") == 150, 5.0, "150 paired")
+        tester.wait(lambda: tester.last().get("model_version", 0) > good_version + 1, 15.0, "a new checkpoint")
+        assert tester.last()["updates"] > good_updates
+        assert learner.stop() == 0
+    finally:
+        tester.close()
+
+
+def test_sigkill_while_checkpointing_then_restart_resumes_and_continues(
+    tmp_path: Path, ros_env: ros_helpers.RosDomain
+) -> None:
+    from saml_ros.core.checkpoint import CheckpointStore
+
+    run_dir = tmp_path / "run"
+    params = dict(BASE_PARAMS, run_dir=str(run_dir), min_transitions=100, checkpoint_period=0.02)
+    tester = RosSide(ros_env.domain_id)
+    first_run = Learner(ros_env, params, env=NO_SHM)
+    try:
+        first_run.wait_log("training starts after")
+        tester.connect("/friction")
+        tester.send("/friction", episodes(200, np.random.default_rng(7), t0=10**9))
+        tester.wait(lambda: tester.counter("checkpoints_written") >= 5 and tester.last().get("updates", 0) > 200,
+                    20.0, "training and frequent checkpoints")
+        assert first_run.stop(signal.SIGKILL) == -signal.SIGKILL  # most likely in the middle of a write
+        found = CheckpointStore(run_dir).load_latest_valid()
+        assert found is not None
+        version, updates = found.version, int(found.meta["updates"])
+        lam = float(found.meta["lambda"][0][0])
+        assert updates > 0 and lam > 0
+
+        tester.reset()
+        second = Learner(ros_env, params, env=NO_SHM)
+        second.wait_log(f"resumed from version {version}")
+        tester.wait(lambda: tester.last().get("model_version") == version, 15.0, f"model_version {version}")
+        resumed = tester.last()
+        assert resumed["updates"] == updates and resumed["lambda/near_origin"] == lam
+        # the restarted learner continues: more data, the update count grows from the checkpoint's
+        tester.connect("/friction")
+        tester.send("/friction", episodes(150, np.random.default_rng(8), t0=10**9))
+        tester.wait(lambda: tester.last().get("updates", 0) > updates + 100, 20.0, "updates beyond the checkpoint")
+        assert second.stop() == 0
+        final = CheckpointStore(run_dir).load_latest_valid()
+        assert final is not None and final.version > version and final.meta["updates"] > updates + 100
+    finally:
+        tester.close()

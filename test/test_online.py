@@ -1,0 +1,365 @@
+"""OnlineLearner (saml_ros.core.online): ingest -> buffer -> primal-dual updates, telemetry, checkpoints, resume."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from msg_schemas.telemetry import REJECT_REASONS, model_error_names
+from saml_ros.core.checkpoint import CheckpointStore, atomic_write
+from saml_ros.core.online import (
+    LearnerSetup,
+    LoopConfig,
+    OnlineConfig,
+    OnlineLearner,
+    ResumeError,
+    TrainingProcess,
+)
+from saml_ros.core.pairing import PairingConfig, Transition
+from saml_ros.core.spec import ProblemSpec
+from saml_ros.core.systems import get_system
+from saml_ros.core.trainer import TrainConfig
+
+SYSTEM = get_system("friction")
+SPEC = ProblemSpec.for_system(SYSTEM.paper_spec(), SYSTEM)
+DT = 100_000_000
+
+
+def config(**kw: object) -> OnlineConfig:
+    base: dict[str, object] = {
+        "min_transitions": 200,
+        "train": TrainConfig(batch_size=64, primal_lr=3e-3, dual_lr=1e-2),
+        "buffer_capacity": 5000,
+        "telemetry_window": 300,
+    }
+    base.update(kw)
+    return OnlineConfig(**base)  # type: ignore[arg-type]
+
+
+def transitions(n: int, seed: int = 0, source: int = 0) -> list[Transition]:
+    rng = np.random.default_rng(seed)
+    x, u = SYSTEM.sample_inputs(n, rng)
+    y = SYSTEM.true_step_np(x, u)
+    return [Transition(x[i], u[i], y[i], 10**9 + i * 3 * DT, source) for i in range(n)]
+
+
+def feed_events(learner: OnlineLearner, src: int, trs: list[Transition]) -> None:
+    """Each transition as its three messages: state t, applied_cmd t, state t + dt."""
+    for tr in trs:
+        learner.ingest(src, "state", tr.stamp_ns, tr.x)
+        learner.ingest(src, "applied_cmd", tr.stamp_ns, tr.u)
+        learner.ingest(src, "state", tr.stamp_ns + DT, tr.y)
+
+
+def new_learner(tmp_path: Path | None = None, resume: bool = True, **kw: object) -> OnlineLearner:
+    store = None if tmp_path is None else CheckpointStore(tmp_path / "run", keep=kw.pop("keep", 5))  # type: ignore[arg-type]
+    return OnlineLearner(SYSTEM, SPEC, config(**kw), store=store, resume=resume)
+
+
+def pairing() -> PairingConfig:
+    return PairingConfig.for_system(SYSTEM, "next")
+
+
+# ------------------------------------------------------------------------------------------- ingest
+def test_ingest_pairs_per_source_into_one_buffer() -> None:
+    learner = new_learner()
+    a = learner.add_source("/a", pairing())
+    b = learner.add_source("/b", pairing())
+    feed_events(learner, a, transitions(30, seed=1))
+    feed_events(learner, b, transitions(20, seed=2))
+    learner.reject(b, "names", "state")
+    rows = learner.buffer.arrays()
+    assert len(rows.x) == 50 and sorted(set(rows.source.tolist())) == [0, 1]
+    assert int((rows.source == 1).sum()) == 20
+    ref = transitions(30, seed=1)
+    np.testing.assert_array_equal(rows.x[rows.source == 0], np.stack([t.x for t in ref]))
+    np.testing.assert_array_equal(rows.y[rows.source == 0], np.stack([t.y for t in ref]))
+    assert [p.counts["paired"] for p in learner.sources] == [30, 20]
+    c = learner.counts()
+    assert c["paired"] == 50 and c["names"] == 1 and c["received/state"] == 101
+    tele = learner.telemetry()
+    assert tele["paired"] == 50 and tele["rejected/names"] == 1 and tele["buffer_size"] == 50
+
+
+# ------------------------------------------------------------------------------------------- training
+def test_training_waits_for_min_transitions_then_freezes_the_normalisation() -> None:
+    learner = new_learner()
+    trs = transitions(400, seed=3)
+    for tr in trs[:199]:
+        learner.add(tr)
+    assert not learner.training and learner.update(10) == 0 and learner.trainer is None
+    learner.add(trs[199])
+    assert learner.training and learner.update(5) == 5 and learner.updates == 5
+    first = np.stack([np.concatenate([t.x, t.u]) for t in trs[:200]])
+    np.testing.assert_allclose(learner.model.in_mean[0, 0].double().numpy(), first.mean(0), rtol=1e-5, atol=1e-6)
+    frozen = [b.clone() for b in (learner.model.in_mean, learner.model.in_std, learner.model.out_std)]
+    for tr in trs[200:]:
+        learner.add(tr)
+    learner.update(20)
+    for before, after in zip(frozen, (learner.model.in_mean, learner.model.in_std, learner.model.out_std)):
+        assert torch.equal(before, after)
+
+
+def test_learning_reduces_the_error_inside_the_constrained_region() -> None:
+    learner = new_learner(train=TrainConfig(batch_size=128, primal_lr=3e-3, dual_lr=1e-2))
+    for tr in transitions(2000, seed=4):
+        learner.add(tr)
+    before = learner.compute_model_metrics()
+    assert before["n_in/near_origin"] > 0 and before["updates"] == 0
+    learner.update(800)
+    after = learner.compute_model_metrics()
+    assert after["error_in/near_origin"] < 0.5 * before["error_in/near_origin"]
+    assert after["lambda/near_origin"] > 0 and after["updates"] == 800
+
+
+def test_telemetry_names_values_and_live_error_of_the_current_model() -> None:
+    learner = new_learner(telemetry_window=150)
+    src = learner.add_source("/friction", pairing())
+    trs = transitions(400, seed=5)
+    feed_events(learner, src, trs)
+    learner.reject(src, "nan", "state")
+    learner.update(50)
+    m = learner.compute_model_metrics()
+    tele = learner.telemetry()
+    names = list(tele)
+    canonical = model_error_names(SPEC.constraint_names)
+    assert names[: len(canonical)] == canonical
+    assert {"paired", "window", "error_all", "training", "n_in/near_origin"} <= set(names[len(canonical):])
+    assert all(isinstance(v, float) for v in tele.values())
+    assert tele["rejected/nan"] == 1 and all(tele[f"rejected/{r}"] == 0 for r in REJECT_REASONS if r != "nan")
+    assert tele["updates"] == 50 and tele["buffer_size"] == 400 and tele["window"] == 150
+    # the live error is the current model's one-step error on the 150 newest transitions
+    recent = trs[-150:]
+    x, u, y = (torch.as_tensor(np.stack(a)) for a in zip(*[(t.x, t.u, t.y) for t in recent]))
+    with torch.no_grad():
+        pred = learner.model(x.float(), u.float()).double()
+    ref = SPEC.region_errors(x, u, y, pred)["near_origin"]
+    assert tele["error_in/near_origin"] == pytest.approx(float(ref["in"][0]), rel=1e-9)
+    assert tele["error_out/near_origin"] == pytest.approx(float(ref["out"][0]), rel=1e-9)
+    assert tele["n_in/near_origin"] == float(ref["n_in"][0])
+    lam = tele["lambda/near_origin"]
+    assert tele["lagrangian"] == pytest.approx(tele["objective"] + lam * tele["constraint/near_origin"])
+    assert m["objective"] == tele["objective"]
+
+
+def test_error_inside_a_region_without_samples_is_nan() -> None:
+    learner = new_learner()
+    far = [Transition(np.array([2.0, 1.5]), np.array([0.0]), SYSTEM.true_step_np(np.array([2.0, 1.5]),
+                                                                                  np.array([0.0])), 0, 0)] * 5
+    for tr in far:
+        learner.add(tr)
+    m = learner.compute_model_metrics()
+    assert math.isnan(m["error_in/near_origin"]) and m["n_in/near_origin"] == 0
+    assert math.isfinite(m["error_out/near_origin"])
+    assert math.isnan(m["objective"])  # no minibatch yet
+
+
+def test_ingest_and_training_run_concurrently() -> None:
+    learner = new_learner()
+    src = learner.add_source("/friction", pairing())
+    trs = transitions(1500, seed=6)
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def train() -> None:
+        try:
+            while not stop.is_set():
+                learner.update(5)
+                learner.compute_model_metrics()
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    t = threading.Thread(target=train)
+    t.start()
+    feed_events(learner, src, trs)
+    while learner.updates < 50:
+        pass
+    stop.set()
+    t.join()
+    assert not errors and learner.counts()["paired"] == 1500 and len(learner.buffer) == 1500
+
+
+# ------------------------------------------------------------------------------------------- checkpoints
+def test_checkpoint_and_resume_restore_everything(tmp_path: Path) -> None:
+    learner = new_learner(tmp_path)
+    assert learner.save_checkpoint() is None  # nothing to save before training
+    for tr in transitions(500, seed=7):
+        learner.add(tr)
+    learner.update(150)
+    learner.compute_model_metrics()
+    saved = learner.save_checkpoint()
+    assert saved is not None and saved[1] == 1 and learner.model_version == 1 and not learner.dirty
+    again = new_learner(tmp_path)
+    assert again.resumed is not None and again.resumed.version == 1 and again.resumed.skipped == []
+    assert again.updates == 150 and again.model_version == 1
+    np.testing.assert_array_equal(again.lam, learner.lam)
+    assert learner.lam[0] > 0
+    for (k, a), (_, b) in zip(learner.model.state_dict().items(), again.model.state_dict().items()):
+        assert torch.equal(a, b), k
+    assert learner.trainer is not None and again.trainer is not None
+    sa, sb = learner.trainer.primal_opt.state_dict(), again.trainer.primal_opt.state_dict()
+    for i in sa["state"]:
+        assert torch.equal(sa["state"][i]["exp_avg"], sb["state"][i]["exp_avg"])
+    # the resumed learner waits for fresh data (its buffer is empty), then continues counting
+    assert not again.training and again.update(10) == 0
+    assert again.telemetry()["lambda/near_origin"] == float(learner.lam[0])
+    for tr in transitions(200, seed=8):
+        again.add(tr)
+    assert again.update(25) == 25 and again.updates == 175
+    assert again.save_checkpoint() == (tmp_path / "run" / "ckpt-000002.saml", 2)
+
+
+def test_resume_skips_corrupt_checkpoints_and_loads_the_newest_good_one(tmp_path: Path) -> None:
+    learner = new_learner(tmp_path)
+    for tr in transitions(300, seed=9):
+        learner.add(tr)
+    learner.update(40)
+    good, _ = learner.save_checkpoint() or (None, 0)
+    assert good is not None
+    store = CheckpointStore(tmp_path / "run")
+    bad = store.path_for(2)
+    bad.write_bytes(good.read_bytes()[:1000])  # truncated
+    (store.path_for(3)).write_bytes(b"\x80\x04not a checkpoint")  # a pickle
+    atomic_write(store.latest_path, lambda f: f.write(b"ckpt-000003.saml 3\n"))
+    again = new_learner(tmp_path)
+    assert again.resumed is not None and again.resumed.version == 1 and again.updates == 40
+    assert [p.name for p, _ in again.resumed.skipped] == ["ckpt-000003.saml", "ckpt-000002.saml"]
+    assert "pickle" in again.resumed.skipped[0][1] and again.checkpoints_skipped == 2
+    for tr in transitions(300, seed=10):
+        again.add(tr)
+    again.update(5)
+    assert again.save_checkpoint() is not None and again.model_version == 4  # above the corrupt ones
+
+
+def test_no_readable_checkpoint_starts_fresh(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "ckpt-000001.saml").write_bytes(b"garbage")
+    learner = new_learner(tmp_path)
+    assert learner.resumed is None and learner.trainer is None and learner.checkpoints_skipped == 1
+
+
+def test_resume_refuses_another_architecture_or_system(tmp_path: Path) -> None:
+    learner = new_learner(tmp_path)
+    for tr in transitions(300, seed=11):
+        learner.add(tr)
+    learner.update(5)
+    learner.save_checkpoint()
+    with pytest.raises(ResumeError, match="hidden"):
+        new_learner(tmp_path, hidden=(8, 8))
+    assert new_learner(tmp_path, resume=False).trainer is None  # resume off: fresh
+    other = get_system("quadrotor")
+    with pytest.raises(ResumeError, match="quadrotor"):
+        OnlineLearner(other, ProblemSpec.for_system(other.paper_spec(), other), config(),
+                      store=CheckpointStore(tmp_path / "run"))
+
+
+def test_configured_learning_rates_win_over_the_checkpoints(tmp_path: Path) -> None:
+    learner = new_learner(tmp_path)
+    for tr in transitions(300, seed=12):
+        learner.add(tr)
+    learner.update(5)
+    learner.save_checkpoint()
+    again = new_learner(tmp_path, train=TrainConfig(batch_size=64, primal_lr=1e-4, dual_lr=5e-3))
+    assert again.trainer is not None
+    assert again.trainer.primal_opt.param_groups[0]["lr"] == 1e-4
+    assert again.trainer.dual_opt.param_groups[0]["lr"] == 5e-3
+
+
+def test_checkpoint_period_and_pruning(tmp_path: Path) -> None:
+    now = [0.0]
+    store = CheckpointStore(tmp_path / "run", keep=2)
+    learner = OnlineLearner(SYSTEM, SPEC, config(), store=store, clock=lambda: now[0])
+    for tr in transitions(300, seed=13):
+        learner.add(tr)
+    assert not learner.checkpoint_due(1.0)  # no trainer yet
+    learner.update(3)
+    now[0] = 0.5
+    assert not learner.checkpoint_due(1.0)
+    now[0] = 1.0
+    assert learner.checkpoint_due(1.0)
+    for _ in range(4):
+        learner.update(1)
+        learner.save_checkpoint()
+    assert store.versions() == [3, 4] and not learner.checkpoint_due(0.0)  # nothing new since the last save
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ValueError, match="min_transitions"):
+        OnlineConfig(min_transitions=1)
+    with pytest.raises(ValueError, match="capacity"):
+        OnlineConfig(min_transitions=100, buffer_capacity=50)
+    with pytest.raises(ValueError, match="kind"):
+        OnlineConfig(kind="hybrid")
+    with pytest.raises(ValueError, match="policy"):
+        OnlineConfig(buffer_policy="lifo")
+
+
+# ------------------------------------------------------------------------------------------- training process
+def _setup(run_dir: Path, **kw: object) -> LearnerSetup:
+    base: dict[str, object] = {
+        "system": "friction", "system_params": {}, "spec": SPEC.to_dict(), "config": config(),
+        "run_dir": str(run_dir), "loop": LoopConfig(telemetry_rate=20.0, checkpoint_period=0.2), "niceness": 0,
+    }
+    base.update(kw)
+    return LearnerSetup(**base)  # type: ignore[arg-type]
+
+
+def _wait(pred: Callable[[], bool], timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.02)
+
+
+def test_training_process_trains_checkpoints_and_stops_with_a_final_checkpoint(tmp_path: Path) -> None:
+    saved: list[tuple[str, int]] = []
+    errors: list[str] = []
+    proc = TrainingProcess(_setup(tmp_path / "run"), on_checkpoint=lambda p, v: saved.append((p, v)),
+                           on_error=lambda what, text: errors.append(text))
+    ready = proc.start()
+    assert ready.resumed is None and ready.hidden == [4, 2] and ready.status["updates"] == 0
+    for tr in transitions(400, seed=20):
+        proc.submit(tr)
+    _wait(lambda: proc.status.get("updates", 0) >= 100 and len(saved) >= 2)
+    assert proc.status["buffer_size"] == 400 and proc.status["window"] == 300
+    assert [v for _, v in saved] == list(range(1, len(saved) + 1))
+    final = proc.stop()
+    assert final is not None and final[1] >= saved[-1][1] and final[2] >= 100
+    assert not errors and proc.dropped == 0
+    found = CheckpointStore(tmp_path / "run").load_latest_valid()
+    assert found is not None and found.version == final[1] and found.meta["updates"] == final[2]
+
+
+def test_training_process_reports_resume_errors_and_survives_being_killed(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    learner = new_learner(tmp_path)  # a real checkpoint of a (4, 2) friction model in tmp_path / run
+    for tr in transitions(300, seed=21):
+        learner.add(tr)
+    learner.update(30)
+    learner.save_checkpoint()
+    with pytest.raises(ResumeError, match="hidden"):
+        TrainingProcess(_setup(run, config=config(hidden=(8,)))).start()
+    errors: list[str] = []
+    proc = TrainingProcess(_setup(run), on_error=lambda what, text: errors.append(text))
+    ready = proc.start()
+    assert ready.resumed is not None and ready.resumed["version"] == 1 and ready.resumed["updates"] == 30
+    pid = proc.pid
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    _wait(lambda: proc.restarts == 1 and proc.pid != pid)
+    assert "exited unexpectedly" in errors[0]
+    for tr in transitions(300, seed=22):
+        proc.submit(tr)
+    _wait(lambda: proc.status.get("updates", 0) > 30)  # resumed from version 1, then trained on
+    final = proc.stop()
+    assert final is not None and final[2] > 30
