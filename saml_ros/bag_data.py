@@ -108,7 +108,7 @@ def find_namespaces(bag: Bag, system: str) -> list[str]:
 def infer_system(bag: Bag) -> str:
     """The system a bag recorded: metadata.yaml's ``saml_ros.system``, else the one whose pairing topics
     (names and message types) are in the bag, preferring the default namespace ``/<system>`` and then
-    the one whose first state message decodes. :class:`BagError` if none fits.
+    the one whose first state and applied_cmd messages decode. :class:`BagError` if none fits.
     """
     stored = bag.custom_data.get(CUSTOM_SYSTEM)
     if stored in SYSTEM_NAMES:
@@ -118,7 +118,7 @@ def infer_system(bag: Bag) -> str:
         schema = get_schema(name)
         for ns in find_namespaces(bag, name):
             topics = pairing_topics(schema, ns)
-            if all(bag.topics[t].msg_type == m for t, m in topics.items()) and _first_state_decodes(bag, schema, ns):
+            if all(bag.topics[t].msg_type == m for t, m in topics.items()) and _first_messages_decode(bag, schema, ns):
                 candidates.append((0 if ns == f"/{name}" else 1, name))
     if not candidates:
         raise BagError(f"bag {bag.path}: no system's topics found (for each of {list(SYSTEM_NAMES)} expected "
@@ -127,15 +127,18 @@ def infer_system(bag: Bag) -> str:
     return sorted(candidates)[0][1]
 
 
-def _first_state_decodes(bag: Bag, schema: SystemSchema, ns: str) -> bool:
-    topic = join_topic(ns, schema.state_topic)
-    for m in bag.messages([topic]):
-        try:
-            schema.state_from_msg(bag.decode(m), topic)
-            return True
-        except (SchemaError, BagError):
-            return False
-    return True  # no message: names and types decide
+def _first_messages_decode(bag: Bag, schema: SystemSchema, ns: str) -> bool:
+    """True unless the first ``state`` or ``applied_cmd`` message of ``ns`` is rejected by ``schema``."""
+    for name, decode in ((schema.state_topic, schema.state_from_msg), (schema.applied_cmd_topic,
+                                                                         schema.control_from_msg)):
+        topic = join_topic(ns, name)
+        for m in bag.messages([topic]):
+            try:
+                decode(bag.decode(m), topic)
+            except (SchemaError, BagError):
+                return False
+            break
+    return True
 
 
 def extract_transitions(

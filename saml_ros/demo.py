@@ -141,19 +141,23 @@ def evaluate(run_dir: Path, config: dict[str, Any], n_starts: int, steps: int) -
 
 
 def format_evaluation(ev: dict[str, Any]) -> str:
-    """The evaluation table (base vs learned, paired over the same starts)."""
+    """The evaluation table: means and medians of base vs learned, paired over the same starts."""
     n = len(ev["starts"])
     lines = [f"evaluation: {n} fresh starts (seed {EVAL_SEED}), same MPC, simulator dynamics; checkpoint "
              f"version {ev['version']} vs the base model f_hat",
-             f"  {'metric':<36} {'base f_hat':>10} {'learned':>10} {'learned - base [95% CI]':>28} "
-             f"{'p (t)':>7} {'learned better':>15}"]
+             f"  {'metric':<36} {'mean: base':>10} {'learned':>8} {'median: base':>13} {'learned':>8} "
+             f"{'learned - base [95% CI]':>26} {'learned better':>15}"]
     names = {"final_dist": "landing error |p_T - target| (m)", "final_xy": "horizontal landing error (m)",
              "final_z": "final height (m; MPC keeps >= 0.2)", "cost": "MPC cost sum_t |p_t - target| (m)"}
     for key, label in names.items():
         p = ev["paired"][key]
+        med_a, med_b = float(np.median(ev["base"][key])), float(np.median(ev["learned"][key]))
         ci = f"{p['diff']:+.3f} [{p['ci_low']:+.3f}, {p['ci_high']:+.3f}]"
-        lines.append(f"  {label:<36} {p['mean_a']:>10.3f} {p['mean_b']:>10.3f} {ci:>28} {p['p_ttest']:>7.2g} "
-                     f"{100 * p['frac_b_better']:>14.0f}%")
+        lines.append(f"  {label:<36} {p['mean_a']:>10.3f} {p['mean_b']:>8.3f} {med_a:>13.3f} {med_b:>8.3f} "
+                     f"{ci:>26} {100 * p['frac_b_better']:>14.0f}%")
+    worst = int(np.argmax(np.asarray(ev["learned"]["final_dist"]) - np.asarray(ev["base"]["final_dist"])))
+    lines.append(f"  worst start for the learned model: #{worst} (landing error {ev['base']['final_dist'][worst]:.3f} m "
+                 f"with f_hat, {ev['learned']['final_dist'][worst]:.3f} m learned)")
     return "\n".join(lines)
 
 

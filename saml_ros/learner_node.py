@@ -26,6 +26,7 @@ import dataclasses
 import importlib
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -146,7 +147,7 @@ def _build_node_class() -> type:
     class LearnerNode(Node):
         """The learner; raises :class:`ConfigError` from the constructor on bad configuration."""
 
-        def __init__(self, namespace: str | None) -> None:
+        def __init__(self, namespace: str | None, launched: Any = None) -> None:
             super().__init__(NODE_NAME, namespace=namespace)
             self.p = p = self._read_parameters()
             try:
@@ -187,7 +188,7 @@ def _build_node_class() -> type:
             self.trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
                                            on_error=self._child_error)
             try:
-                ready = self.trainer.start()
+                ready = self.trainer.start(launched=launched)
             except ResumeError as exc:
                 raise ConfigError(str(exc)) from None
             except RuntimeError as exc:
@@ -433,9 +434,10 @@ def _build_node_class() -> type:
     return LearnerNode
 
 
-def create_node() -> Any:
+def create_node(launched: Any = None) -> Any:
     """Create the learner node (``rclpy.init`` must have been called). It lives in ``/<system>`` unless the
-    command line remaps ``__ns``. Raises :class:`ConfigError`."""
+    command line remaps ``__ns``. ``launched``: a training interpreter from :func:`prelaunch_trainer`.
+    Raises :class:`ConfigError`."""
     from rclpy.node import Node
 
     probe = Node(NODE_NAME)
@@ -446,7 +448,39 @@ def create_node() -> Any:
     remapped = probe.get_namespace() != "/"
     probe.destroy_node()
     cls = _build_node_class()
-    return cls(None if remapped else f"/{system}")
+    return cls(None if remapped else f"/{system}", launched)
+
+
+#: must equal saml_ros.core.online.CHILD_CODE (repeated here so prelaunch_trainer needs no torch import)
+TRAINER_CODE = "import sys; from saml_ros.core.online import child_entry; child_entry(int(sys.argv[1]))"
+
+
+def prelaunch_trainer() -> Any:
+    """Start the training interpreter before anything heavy is imported, so it imports torch while this
+    process imports rclpy, torch and reads its parameters (halves the node's start-up time). Standard library
+    only; the same as ``saml_ros.core.online.launch_child``."""
+    import socket
+    import subprocess
+    from multiprocessing.connection import Connection
+
+    ours, theirs = socket.socketpair()
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(x for x in (root, env.get("PYTHONPATH", "")) if x)
+    proc = subprocess.Popen([sys.executable, "-c", TRAINER_CODE, str(theirs.fileno())], pass_fds=[theirs.fileno()],
+                            env=env)
+    theirs.close()
+    return proc, Connection(ours.detach())
+
+
+def _discard(launched: Any) -> None:
+    """Let an unused training interpreter exit (it sees the connection close)."""
+    proc, conn = launched
+    conn.close()
+    try:
+        proc.wait(10)
+    except Exception:  # noqa: BLE001
+        proc.kill()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -463,6 +497,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(__doc__)
         return 0
 
+    launched = prelaunch_trainer()
+
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -471,9 +507,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     node = None
     try:
         try:
-            node = create_node()
+            node = create_node(launched)
         except ConfigError as exc:
             rclpy.logging.get_logger(NODE_NAME).fatal(f"configuration error: {exc}")
+            _discard(launched)
             return CONFIG_ERROR
         executor = SingleThreadedExecutor()
         executor.add_node(node)

@@ -371,3 +371,13 @@ def test_train_from_bags_fails_cleanly_on_bad_bags_and_trains_on_a_good_one(
     metrics = json.loads((tmp_path / "good" / "metrics.json").read_text())
     n = len(expected("friction", friction_bag[1])[0])
     assert metrics["source"] == f"{n} transitions from 1 bag(s)"
+
+
+@pytest.mark.parametrize("system", ["quadrotor", "paddle_ball"])
+def test_system_is_inferred_from_topics_in_any_namespace(tmp_path: Path, system: str) -> None:
+    """Both record Odometry states: the commands' joint names (and post_impact) tell them apart."""
+    events = rollout(system, 10, 0, seed=1, t0_ns=T0)
+    write_rollout(tmp_path / "b", system, events, namespace="/robot7")
+    with Bag(tmp_path / "b") as bag:
+        assert bag.custom_data == {}
+        assert infer_system(bag) == system

@@ -182,7 +182,8 @@ def test_closed_loop_learns_switches_models_and_stops_on_sigint(ros_env: RosDoma
 
 
 def test_bringup_stops_after_the_simulated_time_and_on_sigterm(ros_env: RosDomain, tmp_path: Path) -> None:  # noqa: F811
-    proc = start_bringup(ros_env, tmp_path, "--no-learner", "--sim-time", "3")
+    bag = tmp_path / "bag"
+    proc = start_bringup(ros_env, tmp_path, "--no-learner", "--sim-time", "3", "--record", str(bag))
     try:
         assert proc.wait(120) == 0, proc.output()
     finally:
@@ -191,6 +192,9 @@ def test_bringup_stops_after_the_simulated_time_and_on_sigterm(ros_env: RosDomai
     assert "stopped by sim_time" in out and "children exited cleanly" in out
     sim = float(re.search(r"summary \(friction\): (\S+) s simulated", out).group(1))
     assert 3.0 <= sim < 4.0
+    assert "record" in child_pids(out)
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert "/friction/state" in {t["topic_metadata"]["name"] for t in meta["topics_with_message_count"]}
     for pid in child_pids(out).values():
         assert_group_gone(pid)
     proc = start_bringup(ros_env, tmp_path, "--no-learner", "--sim-time", "0")

@@ -111,9 +111,12 @@ def test_fast_equals_plain_for_every_loss_and_mean(name):
 
 @pytest.mark.parametrize(
     "variant",
-    ["ensemble_shared", "ensemble_per_member", "full_model", "sgd", "adam_primal_sgd_dual", "linear_model"],
+    ["ensemble_shared", "ensemble_per_member", "full_model", "sgd", "adam_primal_sgd_dual", "dual_adam_own_betas",
+     "linear_model"],
 )
 def test_fast_equals_plain_for_models_and_optimizers(variant):
+    """Ensembles, full models, no hidden layer, and every optimizer pairing: the dual Adam merged into the
+    primal flat tensor (the default), a separate dual Adam (other betas), SGD."""
     kw: dict[str, Any] = {}
     cfg = TrainConfig(epochs=6, batch_size=16, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=2)
     if variant == "ensemble_shared":
@@ -129,6 +132,11 @@ def test_fast_equals_plain_for_models_and_optimizers(variant):
     else:
         kw = {"hidden": ()}
     plain, fast, dp, df = _pair(SPECS["paper"], cfg, **kw)
+    if variant == "dual_adam_own_betas":
+        for tr in (plain, fast):
+            tr.dual_opt.param_groups[0]["betas"] = (0.8, 0.99)
+    merged = fast_train.FastEngine(fast, df).k_dual is not None
+    assert merged == (variant not in ("sgd", "adam_primal_sgd_dual", "dual_adam_own_betas"))
     plain.fit(dp)
     fast.fit(df)
     _assert_same(plain, fast, rtol=1e-7, atol=1e-8)

@@ -353,3 +353,25 @@ def test_node_hot_swaps_checkpoints_and_refuses_bad_ones(tmp_path: Path, domain:
     assert rc == 0, proc.log()
     log = proc.log()
     assert "refused checkpoint (corrupt)" in log and "refused checkpoint (incompatible)" in log
+
+
+def test_node_realtime_mode_answers_the_newest_state(tmp_path: Path, domain: int) -> None:
+    proc = MPCProcess(tmp_path, domain, {"system": "quadrotor", "mode": "realtime", "rate_hz": 5.0})
+    probe = Probe(domain)
+    try:
+        probe.wait_connected(proc)
+        probe.step(_hover((0.5, 0.5, 1.0)), T0_NS, proc)  # warm up: first solve
+        burst = [T0_NS + k * DT_NS for k in range(1, 6)]
+        for stamp in burst:  # five states within one control period: only the newest is answered
+            probe.state_pub.publish(probe.schema.state_to_msg(_hover((0.5, 0.5, 1.0)), stamp))
+        probe.spin_until(lambda: burst[-1] in probe.cmds, 10, "the answer to the newest state", proc)
+        probe.spin_until(lambda: int(probe.diag.get("skipped_states", "0")) >= 1, 10, "skipped_states", proc)
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end:
+            probe.executor.spin_once(timeout_sec=0.05)
+        answered = [s for s in burst if s in probe.cmds]
+        assert answered[-1] == burst[-1] and len(answered) < len(burst), answered
+    finally:
+        probe.close()
+        rc = proc.stop(signal.SIGINT)
+    assert rc == 0, proc.log()

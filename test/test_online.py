@@ -363,3 +363,10 @@ def test_training_process_reports_resume_errors_and_survives_being_killed(tmp_pa
     _wait(lambda: proc.status.get("updates", 0) > 30)  # resumed from version 1, then trained on
     final = proc.stop()
     assert final is not None and final[2] > 30
+
+
+def test_the_node_prelaunches_the_same_training_interpreter() -> None:
+    from saml_ros import learner_node
+    from saml_ros.core.online import CHILD_CODE
+
+    assert learner_node.TRAINER_CODE == CHILD_CODE

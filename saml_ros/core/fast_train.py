@@ -1,28 +1,31 @@
 """Fast engine for :meth:`PrimalDualTrainer.fit`: the same Algorithm 1, without autograd and optimizer overhead.
 
-At the batch sizes and network sizes of the paper (a 16-8 net needs ~3 kFLOP per sample) a plain PyTorch step
-is almost all Python and dispatcher overhead: ~40 autograd nodes, per-parameter optimizer bookkeeping and small
-allocations. This engine computes exactly the same step with about a third of the tensor operations:
+At the paper's batch and network sizes (a 16-8 net needs ~3 kFLOP per sample) a plain PyTorch step is almost
+all Python and dispatcher overhead: ~40 autograd nodes, per-parameter optimizer bookkeeping, small allocations.
+This engine computes the same step with ~43 tensor operations in all (docs/performance.md has the profiles):
 
 * **hand-written forward/backward** for :class:`EnsembleMLP`. Each layer's bias is stored as an extra weight row
   and every activation carries a column of ones, so one ``bmm`` gives the pre-activation and one ``bmm`` gives
-  the weight *and* bias gradient. PReLU keeps ``d = where(a >= 0, 1, slope)`` from the forward pass (the plain
-  model's ``where(h >= 0, h, slope * h)``, ties included), so its backward pass is one multiply.
+  the weight *and* bias gradient. PReLU keeps its derivative ``d = where(a >= 0, 1, slope)`` from the forward
+  pass, computed as ``prelu(copysign(1, a), -slope)`` (the plain model's tie rule ``a >= 0`` included; only a
+  pre-activation of exactly -0.0, which a sum with a nonzero bias cannot produce, is treated as negative).
 * **flat parameters**: all weights, biases and slopes of all members live in one contiguous tensor (gradients
-  and Adam moments too), so an Adam step is 7 element-wise operations whatever the depth.
+  and Adam moments too), so an Adam step is 6 element-wise operations whatever the depth. The dual variables
+  ride in the same tensor, rescaled (see :func:`_merge_dual`), when both optimizers are Adam (the paper's).
 * **closed-form loss gradients** for every spec loss (l2, squared_l2, l1, huber, normalized). Terms that share
   a loss and fields form a group; a group's minibatch estimates are one ``bmm`` of the per-sample losses
   with the precomputed region masks, and its per-sample gradient weights (objective weight 1, constraint
   weights lambda_k, divided by the estimator's denominator) are one ``bmm`` back.
-* **epoch-level precomputation**: normalised inputs, f_hat, region masks and, per minibatch, the estimator
-  denominators are gathered for several epochs at once, in the plain loop's sample order.
+* **precomputation**: normalised inputs ``[z, 1]``, ``f_hat - y``, region masks and, per minibatch, the
+  estimator denominators, gathered for one or more epochs at once in the plain loop's sample order.
 
 Equality with the plain loop: the minibatch order is drawn from the trainer's generator with the same calls
-(``torch.rand`` is consumed in the same order; see ``test/test_fast_train.py``), the optimizer updates are the
-same operations as ``torch.optim.Adam(foreach=True)`` / ``SGD`` and the optimizer states are read from and
-written back to the trainer's optimizers, so plain and fast ``fit`` calls can be mixed and checkpoints are
-unchanged. Results differ from the plain engine only by float rounding (summation order in matmuls and
-reductions): the tests bound it.
+(``torch.rand(Q, E, N)`` consumes it like Q calls of ``torch.rand(E, N)``), the updates are
+``torch.optim.Adam`` / ``SGD``'s, and the optimizer states are read from and written back to the trainer's
+optimizers, so plain and fast ``fit`` calls can be mixed and checkpoints are unchanged. The results differ from
+the plain engine by float rounding only: summation order in matmuls and reductions, the error computed as
+``phi + (f_hat - y)``, Adam's ``sqrt(bias correction)`` moved out of its denominator and lambda kept as
+``k * u``. ``test/test_fast_train.py`` bounds the difference (float64: 1e-8 after 240 steps).
 
 Shapes: ``E`` ensemble members, ``B`` minibatch size, ``T = 1 + K`` spec terms (objective first).
 """
@@ -49,7 +52,9 @@ _TINY = 1e-30
 # Floats gathered per chunk of epochs (at least one epoch): small enough to stay in cache (~4 MB in float32).
 _CHUNK_FLOATS = 1_000_000
 # PReLU forward kernel with a broadcastable weight (the public torch.prelu reshapes its weight first)
-_prelu_kernel: Callable[[Tensor, Tensor], Tensor] = getattr(torch, "_prelu_kernel", torch.ops.aten._prelu_kernel.default)
+_prelu_kernel: Callable[[Tensor, Tensor], Tensor] = getattr(
+    torch, "_prelu_kernel", torch.ops.aten._prelu_kernel.default
+)
 
 
 # ------------------------------------------------------------------------------------------------- support
@@ -179,9 +184,9 @@ class _FlatOptimizer:
         step_size, bc2_sqrt = self.scalars()
         self.m.lerp_(grad, 1 - self.beta1)
         self.v.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
-        den = torch.sqrt(self.v)
-        den.div_(bc2_sqrt).add_(self.eps)
-        p.addcdiv_(self.m, den, value=step_size)
+        # lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps), with sqrt(bc2) moved out of the denominator (one op less)
+        den = torch.sqrt(self.v).add_(self.eps * bc2_sqrt)
+        p.addcdiv_(self.m, den, value=step_size * bc2_sqrt)
 
 
 def _merge_dual(primal: torch.optim.Optimizer, dual: torch.optim.Optimizer) -> float | None:
@@ -296,7 +301,6 @@ def _groups(terms: list[Term]) -> list[_Group]:
     return list(out.values())
 
 
-_GroupFn = Callable[[Tensor, "_StepGroup", Tensor], Tensor]
 
 
 @dataclass
@@ -372,6 +376,9 @@ def _group_fn(g: _Group, n_y: int, single: bool) -> Callable[[Tensor, _StepGroup
         return torch.zeros_like(err).index_copy_(-1, fidx, contrib)
 
     return fn
+
+
+_Step = Callable[[Tensor, Tensor, list[_StepGroup], Tensor], None]
 
 
 # ------------------------------------------------------------------------------------------------- engine
@@ -455,8 +462,9 @@ class FastEngine:
             z = torch.cat([z, torch.ones(*z.shape[:-1], 1, dtype=z.dtype)], -1)
             self.n = len(d)
             self.src_z = z.reshape(-1, z.shape[-1])
-            self.src_y = d.y.reshape(-1, d.y.shape[-1])
-            self.src_base = d.base.reshape(-1, d.base.shape[-1]) if self.residual else None
+            # the error is pred - y = phi + (f_hat - y): f_hat - y is data
+            r = d.base - d.y if self.residual else -d.y
+            self.src_r = r.reshape(-1, r.shape[-1])
             ones = torch.ones(d.x.shape[:-1], dtype=self.dtype)
             self.src_masks: list[Tensor] = []
             self.src_ny: list[Tensor | None] = []
@@ -470,15 +478,14 @@ class FastEngine:
                     self.src_ny.append(None)
         self.member_offset = (torch.arange(self.E) * self.n).view(1, self.E, 1)
 
-    def _gather(self, idx: Tensor) -> tuple[list[Tensor], list[Tensor], list[Tensor] | None, list[list[_StepGroup]]]:
-        """Per-minibatch tensors for indices ``idx`` ``(S, E, B)``: lists of S ``z``, ``y``, ``base`` ``(E, B, .)``
-        and, per minibatch, one :class:`_StepGroup` per group."""
+    def _gather(self, idx: Tensor) -> tuple[list[Tensor], list[Tensor], list[list[_StepGroup]]]:
+        """Per-minibatch tensors for indices ``idx`` ``(S, E, B)``: lists of S ``z`` and ``f_hat - y``
+        ``(E, B, .)`` and, per minibatch, one :class:`_StepGroup` per group."""
         s, e, b = idx.shape
         flat_member = (idx + self.member_offset).reshape(-1)
         rows = flat_member if self.data.per_member else idx.reshape(-1)
         z = self.src_z.index_select(0, flat_member if self.z_per_member else idx.reshape(-1)).view(s, e, b, -1)
-        y = self.src_y.index_select(0, rows).view(s, e, b, -1)
-        base = None if self.src_base is None else self.src_base.index_select(0, rows).view(s, e, b, -1)
+        r = self.src_r.index_select(0, rows).view(s, e, b, -1)
         per_group = []
         for g, src_m, src_ny in zip(self.groups, self.src_masks, self.src_ny):
             mk = src_m.index_select(0, rows).view(s, e, b, -1)
@@ -500,7 +507,7 @@ class FastEngine:
                 ]
             )
         steps = [list(t) for t in zip(*per_group)]
-        return list(z.unbind(0)), list(y.unbind(0)), None if base is None else list(base.unbind(0)), steps
+        return list(z.unbind(0)), list(r.unbind(0)), steps
 
     # ------------------------------------------------------------------------------ training
     def fit(
@@ -525,7 +532,7 @@ class FastEngine:
         step = self._make_step(bsz)
         # Several epochs are drawn and gathered at once: rand(Q, E, N) consumes the generator exactly like Q
         # calls of rand(E, N). With a callback (which may look at the generator) one epoch at a time.
-        per_floats = per_epoch * e * bsz * (self.src_z.shape[1] + 2 * self.src_y.shape[1] + self.T + 2)
+        per_floats = per_epoch * e * bsz * (self.src_z.shape[1] + self.src_r.shape[1] + self.T + 2)
         chunk = 1 if callback is not None else max(1, min(epochs, _CHUNK_FLOATS // max(1, per_floats)))
         done = 0
         while done < epochs:
@@ -568,9 +575,10 @@ class FastEngine:
         self._pending = []
         self.tr._record(rows[:, :, 0].mean(0), rows[:, :, 1:].mean(0), self.lam.clone())
 
-    def _make_step(self, bsz: int) -> Callable[[Tensor, Tensor, Tensor | None, list[_StepGroup], Tensor], None]:
-        """``step(z, y, base, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member;
-        ``row`` ``(E, T)`` receives the minibatch term values (objective, then g_k)."""
+    def _make_step(self, bsz: int) -> _Step:
+        """``step(z, r, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member, with
+        normalised inputs ``z`` ``(E, B, n_in + 1)`` and ``r = f_hat - y`` ``(E, B, n_y)``; ``row`` ``(E, T)``
+        receives the minibatch term values (objective, then g_k)."""
         net, e = self.net, self.E
         n_hidden = net.n_layers - 1
         w, gw, gslopes = net.w, net.gw, net.gslopes
@@ -588,12 +596,12 @@ class FastEngine:
         coef, grad, slopes, lam = self.coef, net.grad, net.slopes, self.lam
         popt, dopt = self.popt, self.dopt
         u, gu, k_dual = net.extra, net.gextra, self.k_dual
-        fn0, *fns = [_group_fn(g, self.src_y.shape[-1], len(self.groups) == 1) for g in self.groups]
+        fn0, *fns = [_group_fn(g, self.src_r.shape[-1], len(self.groups) == 1) for g in self.groups]
         one = torch.ones((), dtype=self.dtype)
         bmm, mul, sum_, prelu = torch.bmm, torch.mul, torch.sum, _prelu_kernel
         copysign, clamp_max, neg, addcmul = torch.copysign, torch.clamp_max, torch.neg, torch.addcmul
 
-        def step(z: Tensor, y: Tensor, base: Tensor | None, sgs: list[_StepGroup], row: Tensor) -> None:
+        def step(z: Tensor, r: Tensor, sgs: list[_StepGroup], row: Tensor) -> None:
             # forward; the PReLU derivative d = where(a >= 0, 1, slope) is prelu(copysign(1, a), -slope)
             neg(slopes, out=neg_slopes)
             h = z
@@ -604,8 +612,7 @@ class FastEngine:
                 mul(a, d, out=h_view[i])
                 h = h_buf[i]
             out = bmm(h, w[-1])
-            pred = addcmul(base, out, ostd) if base is not None else mul(out, ostd)
-            err = pred.sub_(y)
+            err = addcmul(r, out, ostd)  # pred - y = phi + (f_hat - y)
             # spec values (into row) and dL/dpred
             dpred = fn0(err, sgs[0], row, coef)
             for fn, sg in zip(fns, sgs[1:]):
@@ -634,8 +641,8 @@ class FastEngine:
 
     def _run(
         self,
-        step: Callable[[Tensor, Tensor, Tensor | None, list[_StepGroup], Tensor], None],
-        batches: tuple[list[Tensor], list[Tensor], list[Tensor] | None, list[list[_StepGroup]]],
+        step: _Step,
+        batches: tuple[list[Tensor], list[Tensor], list[list[_StepGroup]]],
         vals: Tensor,
         rows: tuple[Tensor, ...],
         lo: int,
@@ -646,12 +653,12 @@ class FastEngine:
     ) -> None:
         """Steps on minibatches ``lo:hi`` of ``batches``; ``rows[j] = vals[j]`` receives step j's values ``(E, T)``."""
         tr = self.tr
-        z_all, y_all, base_all, sg_all = batches
+        z_all, r_all, sg_all = batches
         next_log = tr.steps + (log_every - tr.steps % log_every)
         inc = 1.0 / per_epoch
         start = lo
         for j in range(lo, hi):
-            step(z_all[j], y_all[j], None if base_all is None else base_all[j], sg_all[j], rows[j])
+            step(z_all[j], r_all[j], sg_all[j], rows[j])
             tr.steps += 1
             tr.epochs_done += inc
             if tr.steps == next_log:

@@ -28,9 +28,11 @@ import contextlib
 import dataclasses
 import logging
 import math
-import multiprocessing
 import os
 import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
@@ -685,8 +687,49 @@ def _die_with_parent() -> None:
             os._exit(0)
 
 
+#: a started training interpreter waiting for its :class:`LearnerSetup`: ``(process, connection)``
+LaunchedChild = tuple["subprocess.Popen[bytes]", Any]
+#: what the training interpreter runs (``argv[1]`` = its socket's file descriptor)
+CHILD_CODE = "import sys; from saml_ros.core.online import child_entry; child_entry(int(sys.argv[1]))"
+
+
+def launch_child() -> LaunchedChild:
+    """Start a training interpreter now; it imports torch and saml_ros, then waits for its setup.
+
+    A fresh interpreter through ``subprocess``, not ``multiprocessing``: multiprocessing's "spawn" re-imports the
+    parent's ``__main__`` (slow, and fatal for scripts without a main guard) and "fork" is unsafe once rclpy's
+    DDS threads run. Uses only the standard library, so a node can call it first thing and let the child
+    import while it parses its parameters (see ``saml_ros.learner_node``).
+    """
+    return launch_child_process(CHILD_CODE, Path(__file__).resolve().parents[2])
+
+
+def launch_child_process(code: str, package_root: Path) -> LaunchedChild:
+    """``python -c code FD`` with ``package_root`` on its path and a socket pair between us (stdlib only)."""
+    from multiprocessing.connection import Connection
+
+    ours, theirs = socket.socketpair()
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(x for x in (str(package_root), env.get("PYTHONPATH", "")) if x)
+    proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno())], pass_fds=[theirs.fileno()], env=env)
+    theirs.close()
+    return proc, Connection(ours.detach())
+
+
+def child_entry(fd: int) -> None:
+    """Entry point of a training process started by :class:`TrainingProcess`: ``fd`` is its end of a socket
+    pair; the first message on it is the :class:`LearnerSetup`."""
+    from multiprocessing.connection import Connection
+
+    conn = Connection(fd)
+    try:
+        setup = conn.recv()
+    except (EOFError, OSError):
+        return
+    _child_main(conn, setup)
+
+
 def _child_main(conn: Any, setup: LearnerSetup) -> None:
-    """Entry point of a training process (spawned by :class:`TrainingProcess`)."""
     _die_with_parent()
     # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -787,46 +830,45 @@ class TrainingProcess:
         self._stopping = threading.Event()
         self._stopped = threading.Event()
         self._final: tuple[str | None, int, int] | None = None
-        self._ctx = multiprocessing.get_context("spawn")
-        self._proc: Any = None
+        self._proc: subprocess.Popen[bytes] | None = None
         self._conn: Any = None
         self._threads: list[threading.Thread] = []
 
     # ---------------------------------------------------------------------------------------- lifecycle
-    def start(self, timeout: float = 120.0) -> ReadyInfo:
-        """Start the child and wait until it has built its learner (and resumed).
+    def start(self, timeout: float = 120.0, launched: LaunchedChild | None = None) -> ReadyInfo:
+        """Start the child (or use ``launched``, from :func:`launch_child`) and wait until it has built its
+        learner (and resumed).
 
         Raises:
             ResumeError: the run directory contradicts the configuration.
             RuntimeError: the child could not build its learner or did not answer within ``timeout`` s.
         """
-        ready = self._spawn(self.setup, timeout)
+        ready = self._spawn(self.setup, timeout, launched)
         for target, name in ((self._ship, "learner-ship"), (self._read, "learner-read")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
         return ready
 
-    def _spawn(self, setup: LearnerSetup, timeout: float) -> ReadyInfo:
-        parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(target=_child_main, args=(child, setup), name="saml_ros-learner-train", daemon=True)
-        proc.start()
-        child.close()
+    def _spawn(self, setup: LearnerSetup, timeout: float, launched: LaunchedChild | None = None) -> ReadyInfo:
+        proc, parent = launched if launched is not None else launch_child()
+        parent.send(setup)
         deadline = time.monotonic() + timeout
         while True:
             left = deadline - time.monotonic()
             if left <= 0 or not parent.poll(left):
                 proc.kill()
+                proc.wait(5)
                 raise RuntimeError(f"the training process did not start within {timeout:.0f} s")
             try:
                 msg = parent.recv()
             except (EOFError, OSError):
-                proc.join(5)
-                raise RuntimeError(f"the training process exited during start-up (exit code {proc.exitcode})") from None
+                exit_code = proc.wait(5)
+                raise RuntimeError(f"the training process exited during start-up (exit code {exit_code})") from None
             if msg[0] == "log":
                 self.on_log(msg[1], msg[2])
             elif msg[0] == "fatal":
-                proc.join(10)
+                proc.wait(10)
                 raise (ResumeError if msg[1] == "resume" else RuntimeError)(msg[2])
             elif msg[0] == "ready":
                 self._proc, self._conn = proc, parent
@@ -850,10 +892,11 @@ class TrainingProcess:
             pass
         self._stopped.wait(timeout)
         if self._proc is not None:
-            self._proc.join(5.0 if self._stopped.is_set() else 0.1)
-            if self._proc.is_alive():
+            try:
+                self._proc.wait(5.0 if self._stopped.is_set() else 0.1)
+            except subprocess.TimeoutExpired:
                 self._proc.kill()
-                self._proc.join(5.0)
+                self._proc.wait(5.0)
         return self._final
 
     @property
@@ -925,12 +968,12 @@ class TrainingProcess:
                 return
 
     def _restart(self) -> None:
-        code = None if self._proc is None else self._proc.exitcode
+        code = None if self._proc is None else self._proc.wait()
         self.errors += 1
         self.restarts += 1
         self.on_error("process", f"the training process exited unexpectedly (exit code {code}); restarting it "
                                  "from the newest checkpoint (the replay buffer starts empty)")
-        time.sleep(1.0)
+        time.sleep(0.5)
         setup = dataclasses.replace(self.setup, resume=True)
         while not self._stopping.is_set():
             try:

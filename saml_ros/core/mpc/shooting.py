@@ -103,6 +103,9 @@ class ShootingMPC:
         if not ok:
             i = int(np.argmax(viol))
             msg = f"{msg}; {task.names[i]} violated by {worst:.3g}"
+            fixed = getattr(self, "_fixed", None)
+            if fixed is not None and fixed.size == viol.size and fixed[i]:
+                msg += " (unavoidable: fixed by the current state)"
         self._plan_u, self._plan_x = plan_u, plan_x
         return MPCResult(
             u=plan_u[0].copy(),
@@ -199,6 +202,7 @@ class SQPShootingMPC(ShootingMPC):
         self.rho0, self.lm_floor, self.radial = rho0, lm_floor, radial
         self._rho = rho0
         self._ipm_first = False  # the last QP had active state constraints: skip the box-only attempt
+        self._fixed = np.zeros(0, dtype=bool)  # constraint rows no control can change (last linearisation)
         nu = self.horizon * self.m
         self._sens = np.zeros((self.horizon + 1, self.n, nu))
         self._eye = np.eye(nu)
@@ -246,6 +250,12 @@ class SQPShootingMPC(ShootingMPC):
             _, dqv = task.solver_violations(xs)
             assert dqv is not None
             g_con = np.vstack((g_con, dqv @ sens[task.horizon, list(task.att_qv), :]))
+        # rows no control can move (e.g. pz_1 = pz_0 + dt vz_0) only add a constant: leave them out
+        reach = np.abs(g_con) @ (self._u_hi - self._u_lo)
+        self._fixed = reach < 0.01 * self.feas_tol
+        if self._fixed.any():
+            keep = ~self._fixed
+            g_con, c = g_con[keep], c[keep]
         pen_c = np.full(c.size, penalty)
         if k == 1:
             # exact l1 model: |r_t + J_t d| through a pair of elastic rows per stage, no smooth part
@@ -334,7 +344,8 @@ class SQPShootingMPC(ShootingMPC):
                     msg = "line search failed"
                     break
             if converged:
-                viol = float(np.maximum(c, 0.0).max()) if c.size else 0.0
+                movable = c[~self._fixed] if c.size else c
+                viol = float(np.maximum(movable, 0.0).max()) if movable.size else 0.0
                 if viol > self.feas_tol and penalty < self.penalty_max:
                     # converged to a point that still violates a constraint: make violations dearer, go on
                     penalty *= 10.0
