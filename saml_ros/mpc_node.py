@@ -25,7 +25,7 @@ import signal
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -46,6 +46,7 @@ from msg_schemas.telemetry import (
     diagnostics_to_msg,
     mpc_status_to_msg,
 )
+from saml_ros.core.model_io import LoadedModel
 from saml_ros.core.model_watch import REFUSAL_REASONS, ModelWatcher, ReadyModel
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
@@ -134,6 +135,31 @@ def safe_control(system: System) -> np.ndarray:
     return np.zeros(system.control.size)
 
 
+def make_gate(max_constraint: float, min_updates: int) -> Callable[[LoadedModel], str | None] | None:
+    """The checkpoint gate of ``gate.*``: hold back checkpoints with fewer than ``min_updates`` updates, or whose
+    recorded constraint estimates (``metrics["constraint/<k>"]``, the learner's E[l | region] - eps on its live
+    window) exceed ``max_constraint``. ``None`` when both are disabled (``inf`` and 0)."""
+    if math.isinf(max_constraint) and max_constraint > 0 and min_updates <= 0:
+        return None
+
+    def accept(loaded: LoadedModel) -> str | None:
+        updates = int(loaded.meta.get("updates", 0))
+        if updates < min_updates:
+            return f"{updates} learner updates < gate.min_updates = {min_updates}"
+        if not math.isinf(max_constraint):
+            metrics = loaded.meta.get("metrics") or {}
+            cons = {k: v for k, v in metrics.items() if k.startswith("constraint/")}
+            if not cons:
+                return "its metrics hold no constraint estimate (constraint/<k>)"
+            bad = {k: round(float(v), 6) for k, v in cons.items()
+                   if not (isinstance(v, int | float) and math.isfinite(v) and v <= max_constraint)}
+            if bad:
+                return f"constraint estimate {bad} > gate.max_constraint = {max_constraint:g}"
+        return None
+
+    return accept
+
+
 def parse_solver_options(text: str) -> dict[str, Any]:
     """``solver_options`` (a YAML / JSON mapping of scalars, e.g. ``"{max_iter: 20}"``) -> dict."""
     if not text.strip():
@@ -186,7 +212,8 @@ def _build_node_class() -> type:
 
             run_dir = p["run_dir"]
             self.watcher = ModelWatcher(self.system, Path(run_dir) if run_dir else None,
-                                        poll_period=p["poll_period"], logger=self.get_logger())
+                                        poll_period=p["poll_period"], logger=self.get_logger(),
+                                        accept=make_gate(p["gate.max_constraint"], p["gate.min_updates"]))
             if run_dir:  # start on the newest valid checkpoint if there is one (before the first solve)
                 ready = self.watcher.poll_once(source="initial")
                 if ready is not None:
@@ -236,6 +263,10 @@ def _build_node_class() -> type:
                                 "learner/checkpoint only)"),
                 ("poll_period", 0.5, "seconds between polls of run_dir"),
                 ("diagnostics_rate", 1.0, "/diagnostics publication rate (Hz, wall clock)"),
+                ("gate.max_constraint", math.inf, "hold back checkpoints whose recorded constraint estimates "
+                                                  "(E[l | region] - eps, learner's live window) exceed this; inf = "
+                                                  "take every valid checkpoint"),
+                ("gate.min_updates", 0, "hold back checkpoints with fewer learner updates than this"),
             ]
             table += [(f"goal.{g.name}", g.default, g.description) for g in GOAL_PARAMS[name]]
             table += [(f"task.{t.name}", t.default, t.description) for t in TASK_PARAMS[name]]
@@ -338,6 +369,7 @@ def _build_node_class() -> type:
                 "swap_ms": swap_ms,
                 "swaps": float(self.counters["swaps"]),
                 "checkpoints_refused": float(stats["refused"]),
+                "checkpoints_gated": float(stats["gated"]),
                 "solves": float(self.counters["solves"]),
             }
             self.status_pub.publish(mpc_status_to_msg(values, stamp))
@@ -370,6 +402,8 @@ def _build_node_class() -> type:
             for r in REFUSAL_REASONS:
                 values[f"checkpoints_refused/{r}"] = stats[f"refused/{r}"]
             values["last_refusal"] = stats["last_refusal"]
+            values["checkpoints_gated"] = stats["gated"]
+            values["last_gated"] = stats["last_gated"]
             values["max_step_ms_during_swap"] = round(self.step_ms_max_swap, 3)
             return values
 

@@ -28,13 +28,14 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
-from saml_ros.mpc_node import make_goal, parse_solver_options
+from saml_ros.mpc_node import make_gate, make_goal, parse_solver_options
 
 REPO = Path(__file__).resolve().parents[1]
 rclpy = pytest.importorskip("rclpy")
 
 
-def save_model(store: CheckpointStore, system_name: str, seed: int = 0) -> tuple[Path, int]:
+def save_model(store: CheckpointStore, system_name: str, seed: int = 0,
+               metrics: dict[str, float] | None = None) -> tuple[Path, int]:
     """Write a checkpoint of a (random, non-zero) residual model of ``system_name`` into ``store``."""
     system = get_system(system_name)
     model = DynamicsModel(system, seed=seed)
@@ -43,7 +44,7 @@ def save_model(store: CheckpointStore, system_name: str, seed: int = 0) -> tuple
     with torch.no_grad():
         model.net.weights[-1].normal_(0.0, 1e-3, generator=torch.Generator().manual_seed(seed))
     trainer = PrimalDualTrainer(model, ProblemSpec.for_system(system.paper_spec(), system), TrainConfig())
-    return save_checkpoint(store, trainer)
+    return save_checkpoint(store, trainer, metrics=metrics)
 
 
 def write_corrupt(store: CheckpointStore, good: Path) -> Path:
@@ -128,6 +129,24 @@ def test_watcher_background_thread_hands_over_without_blocking(tmp_path: Path) -
         ready = watcher.wait_ready(10.0)
     assert ready is not None and ready.version == 1 and ready.prepared == "ok" and prepared == [1]
     assert ready.load_seconds > 0
+
+
+def test_gate_holds_back_checkpoints_the_learner_reports_as_infeasible(tmp_path: Path) -> None:
+    system = get_system("quadrotor")
+    store = CheckpointStore(tmp_path / "run")
+    assert make_gate(float("inf"), 0) is None
+    watcher = ModelWatcher(system, store.run_dir, accept=make_gate(0.002, 0))
+    save_model(store, "quadrotor", metrics={"constraint/near_ground": 0.05})  # far from eps: held back
+    assert watcher.poll_once() is None and watcher.poll_once() is None
+    stats = watcher.stats()
+    assert stats["gated"] == 1 and stats["refused"] == 0 and "gate.max_constraint" in stats["last_gated"]
+    save_model(store, "quadrotor")  # no metrics at all: held back too
+    assert watcher.poll_once() is None and watcher.stats()["gated"] == 2
+    save_model(store, "quadrotor", metrics={"constraint/near_ground": 0.001})
+    ready = watcher.poll_once()
+    assert ready is not None and ready.version == 3
+    strict = ModelWatcher(system, store.run_dir, accept=make_gate(float("inf"), 10))  # 0 updates in the file
+    assert strict.poll_once() is None and "gate.min_updates" in strict.stats()["last_gated"]
 
 
 def test_goal_and_solver_option_parsing() -> None:

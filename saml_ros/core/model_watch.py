@@ -24,6 +24,10 @@ replaced is looked at again, an unchanged one never twice):
 * ``missing``: an announced file that does not exist (e.g. pruned before it could be read);
 * ``error``: anything else raised while loading or preparing (never propagated: the watcher keeps going).
 
+An optional ``accept(loaded) -> reason | None`` hook can hold back checkpoints that are *valid but not good
+enough yet* (e.g. the learner's own estimate says the accuracy constraints are not met): they are counted as
+``gated`` (not refused) and the current model is kept; newer checkpoints are still considered.
+
 Only checkpoints *newer* than the newest one loaded are considered: a higher version in the same directory,
 or any version in a directory other than the current model's (a new learner run starts again at 1).
 """
@@ -101,6 +105,8 @@ class ModelWatcher:
             the weights into the solver's format); an exception in it refuses the checkpoint (``error``).
         loader: ``loader(path, system) -> LoadedModel``; :func:`~saml_ros.core.model_io.load_model` by default.
         logger: where refusals and loads are logged (``None``: silent).
+        accept: optional ``accept(loaded) -> reason | None`` run after loading; a returned reason holds the
+            checkpoint back (counted as ``gated``, logged).
 
     Thread safety: :meth:`notify`, :meth:`take`, :meth:`stats` may be called from any thread.
     """
@@ -114,6 +120,7 @@ class ModelWatcher:
         prepare: Callable[[LoadedModel], Any] | None = None,
         loader: Callable[[Path, System], LoadedModel] | None = None,
         logger: Logger | None = None,
+        accept: Callable[[LoadedModel], str | None] | None = None,
     ) -> None:
         if not poll_period > 0:
             raise ValueError(f"poll_period must be > 0 s, got {poll_period}")
@@ -123,6 +130,7 @@ class ModelWatcher:
         self._prepare = prepare
         self._loader = loader or (lambda path, system: load_model(path, expect=system))
         self._log = logger
+        self._accept = accept
         self._cond = threading.Condition()
         self._work = threading.Lock()  # one load at a time (background thread or a synchronous call)
         self._notes: list[tuple[str, int | None, str | None]] = []
@@ -136,6 +144,8 @@ class ModelWatcher:
         self.loaded = 0
         self.superseded = 0
         self.notifications = 0
+        self.gated = 0
+        self.last_gated = ""
 
     # ------------------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -188,7 +198,8 @@ class ModelWatcher:
 
     def stats(self) -> dict[str, Any]:
         """Counters: ``loaded``, ``superseded``, ``notifications``, ``refused`` (total), ``refused/<reason>``,
-        ``newest_version`` (newest loaded, 0 = none) and ``last_refusal`` (its message, or "")."""
+        ``gated``, ``newest_version`` (newest loaded, 0 = none), ``last_refusal`` and ``last_gated`` (their
+        messages, or "")."""
         with self._cond:
             out: dict[str, Any] = {
                 "loaded": self.loaded,
@@ -199,6 +210,8 @@ class ModelWatcher:
             out.update({f"refused/{r}": self.refusals[r] for r in REFUSAL_REASONS})
             out["newest_version"] = self._newest[1] if self._newest else 0
             out["last_refusal"] = self.last_refusal.message if self.last_refusal else ""
+            out["gated"] = self.gated
+            out["last_gated"] = self.last_gated
             return out
 
     # ------------------------------------------------------------------------------- loading side
@@ -301,6 +314,10 @@ class ModelWatcher:
         t0 = time.perf_counter()
         try:
             loaded = self._loader(path, self.system)
+            held_back = self._accept(loaded) if self._accept is not None else None
+            if held_back is not None:
+                self._hold_back(path, loaded.version, held_back)
+                return None
             prepared = self._prepare(loaded) if self._prepare is not None else None
         except IncompatibleCheckpoint as exc:
             self._refuse(str(path), None, "incompatible", str(exc))
@@ -330,6 +347,14 @@ class ModelWatcher:
             self._log.info(f"loaded checkpoint version {version} from {path} ({1e3 * ready.load_seconds:.1f} ms, "
                            f"via {source})")
         return ready
+
+    def _hold_back(self, path: Path, version: int, reason: str) -> None:
+        text = f"{path.name} (version {version}) held back: {reason}"
+        with self._cond:
+            self.gated += 1
+            self.last_gated = text
+        if self._log is not None:
+            self._log.info(f"checkpoint {text}; keeping the current model")
 
     def _refuse(self, path: str, version: int | None, reason: str, message: str) -> None:
         with self._cond:

@@ -203,7 +203,9 @@ class PaddleBaseNP:
         return self.step_jac(x, u)[0]
 
     def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return self.step_jac(x[None], u[None])[0][0]
+        n = u[3:6] / math.sqrt(max(float(u[3:6] @ u[3:6]), 1e-24))
+        vrel = x[3:6] - u[0:3]
+        return self.a * (vrel - 2.0 * n * float(n @ vrel)) + u[0:3]
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
         bsz = x.shape[0]

@@ -200,6 +200,7 @@ class SQPShootingMPC(ShootingMPC):
         self.max_iter, self.tol, self.max_time = max_iter, tol, max_time
         self.eps, self.penalty, self.penalty_max = eps, penalty, penalty_max
         self.rho0, self.lm_floor, self.radial = rho0, lm_floor, radial
+        self.shrink = 1.0
         self._rho = rho0
         self._ipm_first = False  # the last QP had active state constraints: skip the box-only attempt
         self._fixed = np.zeros(0, dtype=bool)  # constraint rows no control can change (last linearisation)
@@ -337,7 +338,7 @@ class SQPShootingMPC(ShootingMPC):
                     if alpha == 1.0 and ratio > 0.75:
                         rho = max(rho / 4.0, 1e-9)
                     elif alpha < 1.0 or ratio < 0.25:
-                        rho *= 2.0
+                        rho *= max(2.0, self.shrink / alpha)
                     break
                 rho = max(rho, 1e-3) * 10.0
                 if rho > 1e3:
