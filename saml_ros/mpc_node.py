@@ -112,7 +112,7 @@ def make_goal(system: str, values: dict[str, Any]) -> Any:
     if system == "quadrotor":
         return vec("position", 3)
     if system == "paddle_ball":
-        from saml_ros.core.mpc import paddle_goal  # type: ignore[attr-defined]
+        from saml_ros.core.mpc import paddle_goal
 
         for lo, hi in (("roll_min", "roll_max"), ("pitch_min", "pitch_max"), ("v_rel_min", "v_rel_max")):
             if not float(values[lo]) <= float(values[hi]):
@@ -196,8 +196,9 @@ def _build_node_class() -> type:
             options.update({t.name: p[f"task.{t.name}"] for t in TASK_PARAMS[system_name]})
             from saml_ros.core.mpc import make_controller
 
-            self.controller = make_controller(self.system, None, solver=p["solver"], horizon=p["horizon"],
-                                              member=p["member"], **options)
+            if system_name != "paddle_ball":  # the paddle problem is one-shot (no horizon)
+                options["horizon"] = p["horizon"]
+            self.controller = make_controller(self.system, None, solver=p["solver"], member=p["member"], **options)
             self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
             self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
             self.u_safe = np.clip(safe_control(self.system), self.u_low, self.u_high)
@@ -239,7 +240,8 @@ def _build_node_class() -> type:
                 self.create_timer(1.0 / self.rate_hz, self._on_tick, clock=steady)
             self.create_timer(1.0 / max(p["diagnostics_rate"], 1e-3), self._publish_diagnostics, clock=steady)
             self.get_logger().info(
-                f"{system_name} MPC ({p['solver']}, T={p['horizon']}, {self.mode}"
+                f"{system_name} MPC ({p['solver']}, "
+                f"{'one-shot' if system_name == 'paddle_ball' else 'T=' + str(p['horizon'])}, {self.mode}"
                 f"{f' at {self.rate_hz:g} Hz' if self.mode == 'realtime' else ''}, deadline "
                 f"{1e3 * self.deadline_s:.0f} ms), goal {self.goal!r}, run_dir {run_dir or '(none)'}"
             )

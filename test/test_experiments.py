@@ -185,7 +185,8 @@ def test_paddle_trial_measures_landing_against_target() -> None:
         r = run_trial(world, ctrl, t, s, record=True)
         if not r["failed"]:
             assert r["error"] == pytest.approx(float(np.linalg.norm(r["landing"] - t.target_xy)))
-            # the track ends where the ball came back to the impact height
-            assert r["track"][-1, 2] <= r["x_pre"][2] + 1e-9
+            # landing = where the ball came back down to the impact height (or met the paddle there)
+            assert abs(r["landing_z"] - r["x_pre"][2]) <= 0.05
+            assert len(r["track"]) > 0.2 / world.timestep  # it flew
     assert isinstance(world.system, PaddleBall)
 

@@ -173,8 +173,6 @@ class MPCProcess:
     def __init__(self, tmp: Path, domain: int, params: dict[str, Any], ns: str = "/quadrotor") -> None:
         self.log_path = tmp / f"mpc-{time.monotonic_ns()}.log"
         args = [sys.executable, "-m", "saml_ros.entry", "mpc", "--ros-args", "-r", f"__ns:={ns}"]
-        if os.environ.get("TMP_MPC_DRIVER"):  # TEMPORARY
-            args[1:4] = [os.environ["TMP_MPC_DRIVER"]]
         for k, v in params.items():
             args += ["-p", f"{k}:={v}"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",

@@ -20,6 +20,11 @@
 Threads: one thread may call :meth:`ingest` (per source) while another calls :meth:`update`,
 :meth:`compute_model_metrics` and :meth:`save_checkpoint`; :meth:`telemetry` is cheap and may be called from
 any thread. The model is guarded by one lock; the buffer and the recent window have their own.
+
+Processes: :class:`TrainingProcess` runs the training side (:func:`run_loop` over an :class:`OnlineLearner`
+built from a picklable :class:`LearnerSetup`) in a separate, niced interpreter and is fed paired transitions in
+batches, so ingest in the parent never competes with training for the GIL (the learner node pairs in its own
+process and uses this; see docs/learner.md for the measurements).
 """
 
 from __future__ import annotations
@@ -332,7 +337,7 @@ class OnlineLearner:
                 self._acc_obj += float(vals.objective[0])
                 if self.spec.n_constraints:
                     self._acc_con += vals.constraints[0].double().numpy()
-                if tr.steps % 100 == 0:
+                if tr.steps % (self.config.train.log_every or 100) == 0:
                     tr.log_point()
                     _trim_history(tr)
             return n_steps
@@ -968,7 +973,13 @@ class TrainingProcess:
                 return
 
     def _restart(self) -> None:
-        code = None if self._proc is None else self._proc.wait()
+        code = None
+        if self._proc is not None:
+            try:
+                code = self._proc.wait(5.0)
+            except subprocess.TimeoutExpired:  # its end of the connection broke but it lives on: end it
+                self._proc.kill()
+                code = self._proc.wait(5.0)
         self.errors += 1
         self.restarts += 1
         self.on_error("process", f"the training process exited unexpectedly (exit code {code}); restarting it "

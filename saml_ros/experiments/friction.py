@@ -29,6 +29,7 @@ from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
+    compute_settings,
     flush_denormals,
     fmt_ms,
     machine_info,
@@ -112,7 +113,14 @@ def evaluate_controller(system: FrictionDoubleIntegrator, model: DynamicsModel |
 
 
 def run(settings: FrictionSettings, out: Path, progress: bool = True) -> dict[str, Any]:
-    """Train, evaluate, control; write ``results.md``, ``results.json`` and figures into ``out``."""
+    """Train, evaluate, control; write ``results.md``, ``results.json`` and figures into ``out``.
+
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.compute_settings`)."""
+    with compute_settings():
+        return _run(settings, out, progress)
+
+
+def _run(settings: FrictionSettings, out: Path, progress: bool) -> dict[str, Any]:
     s = settings
     timer = Timer()
     info = machine_info()

@@ -37,6 +37,7 @@ from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
+    compute_settings,
     flush_denormals,
     fmt_ms,
     fmt_p,
@@ -124,7 +125,7 @@ def make_trials(n: int, seed: int, g: float = 9.81) -> list[Trial]:
 
 def make_goal(trial: Trial, s: PaddleSettings) -> Any:
     """The controller's goal for a trial (``saml_ros.core.mpc.paddle_goal``)."""
-    from saml_ros.core.mpc import paddle_goal  # type: ignore[attr-defined]
+    from saml_ros.core.mpc import paddle_goal
 
     return paddle_goal(target_xy=trial.target_xy, roll=s.roll, pitch=s.pitch, v_rel=(trial.v_min, trial.v_max))
 
@@ -192,12 +193,16 @@ def run_trial(world: PaddleBallWorld, ctrl: Controller, trial: Trial, s: PaddleS
         st = world.ball_state
         if record:
             track.append(st[:3])
-        if got:  # touched the paddle again before coming back to the impact height
-            landing = got[0].pre[:2]
-            break
+        if got:
+            if got[0].pre[5] < 0.0:  # met by the paddle on its way down: continue its free flight to z_ref
+                landing = ballistic_crossing(got[0].pre, z_ref, system.g)
+                out["landing_z"] = z_ref
+                break
+            out["reason"] = "hit again while rising"  # e.g. by the paddle rushing to the next impact point
+            return _finish(out, track)
         if st[5] < 0.0 and st[2] <= z_ref:
             a = (prev[2] - z_ref) / max(prev[2] - st[2], 1e-12)
-            landing = prev[:2] + a * (st[:2] - prev[:2])
+            landing, out["landing_z"] = prev[:2] + a * (st[:2] - prev[:2]), z_ref
             break
         prev = st
     if landing is None:
@@ -210,6 +215,14 @@ def run_trial(world: PaddleBallWorld, ctrl: Controller, trial: Trial, s: PaddleS
         return _finish(out, track)
     out["failed"] = False
     return _finish(out, track)
+
+
+def ballistic_crossing(state: np.ndarray, z_ref: float, g: float) -> np.ndarray:
+    """xy (m) where a ball in free flight from ``state`` ``[p, v]`` (6,) descends through height ``z_ref``."""
+    pz, vz = float(state[2]), float(state[5])
+    disc = max(vz * vz + 2.0 * g * (pz - z_ref), 0.0)
+    t = max((vz + np.sqrt(disc)) / g, 0.0)
+    return np.asarray(state[0:2] + state[3:5] * t, dtype=float)
 
 
 def _finish(out: dict[str, Any], track: list[np.ndarray]) -> dict[str, Any]:
@@ -245,7 +258,14 @@ def validation_errors(model: DynamicsModel | None, system: PaddleBall, x: np.nda
 
 
 def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str, Any]:
-    """Collect, train, validate, run the control trials; write results and figures into ``out``."""
+    """Collect, train, validate, run the control trials; write results and figures into ``out``.
+
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.compute_settings`)."""
+    with compute_settings():
+        return _run(settings, out, progress)
+
+
+def _run(settings: PaddleSettings, out: Path, progress: bool) -> dict[str, Any]:
     s = settings
     timer = Timer()
     info = machine_info()

@@ -30,6 +30,7 @@ from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
+    compute_settings,
     flush_denormals,
     fmt,
     fmt_ms,
@@ -164,7 +165,14 @@ def model_errors(cmp: Comparison, system: Quadrotor, n_test: int, seed: int = 10
 
 
 def run(settings: QuadrotorSettings, out: Path, progress: bool = True) -> dict[str, Any]:
-    """Train SA and UA, evaluate their errors and the landing MPC; write results and figures into ``out``."""
+    """Train SA and UA, evaluate their errors and the landing MPC; write results and figures into ``out``.
+
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.compute_settings`)."""
+    with compute_settings():
+        return _run(settings, out, progress)
+
+
+def _run(settings: QuadrotorSettings, out: Path, progress: bool) -> dict[str, Any]:
     s = settings
     timer = Timer()
     info = machine_info()

@@ -66,6 +66,30 @@ class QuadrotorBaseNP:
         self.mix = np.array([[0.0, -1.0, 0.0, 1.0], [-1.0, 0.0, 1.0, 0.0], [1.0, -1.0, 1.0, -1.0]])
         self._dw_du = self.dt * self.inv_inertia[:, None] * self.mix  # (3, 4)
         self._eye4 = np.eye(4)
+        # constant parts of the Jacobians
+        self._a0 = np.eye(13)
+        self._a0[0:3, 3:6] = self.dt * np.eye(3)
+        self._b0 = np.zeros((13, 4))
+        self._b0[10:13] = self._dw_du
+        # linear maps: Xi(q)[i, j] = sum_k LX[k, i, j] q_k with q ⊗ [0, w] = Xi(q) w = Omega(w) q
+        # Xi(q) = [[-x, -y, -z], [w, -z, y], [z, w, -x], [-y, x, w]] with q = (w, x, y, z) = indices 0..3
+        lx = np.zeros((4, 4, 3))
+        for k, i, j, v in ((1, 0, 0, -1), (2, 0, 1, -1), (3, 0, 2, -1), (0, 1, 0, 1), (3, 1, 1, -1), (2, 1, 2, 1),
+                           (3, 2, 0, 1), (0, 2, 1, 1), (1, 2, 2, -1), (2, 3, 0, -1), (1, 3, 1, 1), (0, 3, 2, 1)):
+            lx[k, i, j] = v
+        self._lx = lx.reshape(4, 12)
+        self._lw = lx.transpose(2, 1, 0).reshape(3, 16)  # Omega(w)[i, k] = sum_j LX[k, i, j] w_j
+        # d col / d q [i, j] = sum_k LC[k, i, j] q_k,  col = R(q) e_z
+        lc = np.zeros((4, 3, 4))
+        for i, j, k, v in ((0, 0, 2, 2), (0, 1, 3, 2), (0, 2, 0, 2), (0, 3, 1, 2), (1, 0, 1, -2), (1, 1, 0, -2),
+                           (1, 2, 3, 2), (1, 3, 2, 2), (2, 1, 1, -4), (2, 2, 2, -4)):
+            lc[k, i, j] = v
+        self._lc = lc.reshape(4, 12)
+        # [v]x[i, j] = sum_k LS[k, i, j] v_k
+        ls = np.zeros((3, 3, 3))
+        for k, i, j, v in ((2, 0, 1, -1), (1, 0, 2, 1), (2, 1, 0, 1), (0, 1, 2, -1), (1, 2, 0, -1), (0, 2, 1, 1)):
+            ls[k, i, j] = v
+        self._ls = ls.reshape(3, 9)
 
     def _parts(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
         q = x[:, 6:10]
@@ -135,61 +159,38 @@ class QuadrotorBaseNP:
         ))  # fmt: skip
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
-        parts = self._parts(x, u)
-        nq, qn, col, qr, nr = parts
-        y = self._step(x, u, parts)
-        n, dt, h = x.shape[0], self.dt, 0.5 * self.dt
-        a = np.zeros((n, 13, 13))
-        b = np.zeros((n, 13, 4))
-        idx3 = np.arange(3)
-        a[:, idx3, idx3] = 1.0
-        a[:, idx3, idx3 + 3] = dt
-        a[:, idx3 + 3, idx3 + 3] = 1.0
-        # d qn / d q = (I - qn qn^T) / |q|
-        n_q = (self._eye4 - qn[:, :, None] * qn[:, None, :]) / nq[:, :, None]
-        qw, qx, qy, qz = qn[:, 0], qn[:, 1], qn[:, 2], qn[:, 3]
-        z = np.zeros_like(qw)
-        dcol = 2.0 * np.stack(
-            (
-                np.stack((qy, qz, qw, qx), 1),
-                np.stack((-qx, -qw, qz, qy), 1),
-                np.stack((z, -2.0 * qx, -2.0 * qy, z), 1),
-            ),
-            1,
-        )  # d col / d qn, (B, 3, 4)
+        bsz, dt, h = x.shape[0], self.dt, 0.5 * self.dt
+        q, w = x[:, 6:10], x[:, 10:13]
+        nq = np.sqrt(np.einsum("bi,bi->b", q, q))
+        qn = q / nq[:, None]
+        # every matrix below is linear in qn or w: one product with a constant tensor each
+        xi = (qn @ self._lx).reshape(bsz, 4, 3)  # qn ⊗ [0, w] = xi @ w
+        om = (w @ self._lw).reshape(bsz, 4, 4)  # qn ⊗ [0, w] = om @ qn
+        dcol = (qn @ self._lc).reshape(bsz, 3, 4)  # d col / d qn
+        col = 0.5 * np.einsum("bij,bj->bi", dcol, qn)
+        col[:, 2] += 1.0
+        qr = qn + h * np.einsum("bij,bj->bi", xi, w)
+        nr = np.sqrt(np.einsum("bi,bi->b", qr, qr))
+        qp = qr / nr[:, None]
+        iw = w * self.inertia
         thrust = u.sum(1) * (dt / self.mass)
+        y = np.empty_like(x)
+        y[:, 0:3] = x[:, 0:3] + dt * x[:, 3:6]
+        y[:, 3:6] = x[:, 3:6] + thrust[:, None] * col
+        y[:, 5] -= dt * self.g
+        y[:, 6:10] = qp
+        y[:, 10:13] = w + u @ self._dw_du.T - dt * self.inv_inertia * _cross(w, iw)
+        a = np.broadcast_to(self._a0, (bsz, 13, 13)).copy()
+        b = np.broadcast_to(self._b0, (bsz, 13, 4)).copy()
+        n_q = (self._eye4 - qn[:, :, None] * qn[:, None, :]) / nq[:, None, None]
+        n_r = (self._eye4 - qp[:, :, None] * qp[:, None, :]) / nr[:, None, None]
         a[:, 3:6, 6:10] = thrust[:, None, None] * (dcol @ n_q)
         b[:, 3:6, :] = (dt / self.mass) * col[:, :, None]
-        # q' = qr / |qr|,  qr = (I + h Omega(w)) qn,  d qr / d w = h Xi(qn)
-        qp = qr / nr
-        n_r = (self._eye4 - qp[:, :, None] * qp[:, None, :]) / nr[:, :, None]
-        w = x[:, 10:13]
-        wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
-        omega = np.stack(
-            (
-                np.stack((z, -wx, -wy, -wz), 1),
-                np.stack((wx, z, wz, -wy), 1),
-                np.stack((wy, -wz, z, wx), 1),
-                np.stack((wz, wy, -wx, z), 1),
-            ),
-            1,
-        )
-        xi = np.stack(
-            (
-                np.stack((-qx, -qy, -qz), 1),
-                np.stack((qw, -qz, qy), 1),
-                np.stack((qz, qw, -qx), 1),
-                np.stack((-qy, qx, qw), 1),
-            ),
-            1,
-        )
-        a[:, 6:10, 6:10] = n_r @ ((self._eye4 + h * omega) @ n_q)
+        a[:, 6:10, 6:10] = n_r @ ((self._eye4 + h * om) @ n_q)
         a[:, 6:10, 10:13] = h * (n_r @ xi)
         # w' = w + dt I^-1 (mix f - w x I w);  d(w x Iw)/dw = [w]x diag(I) - [Iw]x
-        iw = w * self.inertia
-        dcross = _skew(w) * self.inertia[None, None, :] - _skew(iw)
-        a[:, 10:13, 10:13] = np.eye(3) - dt * self.inv_inertia[None, :, None] * dcross
-        b[:, 10:13, :] = self._dw_du
+        dcross = (w @ self._ls).reshape(bsz, 3, 3) * self.inertia - (iw @ self._ls).reshape(bsz, 3, 3)
+        a[:, 10:13, 10:13] -= dt * self.inv_inertia[None, :, None] * dcross
         return y, a, b
 
 

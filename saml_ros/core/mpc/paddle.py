@@ -33,6 +33,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.qp import solve_box_qp, solve_qp
 from saml_ros.core.mpc.types import MPCResult
+from saml_ros.core.systems.base import System
 from saml_ros.core.systems.paddle_ball import PaddleBall
 
 _DEFAULTS: dict[str, Any] = {"target_xy": (0.0, 0.0), "roll": (-0.4, 0.4), "pitch": (-0.4, 0.4), "v_rel": (3.0, 5.0)}
@@ -163,7 +164,8 @@ class PaddleController:
                  feas_tol: float = 1e-6, tol: float = 1e-4) -> None:
         if not isinstance(system, PaddleBall):
             raise ValueError(f"the paddle controller needs a PaddleBall system, got {system.name!r}")
-        self.system = system
+        self.system: System = system
+        self.paddle = system
         self.member = member
         self.feas_tol = feas_tol  #: tolerance on |v_rel| bounds for success (m/s)
         self.tol = tol  #: landing error (m) below which a start is good enough (no further restarts)
@@ -184,7 +186,7 @@ class PaddleController:
         g = paddle_goal(goal)
         if not np.all(np.isfinite(x0)):
             return self._fallback(start, "non-finite state")
-        prob = PaddleProblem(self.system, self.dyn, x0, g)
+        prob = PaddleProblem(self.paddle, self.dyn, x0, g)
         starts = prob.guesses()
         if self._theta is not None:
             starts.insert(0, np.clip(self._theta, prob.lo, prob.hi))
@@ -200,6 +202,9 @@ class PaddleController:
                 if best is None or key < best[0]:
                     best = (key, theta, conv, msg)
                 if not best[0][0] and best[0][1] <= self.tol:
+                    break
+                # a second start ending at the best (feasible) cost found so far: take it as the minimum
+                if key is not best[0] and not bad and abs(key[1] - best[0][1]) <= max(self.tol, 1e-2 * best[0][1]):
                     break
         except Exception as exc:  # numerical breakdown: the safe default
             return self._fallback(start, f"solver failure: {type(exc).__name__}: {exc}")
@@ -265,11 +270,14 @@ class GaussNewtonPaddle(PaddleController):
         merit = self._merit(r, c)
         rho = 1e-3
         eye = np.eye(5)
+        lam = np.zeros(2)  # multipliers of the speed rows (last QP)
         it = 0
         for it in range(1, self.max_iter + 1):  # noqa: B007
             if float(np.linalg.norm(r)) <= 0.1 * self.tol and c.max() <= 0.0:
                 return theta, it, True, "converged"
             hess, grad = jr.T @ jr, jr.T @ r
+            # curvature of the active upper speed bound (|v_rel|^2 is convex): lam * 2 I on the paddle velocity
+            hess[:3, :3] += 2.0 * max(float(lam[1] - lam[0]), 0.0) * np.eye(3)
             scale = float(np.trace(hess)) / 5.0 + 1e-9
             viol0 = float(np.maximum(c, 0.0).sum())
             accepted = False
@@ -278,9 +286,10 @@ class GaussNewtonPaddle(PaddleController):
                 lo, hi = prob.lo - theta, prob.hi - theta
                 box = solve_box_qp(h_lm, grad, lo, hi)
                 if box.converged and float((c + jc @ box.d).max()) <= 0.0:
-                    d = box.d
+                    d, lam = box.d, np.zeros(2)
                 else:
-                    d = solve_qp(h_lm, grad, lo, hi, jc, -c, self.penalty).d
+                    qp = solve_qp(h_lm, grad, lo, hi, jc, -c, self.penalty)
+                    d, lam = qp.d, qp.mult
                 pred = -(grad @ d + 0.5 * d @ hess @ d) + self.penalty * (
                     viol0 - float(np.maximum(c + jc @ d, 0.0).sum()))
                 if pred <= self.rtol * (1.0 + merit):

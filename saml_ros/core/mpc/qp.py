@@ -88,7 +88,7 @@ def solve_qp(
     h_vec: np.ndarray,
     penalty: float | np.ndarray,
     max_iter: int = 40,
-    tol: float = 1e-9,
+    tol: float = 1e-8,
 ) -> QPResult:
     """Elastic QP ``min 1/2 d'Hd + g'd + penalty's  s.t.  lo <= d <= hi, G d - s <= h, s >= 0``.
 

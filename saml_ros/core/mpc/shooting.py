@@ -80,6 +80,17 @@ class ShootingMPC:
         self._plan_u = None
         self._plan_x = None
 
+    def warm_start_plan(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Copies of the previous plan ``(plan_u, plan_x)`` the next solve warm-starts from, or None."""
+        if self._plan_u is None or self._plan_x is None:
+            return None
+        return self._plan_u.copy(), self._plan_x.copy()
+
+    def set_warm_start(self, plan_u: np.ndarray, plan_x: np.ndarray) -> None:
+        """Use ``plan_u`` ``(T, m)`` / ``plan_x`` ``(T+1, n)`` as the previous plan (e.g. another solver's)."""
+        self._plan_u = np.array(plan_u, dtype=np.float64).reshape(self.horizon, self.m)
+        self._plan_x = np.array(plan_x, dtype=np.float64).reshape(self.horizon + 1, self.n)
+
     def solve(self, x0: np.ndarray, goal: Any | None = None) -> MPCResult:
         start = time.perf_counter()
         x0 = np.asarray(x0, dtype=np.float64)
@@ -132,9 +143,18 @@ class ShootingMPC:
 
     def _warm_start(self, x0: np.ndarray, task: ShootingTask) -> np.ndarray:
         """The previous plan, shifted by one step when x0 is nearer its x_1 than its x_0 (closed loop), kept
-        unshifted when x0 is nearer x_0 (a re-solve from the same state); tail filled with ``u_default``."""
+        unshifted when x0 is nearer x_0 (a re-solve from the same state); tail filled with ``u_default``.
+        Without a previous plan: the cheapest of the task's constant guesses."""
         if self._plan_u is None or self._plan_x is None:
-            return np.tile(task.u_default, (self.horizon, 1))
+            best, best_u = np.inf, np.tile(task.u_default, (self.horizon, 1))
+            for guess in task.u_guesses:
+                u = np.tile(np.clip(guess, task.u_low, task.u_high), (self.horizon, 1))
+                xs = self.rollout(x0, u)
+                viol = task.violations(xs)
+                value = task.cost(xs) + 100.0 * float(np.maximum(viol, 0.0).sum())
+                if value < best:
+                    best, best_u = value, u
+            return best_u
         prev_u, prev_x = self._plan_u, self._plan_x
         shift = 1 if np.linalg.norm(x0 - prev_x[1]) < np.linalg.norm(x0 - prev_x[0]) else 0
         u = np.empty((self.horizon, self.m))

@@ -39,7 +39,9 @@ class ShootingTask:
     u_high: np.ndarray  #: (m,)
     res_idx: np.ndarray  #: (k,) int, state indices entering the stage cost
     target: np.ndarray  #: (k,) the goal of those indices
-    u_default: np.ndarray  #: (m,) cold-start guess, tail fill of the shifted warm start, last-resort control
+    u_default: np.ndarray  #: (m,) tail fill of the shifted warm start, last-resort control
+    #: (G, m) constant control sequences tried as the cold start (the one with the lowest cost is used)
+    u_guesses: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     cons_t: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) time index in 1..T
     cons_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) state index
     cons_sign: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: (nc,) +1 (upper) or -1 (lower bound)
@@ -104,6 +106,8 @@ def friction_task(system: FrictionDoubleIntegrator, horizon: int = 10) -> Shooti
         res_idx=np.array([system.state.index("p")]),
         target=np.zeros(1),
         u_default=np.zeros(1),
+        # a learned model can reproduce stiction (dv'/du = 0 around u = 0): never start only from rest
+        u_guesses=np.array([[0.0], [0.5], [-0.5], [1.0], [-1.0]]) * system.u_max,
     )
 
 
@@ -124,6 +128,7 @@ def quadrotor_task(
         res_idx=np.array([system.state.index(n) for n in ("px", "py", "pz")]),
         target=np.zeros(3),
         u_default=system.hover_thrust(),
+        u_guesses=system.hover_thrust()[None],
         cons_t=t,
         cons_idx=np.full(horizon, iz),
         cons_sign=np.full(horizon, -1.0),

@@ -1,0 +1,212 @@
+# ruff: noqa: E402  (the thread-count environment must be set before numpy is imported)
+"""MPC solver speed and quality: ``./dev python -m bench.bench_mpc [--quick]``.
+
+For each system, the fast solver and the SLSQP reference plan with the SAME learned model (a residual net of the
+paper's size, trained here for a few seconds so that phi is not trivial), the same horizon and the same start
+states, on one core (``torch.set_num_threads(1)``). Printed, all measured in this run:
+
+1. **identical problems** (the solver comparison): the states the fast controller visits in closed loop on the
+   true system, each solved by both solvers from the SAME warm start (the fast controller's previous plan;
+   the paddle ball: cold, one-shot). Columns: mean wall-clock solve time, rate (Hz), mean CPU time, mean plan
+   cost (the paper's objective under the model), solves whose plan violates a constraint ("infeasible";
+   the quadrotor's avoidable violations only: ``pz_1`` is fixed by the current state), and the ratios
+   fast / slsqp of the rate and of the mean cost.
+2. **closed loop** (the 100 Hz target): the fast controller alone, warm-started, on the true system: mean, p95
+   and max solve time, rate, and the closed-loop stage cost.
+
+Wall-clock times depend on what else runs on the machine; the ratios are measured back to back.
+"""
+
+from __future__ import annotations
+
+import os
+
+# one core: numpy's OpenBLAS would otherwise use a second thread for the larger matrix products
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc import MPCResult, closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc.shooting import ShootingMPC
+from saml_ros.core.spec import ProblemSpec
+from saml_ros.core.systems import get_system
+from saml_ros.core.systems.base import System
+from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+
+
+def train_quick(system: System, n: int, epochs: int, seed: int = 0) -> tuple[DynamicsModel, float]:
+    """A residual model of the paper's size trained on the paper's spec for a few epochs; (model, seconds)."""
+    rng = np.random.default_rng(seed)
+    x, u, y = system.make_dataset(n, rng)
+    model = DynamicsModel(system, seed=seed)
+    model.fit_normalization(x, u, y)
+    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    trainer = PrimalDualTrainer(model, spec, TrainConfig(epochs=epochs, batch_size=128, primal_lr=3e-3, seed=seed))
+    t0 = time.perf_counter()
+    trainer.fit(Transitions(model, spec, x, u, y))
+    return model, time.perf_counter() - t0
+
+
+@dataclass
+class Stats:
+    wall: list[float] = field(default_factory=list)
+    cpu: list[float] = field(default_factory=list)
+    cost: list[float] = field(default_factory=list)
+    infeasible: int = 0
+
+    def add(self, res: MPCResult, cpu: float) -> None:
+        self.wall.append(res.solve_time)
+        self.cpu.append(cpu)
+        self.cost.append(res.cost)
+        avoidable = "unavoidable" not in res.message
+        self.infeasible += int(not res.success and avoidable)
+
+
+def timed(solve: Callable[[], MPCResult]) -> tuple[MPCResult, float]:
+    t0 = time.process_time()
+    res = solve()
+    return res, time.process_time() - t0
+
+
+def shooting_problems(system: System, model: DynamicsModel, starts: list[np.ndarray], steps: int,
+                      goal: Any = None) -> tuple[list[tuple[np.ndarray, Any]], dict[str, Any]]:
+    """States (with the fast controller's warm start at that moment) along fast closed loops on the true
+    system, and the closed-loop timing of those runs."""
+    ctrl = make_controller(system, model, "fast")
+    assert isinstance(ctrl, ShootingMPC)
+    problems: list[tuple[np.ndarray, Any]] = []
+    times: list[float] = []
+    stage: list[float] = []
+    for x0 in starts:
+        ctrl.reset()
+        x = x0.copy()
+        for _ in range(steps):
+            warm = ctrl.warm_start_plan()
+            problems.append((x.copy(), warm))
+            res = ctrl.solve(x, goal)
+            times.append(res.solve_time)
+            x = system.true_step_np(x, res.u)
+            stage.append(float(np.linalg.norm(_stage_residual(system, x, goal))))
+    t = np.array(times)
+    return problems, {"mean": t.mean(), "p95": np.percentile(t, 95), "max": t.max(), "n": t.size,
+                      "stage": float(np.sum(stage) / len(starts))}
+
+
+def _stage_residual(system: System, x: np.ndarray, goal: Any) -> np.ndarray:
+    if system.name == "friction":
+        return x[:1] - (0.0 if goal is None else np.asarray(goal))
+    return x[:3] - (np.zeros(3) if goal is None else np.asarray(goal))
+
+
+def compare_shooting(system: System, model: DynamicsModel, problems: list[tuple[np.ndarray, Any]],
+                     ref_every: int, goal: Any = None) -> dict[str, Stats]:
+    out = {"fast": Stats(), "slsqp": Stats()}
+    ctrls = {name: make_controller(system, model, name) for name in out}
+    for i, (x, warm) in enumerate(problems):
+        if i % ref_every:
+            continue
+        for name, ctrl in ctrls.items():
+            assert isinstance(ctrl, ShootingMPC)
+            ctrl.reset()
+            if warm is not None:
+                ctrl.set_warm_start(*warm)
+            res, cpu = timed(lambda c=ctrl, x=x: c.solve(x, goal))  # type: ignore[misc]
+            out[name].add(res, cpu)
+    return out
+
+
+def compare_paddle(system: System, model: DynamicsModel, n: int, seed: int = 1) -> dict[str, Stats]:
+    """The paper's evaluation distribution: targets in [-1, 1]^2, v_min ~ U[3, 4), v_max = v_min + U[1, 2]."""
+    rng = np.random.default_rng(seed)
+    problems = []
+    for _ in range(n):
+        x = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), 0.0, rng.uniform(-1, 1), rng.uniform(-1, 1),
+                      rng.uniform(-6, -2)])
+        vmin = rng.uniform(3.0, 4.0)
+        problems.append((x, paddle_goal(target_xy=rng.uniform(-1, 1, 2), v_rel=(vmin, vmin + rng.uniform(1, 2)))))
+    out = {"fast": Stats(), "slsqp": Stats()}
+    for name in out:
+        ctrl = make_controller(system, model, name)
+        for x, goal in problems:
+            ctrl.reset()
+            res, cpu = timed(lambda c=ctrl, x=x, g=goal: c.solve(x, g))  # type: ignore[misc]
+            out[name].add(res, cpu)
+    return out
+
+
+def row(system: str, solver: str, s: Stats) -> str:
+    wall, cpu = float(np.mean(s.wall)), float(np.mean(s.cpu))
+    return (f"{system:<12} {solver:<6} {len(s.wall):>5} {1e3 * wall:>9.2f} {1 / wall:>9.1f} {1e3 * cpu:>9.2f} "
+            f"{np.mean(s.cost):>10.4f} {s.infeasible:>6}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="bench_mpc", description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="fewer states (a smoke run, about a minute)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    t_start = time.perf_counter()
+    scale = 0.4 if args.quick else 1.0
+
+    fr = get_system("friction")
+    quad = get_system("quadrotor")
+    pad = get_system("paddle_ball")
+    models = {}
+    for sys_, n, epochs in ((fr, 15000, 20), (quad, 10000, 150), (pad, 10000, 10)):
+        models[sys_.name], secs = train_quick(sys_, n, epochs)
+        print(f"trained {sys_.name} residual {list(models[sys_.name].hidden)} for {epochs} epochs in {secs:.1f} s")
+
+    rng = np.random.default_rng(0)
+    fr_starts = [np.array([p0, 0.0]) for p0 in rng.uniform(-2, 2, max(2, int(8 * scale)))]
+    assert isinstance(quad, Quadrotor)
+    quad_starts = [quad.hover_state(p0) for p0 in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
+    quad_starts = quad_starts[: max(1, int(3 * scale))]
+
+    fr_probs, fr_loop = shooting_problems(fr, models["friction"], fr_starts, 30)
+    quad_probs, quad_loop = shooting_problems(quad, models["quadrotor"], quad_starts, 50)
+    results = {
+        "friction": compare_shooting(fr, models["friction"], fr_probs, ref_every=1),
+        "quadrotor": compare_shooting(quad, models["quadrotor"], quad_probs, ref_every=5 if args.quick else 3),
+        "paddle_ball": compare_paddle(pad, models["paddle_ball"], max(10, int(40 * scale))),
+    }
+
+    print("\n1. identical problems (same model, horizon, states and warm starts), one core")
+    print(f"{'system':<12} {'solver':<6} {'n':>5} {'wall ms':>9} {'rate Hz':>9} {'cpu ms':>9} {'mean cost':>10} "
+          f"{'infeas':>6}")
+    for name, res in results.items():
+        for solver in ("fast", "slsqp"):
+            print(row(name, solver, res[solver]))
+    print(f"\n{'system':<12} {'rate fast/slsqp (wall)':>23} {'(cpu)':>8} {'mean cost fast/slsqp':>21}  target: >= 20x at <= 1")
+    for name, res in results.items():
+        f, s = res["fast"], res["slsqp"]
+        ratio_wall = np.mean(s.wall) / np.mean(f.wall)
+        ratio_cpu = np.mean(s.cpu) / np.mean(f.cpu)
+        cost_ratio = np.mean(f.cost) / np.mean(s.cost)
+        ok = "yes" if ratio_wall >= 20 and cost_ratio <= 1.0 + 1e-9 else "NO"
+        print(f"{name:<12} {ratio_wall:>22.1f}x {ratio_cpu:>7.1f}x {cost_ratio:>21.4f}  {ok}")
+
+    print("\n2. fast controller in closed loop on the true system (warm-started), one core")
+    print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'stage cost':>11}")
+    for name, loop in (("friction", fr_loop), ("quadrotor", quad_loop)):
+        print(f"{name:<12} {loop['n']:>6} {1e3 * loop['mean']:>8.2f} {1e3 * loop['p95']:>8.2f} "
+              f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {loop['stage']:>11.3f}")
+    quad_hz = 1 / quad_loop["mean"]
+    print(f"quadrotor target >= 100 Hz (mean solve <= 10 ms): {'yes' if quad_hz >= 100 else 'NO'} ({quad_hz:.0f} Hz)")
+    out = closed_loop(quad, make_controller(quad, models["quadrotor"]), quad_starts[0], 50)
+    print(f"quadrotor landing from {quad_starts[0][:3].tolist()}: final position {np.round(out['xs'][-1, :3], 3).tolist()}")
+    print(f"\ntotal {time.perf_counter() - t_start:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

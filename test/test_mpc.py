@@ -1,0 +1,305 @@
+"""MPC solvers (saml_ros.core.mpc): prediction model, QP subproblems, the three tasks, hot swap, failures."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.optimize
+import torch
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc import closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc.dynamics_np import NumpyDynamics
+from saml_ros.core.mpc.qp import solve_box_qp, solve_qp
+from saml_ros.core.mpc.shooting import ShootingMPC
+from saml_ros.core.systems import get_system
+from saml_ros.core.systems.paddle_ball import landing_point
+
+SYSTEMS = ("friction", "quadrotor", "paddle_ball")
+
+
+def perturbed(system_name: str, seed: int = 0, scale: float = 0.3, kind: str = "residual",
+              n_models: int = 1) -> DynamicsModel:
+    """A model with a non-zero correction phi (a fresh one has a zero output layer, i.e. phi = 0)."""
+    system = get_system(system_name)
+    model = DynamicsModel(system, kind=kind, n_models=n_models, seed=seed).double()
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for w in model.net.weights:
+            w.add_(scale * torch.randn(w.shape, generator=gen, dtype=w.dtype))
+        model.out_std.mul_(0.2)
+    return model
+
+
+# ------------------------------------------------------------------------------------------ prediction model
+@pytest.mark.parametrize("name", SYSTEMS)
+@pytest.mark.parametrize("kind", ["base", "residual", "full"])
+def test_numpy_model_and_jacobians_match_torch(name: str, kind: str) -> None:
+    system = get_system(name)
+    model = None if kind == "base" else perturbed(name, kind=kind)
+    x, u = system.sample_inputs(6, np.random.default_rng(1))
+    dyn = NumpyDynamics(system, model)
+    y, a, b = dyn.step_jac(x, u)
+
+    def torch_fn(xi: torch.Tensor, ui: torch.Tensor) -> torch.Tensor:
+        if model is None:
+            return system.base_step(xi[None], ui[None])[0]
+        return model(xi[None], ui[None])[0, 0]
+
+    ja, jb = torch.func.vmap(torch.func.jacrev(torch_fn, argnums=(0, 1)))(torch.from_numpy(x), torch.from_numpy(u))
+    ref = system.base_step_np(x, u) if model is None else model.predict_np(x, u)
+    np.testing.assert_allclose(y, ref, atol=1e-12)
+    np.testing.assert_allclose(dyn.step(x, u), ref, atol=1e-12)
+    np.testing.assert_allclose(np.stack([dyn.step1(x[i], u[i]) for i in range(6)]), ref, atol=1e-12)
+    np.testing.assert_allclose(a, ja.detach().numpy(), atol=1e-10)
+    np.testing.assert_allclose(b, jb.detach().numpy(), atol=1e-10)
+
+
+def test_ensemble_uses_member_zero_and_rejects_other_systems() -> None:
+    system = get_system("friction")
+    ens = perturbed("friction", n_models=3)
+    x, u = system.sample_inputs(5, np.random.default_rng(0))
+    np.testing.assert_allclose(NumpyDynamics(system, ens).step(x, u), ens.predict_np(x, u, member=0), atol=1e-12)
+    assert not np.allclose(ens.predict_np(x, u, member=0), ens.predict_np(x, u, member=1))
+    with pytest.raises(ValueError, match="model is for system"):
+        make_controller(get_system("quadrotor"), ens)
+
+
+# ------------------------------------------------------------------------------------------ QP subproblems
+def test_box_qp_matches_lbfgsb() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        m = rng.normal(size=(12, 12))
+        hess, grad = m @ m.T / 12 + 1e-3 * np.eye(12), rng.normal(size=12)
+        lo, hi = -rng.uniform(0, 1, 12), rng.uniform(0, 1, 12)
+        res = solve_box_qp(hess, grad, lo, hi)
+        ref = scipy.optimize.minimize(lambda d, h=hess, g=grad: 0.5 * d @ h @ d + g @ d, np.zeros(12),
+                                      jac=lambda d, h=hess, g=grad: h @ d + g, bounds=list(zip(lo, hi)),
+                                      method="L-BFGS-B",
+                                      options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10_000})
+        assert res.converged
+        assert np.all(res.d >= lo) and np.all(res.d <= hi)
+        assert 0.5 * res.d @ hess @ res.d + grad @ res.d <= ref.fun + 1e-9
+
+
+def test_elastic_qp_is_exact_when_feasible_and_prices_violations() -> None:
+    rng = np.random.default_rng(1)
+    n, k = 8, 3
+    m = rng.normal(size=(n, n))
+    hess, grad = m @ m.T / n + 0.1 * np.eye(n), rng.normal(size=n)
+    lo, hi = -np.ones(n), np.ones(n)
+    g_mat = rng.normal(size=(k, n))
+    h_vec = np.full(k, 0.05)  # d = 0 is feasible: with a large penalty the answer is the constrained optimum
+    res = solve_qp(hess, grad, lo, hi, g_mat, h_vec, penalty=1e3)
+    ref = scipy.optimize.minimize(lambda d: 0.5 * d @ hess @ d + grad @ d, np.zeros(n), jac=lambda d: hess @ d + grad,
+                                  bounds=list(zip(lo, hi)), method="SLSQP",
+                                  constraints=[{"type": "ineq", "fun": lambda d: h_vec - g_mat @ d}],
+                                  options={"ftol": 1e-14, "maxiter": 500})
+    assert res.converged
+    np.testing.assert_allclose(res.d, ref.x, atol=1e-5)
+    assert np.all(res.slack <= 1e-7) and np.all(res.mult >= 0)
+    # infeasible rows (G d <= h with h << 0 beyond the box) are violated, never an error
+    res = solve_qp(hess, grad, lo, hi, np.ones((1, n)), np.array([-100.0]), penalty=1.0)
+    assert res.converged and res.slack[0] > 90.0
+
+
+# ------------------------------------------------------------------------------------------ bounds, every solver
+@pytest.mark.parametrize("name", SYSTEMS)
+@pytest.mark.parametrize("solver", ["fast", "slsqp"])
+def test_plans_respect_control_bounds(name: str, solver: str) -> None:
+    system = get_system(name)
+    model = perturbed(name)
+    rng = np.random.default_rng(3)
+    quad_slsqp = name == "quadrotor" and solver == "slsqp"
+    ctrl = make_controller(system, model, solver, **({"max_iter": 15} if quad_slsqp else {}))
+    x, _ = system.sample_inputs(1 if quad_slsqp else 3, rng)
+    for xi in x:
+        if name == "paddle_ball":
+            xi[3:6] = (0.3, -0.2, -4.0)
+        if name == "quadrotor":
+            xi[2] = max(xi[2], 1.0)
+        ctrl.reset()
+        res = ctrl.solve(xi)
+        lo, hi = system.control_low, system.control_high
+        assert np.all(res.plan_u >= lo) and np.all(res.plan_u <= hi)
+        assert np.all(res.u >= lo) and np.all(res.u <= hi)
+        np.testing.assert_array_equal(res.u, res.plan_u[0])
+        assert res.plan_u.shape == ((1, 6) if name == "paddle_ball" else (ctrl.horizon, system.control.size))
+        assert math.isfinite(res.cost) and res.solve_time > 0 and res.iterations >= 1
+
+
+# ------------------------------------------------------------------------------------------ friction
+def test_friction_mpc_drives_true_system_to_origin() -> None:
+    system = get_system("friction")
+    out = closed_loop(system, make_controller(system), np.array([1.5, 0.0]), 30)
+    assert out["xs"].shape == (31, 2) and out["us"].shape == (30, 1)
+    assert abs(out["xs"][-1, 0]) < 0.05 and abs(out["xs"][-1, 1]) < 0.2
+    assert np.all(np.abs(out["us"]) <= 10.0)
+    np.testing.assert_allclose(out["stage_costs"], np.abs(out["xs"][1:, 0]))
+
+
+def test_friction_learned_model_escapes_stiction() -> None:
+    # a model with stiction around u = 0 has no gradient there: the cold start must not stay at rest
+    system = get_system("friction")
+    x, u, y = system.make_dataset(4000, np.random.default_rng(0))
+    model = DynamicsModel(system, seed=0).double()
+    model.fit_normalization(x, u, y)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    xt, ut, yt = (torch.as_tensor(a) for a in (x, u, y))
+    for _ in range(300):
+        opt.zero_grad()
+        loss = ((model(xt, ut)[0] - yt) ** 2).sum(-1).mean()
+        loss.backward()
+        opt.step()
+    res = make_controller(system, model).solve(np.array([1.5, 0.0]))
+    assert res.u[0] < -5.0 and res.success
+
+
+def test_fast_and_slsqp_agree_on_friction() -> None:
+    system = get_system("friction")
+    # base model: the problem is an LP (linear dynamics, l1 cost), solved exactly by linprog; the fast solver
+    # must find its optimum, SLSQP (finite differences on a non-smooth cost) at best the same
+    T, dt = 10, system.dt
+    for p0 in (-1.7, -0.4, 0.9, 1.8):
+        x0 = np.array([p0, 0.3])
+        fast = make_controller(system, None, "fast").solve(x0)
+        ref = make_controller(system, None, "slsqp").solve(x0)
+        assert fast.success and ref.success
+        # p_t = p0 + t dt v0 + dt^2 sum_{j <= t-2} (t-1-j) u_j;  variables [u (T), e (T)], min sum e, |p_t| <= e_t
+        sens = np.array([[dt * dt * max(t - 1 - j, 0) for j in range(T)] for t in range(1, T + 1)])
+        free = p0 + dt * x0[1] * np.arange(1, T + 1)
+        a_ub = np.block([[sens, -np.eye(T)], [-sens, -np.eye(T)]])
+        lp = scipy.optimize.linprog(np.r_[np.zeros(T), np.ones(T)], A_ub=a_ub, b_ub=np.r_[-free, free],
+                                    bounds=[(-10, 10)] * T + [(0, None)] * T, method="highs")
+        assert abs(fast.cost - lp.fun) <= 5e-4 * (1.0 + lp.fun)  # the SQP stops at tol = 3e-4 (1 + merit)
+        assert ref.cost >= lp.fun - 1e-6 and fast.cost <= ref.cost + 5e-4 * (1.0 + lp.fun)
+    # a non-convex learned model: the fast solver is never worse than the reference
+    model = perturbed("friction", scale=0.1)
+    for p0 in (-1.7, -0.4, 0.9, 1.8):
+        x0 = np.array([p0, 0.3])
+        fast = make_controller(system, model, "fast").solve(x0)
+        ref = make_controller(system, model, "slsqp").solve(x0)
+        assert fast.success and ref.success
+        assert fast.cost <= ref.cost + 0.01 * max(1.0, ref.cost)
+
+
+# ------------------------------------------------------------------------------------------ quadrotor
+def test_quadrotor_lands_and_keeps_height_bound() -> None:
+    system = get_system("quadrotor")
+    ctrl = make_controller(system)
+    ctrl.reset()
+    x = system.hover_state((1.0, -1.0, 2.0))  # type: ignore[attr-defined]
+    for _ in range(50):
+        res = ctrl.solve(x)
+        # the height bound holds on every predicted state a control can move (x_1 is fixed by x_0)
+        assert res.plan_x[2:, 2].min() >= 0.2 - 1e-4
+        assert abs(res.plan_x[-1, 6] - 1.0) <= 0.05 + 1e-4
+        assert res.success or "unavoidable" in res.message
+        x = system.true_step_np(x, res.u)
+    assert np.linalg.norm(x[:3] - np.array([0.0, 0.0, 0.2])) < 0.15
+
+
+def test_quadrotor_goal_and_reported_violations() -> None:
+    system = get_system("quadrotor")
+    ctrl = make_controller(system)
+    x = system.hover_state((0.0, 0.0, 0.21))  # type: ignore[attr-defined]
+    x[5] = -1.0  # pz_1 = 0.11 < 0.2 whatever the controls: reported, not hidden
+    res = ctrl.solve(x)
+    assert not res.success and "unavoidable" in res.message and res.constraint_violation > 0.08
+    assert np.all(res.plan_u >= 0.0) and np.all(res.plan_u <= 10.0)
+    res = make_controller(system).solve(system.hover_state((1.0, 1.0, 1.0)), goal=np.array([1.0, 1.0, 1.0]))  # type: ignore[attr-defined]
+    assert res.success and res.cost < 0.05  # hovering at the goal is (nearly) free
+
+
+# ------------------------------------------------------------------------------------------ paddle ball
+def test_paddle_hits_target_under_the_model() -> None:
+    system = get_system("paddle_ball")
+    model = perturbed("paddle_ball", scale=0.05)
+    ctrl = make_controller(system, model)
+    rng = np.random.default_rng(4)
+    for _ in range(4):
+        x = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 0.0, rng.uniform(-0.5, 0.5),
+                      rng.uniform(-0.5, 0.5), rng.uniform(-5.0, -3.0)])
+        goal = paddle_goal(target_xy=rng.uniform(-0.5, 0.5, 2), roll=(-0.3, 0.3), pitch=(-0.35, 0.35),
+                           v_rel=(3.0, 5.0))
+        res = ctrl.solve(x, goal)
+        assert res.success, res.message
+        v_post = model.predict_np(x, res.u)  # check independently with the torch model
+        land = landing_point(torch.as_tensor(x[None, :3]), torch.as_tensor(v_post[None]), system.g).numpy()[0]
+        assert np.linalg.norm(land - goal.target_xy) < 0.03
+        assert abs(res.cost - np.linalg.norm(land - goal.target_xy)) < 1e-9
+        speed = np.linalg.norm(x[3:6] - res.u[:3])
+        assert 3.0 - 1e-6 <= speed <= 5.0 + 1e-6
+        n = res.u[3:6]
+        assert abs(np.linalg.norm(n) - 1.0) < 1e-12
+        roll, pitch = math.atan2(-n[1], math.hypot(n[0], n[2])), math.atan2(n[0], n[2])
+        assert -0.3 - 1e-9 <= roll <= 0.3 + 1e-9 and -0.35 - 1e-9 <= pitch <= 0.35 + 1e-9
+        np.testing.assert_allclose(res.plan_x[0, 3:], v_post, atol=1e-12)
+
+
+def test_paddle_goal_validation_and_closed_loop() -> None:
+    with pytest.raises(ValueError, match="v_rel"):
+        paddle_goal(v_rel=(5.0, 3.0))
+    with pytest.raises(ValueError, match="no key"):
+        paddle_goal({"target": (0, 0)})
+    assert paddle_goal({"target_xy": (0.2, 0.1)}).roll == (-0.4, 0.4)
+    system = get_system("paddle_ball")
+    x0 = np.array([0.1, -0.1, 0.0, 0.2, 0.1, -4.0])
+    out = closed_loop(system, make_controller(system), x0, 3, goal={"target_xy": (0.0, 0.0)})
+    assert out["xs"].shape[1] == 6 and out["landing"].shape[1] == 2 and not out["dropped"]
+    # the base model's restitution is wrong (0.6 vs 0.8) and the paddle has a hidden tilt: the true ball misses
+    assert out["stage_costs"].max() > 0.05
+
+
+# ------------------------------------------------------------------------------------------ hot swap, warm start
+def test_set_model_hot_swap_and_warm_start() -> None:
+    system = get_system("quadrotor")
+    ctrl = make_controller(system)
+    assert isinstance(ctrl, ShootingMPC)
+    x = system.hover_state((1.0, -1.0, 2.0))  # type: ignore[attr-defined]
+    first = ctrl.solve(x)
+    again = ctrl.solve(x)  # same state, same model: starts from the converged plan
+    assert again.iterations < first.iterations and again.iterations <= 2
+    assert abs(again.cost - first.cost) < 1e-3
+    model = perturbed("quadrotor", scale=0.5)
+    ctrl.set_model(model)
+    assert ctrl.warm_start_plan() is not None  # the swap keeps the warm start
+    swapped = ctrl.solve(x)
+    assert not np.allclose(swapped.plan_u, again.plan_u, atol=1e-3)
+    np.testing.assert_allclose(swapped.plan_x, ctrl.rollout(x, swapped.plan_u))
+    np.testing.assert_allclose(swapped.plan_x[1], model.predict_np(x, swapped.u), atol=1e-10)
+    ctrl.set_model(None)
+    back = ctrl.solve(x)
+    assert abs(back.cost - first.cost) < 0.05
+    ctrl.reset()
+    assert ctrl.warm_start_plan() is None
+
+
+# ------------------------------------------------------------------------------------------ failures
+@pytest.mark.parametrize("name", SYSTEMS)
+def test_numerical_failure_returns_safe_control(name: str) -> None:
+    system = get_system(name)
+    ctrl = make_controller(system)
+    x, _ = system.sample_inputs(1, np.random.default_rng(0))
+    res = ctrl.solve(np.full(system.state.size, np.nan))
+    assert not res.success and np.all(np.isfinite(res.u))
+    assert np.all(res.u >= system.control_low) and np.all(res.u <= system.control_high)
+    bad = perturbed(name)
+    with torch.no_grad():
+        bad.net.weights[0].fill_(float("nan"))
+    ctrl.set_model(bad)
+    res = ctrl.solve(x[0])
+    assert not res.success and np.all(res.u >= system.control_low) and np.all(res.u <= system.control_high)
+    with pytest.raises(ValueError, match="shape"):
+        ctrl.solve(np.zeros(system.state.size + 1))
+
+
+def test_make_controller_rejects_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="unknown MPC solver"):
+        make_controller(get_system("friction"), solver="ipopt")
+    with pytest.raises(TypeError, match="no option"):
+        make_controller(get_system("quadrotor"), min_heigth=0.3)
+    with pytest.raises(ValueError, match="one-shot"):
+        make_controller(get_system("paddle_ball"), horizon=5)
