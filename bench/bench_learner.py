@@ -9,8 +9,10 @@
    (SingleThreadedExecutor, a callback that only counts) and the real learner node
    (``python -m saml_ros.entry learner``), which trains as fast as it can (``updates_per_second: 0``) and
    publishes telemetry meanwhile;
-3. a burst is *lossless* for a subscriber when every message arrived (bare) / every transition was paired
-   (learner, from its /diagnostics counters). A subscriber fails at a rate when two bursts in a row at that
+3. a burst is *lossless* for a subscriber when every message arrived (bare: its counts; learner: the messages
+   its node took from DDS, from /diagnostics) and, for the learner, every transition of the burst was then
+   paired (decoding and pairing run in its training process and may finish a little after the burst; the lag
+   is printed). A subscriber fails at a rate when two bursts in a row at that
    rate lose messages (one retry: the machine is shared). Its lossless ceiling is its fastest lossless burst
    below the rate it failed at (each rate is ``--step`` times the previous).
 
@@ -253,15 +255,26 @@ def settle(read: Any, target: int, quiet: float = 0.6, timeout: float = 15.0) ->
     return int(last)
 
 
-def ramp(pub: Child, subscribers: dict[str, tuple[Callable[[], int], Callable[[int], int]]], rates: list[float],
-         duration: float) -> dict[str, float]:
+class Subscriber:
+    """One subscriber under test.
+
+    Args:
+        received: a counter of messages taken from DDS; a burst of n transitions is n + 1 states and n commands.
+        paired: for the learner, its count of paired transitions, which must then grow by n (the pairing and
+            decoding run in its training process and may finish after the burst: the lag is reported).
+    """
+
+    def __init__(self, received: Callable[[], int], paired: Callable[[], int] | None = None) -> None:
+        self.received, self.paired = received, paired
+
+
+def ramp(pub: Child, subscribers: dict[str, Subscriber], rates: list[float], duration: float) -> dict[str, float]:
     """Bursts at increasing rates, every subscriber receiving the same burst, until each has failed.
 
-    ``subscribers[name] = (received, per_burst)``: ``received()`` is a counter that must grow by
-    ``per_burst(n)`` for a burst of ``n`` transitions. A subscriber fails at a rate when it loses messages in
-    two bursts in a row at that rate (one retry, because the machine is shared and a single loss may be another
-    process's CPU spike). Returns each one's lossless ceiling: the achieved transitions/s of its fastest
-    lossless burst below the rate it failed at.
+    A subscriber fails at a rate when two bursts in a row at that rate lose messages (one retry, because the
+    machine is shared and a single loss may be another process's CPU spike); for the learner a burst also fails
+    if its transitions are not all paired within 30 s. Returns each one's lossless ceiling: the achieved
+    transitions/s of its fastest lossless burst below the rate it failed at.
     """
     best = dict.fromkeys(subscribers, 0.0)
     failed: set[str] = set()
@@ -270,21 +283,28 @@ def ramp(pub: Child, subscribers: dict[str, tuple[Callable[[], int], Callable[[i
         lost_once: set[str] = set()
         for attempt in range(2):
             n = max(50, int(rate * duration))
-            before = {k: rec() for k, (rec, _) in subscribers.items()}
+            before = {k: (sub.received(), sub.paired() if sub.paired else 0) for k, sub in subscribers.items()}
             reply = pub.ask(f"burst {rate} {n} {segment}")
             segment += 1
             achieved = n / float(reply.split()[1])
             line = f"  {rate:6.0f}/s (published at {achieved:6.0f}/s){' retry' if attempt else '      '}:"
             lost_now: set[str] = set()
-            for name, (rec, per_burst) in subscribers.items():
-                want = per_burst(n)
-                got = settle(lambda r=rec, b=before[name]: r() - b, want)
-                if got == want:
+            for name, sub in subscribers.items():
+                want = 2 * n + 1
+                got = settle(lambda r=sub.received, b=before[name][0]: r() - b, want)
+                ok = got == want
+                note = ""
+                if ok and sub.paired is not None:
+                    t0 = time.monotonic()
+                    paired = settle(lambda r=sub.paired, b=before[name][1]: r() - b, n, quiet=30.0, timeout=30.0)
+                    ok = paired == n
+                    note = f" paired {paired}/{n} (+{time.monotonic() - t0:.1f} s)"
+                if ok:
                     if name not in failed:
                         best[name] = max(best[name], achieved)
                 else:
                     lost_now.add(name)
-                line += f"  {name} {got}/{want} {'ok' if got == want else 'LOSS'}"
+                line += f"  {name} {got}/{want}{note} {'ok' if ok else 'LOSS'}"
             print(line, flush=True)
             if attempt == 0:
                 lost_once = lost_now - failed
@@ -300,7 +320,7 @@ def ramp(pub: Child, subscribers: dict[str, tuple[Callable[[], int], Callable[[i
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--role", choices=["main", "publisher", "bare"], default="main", help=argparse.SUPPRESS)
-    p.add_argument("--start", type=float, default=400.0, help="first rate, transitions/s")
+    p.add_argument("--start", type=float, default=600.0, help="first rate, transitions/s")
     p.add_argument("--step", type=float, default=1.1, help="rate multiplier between bursts")
     p.add_argument("--max-rate", type=float, default=5000.0, help="last rate tried, transitions/s")
     p.add_argument("--duration", type=float, default=2.0, help="seconds per burst")
@@ -345,11 +365,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                 def bare_received() -> int:
                     return sum(int(v) for v in bare.ask("count").split())
 
-                # a burst of n transitions is n + 1 states and n commands (bare) / n paired transitions (learner)
                 t_ramp = time.monotonic()
-                best = ramp(pub, {"bare": (bare_received, lambda n: 2 * n + 1),
-                                  "learner": (lambda: listener.get(f"{NS}/paired"), lambda n: n)},
-                            rates, args.duration)
+                best = ramp(pub, {
+                    "bare": Subscriber(bare_received),
+                    "learner": Subscriber(
+                        lambda: listener.get(f"{NS}/received/state") + listener.get(f"{NS}/received/applied_cmd"),
+                        lambda: listener.get(f"{NS}/paired")),
+                }, rates, args.duration)
                 updates = listener.get("updates")
                 ramp_s = time.monotonic() - t_ramp
             finally:

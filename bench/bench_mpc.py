@@ -62,14 +62,17 @@ class Stats:
     wall: list[float] = field(default_factory=list)
     cpu: list[float] = field(default_factory=list)
     cost: list[float] = field(default_factory=list)
-    infeasible: int = 0
+    feasible: list[bool] = field(default_factory=list)
+
+    @property
+    def infeasible(self) -> int:
+        return len(self.feasible) - sum(self.feasible)
 
     def add(self, res: MPCResult, cpu: float) -> None:
         self.wall.append(res.solve_time)
         self.cpu.append(cpu)
         self.cost.append(res.cost)
-        avoidable = "unavoidable" not in res.message
-        self.infeasible += int(not res.success and avoidable)
+        self.feasible.append(res.success or "unavoidable" in res.message)
 
 
 def timed(solve: Callable[[], MPCResult]) -> tuple[MPCResult, float]:
@@ -86,6 +89,7 @@ def shooting_problems(system: System, model: DynamicsModel, starts: list[np.ndar
     assert isinstance(ctrl, ShootingMPC)
     problems: list[tuple[np.ndarray, Any]] = []
     times: list[float] = []
+    cpus: list[float] = []
     stage: list[float] = []
     for x0 in starts:
         ctrl.reset()
@@ -93,12 +97,14 @@ def shooting_problems(system: System, model: DynamicsModel, starts: list[np.ndar
         for _ in range(steps):
             warm = ctrl.warm_start_plan()
             problems.append((x.copy(), warm))
-            res = ctrl.solve(x, goal)
+            res, cpu = timed(lambda x=x: ctrl.solve(x, goal))  # type: ignore[misc]
             times.append(res.solve_time)
+            cpus.append(cpu)
             x = system.true_step_np(x, res.u)
             stage.append(float(np.linalg.norm(_stage_residual(system, x, goal))))
     t = np.array(times)
     return problems, {"mean": t.mean(), "p95": np.percentile(t, 95), "max": t.max(), "n": t.size,
+                      "cpu": float(np.mean(cpus)),
                       "stage": float(np.sum(stage) / len(starts))}
 
 
@@ -186,22 +192,37 @@ def main(argv: list[str] | None = None) -> int:
     for name, res in results.items():
         for solver in ("fast", "slsqp"):
             print(row(name, solver, res[solver]))
-    print(f"\n{'system':<12} {'rate fast/slsqp (wall)':>23} {'(cpu)':>8} {'mean cost fast/slsqp':>21}  target: >= 20x at <= 1")
+    print(f"\n{'system':<12} {'rate fast/slsqp: wall':>22} {'cpu':>7} {'mean cost fast/slsqp: all':>26} "
+          f"{'both feasible':>14}  target (cpu rate >= 20x, cost <= 1)")
     for name, res in results.items():
         f, s = res["fast"], res["slsqp"]
         ratio_wall = np.mean(s.wall) / np.mean(f.wall)
         ratio_cpu = np.mean(s.cpu) / np.mean(f.cpu)
         cost_ratio = np.mean(f.cost) / np.mean(s.cost)
-        ok = "yes" if ratio_wall >= 20 and cost_ratio <= 1.0 + 1e-9 else "NO"
-        print(f"{name:<12} {ratio_wall:>22.1f}x {ratio_cpu:>7.1f}x {cost_ratio:>21.4f}  {ok}")
+        # a plan that violates a constraint can undercut the cost: compare where both plans are feasible
+        both = np.array(f.feasible) & np.array(s.feasible)
+        cost_both = np.mean(np.array(f.cost)[both]) / np.mean(np.array(s.cost)[both])
+        ok = "yes" if ratio_cpu >= 20 and cost_both <= 1.0 + 1e-9 else "NO"
+        print(f"{name:<12} {ratio_wall:>21.1f}x {ratio_cpu:>6.1f}x {cost_ratio:>26.4f} {cost_both:>14.4f}  {ok}")
+
+    f, r = results["paddle_ball"]["fast"], results["paddle_ball"]["slsqp"]
+    reach = np.array(r.cost) < 1e-3
+    for label, sel in (("reachable", reach), ("unreachable", ~reach)):
+        if sel.any():
+            tf, tr = np.mean(np.array(f.wall)[sel]), np.mean(np.array(r.wall)[sel])
+            print(f"paddle_ball {label:<11} targets ({int(sel.sum())}): fast {1e3 * tf:.2f} ms, slsqp {1e3 * tr:.2f} ms, "
+                  f"{tr / tf:.1f}x; mean cost fast {np.mean(np.array(f.cost)[sel]):.4f}, "
+                  f"slsqp {np.mean(np.array(r.cost)[sel]):.4f}")
 
     print("\n2. fast controller in closed loop on the true system (warm-started), one core")
-    print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'stage cost':>11}")
+    print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'cpu ms':>8} "
+          f"{'stage cost':>11}")
     for name, loop in (("friction", fr_loop), ("quadrotor", quad_loop)):
         print(f"{name:<12} {loop['n']:>6} {1e3 * loop['mean']:>8.2f} {1e3 * loop['p95']:>8.2f} "
-              f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {loop['stage']:>11.3f}")
+              f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {1e3 * loop['cpu']:>8.2f} {loop['stage']:>11.3f}")
     quad_hz = 1 / quad_loop["mean"]
-    print(f"quadrotor target >= 100 Hz (mean solve <= 10 ms): {'yes' if quad_hz >= 100 else 'NO'} ({quad_hz:.0f} Hz)")
+    print(f"quadrotor target >= 100 Hz (mean solve <= 10 ms wall): {'yes' if quad_hz >= 100 else 'NO'} "
+          f"({quad_hz:.0f} Hz wall, {1 / quad_loop['cpu']:.0f} Hz by CPU time)")
     out = closed_loop(quad, make_controller(quad, models["quadrotor"]), quad_starts[0], 50)
     print(f"quadrotor landing from {quad_starts[0][:3].tolist()}: final position {np.round(out['xs'][-1, :3], 3).tolist()}")
     print(f"\ntotal {time.perf_counter() - t_start:.0f} s")

@@ -3,12 +3,14 @@
 A thin rclpy wrapper over :class:`saml_ros.core.online.OnlineLearner` (see docs/learner.md):
 
 * subscribes, per namespace in ``namespaces``, to ``state``, ``applied_cmd`` (and ``post_impact`` for the
-  paddle ball) with ``DATA_QOS`` in one callback group; each message is decoded by ``msg_schemas`` and fed
-  to the namespace's stamp pairer; malformed / duplicate / out-of-order / late messages are counted under
-  ``rejected/<reason>`` and logged (throttled per reason), never paired;
-* trains in a separate, niced process (:class:`saml_ros.core.online.TrainingProcess`: the replay buffer, the
-  primal-dual steps, the live model error and a checkpoint every ``checkpoint_period`` seconds live there), so
-  training never competes with ingest for Python's GIL and the OS runs ingest first when CPUs are short;
+  paddle ball) with ``DATA_QOS`` in one callback group, taking the *serialized* messages (``raw=True``): the
+  callbacks only count and queue them (building Python message objects is most of a subscriber's cost);
+* a niced training process (:class:`saml_ros.core.online.TrainingProcess`) gets them in batches, deserializes
+  and converts them with msg_schemas (:func:`make_decoder`), pairs them per namespace (malformed / duplicate /
+  out-of-order / late messages are counted under ``rejected/<reason>`` and logged, throttled per reason, never
+  paired) and trains: replay buffer, primal-dual steps, the live model error, a checkpoint every
+  ``checkpoint_period`` s. Training never competes with ingest for Python's GIL, and the OS runs this process
+  first when CPUs are short;
 * publishes ``learner/model_error`` (sensor_msgs/JointState, names -> values) at ``telemetry_rate``,
   ``learner/checkpoint`` (std_msgs/String JSON, transient local) after every checkpoint and ``/diagnostics``;
 * on SIGINT / SIGTERM writes a final checkpoint and exits 0. Configuration errors (unknown system, bad spec,
@@ -29,8 +31,6 @@ import math
 import os
 import signal
 import sys
-import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,27 +97,6 @@ def topic_in(ns: str, name: str) -> str:
     return f"/{name}" if ns == "/" else f"{ns}/{name}"
 
 
-class _Throttle:
-    """Per-key log throttling: the first event of each key is logged at once, later ones at most every
-    ``period`` seconds with the number suppressed in between."""
-
-    def __init__(self, log: Callable[[str], Any], period: float = 5.0) -> None:
-        self._log, self._period = log, period
-        self._state: dict[str, tuple[float, int]] = {}
-        self._lock = threading.Lock()
-
-    def __call__(self, key: str, message: str) -> None:
-        now = time.monotonic()
-        with self._lock:
-            last, suppressed = self._state.get(key, (-math.inf, 0))
-            if now - last < self._period:
-                self._state[key] = (last, suppressed + 1)
-                return
-            self._state[key] = (now, 0)
-        more = f" ({suppressed} more '{key}' since the last report)" if suppressed else ""
-        self._log(f"rejected/{key}: {message}{more}")
-
-
 def _build_node_class() -> type:
     """The node class (built on demand so this module imports without rclpy for docs and tests)."""
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -125,7 +104,7 @@ def _build_node_class() -> type:
     from rclpy.parameter import Parameter
 
     import msg_schemas.telemetry as tele
-    from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, SchemaError, get_schema
+    from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, get_schema
     from saml_ros.core.checkpoint import CheckpointStore
     from saml_ros.core.model_io import system_params
     from saml_ros.core.online import (
@@ -136,7 +115,7 @@ def _build_node_class() -> type:
         TrainingProcess,
         assemble_telemetry,
     )
-    from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
+    from saml_ros.core.pairing import PairingConfig
     from saml_ros.core.spec import ProblemSpec, SpecError
     from saml_ros.core.systems import get_system
     from saml_ros.core.trainer import TrainConfig
@@ -177,14 +156,23 @@ def _build_node_class() -> type:
                 CheckpointStore(run_dir, keep=p.checkpoint_keep)  # fail here, clearly, if it cannot be created
             except OSError as exc:
                 raise ConfigError(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
+            sc = self.schema
+            kinds = [("state", sc.state_topic, sc.state.msg_type), ("applied_cmd", sc.applied_cmd_topic,
+                                                                    sc.control.msg_type)]
+            if sc.target_pairing == "same":
+                kinds.append(("target", sc.target_topic, sc.target.msg_type))
+            #: one channel per (namespace, kind): (namespace, kind, topic, message type)
+            self.channels = [(ns, kind, topic_in(ns, name), msg_type)
+                             for ns in p.namespaces for kind, name, msg_type in kinds]
+            self.received = [0] * len(self.channels)
             setup = LearnerSetup(
                 system=p.system, system_params=system_params(self.system), spec=self.spec.to_dict(), config=config,
                 run_dir=str(run_dir), resume=p.resume, loop=loop, niceness=p.training_niceness,
+                sources=tuple((ns, pairing) for ns in p.namespaces),
+                channels=tuple((p.namespaces.index(ns), kind) for ns, kind, _, _ in self.channels),
+                decoder="saml_ros.learner_node:make_decoder",
+                decoder_args=(p.system, [(kind, topic) for _, kind, topic, _ in self.channels]),
             )
-            self._tele = tele
-            self._throttle = _Throttle(self.get_logger().warning)
-            self._last_unpaired = 0
-            self.pairers = [StampPairer(pairing, i, ns) for i, ns in enumerate(p.namespaces)]
             self.trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
                                            on_error=self._child_error)
             try:
@@ -205,20 +193,14 @@ def _build_node_class() -> type:
             self.pub_diag = self.create_publisher(
                 self._msg_type(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy()
             )
-            self._subs: list[tuple[str, str, Any]] = []  # (namespace, kind, subscription)
+            # raw=True: the callback gets the serialized message, decoded in the training process; building Python
+            # message objects here is most of a bare subscriber's per-message cost
             data_qos = DATA_QOS.to_rclpy()
-            sc = self.schema
-            kinds = [("state", sc.state_topic, sc.state_from_msg, sc.state.msg_type),
-                     ("applied_cmd", sc.applied_cmd_topic, sc.control_from_msg, sc.control.msg_type)]
-            if sc.target_pairing == "same":
-                kinds.append(("target", sc.target_topic, sc.target_from_msg, sc.target.msg_type))
-            for pairer in self.pairers:
-                for kind, name, decode, msg_type in kinds:
-                    topic = topic_in(pairer.name, name)
-                    cb = self._make_callback(pairer, kind, topic, decode)
-                    self._subs.append((pairer.name, kind, self.create_subscription(
-                        self._msg_type(msg_type), topic, cb, data_qos, callback_group=self.data_group
-                    )))
+            self._subs = [
+                self.create_subscription(self._msg_type(msg_type), topic, self._make_callback(ch), data_qos,
+                                         callback_group=self.data_group, raw=True)
+                for ch, (_, _, topic, msg_type) in enumerate(self.channels)
+            ]
             self.create_timer(1.0 / p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group)
             self.create_timer(1.0 / p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group)
             r = ready.resumed
@@ -326,28 +308,12 @@ def _build_node_class() -> type:
             return RCLPY.cls(type_name)
 
         # ------------------------------------------------------------------------------ ingest
-        def _make_callback(self, pairer: Any, kind: str, topic: str, decode: Callable[..., Any]
-                           ) -> Callable[[Any], None]:
-            throttle, schema_error, submit = self._throttle, SchemaError, self.trainer.submit
+        def _make_callback(self, channel: int) -> Callable[[bytes], None]:
+            submit, received = self.trainer.submit_raw, self.received
 
-            def callback(msg: Any) -> None:
-                try:
-                    vec, stamp = decode(msg, topic)
-                except schema_error as exc:
-                    pairer.reject(exc.reason, kind)
-                    throttle(exc.reason, str(exc))
-                    return
-                except Exception as exc:  # noqa: BLE001 - a message no codec expects must not kill ingest
-                    pairer.reject("format", kind)
-                    throttle("format", f"{topic}: cannot decode ({type(exc).__name__}: {exc})")
-                    return
-                res = pairer.add(kind, stamp, vec)
-                for tr in res.transitions:
-                    submit(tr)
-                if res.rejected is not None:
-                    throttle(res.rejected, f"{topic}: {res.detail}")
-                elif res.detail:
-                    self.get_logger().warning(res.detail)
+            def callback(data: bytes) -> None:
+                received[channel] += 1
+                submit(channel, data)
 
             return callback
 
@@ -384,7 +350,7 @@ def _build_node_class() -> type:
             elif status.get("updates", 0) > 0 or final[1] > 0:
                 self.get_logger().info(f"shutdown: checkpoint version {final[1]} is current ({final[2]} updates)")
             else:
-                paired = total_counts(pr.counts for pr in self.pairers).get("paired", 0)
+                paired = self.trainer.counts().get("paired", 0)
                 self.get_logger().info(f"shutdown: no checkpoint written, training never started ({paired}/"
                                        f"{self.p.min_transitions} transitions)")
 
@@ -392,15 +358,12 @@ def _build_node_class() -> type:
         def _stamp_ns(self) -> int:
             return max(0, int(self.get_clock().now().nanoseconds))
 
-        def _counts(self) -> dict[str, int]:
-            return total_counts(dict(list(pr.counts.items())) for pr in self.pairers)
-
         def _publish_telemetry(self) -> None:
-            values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self._counts())
+            values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self.trainer.counts())
             self.pub_error.publish(tele.model_error_to_msg(values, self._stamp_ns()))
 
         def _publish_diagnostics(self) -> None:
-            totals = self._counts()
+            totals = self.trainer.counts()
             st, tr = self.trainer.status, self.trainer
             values: dict[str, Any] = {"paired": totals.get("paired", 0)}
             for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written",
@@ -411,19 +374,15 @@ def _build_node_class() -> type:
                 values[f"rejected/{reason}"] = totals.get(reason, 0)
             for key in ("time_resets", "reanchors", "expired", "overflow"):
                 values[key] = totals.get(key, 0)
-            for pairer in self.pairers:
-                c = dict(list(pairer.counts.items()))
-                for key in ("received/state", "received/applied_cmd", "received/target", "paired"):
-                    values[f"{pairer.name}/{key}"] = c.get(key, 0)
+            by_source = tr.source_counts
+            for ns in self.p.namespaces:
+                c = by_source.get(ns, {})
+                values[f"{ns}/paired"] = c.get("paired", 0)
                 for reason in tele.REJECT_REASONS:
-                    values[f"{pairer.name}/rejected/{reason}"] = c.get(reason, 0)
-            for ns, kind, sub in self._subs:
-                values[f"{ns}/publishers/{kind}"] = sub.get_publisher_count()
-            unpaired = totals.get("unpaired", 0)
-            if unpaired > self._last_unpaired:
-                self._throttle("unpaired", f"{unpaired - self._last_unpaired} message(s) dropped from the pairing "
-                               f"window ({self.p.pairing_window} states) without ever being paired")
-            self._last_unpaired = unpaired
+                    values[f"{ns}/rejected/{reason}"] = c.get(reason, 0)
+            for ch, (ns, kind, _, _) in enumerate(self.channels):
+                values[f"{ns}/received/{kind}"] = self.received[ch]
+                values[f"{ns}/publishers/{kind}"] = self._subs[ch].get_publisher_count()
             rejected = sum(totals.get(r, 0) for r in tele.REJECT_REASONS)
             level = tele.ERROR if tr.errors or tr.dropped else (tele.WARN if rejected else tele.OK)
             message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
@@ -432,6 +391,35 @@ def _build_node_class() -> type:
             self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
     return LearnerNode
+
+
+def make_decoder(args: tuple[str, list[tuple[str, str]]]) -> Callable[[int, bytes], tuple[Any, int]]:
+    """Decoder of the node's raw messages, built in the training process (``LearnerSetup.decoder``).
+
+    ``args = (system, [(kind, topic) per channel])``; the returned ``decode(channel, payload)`` deserializes the
+    CDR bytes into the channel's stock message and converts it with msg_schemas, returning ``(vector, stamp_ns)``
+    or raising :class:`msg_schemas.SchemaError` (reason ``shape``, ``names``, ``nan``, ...).
+    """
+    from rclpy.serialization import deserialize_message
+
+    from msg_schemas import RCLPY, SchemaError, get_schema
+
+    system, channels = args
+    sc = get_schema(system)
+    codecs = {"state": (sc.state, sc.state_from_msg), "applied_cmd": (sc.control, sc.control_from_msg),
+              "target": (sc.target, sc.target_from_msg)}
+    table = [(RCLPY.cls(codecs[kind][0].msg_type), codecs[kind][1], topic) for kind, topic in channels]
+
+    def decode(channel: int, payload: bytes) -> tuple[Any, int]:
+        cls, from_msg, topic = table[channel]
+        try:
+            msg = deserialize_message(payload, cls)
+        except Exception as exc:  # noqa: BLE001 - malformed CDR
+            raise SchemaError(topic, "(serialized)", "format", f"cannot deserialize: {exc}") from None
+        vec, stamp = from_msg(msg, topic)
+        return vec, stamp
+
+    return decode
 
 
 def create_node(launched: Any = None) -> Any:

@@ -105,10 +105,15 @@ def test_friction_experiment_tiny(tmp_path: Path) -> None:
             # the cost sums |p_t| from the start on, and the normalised cost divides by |p0|
             assert np.all(c["raw"] >= np.abs(p0[:n_starts]) - 1e-12)
             np.testing.assert_allclose(c["norm"], c["raw"] / np.abs(p0[:n_starts]))
+            np.testing.assert_array_equal(c["stuck"], np.abs(c["final"][..., 0]) > 0.05)
             ch = c["checks"]
             assert ch.solves == n_seeds * n_starts * s.steps
             assert ch.max_u_violation == 0.0  # |u| <= 10 on every returned plan
         assert data["paired"][solver]["raw_by_start"].n == n_seeds * n_starts
+    from saml_ros.core.model_io import load_model
+
+    loaded = load_model(tmp_path / saved["models"]["sufficient"])
+    assert loaded.model.n_models == 2 and loaded.meta["seeds"] == [0, 1]
     errs = saved["model_errors"]["near_origin"]
     assert len(errs["uniform"]["inside"]) == 2 and 0 < errs["frac_inside"] < 0.2
     assert "| Sufficiently Accurate |" in (tmp_path / "results.md").read_text()
@@ -151,7 +156,7 @@ def paddle_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str
     from saml_ros.experiments.paddle_ball import PaddleSettings, run
 
     out = tmp_path_factory.mktemp("paddle")
-    s = PaddleSettings(n_impacts=150, n_val=60, epochs=8, n_trials=6)
+    s = PaddleSettings(seeds=(0, 1), mpc_seeds=2, n_impacts=150, n_val=60, epochs=8, n_trials=6)
     return out, run(s, out, progress=False), s
 
 
@@ -160,14 +165,17 @@ def test_paddle_experiment_tiny(paddle_run: tuple[Path, dict[str, Any], Any]) ->
     saved = check_outputs(out, data)
     assert set(data["control"]) == {"base", "full/uniform", "full/sufficient", "residual/uniform",
                                     "residual/sufficient"}
-    for c in data["control"].values():
-        assert c["failed"].shape == (s.n_trials,) and c["failed"].dtype == bool
+    for name, c in data["control"].items():
+        n = s.n_trials * (1 if name == "base" else 2)  # learned models: both seeds' members, trial by trial
+        assert c["failed"].shape == (n,) and c["failed"].dtype == bool
+        assert not np.any(c["lost"] & ~c["failed"])
         assert np.all(np.isfinite(c["error"][~c["failed"]])) and np.all(np.isnan(c["error"][c["failed"]]))
         assert c["max_box_violation"] == 0.0  # control bounds on every returned command
         assert c["max_angle_violation"] <= 1e-6  # roll / pitch bounds
         assert c["max_speed_violation_success"] <= 1e-3  # |v_rel| bounds when the solver reports success
     assert saved["data"]["n_train"] == s.n_impacts
     assert set(data["paired"]) == {"full", "residual"}
+    assert data["paired"]["full"]["failure"].n == 2 * s.n_trials
 
 
 def test_paddle_trial_measures_landing_against_target() -> None:

@@ -21,6 +21,7 @@ from saml_ros.core.online import (
     LoopConfig,
     OnlineConfig,
     OnlineLearner,
+    RawIngest,
     ResumeError,
     TrainingProcess,
 )
@@ -370,3 +371,40 @@ def test_the_node_prelaunches_the_same_training_interpreter() -> None:
     from saml_ros.core.online import CHILD_CODE
 
     assert learner_node.TRAINER_CODE == CHILD_CODE
+
+
+class _Bad(ValueError):
+    def __init__(self, reason: str) -> None:
+        super().__init__(f"bad message ({reason})")
+        self.reason = reason
+
+
+def test_raw_ingest_decodes_pairs_and_counts_rejections(caplog: pytest.LogCaptureFixture) -> None:
+    """What the training process does with the node's raw messages: decode, pair, count and log rejections."""
+    learner = new_learner()
+    learner.add_source("/a", pairing())
+    learner.add_source("/b", pairing())
+    channels = [(0, "state"), (0, "applied_cmd"), (1, "state"), (1, "applied_cmd")]
+
+    def decode(channel: int, payload: object) -> tuple[np.ndarray, int]:
+        if isinstance(payload, str):
+            raise _Bad(payload)
+        vec, stamp = payload  # type: ignore[misc]
+        return np.asarray(vec), int(stamp)
+
+    raw = RawIngest(learner, channels, decode)
+    items: list[tuple[int, object]] = []
+    for src in (0, 1):
+        for tr in transitions(20, seed=30 + src):
+            items += [(2 * src, (tr.x, tr.stamp_ns)), (2 * src + 1, (tr.u, tr.stamp_ns)),
+                      (2 * src, (tr.y, tr.stamp_ns + DT))]
+    items.insert(7, (1, "nan"))
+    items.insert(9, (2, "names"))
+    items.insert(11, (0, (np.array([1.0, 2.0, 3.0]), 10**12)))  # wrong length, caught by the pairer
+    with caplog.at_level("WARNING", logger="saml_ros"):
+        raw.feed(items)
+    assert [p.counts["paired"] for p in learner.sources] == [20, 20] and len(learner.buffer) == 40
+    a, b = (p.counts for p in learner.sources)
+    assert (a["nan"], a["shape"], b["names"]) == (1, 1, 1)
+    assert a["received/applied_cmd"] == 21 and b["received/state"] == 41
+    assert "rejected/nan: bad message (nan)" in caplog.text and "rejected/names" in caplog.text

@@ -583,6 +583,12 @@ class LearnerSetup:
         loop: pacing of the training loop.
         niceness: added to the training process's nice value, so the OS runs ingest (and simulators, MPC)
             first when CPUs are short; 0 keeps the parent's priority.
+        sources: ``(name, pairing)`` of each source, in index order (for raw messages; see below).
+        channels: ``(source index, kind)`` of each raw-message channel.
+        decoder: ``"module:function"``; ``function(decoder_args)`` returns ``decode(channel, payload) ->
+            (vector, stamp_ns)`` for raw messages (it raises an exception with a ``reason`` attribute, e.g.
+            ``msg_schemas.SchemaError``, for a malformed one). Keeps message formats (and rclpy) out of core.
+        decoder_args: picklable argument of the decoder factory.
     """
 
     system: str
@@ -593,6 +599,10 @@ class LearnerSetup:
     resume: bool = True
     loop: LoopConfig = field(default_factory=LoopConfig)
     niceness: int = 10
+    sources: tuple[tuple[str, PairingConfig], ...] = ()
+    channels: tuple[tuple[int, str], ...] = ()
+    decoder: str | None = None
+    decoder_args: Any = None
 
     def build(self) -> OnlineLearner:
         from saml_ros.core.systems import get_system
@@ -600,17 +610,98 @@ class LearnerSetup:
         system = get_system(self.system, **self.system_params)
         spec = ProblemSpec.for_system(self.spec, system)
         store = None if self.run_dir is None else CheckpointStore(self.run_dir, keep=self.config.checkpoint_keep)
-        return OnlineLearner(system, spec, self.config, store=store, resume=self.resume)
+        learner = OnlineLearner(system, spec, self.config, store=store, resume=self.resume)
+        for name, pairing in self.sources:
+            learner.add_source(name, pairing)
+        return learner
+
+    def make_decoder(self) -> Callable[[int, Any], tuple[Any, int]] | None:
+        """The raw-message decoder (imports ``decoder``'s module), or None."""
+        if self.decoder is None:
+            return None
+        import importlib
+
+        module, func = self.decoder.split(":")
+        factory: Callable[[Any], Callable[[int, Any], tuple[Any, int]]] = getattr(
+            importlib.import_module(module), func
+        )
+        return factory(self.decoder_args)
 
 
-def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable[[tuple[Any, ...]], None]) -> None:
+class Throttle:
+    """Per-key log throttling: the first event of each key is logged at once, later ones at most every
+    ``period`` seconds with the number suppressed in between."""
+
+    def __init__(self, emit: Callable[[str], Any], period: float = 5.0) -> None:
+        self._emit, self._period = emit, period
+        self._state: dict[str, tuple[float, int]] = {}
+
+    def __call__(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        last, suppressed = self._state.get(key, (-math.inf, 0))
+        if now - last < self._period:
+            self._state[key] = (last, suppressed + 1)
+            return
+        self._state[key] = (now, 0)
+        more = f" ({suppressed} more '{key}' since the last report)" if suppressed else ""
+        self._emit(f"rejected/{key}: {message}{more}")
+
+
+class RawIngest:
+    """Decodes raw (serialized) messages and feeds them to an :class:`OnlineLearner`'s pairers; every
+    rejection is counted and logged (throttled per reason)."""
+
+    def __init__(self, learner: OnlineLearner, channels: Sequence[tuple[int, str]],
+                 decode: Callable[[int, Any], tuple[Any, int]]) -> None:
+        self.learner, self.channels, self.decode = learner, list(channels), decode
+        self.throttle = Throttle(log.warning)
+        self._unpaired = 0
+
+    def feed(self, items: Sequence[tuple[int, Any]]) -> None:
+        """``[(channel, payload), ...]`` in arrival order."""
+        learner = self.learner
+        for channel, payload in items:
+            src, kind = self.channels[channel]
+            try:
+                vec, stamp = self.decode(channel, payload)
+            except Exception as exc:  # noqa: BLE001 - any malformed message is counted, never fatal
+                reason = getattr(exc, "reason", None) or "format"
+                learner.reject(src, reason, kind)
+                self.throttle(reason, str(exc) if reason != "format" else f"{type(exc).__name__}: {exc}")
+                continue
+            res = learner.ingest(src, kind, stamp, vec)
+            if res.rejected is not None:
+                self.throttle(res.rejected, res.detail)
+            elif res.detail:
+                log.warning(res.detail)
+
+    def check_orphans(self) -> None:
+        """Log (throttled) when messages left the pairing window without ever being paired."""
+        unpaired = self.learner.counts().get("unpaired", 0)
+        if unpaired > self._unpaired:
+            self.throttle("unpaired", f"{unpaired - self._unpaired} message(s) left the pairing window without "
+                                      "ever being paired")
+        self._unpaired = unpaired
+
+
+def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable[[tuple[Any, ...]], None],
+             raw: RawIngest | None = None) -> None:
     """The training loop of a training process (or any thread owning ``learner``).
 
-    ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)`` and
-    ``("stop",)``; ``send`` reports ``("status", dict)`` at ``loop.telemetry_rate``, ``("checkpoint", path,
+    ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
+    (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``) and ``("stop",)``.
+    The whole inbox is handled before every chunk of updates, so ingest goes first. ``send`` reports
+    ``("status", status, {source name: counters})`` at ``loop.telemetry_rate``, ``("checkpoint", path,
     version)`` after each save, ``("error", what, message)`` and, on stop, ``("stopped", path | None, version,
     updates)`` after a final checkpoint (when there are updates not yet saved). Returns after a stop.
     """
+
+    def report() -> None:
+        learner.compute_model_metrics()
+        if raw is not None:
+            raw.check_orphans()
+        send(("status", learner.status(), {p.name: dict(p.counts) for p in learner.sources}))
+
     metrics_period = 1.0 / loop.telemetry_rate
     next_metrics = 0.0
     paced_from: float | None = None
@@ -618,19 +709,20 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable
     while True:
         while conn.poll():
             msg = conn.recv()
-            if msg[0] == "batch":
+            if msg[0] == "raw":
+                if raw is not None:
+                    raw.feed(msg[1])
+            elif msg[0] == "batch":
                 learner.add_batch(*msg[1:])
             elif msg[0] == "stop":
                 saved = _save(learner, send) if learner.dirty else None
-                learner.compute_model_metrics()
-                send(("status", learner.status()))
+                report()
                 path = str(saved[0]) if saved else None
                 send(("stopped", path, learner.model_version, learner.updates))
                 return
         now = time.monotonic()
         if now >= next_metrics:
-            learner.compute_model_metrics()
-            send(("status", learner.status()))
+            report()
             next_metrics = now + metrics_period
         if learner.checkpoint_due(loop.checkpoint_period):
             _save(learner, send)
@@ -756,6 +848,7 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
     try:
         try:
             learner = setup.build()
+            decode = setup.make_decoder()
         except ResumeError as exc:
             send(("fatal", "resume", str(exc)))
             return
@@ -765,8 +858,9 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
         r = learner.resumed
         info = None if r is None else {"path": str(r.path), "version": r.version, "updates": r.updates,
                                        "lam": r.lam, "skipped": [(str(p), why) for p, why in r.skipped]}
+        raw = None if decode is None else RawIngest(learner, setup.channels, decode)
         send(("ready", info, list(learner.model.hidden), learner.status()))
-        run_loop(learner, setup.loop, conn, send)
+        run_loop(learner, setup.loop, conn, send, raw)
     except (EOFError, OSError):
         return  # the parent is gone
 
@@ -791,13 +885,15 @@ class TrainingProcess:
 
     Why a process: the learner's ingest (rclpy callbacks: decode, pair) and primal-dual training are both
     Python; in one process they share the GIL, and training would take CPU time from ingest (measured: the
-    node then loses messages at under a third of a bare subscriber's rate). In a child process training runs
+    node then loses messages at under a third of a bare subscriber's rate; docs/learner.md). In a child process training runs
     on another CPU when there is one, and at a higher nice value (:attr:`LearnerSetup.niceness`) it yields
     the CPU to ingest when there is not.
 
-    The child owns the buffer, model, trainer, checkpoints and resume; this handle ships transitions to it in
-    batches (a shipper thread, so :meth:`submit` never blocks) and receives status, checkpoint
-    announcements, log records and errors (a reader thread, calling the callbacks). If the child dies
+    The child owns the buffer, model, trainer, checkpoints and resume (and, for raw messages, the decoding and
+    pairing: :class:`RawIngest`); this handle ships paired transitions (:meth:`submit`) or raw messages
+    (:meth:`submit_raw`) to it in batches every 5 ms (a shipper thread, so submitting never blocks) and receives
+    status, per-source counters, checkpoint announcements, log records and errors (a reader thread, calling the
+    callbacks). If the child dies
     unexpectedly it is restarted (resuming from the newest checkpoint) and ``on_error`` is told.
 
     Args:
@@ -818,7 +914,7 @@ class TrainingProcess:
         on_checkpoint: Callable[[str, int], None] | None = None,
         on_log: Callable[[int, str], None] | None = None,
         on_error: Callable[[str, str], None] | None = None,
-        max_queue: int = 1_000_000,
+        max_queue: int = 200_000,
     ) -> None:
         self.setup = setup
         self.on_status = on_status or (lambda s: None)
@@ -827,10 +923,13 @@ class TrainingProcess:
         self.on_error = on_error or (lambda what, text: log.error(text))
         self.max_queue = max_queue
         self.status: dict[str, float] = {}
+        #: per-source pairing counters of the child, ``{source name: {counter: value}}`` (see pairing.COUNTERS)
+        self.source_counts: dict[str, dict[str, int]] = {}
         self.dropped = 0
         self.restarts = 0
         self.errors = 0
         self._outbox: deque[Transition] = deque()
+        self._raw: deque[tuple[int, Any]] = deque()
         self._send_lock = threading.Lock()
         self._stopping = threading.Event()
         self._stopped = threading.Event()
@@ -916,14 +1015,35 @@ class TrainingProcess:
             return
         self._outbox.append(tr)
 
+    def submit_raw(self, channel: int, payload: Any) -> None:
+        """Queue one raw message for the child's decoder (never blocks; see ``max_queue``). Called from one
+        thread per channel set (an rclpy callback group), it only appends to a deque."""
+        if len(self._raw) >= self.max_queue:
+            self.dropped += 1
+            return
+        self._raw.append((channel, payload))
+
     @property
     def queued(self) -> int:
-        return len(self._outbox)
+        return len(self._outbox) + len(self._raw)
+
+    def counts(self) -> dict[str, int]:
+        """The child's pairing counters summed over sources (as of its last status)."""
+        return total_counts(self.source_counts.values())
 
     def _ship(self) -> None:
-        """Send queued transitions in batches every few ms (a blocking pipe write stalls this thread only)."""
+        """Send queued data in batches every few ms (a blocking pipe write stalls this thread only)."""
         while True:
             stopping = self._stopping.is_set()
+            n = len(self._raw)
+            if n:
+                items = [self._raw.popleft() for _ in range(n)]
+                try:
+                    with self._send_lock:
+                        self._conn.send(("raw", items))
+                except (OSError, ValueError):  # the child is being restarted: keep them
+                    self._raw.extendleft(reversed(items))
+                    time.sleep(0.1)
             n = len(self._outbox)
             if n:
                 trs = [self._outbox.popleft() for _ in range(n)]
@@ -941,7 +1061,7 @@ class TrainingProcess:
                 except (OSError, ValueError):  # the child is being restarted: keep the batch
                     self._outbox.extendleft(reversed(trs))
                     time.sleep(0.1)
-            if stopping and not self._outbox:
+            if stopping and not self._outbox and not self._raw:
                 return
             time.sleep(0.005)
 
@@ -959,6 +1079,7 @@ class TrainingProcess:
             kind = msg[0]
             if kind == "status":
                 self.status = msg[1]
+                self.source_counts = msg[2]
                 self.on_status(msg[1])
             elif kind == "checkpoint":
                 self.on_checkpoint(msg[1], msg[2])

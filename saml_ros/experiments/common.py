@@ -269,6 +269,21 @@ def compute_settings(threads: int = 1) -> Iterator[None]:
         torch.set_num_threads(old)
 
 
+def save_models(out: Path, trained: dict[str, Any]) -> dict[str, str]:
+    """Save each trained ensemble (``name -> TrainedModels``) as a checkpoint run directory ``out/models/<name>``
+    (load with ``saml_ros.core.model_io.load_model``; member i was trained with seed ``seeds[i]``).
+    Returns ``name -> checkpoint path``."""
+    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model_io import save_checkpoint
+
+    paths = {}
+    for name, tm in trained.items():
+        path, _ = save_checkpoint(CheckpointStore(out / "models" / name.replace("/", "_")), tm.trainer,
+                                  extra={"seeds": list(tm.seeds)})
+        paths[name] = str(path.relative_to(out))
+    return paths
+
+
 def machine_info() -> dict[str, Any]:
     """Facts that affect wall times: CPU count, torch threads, load average."""
     import os

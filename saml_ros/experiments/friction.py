@@ -31,12 +31,16 @@ from saml_ros.experiments.common import (
     Timer,
     compute_settings,
     flush_denormals,
+    fmt,
     fmt_ms,
+    fmt_p,
     machine_info,
     md_table,
     paired,
+    paired_rate,
     progress_bar,
     quiet_trainer_warnings,
+    save_models,
     write_results,
 )
 from saml_ros.experiments.control import PlanChecks, closed_loop, make_mpc
@@ -48,6 +52,8 @@ PAPER_COST = {"uniform": ("5.51 ± 3.46", "5.66 ± 0.89"), "sufficient": ("4.73 
 #: the paper's model-error table (overall, in region, out of region)
 PAPER_ERRORS = {"uniform": ("0.110 ± 0.098", "0.083 ± 0.054", "0.113 ± 0.10"),
                 "sufficient": ("0.136 ± 0.126", "0.048 ± 0.040", "0.146 ± 0.13")}
+#: a closed loop that ends farther than this from the origin (m) "got stuck" (friction holds it there)
+STUCK_DISTANCE = 0.05
 LABELS = {"uniform": "Uniformly Accurate", "sufficient": "Sufficiently Accurate", "base": "base model f_hat only"}
 
 
@@ -109,6 +115,7 @@ def evaluate_controller(system: FrictionDoubleIntegrator, model: DynamicsModel |
             bar.update(1)
     t = np.concatenate(times)
     return {"raw": np.asarray(raw), "norm": np.asarray(norm), "final": np.asarray(final),
+            "stuck": np.abs(np.asarray(final)[:, 0]) > STUCK_DISTANCE,
             "solve_time_mean": float(t.mean()), "solve_time_max": float(t.max()), "checks": checks}
 
 
@@ -153,9 +160,10 @@ def _run(settings: FrictionSettings, out: Path, progress: bool) -> dict[str, Any
                                                                bar)])}
     bar.close()
     with timer("figures"):
-        figs = figures(system, cmp, s, out)
+        figs = figures(system, cmp, s, out, stuck_start(control, x0s))
     data = {
         "settings": s.__dict__, "spec": spec.to_dict(), "starts": x0s[:, 0],
+        "models": save_models(out, {"sufficient": cmp.sufficient, "uniform": cmp.uniform}),
         "model_errors": model_error_data(cmp),
         "control": control, "paired": paired_results(control),
         "training": {"train_seconds": {"sufficient": cmp.sufficient.train_seconds,
@@ -175,6 +183,7 @@ def _stack(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
     for r in per_seed:
         checks.merge(r["checks"])
     return {"raw": np.stack([r["raw"] for r in per_seed]), "norm": np.stack([r["norm"] for r in per_seed]),
+            "stuck": np.stack([r["stuck"] for r in per_seed]),
             "final": np.stack([r["final"] for r in per_seed]),
             "solve_time_mean": float(np.mean([r["solve_time_mean"] for r in per_seed])),
             "solve_time_max": float(np.max([r["solve_time_max"] for r in per_seed])), "checks": checks}
@@ -191,6 +200,7 @@ def paired_results(control: dict[str, Any]) -> dict[str, Any]:
             "raw_by_start": paired(ua["raw"], sa["raw"]),
             "norm_by_start": paired(ua["norm"], sa["norm"]),
             "raw_by_seed": paired(ua["raw"].mean(1), sa["raw"].mean(1)),
+            "stuck": paired_rate(ua["stuck"], sa["stuck"]),
         }
     return out
 
@@ -239,41 +249,60 @@ def markdown(data: dict[str, Any], cmp: Comparison, s: FrictionSettings, timer: 
         rows = []
         for label in ("uniform", "sufficient"):
             c = res[label]
-            rows.append([LABELS[label], fmt_ms(c["raw"], 2), fmt_ms(c["norm"], 2), " / ".join(PAPER_COST[label]),
+            rows.append([LABELS[label], fmt_ms(c["raw"], 2), fmt_ms(c["norm"], 2),
+                         f"{fmt(float(np.median(c['raw'])), 2)} / {fmt(float(np.median(c['norm'])), 2)}",
+                         f"{100 * float(np.mean(c['stuck'])):.1f}%", " / ".join(PAPER_COST[label]),
                          f"{1e3 * c['solve_time_mean']:.1f}", f"{c['checks'].unsuccessful}/{c['checks'].solves}",
                          f"{c['checks'].max_u_violation:.1e}"])
         lines += [f"### Solver `{solver}` (models of seeds {res['seeds']}, {res['n_starts']} starts; mean ± std over "
                   "seeds x starts)", "",
-                  md_table(["model", "Σ\\|p_t\\|", "Σ\\|p_t\\| / \\|p0\\|", "paper (raw / normalised)",
+                  md_table(["model", "Σ\\|p_t\\|", "Σ\\|p_t\\| / \\|p0\\|", "medians (raw / normalised)",
+                            f"stuck (final \\|p\\| > {STUCK_DISTANCE} m)", "paper (raw / normalised)",
                             "ms / solve", "unsuccessful solves", "max \\|u\\| bound violation"], rows), "",
                   "Paired comparison (SA − UA; negative = SA better):", "", PAIRED_HEADER]
         p = data["paired"][solver]
         lines += [p["raw_by_start"].row("Σ\\|p_t\\|, paired by (seed, start)", 3),
                   p["norm_by_start"].row("Σ\\|p_t\\| / \\|p0\\|, paired by (seed, start)", 3),
-                  p["raw_by_seed"].row("mean Σ\\|p_t\\| per seed, paired by seed", 3), ""]
+                  p["raw_by_seed"].row("mean Σ\\|p_t\\| per seed, paired by seed", 3), "",
+                  f"Stuck closed loops: UA {100 * p['stuck'].rate_a:.1f}%, SA {100 * p['stuck'].rate_b:.1f}% "
+                  f"({p['stuck'].only_a} only with UA, {p['stuck'].only_b} only with SA; exact McNemar "
+                  f"p = {fmt_p(p['stuck'].p_mcnemar)}).", ""]
     b = data["control"]["base"]
     c = b["base"]
-    lines += [f"Base model f_hat alone (solver `{b['solver']}`): sum |p_t| = {fmt_ms(c['raw'], 2)}, normalised "
-              f"{fmt_ms(c['norm'], 2)}.", ""]
+    lines += [f"Base model f_hat alone (solver `{b['solver']}`): Σ\\|p_t\\| = {fmt_ms(c['raw'], 2)}, normalised "
+              f"{fmt_ms(c['norm'], 2)}, stuck {100 * float(np.mean(c['stuck'])):.1f}%.", ""]
     lines += ["## Figures", ""] + [f"![{f}]({f})" for f in data["figures"]] + ["", timer.markdown(), ""]
     return "\n".join(lines)
 
 
-def figures(system: FrictionDoubleIntegrator, cmp: Comparison, s: FrictionSettings, out: Path) -> list[Path]:
-    """Error map at u = 1, training curves, and closed-loop trajectories from the fixed starts."""
+def stuck_start(control: dict[str, Any], x0s: np.ndarray) -> float:
+    """The start (p0, m) whose closed loop with the seed-0 Sufficiently Accurate model ended farthest from the
+    origin (first solver): a diagnostic example *selected by outcome*."""
+    solver = next(k for k in control if k != "base")
+    final = np.asarray(control[solver]["sufficient"]["final"])[0, :, 0]
+    return float(x0s[int(np.argmax(np.abs(final))), 0])
+
+
+def figures(system: FrictionDoubleIntegrator, cmp: Comparison, s: FrictionSettings, out: Path,
+            worst_p0: float) -> list[Path]:
+    """Error map at u = 1, training curves, closed-loop trajectories from the fixed starts, and from the start
+    where the SA closed loop ended farthest from the origin (labelled as selected by outcome)."""
     figs = [
         plot_error_map(system, {"Uniformly Accurate": cmp.uniform.model.member(0),
                                 "Sufficiently Accurate": cmp.sufficient.model.member(0)},
                        out / "friction_error_map_u1.png", u=1.0),
         plot_training_curves({"sufficient": cmp.sufficient.history, "uniform": cmp.uniform.history},
                              out / "friction_training_curves.png"),
-        plot_trajectories(system, cmp, s, out / "friction_trajectories.png"),
+        plot_trajectories(system, cmp, s, s.traj_starts, out / "friction_trajectories.png"),
+        plot_trajectories(system, cmp, s, (worst_p0,), out / "friction_stuck_example.png",
+                          " — selected: SA's worst final |p|"),
     ]
     return figs
 
 
-def plot_trajectories(system: FrictionDoubleIntegrator, cmp: Comparison, s: FrictionSettings, path: Path) -> Path:
-    """Position and control over time from each fixed start, SA vs UA (seed 0 models) and f_hat alone."""
+def plot_trajectories(system: FrictionDoubleIntegrator, cmp: Comparison, s: FrictionSettings,
+                      p0s: tuple[float, ...], path: Path, note: str = "") -> Path:
+    """Position and control over time from each start ``p0s`` (m), SA vs UA (seed 0 models) and f_hat alone."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -283,10 +312,9 @@ def plot_trajectories(system: FrictionDoubleIntegrator, cmp: Comparison, s: Fric
     models: dict[str, DynamicsModel | None] = {"uniform": cmp.uniform.model.member(0),
                                                "sufficient": cmp.sufficient.model.member(0), "base": None}
     colors = {"uniform": "tab:gray", "sufficient": "tab:blue", "base": "tab:orange"}
-    fig, axes = plt.subplots(2, len(s.traj_starts), figsize=(5.5 * len(s.traj_starts), 5.5), sharex=True,
-                             squeeze=False)
+    fig, axes = plt.subplots(2, len(p0s), figsize=(5.5 * max(len(p0s), 1.6), 5.5), sharex=True, squeeze=False)
     t = np.arange(s.steps + 1) * system.dt
-    for j, p0 in enumerate(s.traj_starts):
+    for j, p0 in enumerate(p0s):
         for label, model in models.items():
             ro = closed_loop(make_mpc(system, model, solver, horizon=s.horizon), np.array([p0, 0.0]), s.steps,
                              system.true_step_np)
@@ -297,7 +325,7 @@ def plot_trajectories(system: FrictionDoubleIntegrator, cmp: Comparison, s: Fric
                             ls="--" if label == "base" else "-")
         axes[0, j].axhline(0.0, color="k", lw=0.6)
         axes[0, j].axhspan(-0.5, 0.5, color="red", alpha=0.06)
-        axes[0, j].set_title(f"start p0 = {p0:g} m, v0 = 0 (solver {solver})")
+        axes[0, j].set_title(f"start p0 = {p0:.3g} m, v0 = 0 (solver {solver}){note}", fontsize=10)
         axes[0, j].legend(fontsize=7)
         axes[0, j].set_ylabel("position p (m)")
         axes[1, j].set_ylabel("control u (m/s²)")

@@ -39,6 +39,7 @@ from saml_ros.experiments.common import (
     paired,
     progress_bar,
     quiet_trainer_warnings,
+    save_models,
     write_results,
 )
 from saml_ros.experiments.control import PlanChecks, Rollout, closed_loop, make_mpc
@@ -203,6 +204,7 @@ def _run(settings: QuadrotorSettings, out: Path, progress: bool) -> dict[str, An
                 plot_training_curves({"sufficient": cmp.sufficient.history, "uniform": cmp.uniform.history},
                                      out / "quadrotor_training_curves.png")]
     data = {"settings": s.__dict__, "spec": spec.to_dict(), "starts": x0s, "errors": errors,
+            "models": save_models(out, {"sufficient": cmp.sufficient, "uniform": cmp.uniform}),
             "control": {k2: {m: v for m, v in c.items() if m != "xs"} for k2, c in control.items()},
             "paired_control": pairs,
             "training": {"train_seconds": {"sufficient": cmp.sufficient.train_seconds,

@@ -115,28 +115,55 @@ class PaddleProblem:
         lo, hi = self.goal.v_rel
         return np.array([lo * lo - s2, s2 - hi * hi])
 
+    def residual_jac(self, thetas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Landing residuals ``(B, 2)`` and their exact Jacobians ``d r / d theta`` ``(B, 2, 5)`` at ``(B, 5)``."""
+        bsz = thetas.shape[0]
+        r, p = thetas[:, 3], thetas[:, 4]
+        cr, sr, cp, sp = np.cos(r), np.sin(r), np.cos(p), np.sin(p)
+        u = np.concatenate((thetas[:, :3], np.stack((cr * sp, -sr, cr * cp), 1)), 1)
+        v_post, _, du = self.dyn.step_jac(np.broadcast_to(self.x, (bsz, 6)), u)
+        du_dth = np.zeros((bsz, 6, 5))
+        du_dth[:, 0:3, 0:3] = np.eye(3)
+        du_dth[:, 3:6, 3] = np.stack((-sr * sp, -cr, -sr * cp), 1)
+        du_dth[:, 3:6, 4] = np.stack((cr * cp, np.zeros(bsz), -cr * sp), 1)
+        g = self.system.g
+        up = v_post[:, 2] > 0.0
+        t = 2.0 * np.maximum(v_post[:, 2], 0.0) / g
+        dland = np.zeros((bsz, 2, 3))
+        dland[:, 0, 0] = dland[:, 1, 1] = t
+        dland[:, :, 2] = np.where(up[:, None], 2.0 * v_post[:, 0:2] / g, 0.0)
+        res = self.x[0:2] + v_post[:, 0:2] * t[:, None] - self.goal.target_xy
+        return res, dland @ du @ du_dth
+
     def jacobians(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``r``, ``dr/dtheta`` (2, 5), ``c``, ``dc/dtheta`` (2, 5)."""
-        u = self.control(theta)
-        v_post, _, du = (a[0] for a in self.dyn.step_jac(self.x[None], u[None]))
-        r, p = float(theta[3]), float(theta[4])
-        cr, sr, cp, sp = math.cos(r), math.sin(r), math.cos(p), math.sin(p)
-        du_dth = np.zeros((6, 5))
-        du_dth[0:3, 0:3] = np.eye(3)
-        du_dth[3:6, 3] = (-sr * sp, -cr, -sr * cp)
-        du_dth[3:6, 4] = (cr * cp, 0.0, -cr * sp)
-        g = self.system.g
-        vz = float(v_post[2])
-        t = 2.0 * max(vz, 0.0) / g
-        dland = np.zeros((2, 3))
-        dland[0, 0] = dland[1, 1] = t
-        if vz > 0.0:
-            dland[:, 2] = 2.0 * v_post[0:2] / g
+        res, jac = self.residual_jac(theta[None])
         v_rel = self.x[3:6] - theta[:3]
         dc = np.zeros((2, 5))
         dc[0, 0:3] = 2.0 * v_rel
         dc[1, 0:3] = -2.0 * v_rel
-        return self._residual(v_post), dland @ du @ du_dth, self._speed(theta), dc
+        return res[0], jac[0], self._speed(theta), dc
+
+    def residual_curvature(self, theta: np.ndarray, r: np.ndarray, jac: np.ndarray, h: float = 1e-6) -> np.ndarray:
+        """``sum_i r_i d^2 r_i / d theta^2`` ``(5, 5)``: forward differences of the exact Jacobian (one batched
+        evaluation), the term Gauss-Newton drops; it matters when the target cannot be reached (r != 0)."""
+        _, jacs = self.residual_jac(theta[None] + h * np.eye(5))
+        s = np.einsum("i,bij->bj", r, jacs - jac[None]) / h
+        return 0.5 * (s + s.T)
+
+    def project(self, theta: np.ndarray) -> np.ndarray:
+        """Nearly the closest point satisfying every constraint: the relative velocity scaled radially into
+        ``[v_min, v_max]``, then everything clipped to the box (which can only undo the first step at a corner
+        of the paddle-velocity box)."""
+        theta = np.clip(theta, self.lo, self.hi)
+        v_rel = self.x[3:6] - theta[:3]
+        speed = math.sqrt(float(v_rel @ v_rel))
+        lo, hi = self.goal.v_rel
+        if speed > hi or 0.0 < speed < lo:
+            theta = theta.copy()
+            theta[:3] = self.x[3:6] - v_rel * (min(max(speed, lo), hi) / speed)
+            theta = np.clip(theta, self.lo, self.hi)
+        return theta
 
     def guesses(self) -> list[np.ndarray]:
         """Start points: level paddle moving up so that |v_rel| is mid-range, then tilted variants."""
@@ -259,13 +286,14 @@ class GaussNewtonPaddle(PaddleController):
                  max_iter: int = 30, penalty: float = 10.0, rtol: float = 1e-9, **kwargs: Any) -> None:
         super().__init__(system, model, member, **kwargs)
         self.max_iter, self.penalty, self.rtol = max_iter, penalty, rtol
+        self.gn_iters = 4  # plain Gauss-Newton iterations before the residual curvature is added
 
     def _merit(self, r: np.ndarray, c: np.ndarray) -> float:
         m = 0.5 * float(r @ r) + self.penalty * float(np.maximum(c, 0.0).sum())
         return m if math.isfinite(m) else math.inf
 
     def _optimize(self, prob: PaddleProblem, theta0: np.ndarray) -> tuple[np.ndarray, int, bool, str]:
-        theta = theta0.copy()
+        theta = prob.project(theta0)
         r, jr, c, jc = prob.jacobians(theta)
         merit = self._merit(r, c)
         rho = 1e-3
@@ -276,6 +304,10 @@ class GaussNewtonPaddle(PaddleController):
             if float(np.linalg.norm(r)) <= 0.1 * self.tol and c.max() <= 0.0:
                 return theta, it, True, "converged"
             hess, grad = jr.T @ jr, jr.T @ r
+            if it > self.gn_iters and float(r @ r) > (10.0 * self.tol) ** 2:
+                # still far from the target after a few Gauss-Newton steps (probably unreachable): full Newton (Gauss-Newton + residual curvature), made positive definite
+                evals, evecs = np.linalg.eigh(hess + prob.residual_curvature(theta, r, jr))
+                hess = (evecs * np.maximum(evals, 1e-9 * max(float(evals.max()), 1e-12))) @ evecs.T
             # curvature of the active upper speed bound (|v_rel|^2 is convex): lam * 2 I on the paddle velocity
             hess[:3, :3] += 2.0 * max(float(lam[1] - lam[0]), 0.0) * np.eye(3)
             scale = float(np.trace(hess)) / 5.0 + 1e-9
@@ -295,7 +327,8 @@ class GaussNewtonPaddle(PaddleController):
                 if pred <= self.rtol * (1.0 + merit):
                     return theta, it, True, "converged"
                 for alpha in (1.0, 0.5, 0.25, 0.125):
-                    cand = np.clip(theta + alpha * d, prob.lo, prob.hi)
+                    # stepping along the curved speed bound: put the trial point back on it
+                    cand = prob.project(theta + alpha * d)
                     rn, cn, _ = prob.evaluate(cand)
                     mn = self._merit(rn, cn)
                     if mn <= merit - 1e-4 * alpha * pred:

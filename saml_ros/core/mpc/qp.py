@@ -132,7 +132,7 @@ def solve_qp(
     kkt0[:n, :n] = hess
     diag = np.arange(nz)
     wd = np.empty(nz)
-    scale = 1.0 + max(np.abs(q).max(), np.abs(c_vec).max())
+    scale = 1.0 + max(np.abs(grad).max(), np.abs(c_vec).max())  # not the penalty: it can be huge
     stop = tol * scale
     converged = False
     it = 0

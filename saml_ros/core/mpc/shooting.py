@@ -71,6 +71,8 @@ class ShootingMPC:
         self._u_hi = np.tile(self.task.u_high, self.horizon)
         self._plan_u: np.ndarray | None = None
         self._plan_x: np.ndarray | None = None
+        #: how the shifted warm start fills its last step: "repeat" the previous last control or "default"
+        self.tail = "repeat"
 
     # ------------------------------------------------------------------------------ Controller API
     def set_model(self, model: DynamicsModel | None) -> None:
@@ -160,7 +162,7 @@ class ShootingMPC:
         u = np.empty((self.horizon, self.m))
         keep = min(self.horizon, prev_u.shape[0] - shift)
         u[:keep] = prev_u[shift : shift + keep]
-        u[keep:] = task.u_default
+        u[keep:] = prev_u[-1] if self.tail == "repeat" else task.u_default
         return np.clip(u, task.u_low, task.u_high)
 
     def _fallback(self, start: float, why: str, iters: int = 0) -> MPCResult:
