@@ -7,6 +7,7 @@ height bound on the predicted states) and count unsuccessful solves.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -60,7 +61,7 @@ class PlanChecks:
             if res.success:
                 self.max_state_violation_success = max(self.max_state_violation_success, state_violation)
         if not res.success:
-            key = res.message.split(";")[0][:60]
+            key = re.sub(r"\d+(\.\d+)?(e[+-]?\d+)?", "#", res.message)[:80]
             self.messages[key] = self.messages.get(key, 0) + 1
 
     def merge(self, other: PlanChecks) -> None:

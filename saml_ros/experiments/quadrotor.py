@@ -62,12 +62,12 @@ class QuadrotorSettings:
     epochs: int = 3000
     n_test: int = 20000
     hidden: tuple[int, ...] = (16, 8)
-    n_starts: int = 10
+    n_starts: int = 30
     steps: int = 50
     horizon: int = 10
     solver: str = "fast"
     #: the MPC runs with the models of the first ``mpc_seeds`` seeds
-    mpc_seeds: int = 1
+    mpc_seeds: int = 3
     #: also run the base model f_hat alone
     base: bool = True
     start_seed: int = 4242
@@ -267,7 +267,7 @@ def markdown(data: dict[str, Any], s: QuadrotorSettings, timer: Timer) -> str:
     lines += [md_table(["model", "Σ_t \\|p_t\\| (cost)", "final xy error (m)", "final height (m)", "paper MPC cost",
                         "ms / solve", "unsuccessful solves", "max u bound violation",
                         "max height violation (successful plans)"], rows),
-              "", "Paired by start (SA − UA; negative = SA better):", "", PAIRED_HEADER]
+              "", "Paired by (seed, start) (SA − UA; negative = SA better):", "", PAIRED_HEADER]
     lines += [data["paired_control"][m].row(m, 3) for m in ("cost", "final_dist", "final_xy", "final_z")]
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in data["figures"]] + ["", timer.markdown(), ""]
     return "\n".join(lines)

@@ -27,7 +27,7 @@ def make_controller(
             default 0), or None for the base model f_hat alone. Swap later with ``set_model``.
         solver: ``"fast"`` (exact-derivative SQP / Gauss-Newton, warm-started) or ``"slsqp"`` (the paper's
             reference: scipy SLSQP with finite differences).
-        options: ``horizon`` (time-stepped systems, default 10; the paddle is one-shot and only accepts 1),
+        options: ``horizon`` (time-stepped systems, default 10; ignored by the one-shot paddle ball),
             ``member``, ``feas_tol``; quadrotor task options ``min_height`` (0.2 m), ``qw_tol`` (0.05); solver
             options, see :class:`SQPShootingMPC`, :class:`SLSQPShootingMPC`, :class:`GaussNewtonPaddle`,
             :class:`SLSQPPaddle` (e.g. ``max_iter``, ``tol``, ``max_time``).
@@ -38,9 +38,7 @@ def make_controller(
     if solver not in SOLVERS:
         raise ValueError(f"unknown MPC solver {solver!r}; valid: {list(SOLVERS)}")
     if isinstance(system, PaddleBall):
-        horizon = options.pop("horizon", 1)
-        if horizon != 1:
-            raise ValueError(f"the paddle-ball controller is one-shot (horizon 1), got horizon={horizon}")
+        options.pop("horizon", None)  # one-shot: a horizon (e.g. the MPC node's generic parameter) is ignored
         return (GaussNewtonPaddle if solver == "fast" else SLSQPPaddle)(system, model, **options)
     if isinstance(system, (FrictionDoubleIntegrator, Quadrotor)):
         return (SQPShootingMPC if solver == "fast" else SLSQPShootingMPC)(system, model, **options)
