@@ -9,17 +9,17 @@ Fast solver (:class:`SQPShootingMPC`), per iteration:
 
 1. exact Jacobians ``A_t, B_t`` of ``f_hat + phi`` at the current trajectory, batched over t;
 2. condensed sensitivities ``S_t = dx_t/dU`` by the recursion ``S_{t+1} = A_t S_t + [0 .. B_t .. 0]``;
-3. a Gauss-Newton model of the cost with iteratively reweighted least squares (IRLS): each norm
-   ``||r_t||`` is smoothed to ``sqrt(||r_t||^2 + eps^2)`` and majorised by
-   ``w_t/2 ||r_t + J_t d||^2 + const`` with ``w_t = 1/sqrt(||r_t||^2 + eps^2)``, plus a Levenberg-Marquardt
-   term ``rho/2 ||d||^2``;
+3. a model of the cost: for a scalar residual (friction, ``|p_t|``) the exact l1 model as elastic LP rows; for
+   Euclidean norms (quadrotor) each ``||r_t||`` smoothed to ``sqrt(||r_t||^2 + eps^2)`` with its exact Hessian
+   through the linearisation (generalised Gauss-Newton), plus a Levenberg-Marquardt term;
 4. one QP over the step d: box ``u_low - U <= d <= u_high - U`` and the linearised state constraints in
-   elastic mode (always feasible), solved by projected Newton (no state constraint) or a small interior
-   point method;
-5. a backtracking line search on the l1 merit ``sum sqrt(||r_t||^2 + eps^2) + penalty * sum max(c_i, 0)``;
-   rho shrinks after full steps and grows after failed ones.
+   elastic mode (always feasible), solved by projected Newton when the box alone satisfies the state rows,
+   by a small interior point method otherwise;
+5. a backtracking line search on the l1 merit ``cost + penalty * sum max(c_i, 0)``; the Levenberg-Marquardt
+   weight follows the ratio of actual to predicted decrease; the penalty grows if the solver converges to a
+   plan that still violates a constraint some control can move.
 
-It stops when the QP predicts a merit decrease below ``tol * (1 + merit)`` or the step is negligible.
+It stops when the QP predicts a merit decrease below ``tol * (1 + merit)``, at ``max_iter`` or ``max_time``.
 """
 
 from __future__ import annotations
