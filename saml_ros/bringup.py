@@ -636,7 +636,13 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
             elif time.monotonic() > deadline:
                 stop.setdefault("reason", f"start-up timeout ({opts.startup_timeout:.0f} s)")
         if "reason" not in stop:
-            sim = procs.start("sim", node_argv(f"{system}_sim", namespace, files["sim"]), env, logs / "sim.log")
+            # the recorder subscribes only once the simulator's topics exist, so the simulator itself waits
+            # (lockstep) until every consumer is matched: no transition is lost to a late subscriber
+            recording = any(c.name == "record" for c in started)
+            waits = ["-p", f"min_state_subscribers:={want + (1 if recording else 0)}",
+                     "-p", f"min_applied_cmd_subscribers:={(1 if opts.learner else 0) + (1 if recording else 0)}"]
+            sim = procs.start("sim", node_argv(f"{system}_sim", namespace, files["sim"]) + waits, env,
+                              logs / "sim.log")
             say(f"[bringup] consumers ready after {time.monotonic() - t_wall0:.1f} s; started {system}_sim "
                 f"(pid {sim.pid}); running for {float(config['sim_time']):g} s of simulated time")
         t_sim0: float | None = None

@@ -119,9 +119,14 @@ class Recorder:
         self.error: str | None = None
         self._clock = node.get_clock()
         self._diag_pub = self._make_diagnostics_publisher()
-        node.create_timer(poll_period, self.poll)
-        node.create_timer(flush_period, self.flush)
-        node.create_timer(1.0, self.publish_diagnostics)
+        # wall-clock (steady) timers: with use_sim_time, ROS-time timers would not fire before /clock runs, and a
+        # lockstep simulator waits for this recorder's subscriptions before it publishes /clock
+        from rclpy.clock import Clock, ClockType
+
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        node.create_timer(poll_period, self.poll, clock=steady)
+        node.create_timer(flush_period, self.flush, clock=steady)
+        node.create_timer(1.0, self.publish_diagnostics, clock=steady)
         self.poll()
 
     def _make_diagnostics_publisher(self) -> Any:

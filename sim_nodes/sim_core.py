@@ -582,6 +582,10 @@ COMMON_PARAMS: tuple[Param, ...] = (
     Param("start_delay", 1.0, "wall seconds between start-up and the first state (lets discovery finish)"),
     Param("wait_for_controller", True, "lockstep: also wait until the cmd topic has a publisher and state "
                                        "has a subscriber before the first state"),
+    Param("min_state_subscribers", 1, "lockstep with wait_for_controller: matched state subscriptions to wait "
+                                      "for before the first state (e.g. MPC + learner + recorder = 3)"),
+    Param("min_applied_cmd_subscribers", 0, "lockstep with wait_for_controller: matched applied_cmd "
+                                            "subscriptions to wait for (learner, recorder) before the first state"),
     Param("cmd_reject_margin", 0.5, "commands further outside the control bounds than this fraction of the "
                                     "bounds' width are rejected; closer ones are clipped"),
     Param("diagnostics_period", 1.0, "seconds between /diagnostics messages (wall clock)"),

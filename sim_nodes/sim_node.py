@@ -112,6 +112,7 @@ class SimNode(Node):
         self.state_pub = state_pub
         applied_pub = self.create_publisher(control_cls, self.schema.applied_cmd_topic, data_qos,
                                             event_callbacks=lean)
+        self.applied_pub = applied_pub
         self._emit[STATE] = lambda x, t: state_pub.publish(self.schema.state_to_msg(x, t))
         self._emit[APPLIED] = lambda u, t: applied_pub.publish(self.schema.control_to_msg(u, t))
         if self.schema.target_topic != self.schema.state_topic:
@@ -188,9 +189,15 @@ class SimNode(Node):
             return
         if self.lockstep and self.params["wait_for_controller"]:
             cmd_publishers = self.count_publishers(self.cmd_sub.topic_name)
-            if cmd_publishers == 0 or self.state_pub.get_subscription_count() == 0:
-                self._warn_throttled("waiting", "lockstep: waiting for a controller (a cmd publisher and a state "
-                                                "subscriber) before the first state")
+            n_state = self.state_pub.get_subscription_count()
+            n_applied = self.applied_pub.get_subscription_count()
+            want_state = max(1, int(self.params["min_state_subscribers"]))
+            want_applied = int(self.params["min_applied_cmd_subscribers"])
+            if cmd_publishers == 0 or n_state < want_state or n_applied < want_applied:
+                self._warn_throttled("waiting", f"lockstep: waiting for a controller and subscribers before the "
+                                                f"first state (cmd publishers {cmd_publishers}/1, state "
+                                                f"subscribers {n_state}/{want_state}, applied_cmd subscribers "
+                                                f"{n_applied}/{want_applied})")
                 return
         self._start_timer.cancel()
         self.destroy_timer(self._start_timer)

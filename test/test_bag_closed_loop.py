@@ -64,8 +64,10 @@ def test_bag_transitions_equal_what_the_learner_paired_in_the_closed_loop(ros_en
     learner = start_learner(ros_env, ns, run)
     mpc = ros_env.launch("mpc", "-p", "system:=friction", "-p", f"run_dir:={run}", namespace=ns)
     rec = start_recorder(ros_env, bag, "--system", "friction", "--namespace", ns)
+    # the simulator starts once the learner, the MPC and the recorder are all matched (lockstep)
     sim = ros_env.launch("friction_sim", "-p", "mode:=lockstep", "-p", "max_sim_time:=15.0",
-                         "-p", "episode_steps:=40", "-p", "seed:=3", namespace=ns)
+                         "-p", "episode_steps:=40", "-p", "seed:=3", "-p", "min_state_subscribers:=3",
+                         "-p", "min_applied_cmd_subscribers:=2", namespace=ns)
     deadline = time.monotonic() + 150
     while sim.alive() and time.monotonic() < deadline:
         for proc in (learner, mpc, rec):
