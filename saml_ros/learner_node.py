@@ -102,6 +102,7 @@ def _build_node_class() -> type:
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.node import Node
     from rclpy.parameter import Parameter
+    from rclpy.qos import HistoryPolicy
 
     import msg_schemas.telemetry as tele
     from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, get_schema
@@ -195,7 +196,10 @@ def _build_node_class() -> type:
             )
             # raw=True: the callback gets the serialized message, decoded in the training process; building Python
             # message objects here is most of a bare subscriber's per-message cost
+            # KEEP_ALL: a burst that outruns the callbacks (e.g. while the training process imports torch) waits in
+            # the reader queue instead of overwriting older transitions; reliable writers are slowed, not dropped
             data_qos = DATA_QOS.to_rclpy()
+            data_qos.history = HistoryPolicy.KEEP_ALL
             self._subs = [
                 self.create_subscription(self._msg_type(msg_type), topic, self._make_callback(ch), data_qos,
                                          callback_group=self.data_group, raw=True)
