@@ -18,6 +18,7 @@ import pytest
 import torch
 import yaml
 from bag_publisher import rollout
+from bag_test_helpers import expected
 
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, TypestoreFactory, get_schema
 from msg_schemas.telemetry import CheckpointInfo, checkpoint_to_msg, model_error_to_msg
@@ -68,17 +69,6 @@ def write_rollout(path: Path, system: str, events: list[dict], *, namespace: str
         w.write_msg(f"{ns}/learner/checkpoint", checkpoint_to_msg(info, factory=FACTORY), T0)
     if own:
         w.close()
-
-
-def expected(system: str, events: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The transitions a correct learner pairs from ``events``."""
-    xs, us, ys = [], [], []
-    for k, ev in enumerate(events):
-        if "u" in ev:
-            xs.append(ev["x"])
-            us.append(ev["u"])
-            ys.append(ev["y"] if "y" in ev else events[k + 1]["x"])
-    return np.array(xs), np.array(us), np.array(ys)
 
 
 @pytest.fixture(scope="module")
@@ -153,7 +143,7 @@ def test_transitions_are_exactly_the_rollouts(tmp_path: Path, system: str) -> No
     events = rollout(system, 60, 25, seed=1, t0_ns=T0)
     write_rollout(tmp_path / "b", system, events)
     x, u, y = transitions_from_bags([tmp_path / "b"], get_system(system))
-    ex, eu, ey = expected(system, events)
+    ex, eu, ey = expected(events)
     assert len(x) == len(ex) > 0
     # exact, except the quadrotor's velocities, which go through R(q)^T (message) and R(q) (back)
     tol = 1e-12 if system == "quadrotor" else 0.0
@@ -175,7 +165,7 @@ def test_several_namespaces_and_bags_pair_separately(tmp_path: Path) -> None:
     out = extract_transitions([tmp_path / "two", tmp_path / "one"], "friction")
     assert [(s.namespace, s.transitions) for s in out.sources] == [("/r1", 49), ("/r2", 29), ("/r1", 19)]
     for i, ev in enumerate((ev_a, ev_b, ev_c)):
-        ex, eu, ey = expected("friction", ev)
+        ex, eu, ey = expected(ev)
         sel = out.source == i
         np.testing.assert_array_equal(out.x[sel], ex)
         np.testing.assert_array_equal(out.y[sel], ey)
@@ -196,7 +186,7 @@ def test_malformed_messages_are_dropped_and_counted_like_the_learner(tmp_path: P
     out = extract_transitions([tmp_path / "b"], "friction")
     assert len(out) == 29 - 2
     assert out.counts["nan"] == 1 and out.counts["names"] == 1
-    ex, eu, ey = expected("friction", events)
+    ex, eu, ey = expected(events)
     keep = [k for k in range(29) if k not in (9, 10)]
     np.testing.assert_array_equal(out.x, ex[keep])
     np.testing.assert_array_equal(out.y, ey[keep])
@@ -302,7 +292,7 @@ def test_repair_recovers_every_flushed_chunk_of_an_unfinished_bag(tmp_path: Path
     assert res.path == tmp_path / "dead_repaired" and not res.complete and res.problem
     assert res.topics == {"/friction/state": 200, "/friction/applied_cmd": 200}
     out = extract_transitions([res.path], "friction")
-    ex, eu, ey = expected("friction", events)
+    ex, eu, ey = expected(events)
     assert len(out) == 199  # the 200th state's successor was in the lost chunk
     np.testing.assert_array_equal(out.x, ex[:199])
     np.testing.assert_array_equal(out.y, ey[:199])
@@ -319,7 +309,7 @@ def test_bag_info_reports_transitions_and_paper_spec_regions(friction_bag: tuple
     path, events = friction_bag
     assert bag_info.main([str(path), "--json", "--plot", str(tmp_path / "err.png")]) == 0
     info = json.loads(capsys.readouterr().out)
-    ex, eu, ey = expected("friction", events)
+    ex, eu, ey = expected(events)
     assert info["system"] == "friction" and info["transitions"] == len(ex)
     assert info["topics"]["/friction/state"] == {"type": "sensor_msgs/msg/JointState", "count": len(events),
                                                  "qos": "reliable, volatile"}
@@ -369,7 +359,7 @@ def test_train_from_bags_fails_cleanly_on_bad_bags_and_trains_on_a_good_one(
     assert good.returncode == 0, good.stderr
     assert (tmp_path / "good" / "latest").read_text().strip().startswith("ckpt-")
     metrics = json.loads((tmp_path / "good" / "metrics.json").read_text())
-    n = len(expected("friction", friction_bag[1])[0])
+    n = len(expected(friction_bag[1])[0])
     assert metrics["source"] == f"{n} transitions from 1 bag(s)"
 
 
