@@ -518,7 +518,7 @@ class FastEngine:
         callback: Callable[[PrimalDualTrainer], None] | None = None,
     ) -> History:
         """Same contract and side effects as :meth:`PrimalDualTrainer.fit` (history, counters, generator)."""
-        from saml_ros.core.trainer import _progress, log
+        from saml_ros.core.trainer import _progress
 
         tr = self.tr
         n, e = self.n, self.E
@@ -552,12 +552,7 @@ class FastEngine:
             done += q
         self._log_point()
         self.store_state()
-        if bar is not None:
-            bar.close()
-        report = tr.feasibility()
-        for msg in report.messages():
-            log.warning(msg)
-        return tr.history
+        return tr.finish_fit(bar)
 
     def _pending_from_trainer(self) -> list[Tensor]:
         """Minibatch values the trainer accumulated before this fit (they join the first log point)."""

@@ -316,10 +316,14 @@ class PrimalDualTrainer:
             if callback is not None:
                 callback(self)
         self.log_point()
+        return self.finish_fit(bar)
+
+    def finish_fit(self, bar: Any = None) -> History:
+        """End of an offline run (either engine): close the progress bar, warn about constraints that look
+        infeasible, return the history."""
         if bar is not None:
             bar.close()
-        report = self.feasibility()
-        for msg in report.messages():
+        for msg in self.feasibility().messages():
             log.warning(msg)
         return self.history
 
