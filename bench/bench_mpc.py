@@ -156,10 +156,16 @@ def row(system: str, solver: str, s: Stats) -> str:
             f"{np.mean(s.cost):>10.4f} {s.infeasible:>6}")
 
 
+SYSTEMS = ("friction", "quadrotor", "paddle_ball")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench_mpc", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="fewer states (a smoke run, about a minute)")
+    p.add_argument("--systems", nargs="+", choices=SYSTEMS, default=list(SYSTEMS), metavar="SYSTEM",
+                   help=f"which systems to measure (default: all of {', '.join(SYSTEMS)})")
     args = p.parse_args(argv)
+    wanted = set(args.systems)
     torch.set_num_threads(1)
     t_start = time.perf_counter()
     scale = 0.4 if args.quick else 1.0
@@ -169,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     pad = get_system("paddle_ball")
     models = {}
     for sys_, n, epochs in ((fr, 15000, 20), (quad, 10000, 150), (pad, 10000, 10)):
+        if sys_.name not in wanted:
+            continue
         models[sys_.name], secs = train_quick(sys_, n, epochs)
         print(f"trained {sys_.name} residual {list(models[sys_.name].hidden)} for {epochs} epochs in {secs:.1f} s")
 
@@ -178,13 +186,17 @@ def main(argv: list[str] | None = None) -> int:
     quad_starts = [quad.hover_state(p0) for p0 in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
     quad_starts = quad_starts[: max(1, int(3 * scale))]
 
-    fr_probs, fr_loop = shooting_problems(fr, models["friction"], fr_starts, 30)
-    quad_probs, quad_loop = shooting_problems(quad, models["quadrotor"], quad_starts, 50)
-    results = {
-        "friction": compare_shooting(fr, models["friction"], fr_probs, ref_every=1),
-        "quadrotor": compare_shooting(quad, models["quadrotor"], quad_probs, ref_every=5 if args.quick else 3),
-        "paddle_ball": compare_paddle(pad, models["paddle_ball"], max(10, int(40 * scale))),
-    }
+    results: dict[str, dict[str, Stats]] = {}
+    loops: dict[str, dict[str, Any]] = {}
+    if "friction" in wanted:
+        fr_probs, loops["friction"] = shooting_problems(fr, models["friction"], fr_starts, 30)
+        results["friction"] = compare_shooting(fr, models["friction"], fr_probs, ref_every=1)
+    if "quadrotor" in wanted:
+        quad_probs, loops["quadrotor"] = shooting_problems(quad, models["quadrotor"], quad_starts, 50)
+        results["quadrotor"] = compare_shooting(quad, models["quadrotor"], quad_probs,
+                                                ref_every=5 if args.quick else 3)
+    if "paddle_ball" in wanted:
+        results["paddle_ball"] = compare_paddle(pad, models["paddle_ball"], max(10, int(40 * scale)))
 
     print("\n1. identical problems (same model, horizon, states and warm starts), one core")
     print(f"{'system':<12} {'solver':<6} {'n':>5} {'wall ms':>9} {'rate Hz':>9} {'cpu ms':>9} {'mean cost':>10} "
@@ -205,26 +217,30 @@ def main(argv: list[str] | None = None) -> int:
         ok = "yes" if ratio_cpu >= 20 and cost_both <= 1.0 + 1e-9 else "NO"
         print(f"{name:<12} {ratio_wall:>21.1f}x {ratio_cpu:>6.1f}x {cost_ratio:>26.4f} {cost_both:>14.4f}  {ok}")
 
-    f, r = results["paddle_ball"]["fast"], results["paddle_ball"]["slsqp"]
-    reach = np.array(r.cost) < 1e-3
-    for label, sel in (("reachable", reach), ("unreachable", ~reach)):
-        if sel.any():
-            tf, tr = np.mean(np.array(f.wall)[sel]), np.mean(np.array(r.wall)[sel])
-            print(f"paddle_ball {label:<11} targets ({int(sel.sum())}): fast {1e3 * tf:.2f} ms, slsqp {1e3 * tr:.2f} ms, "
-                  f"{tr / tf:.1f}x; mean cost fast {np.mean(np.array(f.cost)[sel]):.4f}, "
-                  f"slsqp {np.mean(np.array(r.cost)[sel]):.4f}")
+    if "paddle_ball" in results:
+        f, r = results["paddle_ball"]["fast"], results["paddle_ball"]["slsqp"]
+        reach = np.array(r.cost) < 1e-3
+        for label, sel in (("reachable", reach), ("unreachable", ~reach)):
+            if sel.any():
+                tf, tr = np.mean(np.array(f.wall)[sel]), np.mean(np.array(r.wall)[sel])
+                print(f"paddle_ball {label:<11} targets ({int(sel.sum())}): fast {1e3 * tf:.2f} ms, "
+                      f"slsqp {1e3 * tr:.2f} ms, {tr / tf:.1f}x; mean cost fast {np.mean(np.array(f.cost)[sel]):.4f}, "
+                      f"slsqp {np.mean(np.array(r.cost)[sel]):.4f}")
 
     print("\n2. fast controller in closed loop on the true system (warm-started), one core")
     print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'cpu ms':>8} "
           f"{'stage cost':>11}")
-    for name, loop in (("friction", fr_loop), ("quadrotor", quad_loop)):
+    for name, loop in loops.items():
         print(f"{name:<12} {loop['n']:>6} {1e3 * loop['mean']:>8.2f} {1e3 * loop['p95']:>8.2f} "
               f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {1e3 * loop['cpu']:>8.2f} {loop['stage']:>11.3f}")
-    quad_hz = 1 / quad_loop["mean"]
-    print(f"quadrotor target >= 100 Hz (mean solve <= 10 ms wall): {'yes' if quad_hz >= 100 else 'NO'} "
-          f"({quad_hz:.0f} Hz wall, {1 / quad_loop['cpu']:.0f} Hz by CPU time)")
-    out = closed_loop(quad, make_controller(quad, models["quadrotor"]), quad_starts[0], 50)
-    print(f"quadrotor landing from {quad_starts[0][:3].tolist()}: final position {np.round(out['xs'][-1, :3], 3).tolist()}")
+    if "quadrotor" in loops:
+        quad_loop = loops["quadrotor"]
+        quad_hz = 1 / quad_loop["mean"]
+        print(f"quadrotor target >= 100 Hz (mean solve <= 10 ms wall): {'yes' if quad_hz >= 100 else 'NO'} "
+              f"({quad_hz:.0f} Hz wall, {1 / quad_loop['cpu']:.0f} Hz by CPU time)")
+        out = closed_loop(quad, make_controller(quad, models["quadrotor"]), quad_starts[0], 50)
+        print(f"quadrotor landing from {quad_starts[0][:3].tolist()}: final position "
+              f"{np.round(out['xs'][-1, :3], 3).tolist()}")
     print(f"\ntotal {time.perf_counter() - t_start:.0f} s")
     return 0
 
