@@ -18,10 +18,9 @@ it never shares a domain with a running test); traffic stays on this host.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
-import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -30,28 +29,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from bench.ros_procs import claimed_domain, interrupt
+
 REPO = Path(__file__).resolve().parents[1]
 PUBLISHER = REPO / "test" / "bag_publisher.py"
 MSGS_PER_STEP = 4  # state, applied_cmd, cmd, /clock
-
-
-def claim_domain() -> tuple[int, int]:
-    """``(domain id, lock fd)``: a ROS domain no test run holds (same lock files as test/ros_helpers.py)."""
-    import fcntl
-
-    claims = Path(tempfile.gettempdir()) / "saml_ros_ros_domains"
-    claims.mkdir(parents=True, exist_ok=True)
-    ids = list(range(1, 101))
-    random.shuffle(ids)
-    for domain in ids:
-        fd = os.open(claims / f"{domain}.lock", os.O_CREAT | os.O_RDWR, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        return domain, fd
-    raise RuntimeError("no free ROS domain id")
 
 
 def _load_publisher_module() -> Any:
@@ -91,12 +73,7 @@ def record_once(rate_msgs: float, seconds: float, workdir: Path, env: dict[str, 
         report = json.loads(pub.stdout.strip().splitlines()[-1])
         time.sleep(1.0)  # let the recorder drain its queues
     finally:
-        rec.send_signal(signal.SIGINT)
-        try:
-            rec.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(rec.pid, signal.SIGKILL)
-            rec.wait(10)
+        interrupt(rec, 30.0)
     published = {t: n for t, n in report["published"].items() if t.startswith(ns) or t == "/clock"}
     with Bag(bag) as b:
         recorded = {t: b.topics[t].message_count if t in b.topics else 0 for t in published}
@@ -146,9 +123,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--skip-record", action="store_true", help="only the offline extraction")
     args = p.parse_args(argv)
 
-    env = dict(os.environ)
-    if "ROS_DOMAIN_ID" not in env:
-        env["ROS_DOMAIN_ID"] = str(claim_domain()[0])  # the lock is held until this process exits
+    with contextlib.ExitStack() as claims:
+        env = dict(os.environ)
+        if "ROS_DOMAIN_ID" not in env:
+            env["ROS_DOMAIN_ID"] = str(claims.enter_context(claimed_domain()))
+        return run(args, env)
+
+
+def run(args: argparse.Namespace, env: dict[str, str]) -> int:
+    """Both measurements with the options of ``main`` in the ROS environment ``env``."""
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = env.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env["PYTHONPATH"] = os.pathsep.join(x for x in (str(REPO), env.get("PYTHONPATH", "")) if x)
     with tempfile.TemporaryDirectory(prefix="bench_bags_") as tmp:

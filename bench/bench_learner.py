@@ -1,6 +1,6 @@
 """Learner ingest benchmark: lossless transitions/s of the learner node vs a bare rclpy subscriber.
 
-``./dev python -m bench.bench_learner`` (about 1-2 minutes). In one run, on one private ROS domain:
+``./dev python -m bench.bench_learner`` (about 4 minutes; ``--part ingest`` 1-2). In one run, on one private ROS domain:
 
 1. a publisher process (stock rclpy, ``DATA_QOS``) sends bursts of friction transitions (``state`` + ``applied_cmd``
    per step, messages built beforehand with msg_schemas) at increasing rates;
@@ -17,52 +17,34 @@
    below the rate it failed at (each rate is ``--step`` times the previous).
 
 Prints both ceilings (transitions/s; 2 messages per transition) and their ratio (target >= 0.8).
+
+Then (``--part training`` alone) the training process's own speed under its compute settings, without ROS:
+primal-dual updates/s per system with subnormals kept (as before) or flushed, and with torch's default thread
+count (:mod:`bench.learner_training`).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import fcntl
 import os
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
+from bench import learner_training
+from bench.ros_procs import claimed_domain
+
 REPO = Path(__file__).resolve().parents[1]
 NS = "/friction"
 DT_NS = 100_000_000
-#: the same claim files as test/ros_helpers.py, so the bench never shares a ROS domain with a test run
-CLAIM_DIR = Path(tempfile.gettempdir()) / "saml_ros_ros_domains"
-
-
-# --------------------------------------------------------------------------------------------- domains
-@contextlib.contextmanager
-def claimed_domain() -> Iterator[int]:
-    """A ROS_DOMAIN_ID in 1..100 no other claiming process uses (an flock per id)."""
-    CLAIM_DIR.mkdir(parents=True, exist_ok=True)
-    start = os.getpid() % 100
-    for i in range(100):
-        domain = 1 + (start + i) % 100
-        fd = os.open(CLAIM_DIR / f"{domain}.lock", os.O_CREAT | os.O_RDWR, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        try:
-            yield domain
-        finally:
-            os.close(fd)
-        return
-    raise RuntimeError("every ROS domain id 1..100 is claimed")
 
 
 # --------------------------------------------------------------------------------------------- children
@@ -324,12 +306,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--step", type=float, default=1.1, help="rate multiplier between bursts")
     p.add_argument("--max-rate", type=float, default=5000.0, help="last rate tried, transitions/s")
     p.add_argument("--duration", type=float, default=2.0, help="seconds per burst")
+    p.add_argument("--part", choices=["all", "ingest", "training"], default="all",
+                   help="the ingest ramp, the training-process speed, or both (default)")
+    p.add_argument("--train-seconds", type=float, default=3.0, help="training speed: seconds per measurement")
+    p.add_argument("--train-rounds", type=int, default=2, help="training speed: rounds (best one counts)")
+    p.add_argument("--systems", nargs="+", default=list(learner_training.SYSTEMS), choices=learner_training.SYSTEMS,
+                   help="training speed: systems to measure")
     args = p.parse_args(argv)
     if args.role == "publisher":
         return run_publisher()
     if args.role == "bare":
         return run_bare()
+    if args.part in ("all", "ingest"):
+        ingest(args)
+    if args.part in ("all", "training"):
+        learner_training.run(args.systems, args.train_seconds, args.train_rounds)
+    return 0
 
+
+def ingest(args: argparse.Namespace) -> None:
+    """The ingest ramp (module docstring) with the options of ``main``; prints both ceilings and their ratio."""
     rates = []
     r = args.start
     while r <= args.max_rate:
@@ -386,7 +382,6 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{bare_best:.0f} transitions/s ({2 * bare_best:.0f} msg/s), learner {learner_best:.0f} transitions/s "
           f"while training ({updates} updates in the {ramp_s:.0f} s ramp)")
     print(f"ratio learner / bare = {ratio:.2f} (target >= 0.80); {time.monotonic() - t_start:.0f} s")
-    return 0
 
 
 if __name__ == "__main__":

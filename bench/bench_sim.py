@@ -18,11 +18,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from bench.ros_procs import interrupt
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -120,12 +121,7 @@ def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.1)
     finally:
-        sim.send_signal(signal.SIGINT)
-        try:
-            sim.wait(10)
-        except subprocess.TimeoutExpired:
-            os.killpg(sim.pid, signal.SIGKILL)
-            sim.wait(10)
+        interrupt(sim, 10.0)
         node.destroy_node()
         rclpy.try_shutdown()
     return rate, diag

@@ -240,6 +240,8 @@ class VectorCodec(abc.ABC):
     units: tuple[str, ...]
     #: one line on the representation (frames, which array, ...) for the docs and the schema hash
     convention: str
+    #: header frame_id of built messages unless :meth:`to_msg` is given one
+    frame_id: str = ""
 
     @property
     def size(self) -> int:
@@ -249,7 +251,6 @@ class VectorCodec(abc.ABC):
     def field_docs(self) -> tuple[FieldDoc, ...]:
         """One :class:`FieldDoc` per vector field, in vector order."""
 
-    @abc.abstractmethod
     def to_msg(
         self,
         x: Any,
@@ -265,6 +266,14 @@ class VectorCodec(abc.ABC):
         Non-finite values are published as they are (receivers count and drop them); a wrong shape or an
         invalid stamp raises :class:`SchemaError`. ``frame_id`` / ``child_frame_id`` override the defaults.
         """
+        vec = as_vector(x, self.size, topic)
+        header = make_header(factory, stamp_ns, self.frame_id if frame_id is None else frame_id, topic)
+        return self._build(vec, header, factory, child_frame_id)
+
+    @abc.abstractmethod
+    def _build(self, vec: np.ndarray, header: Any, factory: MessageFactory, child_frame_id: str | None) -> Any:
+        """The message of the checked float64 vector ``vec`` ``(size,)`` with the built ``header``
+        (``child_frame_id``: :meth:`to_msg`'s override, for message types that have one)."""
 
     @abc.abstractmethod
     def from_msg(self, msg: Any, topic: str = "") -> tuple[np.ndarray, int]:

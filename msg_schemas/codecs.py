@@ -12,14 +12,11 @@ from typing import Any
 import numpy as np
 
 from msg_schemas.base import (
-    RCLPY,
     FieldDoc,
     MessageFactory,
     SchemaError,
     VectorCodec,
-    as_vector,
     check_finite,
-    make_header,
     names_equal,
     read_stamp,
 )
@@ -70,26 +67,11 @@ class JointStateCodec(VectorCodec):
             for name, unit, joint, array in self._fields
         )
 
-    def to_msg(
-        self,
-        x: Any,
-        stamp_ns: int,
-        *,
-        factory: MessageFactory = RCLPY,
-        frame_id: str | None = None,
-        child_frame_id: str | None = None,
-        topic: str = "",
-    ) -> Any:
-        vec = as_vector(x, self.size, topic)
+    def _build(self, vec: np.ndarray, header: Any, factory: MessageFactory, child_frame_id: str | None) -> Any:
         arrays = {a: np.zeros(len(self.joints) if a in self.arrays else 0) for a in _ARRAYS}
         for value, (array, j) in zip(vec, self._slots, strict=True):
             arrays[array][j] = value
-        return factory.make(
-            JOINT_STATE,
-            header=make_header(factory, stamp_ns, frame_id or "", topic),
-            name=list(self.joints),
-            **arrays,
-        )
+        return factory.make(JOINT_STATE, header=header, name=list(self.joints), **arrays)
 
     def from_msg(self, msg: Any, topic: str = "") -> tuple[np.ndarray, int]:
         stamp = read_stamp(msg.header.stamp, topic)
@@ -206,17 +188,7 @@ class OdometryCodec(VectorCodec):
             ]
         return tuple(docs)
 
-    def to_msg(
-        self,
-        x: Any,
-        stamp_ns: int,
-        *,
-        factory: MessageFactory = RCLPY,
-        frame_id: str | None = None,
-        child_frame_id: str | None = None,
-        topic: str = "",
-    ) -> Any:
-        vec = as_vector(x, self.size, topic)
+    def _build(self, vec: np.ndarray, header: Any, factory: MessageFactory, child_frame_id: str | None) -> Any:
         p, v = vec[0:3], vec[3:6]
         if self.rigid_body:
             q, w = vec[6:10], vec[10:13]
@@ -234,7 +206,7 @@ class OdometryCodec(VectorCodec):
         twist = factory.make("geometry_msgs/msg/Twist", linear=_vec3(factory, v_child), angular=_vec3(factory, w))
         return factory.make(
             ODOMETRY,
-            header=make_header(factory, stamp_ns, self.frame_id if frame_id is None else frame_id, topic),
+            header=header,
             child_frame_id=self.child_frame_id if child_frame_id is None else child_frame_id,
             pose=factory.make("geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=np.zeros(36)),
             twist=factory.make("geometry_msgs/msg/TwistWithCovariance", twist=twist, covariance=np.zeros(36)),
@@ -279,19 +251,8 @@ class LinearVelocityCodec(VectorCodec):
             for n, u, a in zip(self.field_names, self.units, "xyz", strict=True)
         )
 
-    def to_msg(
-        self,
-        x: Any,
-        stamp_ns: int,
-        *,
-        factory: MessageFactory = RCLPY,
-        frame_id: str | None = None,
-        child_frame_id: str | None = None,
-        topic: str = "",
-    ) -> Any:
-        vec = as_vector(x, self.size, topic)
+    def _build(self, vec: np.ndarray, header: Any, factory: MessageFactory, child_frame_id: str | None) -> Any:
         twist = factory.make("geometry_msgs/msg/Twist", linear=_vec3(factory, vec), angular=_vec3(factory, np.zeros(3)))
-        header = make_header(factory, stamp_ns, self.frame_id if frame_id is None else frame_id, topic)
         return factory.make(TWIST_STAMPED, header=header, twist=twist)
 
     def from_msg(self, msg: Any, topic: str = "") -> tuple[np.ndarray, int]:

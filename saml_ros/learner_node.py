@@ -28,14 +28,12 @@ import dataclasses
 import importlib
 import logging
 import math
-import os
-import signal
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
 from typing import Any
+
+from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 #: exit status for configuration errors (the node never starts)
 CONFIG_ERROR = 2
@@ -84,6 +82,7 @@ class LearnerParams:
     pairing_window: int
     pairing_tolerance: float
     training_niceness: int
+    train_threads: int
 
 
 def normalize_namespace(ns: str) -> str:
@@ -169,6 +168,7 @@ def _build_node_class() -> type:
             setup = LearnerSetup(
                 system=p.system, system_params=system_params(self.system), spec=self.spec.to_dict(), config=config,
                 run_dir=str(run_dir), resume=p.resume, loop=loop, niceness=p.training_niceness,
+                threads=p.train_threads,
                 sources=tuple((ns, pairing) for ns in p.namespaces),
                 channels=tuple((p.namespaces.index(ns), kind) for ns, kind, _, _ in self.channels),
                 decoder="saml_ros.learner_node:make_decoder",
@@ -215,7 +215,9 @@ def _build_node_class() -> type:
                 f"({self.spec.describe()}), model {config.kind} {ready.hidden}, run_dir {run_dir}, "
                 + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
                    else "fresh start")
-                + f"; training process pid {self.trainer.pid}; training starts after {p.min_transitions} transitions"
+                + f"; training process pid {self.trainer.pid} ({ready.threads} torch thread(s), subnormals "
+                + ("flushed" if ready.flush_denormal else "not flushed")
+                + f"); training starts after {p.min_transitions} transitions"
             )
 
         # ------------------------------------------------------------------------------ parameters
@@ -271,6 +273,8 @@ def _build_node_class() -> type:
             tol = d("pairing.tolerance", 1e-6, "s: stamps closer than this are the same stamp")
             nice = d("training_niceness", 10, "nice increment of the training process (0-19): the OS runs "
                      "ingest, simulators and the MPC first when CPUs are short")
+            threads = d("train_threads", 1, "torch intra-op threads of the training process (0 = torch's default, "
+                        "one per core); 1 is fastest for these small networks on a shared machine")
             checks = [
                 (isinstance(namespaces, list) and all(isinstance(n, str) for n in namespaces), "namespaces",
                  "a list of strings"),
@@ -278,7 +282,7 @@ def _build_node_class() -> type:
                 (ups >= 0, "updates_per_second", ">= 0"), (period > 0, "checkpoint_period", "> 0"),
                 (keep >= 1, "checkpoint_keep", ">= 1"), (dt >= 0, "dt", ">= 0"),
                 (window >= 2, "pairing.window", ">= 2"), (tol >= 0, "pairing.tolerance", ">= 0"),
-                (0 <= nice <= 19, "training_niceness", "in 0..19"),
+                (0 <= nice <= 19, "training_niceness", "in 0..19"), (threads >= 0, "train_threads", ">= 0"),
             ]
             for ok, name, what in checks:
                 if not ok:
@@ -292,7 +296,7 @@ def _build_node_class() -> type:
                 train=train, buffer_capacity=cap, buffer_policy=policy, min_transitions=min_tr,
                 updates_per_second=ups, checkpoint_period=period, checkpoint_keep=keep, run_dir=run_dir,
                 resume=resume, telemetry_rate=rate, telemetry_window=err_window, diagnostics_rate=diag, dt=dt,
-                pairing_window=window, pairing_tolerance=tol, training_niceness=nice,
+                pairing_window=window, pairing_tolerance=tol, training_niceness=nice, train_threads=threads,
             )
 
         def _load_spec(self, p: LearnerParams) -> ProblemSpec:
@@ -374,6 +378,8 @@ def _build_node_class() -> type:
                         "checkpoints_skipped"):
                 values[key] = int(st.get(key, 0))
             values.update(train_errors=tr.errors, train_restarts=tr.restarts, queued=tr.queued, dropped=tr.dropped)
+            if tr.ready is not None:
+                values.update(train_threads=tr.ready.threads, train_flush_denormal=int(tr.ready.flush_denormal))
             for reason in tele.REJECT_REASONS:
                 values[f"rejected/{reason}"] = totals.get(reason, 0)
             for key in ("time_resets", "reanchors", "expired", "overflow"):
@@ -443,26 +449,12 @@ def create_node(launched: Any = None) -> Any:
     return cls(None if remapped else f"/{system}", launched)
 
 
-#: must equal saml_ros.core.online.CHILD_CODE (repeated here so prelaunch_trainer needs no torch import)
-TRAINER_CODE = "import sys; from saml_ros.core.online import child_entry; child_entry(int(sys.argv[1]))"
-
-
 def prelaunch_trainer() -> Any:
     """Start the training interpreter before anything heavy is imported, so it imports torch while this
-    process imports rclpy, torch and reads its parameters (halves the node's start-up time). Standard library
-    only; the same as ``saml_ros.core.online.launch_child``."""
-    import socket
-    import subprocess
-    from multiprocessing.connection import Connection
+    process imports rclpy, torch and reads its parameters (halves the node's start-up time)."""
+    from saml_ros.core.child_launch import launch_child
 
-    ours, theirs = socket.socketpair()
-    env = dict(os.environ)
-    root = str(Path(__file__).resolve().parents[1])
-    env["PYTHONPATH"] = os.pathsep.join(x for x in (root, env.get("PYTHONPATH", "")) if x)
-    proc = subprocess.Popen([sys.executable, "-c", TRAINER_CODE, str(theirs.fileno())], pass_fds=[theirs.fileno()],
-                            env=env)
-    theirs.close()
-    return proc, Connection(ours.detach())
+    return launch_child()
 
 
 def _discard(launched: Any) -> None:
@@ -477,25 +469,17 @@ def _discard(launched: Any) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``learner [--ros-args ...]``: run until SIGINT / SIGTERM, then write a final checkpoint and exit 0."""
-    stop = {"signal": 0}
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop["signal"] = signum
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    args = list(sys.argv if argv is None else [NODE_NAME, *argv])
-    if any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args:
+    stop = catch_stop_signals()
+    args = full_argv(NODE_NAME, argv)
+    if wants_help(args):
         print(__doc__)
         return 0
 
     launched = prelaunch_trainer()
 
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    init_rclpy(args)
     node = None
     try:
         try:
@@ -504,20 +488,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             rclpy.logging.get_logger(NODE_NAME).fatal(f"configuration error: {exc}")
             _discard(launched)
             return CONFIG_ERROR
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
         try:
-            while not stop["signal"]:
-                executor.spin_once(timeout_sec=0.1)
-            node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
+            spin_until_stopped(node, stop)
         finally:
             node.stop()
         return 0
     finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        shutdown(node)
 
 
 if __name__ == "__main__":

@@ -21,14 +21,11 @@ from __future__ import annotations
 
 import importlib
 import math
-import signal
-import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -48,8 +45,10 @@ from msg_schemas.telemetry import (
 )
 from saml_ros.core.model_io import LoadedModel
 from saml_ros.core.model_watch import REFUSAL_REASONS, ModelWatcher, ReadyModel
+from saml_ros.core.mpc.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
+from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 MODES = ("lockstep", "realtime")
 #: exit code for invalid parameters (as argparse's usage errors)
@@ -240,7 +239,7 @@ def _build_node_class() -> type:
                 self.create_timer(1.0 / self.rate_hz, self._on_tick, clock=steady)
             self.create_timer(1.0 / max(p["diagnostics_rate"], 1e-3), self._publish_diagnostics, clock=steady)
             self.get_logger().info(
-                f"{system_name} MPC ({p['solver']}, "
+                f"{system_name} MPC ({p['solver']}{', QP ' + QP_BACKEND if p['solver'] == 'fast' else ''}, "
                 f"{'one-shot' if system_name == 'paddle_ball' else 'T=' + str(p['horizon'])}, {self.mode}"
                 f"{f' at {self.rate_hz:g} Hz' if self.mode == 'realtime' else ''}, deadline "
                 f"{1e3 * self.deadline_s:.0f} ms), goal {self.goal!r}, run_dir {run_dir or '(none)'}"
@@ -455,26 +454,18 @@ def create_node() -> Any:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``mpc [--ros-args ...]``: run the node until SIGINT / SIGTERM (exit 0); bad parameters exit 2."""
-    stop = {"signal": 0}
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop["signal"] = signum
-
-    args = list(sys.argv if argv is None else ["mpc", *argv])
-    if any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args:
+    args = full_argv("mpc", argv)
+    if wants_help(args):
         print(__doc__)
         print("usage: mpc --ros-args [-p system:=quadrotor] [-p mode:=lockstep] [--params-file config/mpc.yaml] "
               "[-r __ns:=/quadrotor]")
         return 0
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    stop = catch_stop_signals()
     import rclpy
     import torch
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
 
     torch.set_num_threads(1)  # checkpoints are tiny; extra threads would only contend for the cores
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    init_rclpy(args)
     node = None
     try:
         try:
@@ -482,17 +473,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ValueError, TypeError) as exc:
             rclpy.logging.get_logger("mpc").fatal(f"configuration error: {exc}")
             return USAGE_ERROR
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop["signal"]:
-            executor.spin_once(timeout_sec=0.1)
-        node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
+        spin_until_stopped(node, stop)
         return 0
     finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        shutdown(node)
 
 
 if __name__ == "__main__":

@@ -23,15 +23,14 @@ from __future__ import annotations
 
 import argparse
 import re
-import signal
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from saml_ros.bags import Bag, BagError, message_class, rclpy_qos_for_playback
+from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown
 
 CLOCK_TOPIC = "/clock"
 
@@ -165,12 +164,10 @@ class Player:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import rclpy
     from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import remove_ros_args
 
-    full = [sys.argv[0], *(sys.argv[1:] if argv is None else argv)]
+    full = full_argv("play", argv)
     args = build_parser().parse_args(remove_ros_args(full)[1:])
     if args.rate < 0:
         print("play: --rate must be >= 0", file=sys.stderr)
@@ -190,14 +187,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     topics = [t for t in wanted if not (exclude and exclude.search(t)) and not (clock and t == CLOCK_TOPIC)]
 
     profile = use_fast_heartbeats()
-    rclpy.init(args=full, signal_handler_options=SignalHandlerOptions.NO)
-    stop = {"signal": 0}
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop["signal"] = signum
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    init_rclpy(full)
+    stop = catch_stop_signals()
     node = Node("play")
     try:
         player = Player(node, bag, topics, clock=clock)
@@ -225,9 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     finally:
         bag.close()
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        shutdown(node)
         if profile is not None:
             profile.unlink(missing_ok=True)
 

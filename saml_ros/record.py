@@ -23,12 +23,10 @@ from __future__ import annotations
 
 import argparse
 import re
-import signal
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 from saml_ros.bags import (
@@ -44,6 +42,7 @@ from saml_ros.bags import (
     qos_from_rclpy,
     saml_topics,
 )
+from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped
 
 #: topics recorded next to the namespaces' topics by default
 GLOBAL_DEFAULT_TOPICS = ("/clock", "/diagnostics")
@@ -232,23 +231,14 @@ def default_output() -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.parameter import Parameter
-    from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import remove_ros_args
 
-    full = [sys.argv[0], *(sys.argv[1:] if argv is None else argv)]
+    full = full_argv("record", argv)
     args = build_parser().parse_args(remove_ros_args(full)[1:])
-    rclpy.init(args=full, signal_handler_options=SignalHandlerOptions.NO)
-    stop = {"signal": 0}
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop["signal"] = signum
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    init_rclpy(full)
+    stop = catch_stop_signals()
     node = Node("record")
     writer: BagWriter | None = None
     try:
@@ -283,11 +273,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         rec = Recorder(node, writer, select, poll_period=args.poll_period, flush_period=args.flush_period,
                        queue_depth=args.queue_depth)
         print(f"record: writing {out} (Ctrl-C to stop)", flush=True)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
         deadline = time.monotonic() + args.duration if args.duration > 0 else float("inf")
-        while not stop["signal"] and rec.error is None and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.1)
+        spin_until_stopped(node, stop, lambda: rec.error is None and time.monotonic() < deadline, announce=False)
         writer.close()
         counts = writer.counts
         print(f"record: wrote {sum(counts.values())} messages on {len(counts)} topics to {out}", flush=True)
@@ -295,9 +282,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if writer is not None and not writer.closed:
             writer.close()
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        shutdown(node)
 
 
 if __name__ == "__main__":

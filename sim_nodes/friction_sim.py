@@ -6,7 +6,6 @@ starts, p ~ U[-2, 2] m, v = 0. Safe default u = 0. See docs/simulators.md for pa
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 from saml_ros.core.systems.base import System
@@ -34,11 +33,8 @@ BINDING = SimBinding(
 )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the node (``friction_sim --ros-args ...``)."""
-    from sim_nodes.sim_node import run
-
-    return run(BINDING, argv)
+#: run the node (``friction_sim --ros-args ...``)
+main = BINDING.main
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ A lost ball (fell, out of reach, no impact for ``impact_timeout``) starts a new 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -34,7 +33,6 @@ from sim_nodes.sim_core import (
     APPLIED,
     CLOCK,
     FLIGHT,
-    STATE,
     TARGET,
     CommandRejected,
     Output,
@@ -68,17 +66,13 @@ class PaddleBallSim(SimCore):
 
     def __init__(self, world: Any, config: SimConfig, *, publish_clock: bool = True, flight_rate_hz: float = 30.0,
                  tick_seconds: float = 0.01, impact_time_tolerance: float = 0.005) -> None:
-        super().__init__(world.system, config, SAFE_DEFAULT)
+        super().__init__(world.system, config, SAFE_DEFAULT, publish_clock=publish_clock)
         self.world = world
-        self.publish_clock = publish_clock
         self.flight_period_ns = seconds_to_ns(1.0 / flight_rate_hz) if flight_rate_hz > 0 else 0
         self.tick_steps = max(1, int(round(tick_seconds / world.timestep)))
         self.tolerance = impact_time_tolerance
-        self.max_sim_ns = seconds_to_ns(config.max_sim_time)
         self.initial_state = check_initial_state(config.initial_state, 6, "initial_state (ball [p, v])")
-        self.rng = config.rng()
         self.base_ns = self.t0_ns  # stamp of world time 0 in the current episode
-        self.episode_step = 0
         self.next_flight_ns = 0
         self.last_stamp = -1
         #: the published prediction the next impact is checked against: (x, stamp ns, world time s)
@@ -117,12 +111,7 @@ class PaddleBallSim(SimCore):
             self.reject("bounds", str(exc))
 
     # -- episodes -----------------------------------------------------------------------------------------
-    def begin(self, now_ns: int, t0_ns: int | None = None) -> list[Output]:
-        if self.started:
-            return []
-        self.started = True
-        if t0_ns is not None:
-            self.t0_ns = t0_ns
+    def _first_episode(self, now_ns: int) -> list[Output]:
         self.base_ns = self.t0_ns
         self._set_command(self.holder.safe_default)  # until a command arrives (the world keeps its last one)
         self._reset_world()
@@ -154,21 +143,11 @@ class PaddleBallSim(SimCore):
         stamp = max(now + seconds_to_ns(tau), self.last_stamp + 1)
         self.last_stamp = stamp
         self.prediction = (x, stamp, self.world.time + tau)
-        out: list[Output] = [(CLOCK, None, now)] if self.publish_clock else []
-        out.append((STATE, x, stamp))
-        if self.max_sim_ns and stamp - self.t0_ns >= self.max_sim_ns:
-            self.done = True
-        self._await(stamp, now_ns)
-        return out
+        return self._emit_state(x, stamp, now_ns, clock_ns=now)
 
     # -- stepping -----------------------------------------------------------------------------------------
-    def _advance(self, u: np.ndarray, now_ns: int) -> list[Output]:
+    def _step(self, u: np.ndarray, now_ns: int) -> list[Output]:
         """Lockstep: apply ``u`` for the awaited impact and simulate until that impact has ended."""
-        if self.done:
-            return []
-        if self.pending_reset or (self.config.episode_steps and self.episode_step >= self.config.episode_steps):
-            self.counters["resets" if self.pending_reset else "episodes_completed"] += 1
-            return self._restart(now_ns)
         self._set_command(u)
         out: list[Output] = []
         while not self.done:
@@ -210,7 +189,7 @@ class PaddleBallSim(SimCore):
             return bool(impacts), True
         if impacts:
             if not self.config.lockstep:
-                if self.config.episode_steps and self.episode_step >= self.config.episode_steps:
+                if self._episode_complete():
                     self.counters["episodes_completed"] += 1
                     out.extend(self._restart(now_ns))
                     return True, True
@@ -288,11 +267,8 @@ BINDING = SimBinding(
 )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the node (``paddle_ball_sim --ros-args ...``)."""
-    from sim_nodes.sim_node import run
-
-    return run(BINDING, argv)
+#: run the node (``paddle_ball_sim --ros-args ...``)
+main = BINDING.main
 
 
 if __name__ == "__main__":

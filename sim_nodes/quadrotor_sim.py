@@ -9,7 +9,6 @@ See docs/simulators.md.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 from saml_ros.core.systems.base import System
@@ -46,11 +45,8 @@ BINDING = SimBinding(
 )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the node (``quadrotor_sim --ros-args ...``)."""
-    from sim_nodes.sim_node import run
-
-    return run(BINDING, argv)
+#: run the node (``quadrotor_sim --ros-args ...``)
+main = BINDING.main
 
 
 if __name__ == "__main__":

@@ -327,11 +327,22 @@ class SimCore(abc.ABC):
     failed to decode), :meth:`tick` every ``1 / rate_hz`` wall seconds in realtime, :meth:`poll` often in
     lockstep (it applies a miss once the deadline passed) and :meth:`request_reset` from the reset service.
     ``now_ns`` is a monotonic wall clock in ns.
+
+    Shared episode logic: :meth:`begin` starts the first episode once (:meth:`_first_episode`); every advance
+    either restarts the episode (a reset was requested or ``episode_steps`` were done: :meth:`_restart`) or
+    steps (:meth:`_step`); :meth:`_emit_state` publishes a state (with ``/clock`` when ``publish_clock``), ends
+    the run at ``max_sim_time`` and, in lockstep, waits for its command.
     """
 
-    def __init__(self, system: System, config: SimConfig, safe_default: np.ndarray) -> None:
+    def __init__(self, system: System, config: SimConfig, safe_default: np.ndarray, *,
+                 publish_clock: bool = True) -> None:
         self.system = system
         self.config = config
+        self.publish_clock = publish_clock
+        self.max_sim_ns = seconds_to_ns(config.max_sim_time)
+        self.rng = config.rng()
+        #: steps (impacts for the paddle ball) in the current episode
+        self.episode_step = 0
         self.validator = CommandValidator(system.control_low, system.control_high, config.reject_margin)
         self.holder = CommandHolder(safe_default, seconds_to_ns(config.cmd_timeout))
         self.counters: Counter[str] = Counter()
@@ -424,14 +435,51 @@ class SimCore(abc.ABC):
             self.awaiting = stamp_ns
             self.deadline_ns = now_ns + self._lockstep_timeout_ns
 
-    # -- to implement -----------------------------------------------------------------------------------
-    @abc.abstractmethod
+    # -- episodes ---------------------------------------------------------------------------------------
     def begin(self, now_ns: int, t0_ns: int | None = None) -> list[Output]:
         """Start the first episode (once; ``t0_ns`` overrides ``config.t0_ns``); returns its first state."""
+        if self.started:
+            return []
+        self.started = True
+        if t0_ns is not None:
+            self.t0_ns = t0_ns
+        return self._first_episode(now_ns)
+
+    def _episode_complete(self) -> bool:
+        """True when the current episode has had its ``episode_steps`` (never with ``episode_steps`` 0)."""
+        return bool(self.config.episode_steps and self.episode_step >= self.config.episode_steps)
+
+    def _advance(self, u: np.ndarray, now_ns: int) -> list[Output]:
+        """Apply ``u`` (:meth:`_step`), or restart the episode when a reset is pending or it is complete."""
+        if self.done:
+            return []
+        if self.pending_reset or self._episode_complete():
+            self.counters["resets" if self.pending_reset else "episodes_completed"] += 1
+            return self._restart(now_ns)
+        return self._step(u, now_ns)
+
+    def _emit_state(self, x: np.ndarray, stamp_ns: int, now_ns: int, clock_ns: int | None = None) -> list[Output]:
+        """Outputs of a new state ``x`` stamped ``stamp_ns``: ``/clock`` (at ``clock_ns``, default the stamp) if
+        ``publish_clock``, then the state; ends the run at ``max_sim_time`` and, in lockstep, awaits its cmd."""
+        out: list[Output] = [(CLOCK, None, stamp_ns if clock_ns is None else clock_ns)] if self.publish_clock else []
+        out.append((STATE, x, stamp_ns))
+        if self.max_sim_ns and stamp_ns - self.t0_ns >= self.max_sim_ns:
+            self.done = True
+        self._await(stamp_ns, now_ns)
+        return out
+
+    # -- to implement -----------------------------------------------------------------------------------
+    @abc.abstractmethod
+    def _first_episode(self, now_ns: int) -> list[Output]:
+        """Set up the first episode (``t0_ns`` is final) and return its first state's outputs."""
 
     @abc.abstractmethod
-    def _advance(self, u: np.ndarray, now_ns: int) -> list[Output]:
-        """Apply ``u`` to the current state (or restart the episode) and return the outputs."""
+    def _step(self, u: np.ndarray, now_ns: int) -> list[Output]:
+        """Apply ``u`` to the current state and return the outputs (the run is not done, no restart due)."""
+
+    @abc.abstractmethod
+    def _restart(self, now_ns: int) -> list[Output]:
+        """Start a new episode (clearing ``pending_reset``) and return its first state's outputs."""
 
     @abc.abstractmethod
     def sim_now_ns(self) -> int:
@@ -464,19 +512,15 @@ class SteppedSim(SimCore):
         system = model.system
         if not system.dt > 0:
             raise ValueError(f"{system.name} is not time-stepped (dt = {system.dt})")
-        super().__init__(system, config, model.safe_default)
+        super().__init__(system, config, model.safe_default, publish_clock=publish_clock)
         self.model = model
-        self.publish_clock = publish_clock
         self.step_fn = step_fn if step_fn is not None else FastStep(system)
         self.dt_ns = seconds_to_ns(system.dt)
-        self.max_sim_ns = seconds_to_ns(config.max_sim_time)
         start = check_initial_state(config.initial_state, system.state.size)
         if start is not None and model.normalize_start is not None:
             start = model.normalize_start(start)
         self.initial_state = start
-        self.rng = config.rng()
         self.k = 0  # stamp index: t_k = t0 + k dt
-        self.episode_step = 0
         self.x = np.zeros(system.state.size)
 
     def sim_now_ns(self) -> int:
@@ -487,31 +531,12 @@ class SteppedSim(SimCore):
             return self.initial_state.copy()
         return np.asarray(self.model.sample_start(self.rng), dtype=np.float64)
 
-    def begin(self, now_ns: int, t0_ns: int | None = None) -> list[Output]:
-        if self.started:
-            return []
-        self.started = True
-        if t0_ns is not None:
-            self.t0_ns = t0_ns
+    def _first_episode(self, now_ns: int) -> list[Output]:
         self.x = self._start_state()
         self.counters["episodes"] += 1
-        return self._emit_state(now_ns)
+        return self._emit_state(self.x, self.sim_now_ns(), now_ns)
 
-    def _emit_state(self, now_ns: int) -> list[Output]:
-        stamp = self.sim_now_ns()
-        out: list[Output] = [(CLOCK, None, stamp)] if self.publish_clock else []
-        out.append((STATE, self.x, stamp))
-        if self.max_sim_ns and stamp - self.t0_ns >= self.max_sim_ns:
-            self.done = True
-        self._await(stamp, now_ns)
-        return out
-
-    def _advance(self, u: np.ndarray, now_ns: int) -> list[Output]:
-        if self.done:
-            return []
-        if self.pending_reset or (self.config.episode_steps and self.episode_step >= self.config.episode_steps):
-            self.counters["resets" if self.pending_reset else "episodes_completed"] += 1
-            return self._restart(now_ns)
+    def _step(self, u: np.ndarray, now_ns: int) -> list[Output]:
         x_next = self.step_fn(self.x, u)
         if not np.all(np.isfinite(x_next)):
             self.counters["diverged"] += 1
@@ -528,7 +553,7 @@ class SteppedSim(SimCore):
         self.k += 1
         self.episode_step += 1
         self.x = x_next
-        return out + self._emit_state(now_ns)
+        return out + self._emit_state(self.x, self.sim_now_ns(), now_ns)
 
     def _restart(self, now_ns: int) -> list[Output]:
         """New episode: no applied_cmd for the last state; the start state is stamped 2 dt later."""
@@ -537,7 +562,7 @@ class SteppedSim(SimCore):
         self.k += 2
         self.episode_step = 0
         self.counters["episodes"] += 1
-        return self._emit_state(now_ns)
+        return self._emit_state(self.x, self.sim_now_ns(), now_ns)
 
 
 def build_stepped_sim(system: System, config: SimConfig, *, publish_clock: bool = True,
@@ -615,6 +640,12 @@ class SimBinding:
         own = {p.name: p for p in self.params}
         out = [own.pop(p.name, p) for p in COMMON_PARAMS]
         return out + list(own.values())
+
+    def main(self, argv: Sequence[str] | None = None) -> int:
+        """Run this simulator's node (``<node_name> --ros-args ...``; :func:`sim_nodes.sim_node.run`)."""
+        from sim_nodes.sim_node import run
+
+        return run(self, argv)
 
 
 def coerce_param(name: str, value: Any, default: Any) -> Any:

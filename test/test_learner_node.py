@@ -365,9 +365,12 @@ def test_stock_subscriber_decodes_model_error_from_the_message_type_alone(
     assert values["buffer_size"] >= 0 and data["velocity"] == 0 and data["effort"] == 0
 
 
-def _feed_with_bad(tester: RosSide, ns: str, bad: Callable[[list[tuple[str, int, np.ndarray]]], None],
+def _feed_with_bad(learner: Learner, tester: RosSide, ns: str,
+                   bad: Callable[[list[tuple[str, int, np.ndarray]]], None], rejected: dict[str, int],
                    n: int = 40) -> None:
-    """Send ``n`` good transitions on ``ns``, calling ``bad(events)`` halfway to inject bad messages."""
+    """Send ``n`` good transitions on ``ns``, calling ``bad(events)`` halfway to inject bad messages; then every
+    good one must be paired, ``<ns>/rejected/<reason>`` must equal ``rejected[reason]`` and each reason must be
+    logged."""
     tester.connect(ns)
     ev = episodes(n, np.random.default_rng(3), t0=10**9, interleave=False)
     half = len(ev) // 2
@@ -376,6 +379,9 @@ def _feed_with_bad(tester: RosSide, ns: str, bad: Callable[[list[tuple[str, int,
     tester.send(ns, ev[half:])
     tester.wait_received(ns)
     tester.wait(lambda: tester.counter(f"{ns}/paired") == n, 5.0, f"{ns}/paired == {n}")
+    assert {r: tester.counter(f"{ns}/rejected/{r}") for r in rejected} == rejected
+    for reason in rejected:
+        learner.wait_log(f"rejected/{reason}")
 
 
 def test_nan_and_inf_states_are_rejected_counted_and_logged(shared: tuple[Learner, RosSide, Path]) -> None:
@@ -388,9 +394,7 @@ def test_nan_and_inf_states_are_rejected_counted_and_logged(shared: tuple[Learne
         tester.publish(ns, "state", sc.state_to_msg(np.array([np.nan, 0.0]), stamp))
         tester.publish(ns, "state", sc.state_to_msg(np.array([0.1, np.inf]), stamp + DT_NS // 2))
 
-    _feed_with_bad(tester, ns, bad)
-    assert tester.counter(f"{ns}/rejected/nan") == 2
-    learner.wait_log("rejected/nan")
+    _feed_with_bad(learner, tester, ns, bad, {"nan": 2})
     assert "is nan" in learner.log() or "is inf" in learner.log()
 
 
@@ -410,11 +414,7 @@ def test_wrong_length_and_wrong_names_are_rejected(shared: tuple[Learner, RosSid
         tester.publish(ns, "applied_cmd", cmd)
         tester.publish(ns, "applied_cmd", JointState())  # empty: no names at all
 
-    _feed_with_bad(tester, ns, bad)
-    assert tester.counter(f"{ns}/rejected/shape") == 1
-    assert tester.counter(f"{ns}/rejected/names") == 2
-    learner.wait_log("rejected/shape")
-    learner.wait_log("rejected/names")
+    _feed_with_bad(learner, tester, ns, bad, {"shape": 1, "names": 2})
 
 
 def test_duplicate_and_out_of_order_stamps_are_rejected(shared: tuple[Learner, RosSide, Path]) -> None:
@@ -429,11 +429,7 @@ def test_duplicate_and_out_of_order_stamps_are_rejected(shared: tuple[Learner, R
         first = ev[0]  # an old stamp between two states: out of order
         tester.publish(ns, "applied_cmd", sc.control_to_msg(np.array([0.5]), first[1] + DT_NS // 2))
 
-    _feed_with_bad(tester, ns, bad)
-    assert tester.counter(f"{ns}/rejected/duplicate") == 1
-    assert tester.counter(f"{ns}/rejected/out_of_order") == 1
-    learner.wait_log("rejected/duplicate")
-    learner.wait_log("rejected/out_of_order")
+    _feed_with_bad(learner, tester, ns, bad, {"duplicate": 1, "out_of_order": 1})
 
 
 def test_sigterm_writes_a_final_checkpoint_and_exits_0(shared: tuple[Learner, RosSide, Path]) -> None:
@@ -517,13 +513,16 @@ def test_resume_skips_a_corrupt_checkpoint_and_loads_the_last_good_one(
     bad = run_dir / f"ckpt-{good_version + 1:06d}.saml"  # a newer, truncated checkpoint, named by `latest`
     bad.write_bytes(good_path.read_bytes()[: good_path.stat().st_size // 2])
     atomic_write(run_dir / "latest", lambda f: f.write(f"{bad.name} {good_version + 1}\n".encode()))
-    learner = Learner(ros_env, dict(BASE_PARAMS, run_dir=str(run_dir), min_transitions=100, checkpoint_period=0.2))
+    learner = Learner(ros_env, dict(BASE_PARAMS, run_dir=str(run_dir), min_transitions=100, checkpoint_period=0.2,
+                                    train_threads=2))
     tester = RosSide(ros_env.domain_id)
     try:
         learner.wait_log("resumed from version")
         log = learner.log()
         assert f"skipped {bad}" in log and "truncated" in log
+        assert "(2 torch thread(s), subnormals flushed)" in log  # train_threads reached the training process
         tester.wait(lambda: tester.counter("checkpoints_skipped") == 1, 10.0, "checkpoints_skipped == 1")
+        assert tester.counter("train_threads") == 2 and tester.counter("train_flush_denormal") == 1
         first = tester.last()
         assert first["model_version"] == good_version and first["updates"] == good_updates
         assert first["lambda/near_origin"] == good_lam and good_lam > 0

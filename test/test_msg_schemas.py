@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import subprocess
@@ -297,18 +298,12 @@ def test_malformed_odometry_and_twists_are_rejected_naming_the_field(factory_nam
     quad = get_schema("quadrotor")
     x = _random_vector("quadrotor", "state", np.random.default_rng(5))
 
-    m = quad.state_to_msg(x, 0, factory=factory)
-    m.twist.twist.linear.y = math.nan
-    _raises(lambda: quad.state_from_msg(m), "nan", "twist.twist.linear.y", "'vy'")
-    m = quad.state_to_msg(x, 0, factory=factory)
-    m.twist.twist.angular.z = math.inf
-    _raises(lambda: quad.state_from_msg(m), "nan", "twist.twist.angular.z", "'wz'")
-    m = quad.state_to_msg(x, 0, factory=factory)
-    m.pose.pose.position.x = math.nan
-    _raises(lambda: quad.state_from_msg(m), "nan", "pose.pose.position.x", "'px'")
-    m = quad.state_to_msg(x, 0, factory=factory)
-    m.pose.pose.orientation.w = math.nan
-    _raises(lambda: quad.state_from_msg(m), "nan", "pose.pose.orientation.w", "'qw'")
+    for path, value, field in (("twist.twist.linear.y", math.nan, "'vy'"), ("twist.twist.angular.z", math.inf, "'wz'"),
+                               ("pose.pose.position.x", math.nan, "'px'"), ("pose.pose.orientation.w", math.nan, "'qw'")):
+        m = quad.state_to_msg(x, 0, factory=factory)
+        *parents, leaf = path.split(".")
+        setattr(functools.reduce(getattr, parents, m), leaf, value)
+        _raises(functools.partial(quad.state_from_msg, m), "nan", path, field)
     m = quad.state_to_msg(x, 0, factory=factory)
     o = m.pose.pose.orientation
     o.w, o.x, o.y, o.z = 0.5 * o.w, 0.5 * o.x, 0.5 * o.y, 0.5 * o.z

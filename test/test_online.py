@@ -66,6 +66,16 @@ def new_learner(tmp_path: Path | None = None, resume: bool = True, **kw: object)
     return OnlineLearner(SYSTEM, SPEC, config(**kw), store=store, resume=resume)
 
 
+def checkpointed_learner(tmp_path: Path, seed: int, updates: int) -> OnlineLearner:
+    """A learner trained ``updates`` steps on 300 transitions, saved as checkpoint version 1 in ``tmp_path / "run"``."""
+    learner = new_learner(tmp_path)
+    for tr in transitions(300, seed=seed):
+        learner.add(tr)
+    learner.update(updates)
+    assert learner.save_checkpoint() == (tmp_path / "run" / "ckpt-000001.saml", 1)
+    return learner
+
+
 def pairing() -> PairingConfig:
     return PairingConfig.for_system(SYSTEM, "next")
 
@@ -220,13 +230,9 @@ def test_checkpoint_and_resume_restore_everything(tmp_path: Path) -> None:
 
 
 def test_resume_skips_corrupt_checkpoints_and_loads_the_newest_good_one(tmp_path: Path) -> None:
-    learner = new_learner(tmp_path)
-    for tr in transitions(300, seed=9):
-        learner.add(tr)
-    learner.update(40)
-    good, _ = learner.save_checkpoint() or (None, 0)
-    assert good is not None
+    checkpointed_learner(tmp_path, seed=9, updates=40)
     store = CheckpointStore(tmp_path / "run")
+    good = store.path_for(1)
     bad = store.path_for(2)
     bad.write_bytes(good.read_bytes()[:1000])  # truncated
     (store.path_for(3)).write_bytes(b"\x80\x04not a checkpoint")  # a pickle
@@ -250,11 +256,7 @@ def test_no_readable_checkpoint_starts_fresh(tmp_path: Path) -> None:
 
 
 def test_resume_refuses_another_architecture_or_system(tmp_path: Path) -> None:
-    learner = new_learner(tmp_path)
-    for tr in transitions(300, seed=11):
-        learner.add(tr)
-    learner.update(5)
-    learner.save_checkpoint()
+    checkpointed_learner(tmp_path, seed=11, updates=5)
     with pytest.raises(ResumeError, match="hidden"):
         new_learner(tmp_path, hidden=(8, 8))
     assert new_learner(tmp_path, resume=False).trainer is None  # resume off: fresh
@@ -265,11 +267,7 @@ def test_resume_refuses_another_architecture_or_system(tmp_path: Path) -> None:
 
 
 def test_configured_learning_rates_win_over_the_checkpoints(tmp_path: Path) -> None:
-    learner = new_learner(tmp_path)
-    for tr in transitions(300, seed=12):
-        learner.add(tr)
-    learner.update(5)
-    learner.save_checkpoint()
+    checkpointed_learner(tmp_path, seed=12, updates=5)
     again = new_learner(tmp_path, train=TrainConfig(batch_size=64, primal_lr=1e-4, dual_lr=5e-3))
     assert again.trainer is not None
     assert again.trainer.primal_opt.param_groups[0]["lr"] == 1e-4
@@ -329,6 +327,7 @@ def test_training_process_trains_checkpoints_and_stops_with_a_final_checkpoint(t
                            on_error=lambda what, text: errors.append(text))
     ready = proc.start()
     assert ready.resumed is None and ready.hidden == [4, 2] and ready.status["updates"] == 0
+    assert ready.threads == 1 and ready.flush_denormal  # the defaults: one intra-op thread, subnormals flushed
     for tr in transitions(400, seed=20):
         proc.submit(tr)
     _wait(lambda: proc.status.get("updates", 0) >= 100 and len(saved) >= 2)
@@ -343,11 +342,7 @@ def test_training_process_trains_checkpoints_and_stops_with_a_final_checkpoint(t
 
 def test_training_process_reports_resume_errors_and_survives_being_killed(tmp_path: Path) -> None:
     run = tmp_path / "run"
-    learner = new_learner(tmp_path)  # a real checkpoint of a (4, 2) friction model in tmp_path / run
-    for tr in transitions(300, seed=21):
-        learner.add(tr)
-    learner.update(30)
-    learner.save_checkpoint()
+    checkpointed_learner(tmp_path, seed=21, updates=30)  # a real checkpoint of a (4, 2) friction model in run
     with pytest.raises(ResumeError, match="hidden"):
         TrainingProcess(_setup(run, config=config(hidden=(8,)))).start()
     errors: list[str] = []
@@ -366,11 +361,31 @@ def test_training_process_reports_resume_errors_and_survives_being_killed(tmp_pa
     assert final is not None and final[2] > 30
 
 
-def test_the_node_prelaunches_the_same_training_interpreter() -> None:
-    from saml_ros import learner_node
-    from saml_ros.core.online import CHILD_CODE
+def test_training_process_applies_its_thread_and_subnormal_settings(tmp_path: Path) -> None:
+    """What the child reports is what torch says inside it after applying the setup's settings."""
+    messages: list[str] = []
+    proc = TrainingProcess(_setup(tmp_path / "run", threads=3, flush_denormal=False),
+                           on_log=lambda level, text: messages.append(text))
+    ready = proc.start()
+    try:
+        assert ready.threads == 3 and not ready.flush_denormal and proc.ready == ready
+        assert any("3 torch intra-op thread(s), subnormal floats not flushed" in m for m in messages)
+    finally:
+        proc.stop()
+    with pytest.raises(ValueError, match="threads"):
+        _setup(tmp_path / "run", threads=-1)
 
-    assert learner_node.TRAINER_CODE == CHILD_CODE
+
+def test_the_node_prelaunches_the_training_interpreter_without_importing_torch() -> None:
+    """The node starts the training interpreter first thing, so that it imports torch in parallel: the launcher
+    must not import torch itself."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from saml_ros.learner_node import prelaunch_trainer; proc, conn = prelaunch_trainer(); "
+            "print('torch' in sys.modules); conn.close(); proc.wait(30)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "False", out.stderr
 
 
 class _Bad(ValueError):

@@ -47,6 +47,31 @@ def stream(x: np.ndarray, u: np.ndarray, stamps: list[int], cmd_first: bool = Fa
     return ev
 
 
+Event = tuple[str, int, np.ndarray]
+
+
+def merge(states: list[Event], cmds: list[Event], rng: np.random.Generator, ahead: float = np.inf,
+          lag: float = np.inf) -> list[Event]:
+    """The two streams merged at random, each kept in order; commands run at most ``ahead`` steps ahead of the
+    states and lag at most ``lag`` steps (a coin decides only where both are possible)."""
+    merged: list[Event] = []
+    i = j = 0
+    while i < len(states) or j < len(cmds):
+        if j >= len(cmds) or j - i >= ahead:
+            take_state = True
+        elif i >= len(states) or i - j >= lag:
+            take_state = False
+        else:
+            take_state = bool(rng.random() < 0.5)
+        if take_state:
+            merged.append(states[i])
+            i += 1
+        else:
+            merged.append(cmds[j])
+            j += 1
+    return merged
+
+
 def check_exact(trs: list[Transition], x: np.ndarray, u: np.ndarray, stamps: list[int]) -> None:
     """Every transition is (x_k, u_k, x_{k+1}) for the k its stamp names."""
     index = {t: k for k, t in enumerate(stamps)}
@@ -79,21 +104,7 @@ def test_any_interleaving_of_kinds_gives_the_same_transitions() -> None:
         # merge the two streams randomly, keeping each one in order; commands run up to 3 steps ahead of
         # the states or lag up to 15 steps
         ahead, lag = int(rng.integers(0, 4)), int(rng.integers(1, 16))
-        merged: list[tuple[str, int, np.ndarray]] = []
-        i = j = 0
-        while i < len(states) or j < len(cmds):
-            if j >= len(cmds) or j - i >= ahead:
-                take_state = True
-            elif i >= len(states) or i - j >= lag:
-                take_state = False
-            else:
-                take_state = bool(rng.random() < 0.5)
-            if take_state:
-                merged.append(states[i])
-                i += 1
-            else:
-                merged.append(cmds[j])
-                j += 1
+        merged = merge(states, cmds, rng, ahead, lag)
         p = StampPairer(next_cfg())
         trs = feed(p, merged)
         assert sorted(t.stamp_ns for t in trs) == st[:-1], f"trial {trial}"
@@ -293,15 +304,7 @@ def test_fuzz_reordered_and_conflicting_input_never_mispairs(seed: int) -> None:
         for i in sorted(rng.choice(len(seq), size=8, replace=False), reverse=True):
             kind, t, v = seq[i]
             seq.insert(i + 1, (kind, t, v + 1.0))  # a conflicting duplicate after the original
-    ev: list[tuple[str, int, np.ndarray]] = []
-    i = j = 0
-    while i < len(states) or j < len(cmds):
-        if j >= len(cmds) or (i < len(states) and rng.random() < 0.5):
-            ev.append(states[i])
-            i += 1
-        else:
-            ev.append(cmds[j])
-            j += 1
+    ev = merge(states, cmds, rng)
     p = StampPairer(next_cfg())
     trs = feed(p, ev)
     check_exact(trs, x, u, st)

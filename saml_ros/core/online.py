@@ -35,9 +35,7 @@ import logging
 import math
 import os
 import signal
-import socket
 import subprocess
-import sys
 import threading
 import time
 from collections import deque
@@ -52,6 +50,7 @@ import torch
 from msg_schemas.telemetry import REJECT_REASONS, model_error_names
 from saml_ros.core.buffer import Policy, ReplayBuffer
 from saml_ros.core.checkpoint import CheckpointError, CheckpointStore, read_checkpoint
+from saml_ros.core.child_launch import LaunchedChild, launch_child
 from saml_ros.core.model_io import MODEL_KIND, LoadedModel, model_from_payload, save_checkpoint
 from saml_ros.core.models import MODEL_KINDS, DynamicsModel
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
@@ -583,6 +582,10 @@ class LearnerSetup:
         loop: pacing of the training loop.
         niceness: added to the training process's nice value, so the OS runs ingest (and simulators, MPC)
             first when CPUs are short; 0 keeps the parent's priority.
+        threads: torch intra-op threads of the training process; 0 = torch's default (one per core). One is
+            fastest for these small networks on a shared 2-core machine (docs/performance.md).
+        flush_denormal: flush subnormal floats to zero in the training process (they can slow training by
+            an order of magnitude; docs/performance.md).
         sources: ``(name, pairing)`` of each source, in index order (for raw messages; see below).
         channels: ``(source index, kind)`` of each raw-message channel.
         decoder: ``"module:function"``; ``function(decoder_args)`` returns ``decode(channel, payload) ->
@@ -599,10 +602,16 @@ class LearnerSetup:
     resume: bool = True
     loop: LoopConfig = field(default_factory=LoopConfig)
     niceness: int = 10
+    threads: int = 1
+    flush_denormal: bool = True
     sources: tuple[tuple[str, PairingConfig], ...] = ()
     channels: tuple[tuple[int, str], ...] = ()
     decoder: str | None = None
     decoder_args: Any = None
+
+    def __post_init__(self) -> None:
+        if self.threads < 0:
+            raise ValueError(f"threads must be >= 0 (0 = torch's default), got {self.threads}")
 
     def build(self) -> OnlineLearner:
         from saml_ros.core.systems import get_system
@@ -784,35 +793,6 @@ def _die_with_parent() -> None:
             os._exit(0)
 
 
-#: a started training interpreter waiting for its :class:`LearnerSetup`: ``(process, connection)``
-LaunchedChild = tuple["subprocess.Popen[bytes]", Any]
-#: what the training interpreter runs (``argv[1]`` = its socket's file descriptor)
-CHILD_CODE = "import sys; from saml_ros.core.online import child_entry; child_entry(int(sys.argv[1]))"
-
-
-def launch_child() -> LaunchedChild:
-    """Start a training interpreter now; it imports torch and saml_ros, then waits for its setup.
-
-    A fresh interpreter through ``subprocess``, not ``multiprocessing``: multiprocessing's "spawn" re-imports the
-    parent's ``__main__`` (slow, and fatal for scripts without a main guard) and "fork" is unsafe once rclpy's
-    DDS threads run. Uses only the standard library, so a node can call it first thing and let the child
-    import while it parses its parameters (see ``saml_ros.learner_node``).
-    """
-    return launch_child_process(CHILD_CODE, Path(__file__).resolve().parents[2])
-
-
-def launch_child_process(code: str, package_root: Path) -> LaunchedChild:
-    """``python -c code FD`` with ``package_root`` on its path and a socket pair between us (stdlib only)."""
-    from multiprocessing.connection import Connection
-
-    ours, theirs = socket.socketpair()
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(x for x in (str(package_root), env.get("PYTHONPATH", "")) if x)
-    proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno())], pass_fds=[theirs.fileno()], env=env)
-    theirs.close()
-    return proc, Connection(ours.detach())
-
-
 def child_entry(fd: int) -> None:
     """Entry point of a training process started by :class:`TrainingProcess`: ``fd`` is its end of a socket
     pair; the first message on it is the :class:`LearnerSetup`."""
@@ -826,6 +806,18 @@ def child_entry(fd: int) -> None:
     _child_main(conn, setup)
 
 
+def apply_compute_settings(threads: int, flush_denormal: bool) -> dict[str, Any]:
+    """Set this process's torch intra-op ``threads`` (0 = leave torch's default) and subnormal flushing.
+
+    Returns what torch reports afterwards: ``{"threads": torch.get_num_threads(), "flush_denormal": bool}``
+    (``flush_denormal`` is False where the CPU cannot flush, e.g. without SSE3).
+    """
+    if threads > 0:
+        torch.set_num_threads(threads)
+    flushing = bool(torch.set_flush_denormal(flush_denormal)) and flush_denormal
+    return {"threads": torch.get_num_threads(), "flush_denormal": flushing}
+
+
 def _child_main(conn: Any, setup: LearnerSetup) -> None:
     _die_with_parent()
     # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops
@@ -834,7 +826,7 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
     if setup.niceness:
         with contextlib.suppress(OSError):
             os.nice(setup.niceness)
-    torch.set_num_threads(1)  # small networks: intra-op threads cost more than they give, and steal CPUs
+    compute = apply_compute_settings(setup.threads, setup.flush_denormal)
     lock = threading.Lock()
 
     def send(msg: tuple[Any, ...]) -> None:
@@ -859,7 +851,9 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
         info = None if r is None else {"path": str(r.path), "version": r.version, "updates": r.updates,
                                        "lam": r.lam, "skipped": [(str(p), why) for p, why in r.skipped]}
         raw = None if decode is None else RawIngest(learner, setup.channels, decode)
-        send(("ready", info, list(learner.model.hidden), learner.status()))
+        log.info("training process: %d torch intra-op thread(s), subnormal floats %s", compute["threads"],
+                 "flushed to zero" if compute["flush_denormal"] else "not flushed")
+        send(("ready", info, list(learner.model.hidden), learner.status(), compute))
         run_loop(learner, setup.loop, conn, send, raw)
     except (EOFError, OSError):
         return  # the parent is gone
@@ -873,11 +867,15 @@ class ReadyInfo:
         resumed: ``{"path", "version", "updates", "lam", "skipped"}`` of the checkpoint it resumed from, or None.
         hidden: the model's hidden layer sizes.
         status: its first :meth:`OnlineLearner.status`.
+        threads: torch intra-op threads the training process runs with.
+        flush_denormal: whether it flushes subnormal floats to zero.
     """
 
     resumed: dict[str, Any] | None
     hidden: list[int]
     status: dict[str, float]
+    threads: int
+    flush_denormal: bool
 
 
 class TrainingProcess:
@@ -925,6 +923,8 @@ class TrainingProcess:
         self.status: dict[str, float] = {}
         #: per-source pairing counters of the child, ``{source name: {counter: value}}`` (see pairing.COUNTERS)
         self.source_counts: dict[str, dict[str, int]] = {}
+        #: what the running training process reported when it was ready (after a restart: the new one's)
+        self.ready: ReadyInfo | None = None
         self.dropped = 0
         self.restarts = 0
         self.errors = 0
@@ -977,7 +977,8 @@ class TrainingProcess:
             elif msg[0] == "ready":
                 self._proc, self._conn = proc, parent
                 self.status = msg[3]
-                return ReadyInfo(msg[1], msg[2], msg[3])
+                self.ready = ReadyInfo(msg[1], msg[2], msg[3], msg[4]["threads"], msg[4]["flush_denormal"])
+                return self.ready
 
     def stop(self, timeout: float = 60.0) -> tuple[str | None, int, int] | None:
         """Ship what is queued, ask the child for a final checkpoint and wait for it to exit.

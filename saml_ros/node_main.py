@@ -1,0 +1,75 @@
+"""What the saml_ros rclpy executables (learner, mpc, play, record) share around their ``main``.
+
+SIGINT and SIGTERM only set a stop flag, and rclpy starts without its own signal handlers (which would raise
+inside a callback): the executable leaves its spin loop, finishes its shutdown work (a final checkpoint, closing
+a bag) and exits 0 (docs/architecture.md, "Nodes"). Imports rclpy only inside the functions that need it.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Callable, Sequence
+from types import FrameType
+from typing import Any
+
+#: ``{"signal": number of the newest SIGINT / SIGTERM received, 0 = none yet}``
+StopFlag = dict[str, int]
+
+
+def catch_stop_signals() -> StopFlag:
+    """Route SIGINT and SIGTERM of this process to a new :data:`StopFlag` and return it."""
+    stop: StopFlag = {"signal": 0}
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop["signal"] = signum
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    return stop
+
+
+def full_argv(name: str, argv: Sequence[str] | None) -> list[str]:
+    """``[program, *arguments]``: ``sys.argv`` when ``argv`` is None, else ``[name, *argv]``."""
+    return list(sys.argv) if argv is None else [name, *argv]
+
+
+def wants_help(args: Sequence[str]) -> bool:
+    """True for ``-h`` / ``--help`` among ``args[1:]`` when there are no ROS arguments."""
+    return any(a in ("-h", "--help") for a in args[1:]) and "--ros-args" not in args
+
+
+def init_rclpy(args: Sequence[str]) -> None:
+    """``rclpy.init(args)`` without rclpy's signal handlers (pair it with :func:`catch_stop_signals`)."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=list(args), signal_handler_options=SignalHandlerOptions.NO)
+
+
+def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool] | None = None, *,
+                       period: float = 0.1, announce: bool = True) -> None:
+    """Spin ``node`` on a SingleThreadedExecutor until a stop signal arrives or ``keep_going()`` is False.
+
+    Args:
+        period: longest wait (s) between two looks at the flag.
+        announce: log ``received SIGINT: shutting down`` (or SIGTERM) on the node's logger when a signal ended it.
+    """
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    while not stop["signal"] and (keep_going is None or keep_going()):
+        executor.spin_once(timeout_sec=period)
+    if announce and stop["signal"]:
+        node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
+
+
+def shutdown(node: Any | None) -> None:
+    """Destroy ``node`` (if any) and shut rclpy down (if it is still up)."""
+    import rclpy
+
+    if node is not None:
+        node.destroy_node()
+    if rclpy.ok():
+        rclpy.shutdown()
