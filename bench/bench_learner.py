@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import subprocess
 import sys
@@ -265,7 +266,10 @@ def ramp(pub: Child, subscribers: dict[str, Subscriber], rates: list[float], dur
         lost_once: set[str] = set()
         for attempt in range(2):
             n = max(50, int(rate * duration))
-            before = {k: (sub.received(), sub.paired() if sub.paired else 0) for k, sub in subscribers.items()}
+            # a failed burst's transitions may still be pairing: wait until the count is still, or they would
+            # be counted in this burst (e.g. "paired 14678/7340" in a retry)
+            before = {k: (sub.received(), settle(sub.paired, math.inf, quiet=2.0, timeout=30.0) if sub.paired else 0)
+                      for k, sub in subscribers.items()}
             reply = pub.ask(f"burst {rate} {n} {segment}")
             segment += 1
             achieved = n / float(reply.split()[1])
