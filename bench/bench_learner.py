@@ -222,7 +222,7 @@ class LearnerCounts:
         self.ctx.try_shutdown()
 
 
-def settle(read: Any, target: int, quiet: float = 0.6, timeout: float = 15.0) -> int:
+def settle(read: Any, target: float, quiet: float = 0.6, timeout: float = 15.0) -> int:
     """Poll ``read()`` until it reaches ``target`` or stops changing for ``quiet`` s; returns the last value."""
     last, changed = read(), time.monotonic()
     deadline = time.monotonic() + timeout
