@@ -12,12 +12,14 @@ import torch
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.qp import solve_box_qp, solve_qp
+from saml_ros.core.mpc.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import landing_point
 
 SYSTEMS = ("friction", "quadrotor", "paddle_ball")
+#: both QP backends where daqp is installed (requirements.txt installs it), else the numpy one
+QP_BACKENDS = ("ipm", "daqp") if DEFAULT_BACKEND == "daqp" else ("ipm",)
 
 
 def perturbed(system_name: str, seed: int = 0, scale: float = 0.3, kind: str = "residual",
@@ -84,7 +86,8 @@ def test_box_qp_matches_lbfgsb() -> None:
         assert 0.5 * res.d @ hess @ res.d + grad @ res.d <= ref.fun + 1e-9
 
 
-def test_elastic_qp_is_exact_when_feasible_and_prices_violations() -> None:
+@pytest.mark.parametrize("backend", QP_BACKENDS)
+def test_elastic_qp_is_exact_when_feasible_and_prices_violations(backend: str) -> None:
     rng = np.random.default_rng(1)
     n, k = 8, 3
     m = rng.normal(size=(n, n))
@@ -92,7 +95,7 @@ def test_elastic_qp_is_exact_when_feasible_and_prices_violations() -> None:
     lo, hi = -np.ones(n), np.ones(n)
     g_mat = rng.normal(size=(k, n))
     h_vec = np.full(k, 0.05)  # d = 0 is feasible: with a large penalty the answer is the constrained optimum
-    res = solve_qp(hess, grad, lo, hi, g_mat, h_vec, penalty=1e3)
+    res = solve_qp(hess, grad, lo, hi, g_mat, h_vec, penalty=1e3, backend=backend)
     ref = scipy.optimize.minimize(lambda d: 0.5 * d @ hess @ d + grad @ d, np.zeros(n), jac=lambda d: hess @ d + grad,
                                   bounds=list(zip(lo, hi)), method="SLSQP",
                                   constraints=[{"type": "ineq", "fun": lambda d: h_vec - g_mat @ d}],
@@ -101,8 +104,42 @@ def test_elastic_qp_is_exact_when_feasible_and_prices_violations() -> None:
     np.testing.assert_allclose(res.d, ref.x, atol=1e-5)
     assert np.all(res.slack <= 1e-7) and np.all(res.mult >= 0)
     # infeasible rows (G d <= h with h << 0 beyond the box) are violated, never an error
-    res = solve_qp(hess, grad, lo, hi, np.ones((1, n)), np.array([-100.0]), penalty=1.0)
+    res = solve_qp(hess, grad, lo, hi, np.ones((1, n)), np.array([-100.0]), penalty=1.0, backend=backend)
     assert res.converged and res.slack[0] > 90.0
+
+
+def _elastic_objective(hess: np.ndarray, grad: np.ndarray, g_mat: np.ndarray, h_vec: np.ndarray,
+                       pen: np.ndarray, d: np.ndarray) -> float:
+    return float(0.5 * d @ hess @ d + grad @ d + pen @ np.maximum(g_mat @ d - h_vec, 0.0))
+
+
+@pytest.mark.skipif("daqp" not in QP_BACKENDS, reason="daqp not installed")
+@pytest.mark.parametrize("hard_first", [True, False])
+def test_qp_backends_agree_on_elastic_and_l1_problems(hard_first: bool) -> None:
+    """DAQP and the interior point method reach the same optimum of the elastic QP, including rows whose
+    price is below their multiplier (violated at the optimum) and exact-l1 LP rows (H = LM term only)."""
+    rng = np.random.default_rng(7)
+    for trial in range(30):
+        n, k = 10, int(rng.integers(1, 12))
+        m = rng.normal(size=(n, n))
+        lp = trial % 3 == 0  # the friction subproblem: no curvature beyond a small LM term
+        hess = 1e-3 * np.eye(n) if lp else m @ m.T / n + 1e-2 * np.eye(n)
+        grad = rng.normal(size=n)
+        lo, hi = -rng.uniform(0.1, 2, n), rng.uniform(0.1, 2, n)
+        g_mat, h_vec = rng.normal(size=(k, n)), rng.normal(scale=0.5, size=k)
+        pen = rng.uniform(0.05, 5.0, k)
+        a = solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="daqp", hard_first=hard_first)
+        b = solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="ipm")
+        assert np.all(a.d >= lo) and np.all(a.d <= hi)
+        fa, fb = (_elastic_objective(hess, grad, g_mat, h_vec, pen, r.d) for r in (a, b))
+        assert fa <= fb + 1e-6 * (1 + abs(fb)), (trial, fa, fb)
+        assert abs(fa - fb) <= 1e-5 * (1 + abs(fb)), (trial, fa, fb)
+        assert np.all(a.mult >= 0) and np.all(a.mult <= pen * (1 + 1e-6))
+
+
+def test_qp_rejects_unknown_backend() -> None:
+    with pytest.raises(ValueError, match="unknown QP backend"):
+        solve_qp(np.eye(2), np.ones(2), -np.ones(2), np.ones(2), np.ones((1, 2)), np.zeros(1), 1.0, backend="osqp")
 
 
 # ------------------------------------------------------------------------------------------ bounds, every solver

@@ -4,8 +4,16 @@
   a Newton step on the free variables, then a projected backtracking line search. Usually 1-4 iterations.
 * :func:`solve_qp`: the same with general inequalities ``G d <= h`` in elastic mode: every general row gets a
   slack ``s >= 0`` (``G d - s <= h``) priced ``penalty * sum(s)``, so the subproblem is always feasible even
-  when the linearised state constraints are not. Solved by Mehrotra's predictor-corrector interior point
-  method on the dense normal equations (one Cholesky per iteration).
+  when the linearised state constraints are not. Two backends solve the same problem:
+
+  - ``"daqp"`` (default when the ``daqp`` package is installed): DAQP, a dual active-set solver in C
+    (Arnström, Bemporad, Axehill 2022). With ``hard_first`` it first solves the QP with the rows as hard
+    constraints, which is the elastic solution whenever it is feasible and no row's multiplier exceeds its
+    price (exact-penalty property of the l1 penalty); otherwise it solves the elastic QP over ``[d, s]``
+    (zero Hessian block on ``s``: DAQP regularises it by proximal-point iterations). 20-170 us on the
+    SQP subproblems here, against 0.4-0.7 ms for the interior point method.
+  - ``"ipm"``: Mehrotra's predictor-corrector interior point method on the dense normal equations (one
+    Cholesky per iteration), pure numpy; the fallback without ``daqp`` and whenever DAQP reports a failure.
 
 ``H`` must be symmetric positive definite (the SQP adds a Levenberg-Marquardt term).
 """
@@ -17,6 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _dpotrf
 from scipy.linalg.lapack import dpotrs as _dpotrs
+
+try:
+    import daqp as _daqp
+except ImportError:  # optional: the numpy interior point method solves the same problems, ~5-10x slower
+    _daqp = None
+
+#: the backend :func:`solve_qp` uses by default: "daqp" when installed, else "ipm"
+DEFAULT_BACKEND = "daqp" if _daqp is not None else "ipm"
+_INF = 1e30  # DAQP's "no bound"
 
 
 @dataclass
@@ -89,16 +106,80 @@ def solve_qp(
     penalty: float | np.ndarray,
     max_iter: int = 40,
     tol: float = 1e-8,
+    backend: str | None = None,
+    hard_first: bool = True,
 ) -> QPResult:
     """Elastic QP ``min 1/2 d'Hd + g'd + penalty's  s.t.  lo <= d <= hi, G d - s <= h, s >= 0``.
 
     Shapes: ``hess (n, n)``, ``grad, lo, hi (n,)`` (finite), ``g_mat (k, n)``, ``h_vec (k,)``, ``penalty``
     a positive scalar or ``(k,)``. With ``H = 0`` on a block this also solves exact l1 (LP) models:
     ``|a + b'd| = min s1 + s2  s.t.  b'd - s1 <= -a, -b'd - s2 <= a``.
+
+    ``backend``: ``"daqp"``, ``"ipm"`` or None (:data:`DEFAULT_BACKEND`); ``max_iter`` and ``tol`` are the
+    interior point method's. ``hard_first`` (DAQP only): try the rows as hard constraints first; pass False
+    when they are known to be violated at the solution (l1 cost rows), which saves a doomed attempt.
     """
-    n, k = grad.size, h_vec.size
-    if k == 0:
+    if h_vec.size == 0:
         return solve_box_qp(hess, grad, lo, hi)
+    if (backend or DEFAULT_BACKEND) == "daqp":
+        if _daqp is None:
+            raise ValueError("QP backend 'daqp' requested but the daqp package is not installed (pip install daqp)")
+        res = _solve_qp_daqp(hess, grad, lo, hi, g_mat, h_vec, penalty, hard_first)
+        if res is not None:
+            return res
+    elif backend not in (None, "ipm"):
+        raise ValueError(f"unknown QP backend {backend!r}; use 'daqp' or 'ipm'")
+    return _solve_qp_ipm(hess, grad, lo, hi, g_mat, h_vec, penalty, max_iter, tol)
+
+
+def _solve_qp_daqp(
+    hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray, h_vec: np.ndarray,
+    penalty: float | np.ndarray, hard_first: bool,
+) -> QPResult | None:
+    """:func:`solve_qp` by DAQP; None if DAQP fails (the caller falls back to the interior point method)."""
+    assert _daqp is not None
+    n, k = grad.size, h_vec.size
+    pen = np.broadcast_to(np.asarray(penalty, dtype=np.float64), (k,))
+    g_mat = np.ascontiguousarray(g_mat, dtype=np.float64)
+    if hard_first:
+        x, _, flag, info = _daqp.solve(
+            np.ascontiguousarray(hess), np.ascontiguousarray(grad), g_mat,
+            np.concatenate((hi, h_vec)), np.concatenate((lo, np.full(k, -_INF))),
+        )  # fmt: skip
+        if flag == 1:
+            lam = np.asarray(info["lam"])[n:]
+            if np.all(lam <= pen * (1.0 + 1e-9)):
+                return QPResult(np.clip(x, lo, hi), np.zeros(k), np.maximum(lam, 0.0), int(info["iterations"]), True)
+    # elastic: z = [d, s], rows lo <= d <= hi, 0 <= s, G d - s <= h
+    h_full = np.zeros((n + k, n + k))
+    h_full[:n, :n] = hess
+    a_mat = np.empty((k, n + k))
+    a_mat[:, :n] = g_mat
+    a_mat[:, n:] = -np.eye(k)
+    x, _, flag, info = _daqp.solve(
+        h_full, np.concatenate((grad, pen)), a_mat,
+        np.concatenate((hi, np.full(k, _INF), h_vec)), np.concatenate((lo, np.zeros(k), np.full(k, -_INF))),
+    )  # fmt: skip
+    if flag != 1:
+        return None
+    lam = np.asarray(info["lam"])[n + k :]
+    return QPResult(np.clip(x[:n], lo, hi), np.maximum(x[n:], 0.0), np.maximum(lam, 0.0),
+                    int(info["iterations"]), True)
+
+
+def _solve_qp_ipm(
+    hess: np.ndarray,
+    grad: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    g_mat: np.ndarray,
+    h_vec: np.ndarray,
+    penalty: float | np.ndarray,
+    max_iter: int = 40,
+    tol: float = 1e-8,
+) -> QPResult:
+    """:func:`solve_qp` by the interior point method."""
+    n, k = grad.size, h_vec.size
     nz = n + k
     pen = np.broadcast_to(np.asarray(penalty, dtype=np.float64), (k,))
     q = np.concatenate((grad, pen))

@@ -33,7 +33,7 @@ import scipy.optimize
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.qp import solve_box_qp, solve_qp
+from saml_ros.core.mpc.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 from saml_ros.core.mpc.tasks import ShootingTask, make_task
 from saml_ros.core.mpc.types import MPCResult
 from saml_ros.core.systems.base import System
@@ -101,11 +101,13 @@ class ShootingMPC:
         task = self.task if goal is None else self.task.with_target(goal)
         if not np.all(np.isfinite(x0)):
             return self._fallback(start, "non-finite state")
-        u0 = self._warm_start(x0, task)
+        u0, xs0 = self._warm_start(x0, task)
         try:
-            plan_u, iters, converged, msg = self._optimize(x0, u0, task)
-            plan_u = np.clip(plan_u, task.u_low, task.u_high)
-            plan_x = self.rollout(x0, plan_u)
+            plan_u, iters, converged, msg, xs = self._optimize(x0, u0, task, xs0)
+            clipped = np.clip(plan_u, task.u_low, task.u_high)
+            # the optimiser's own prediction is the plan's unless clipping moved a control
+            plan_x = xs if xs is not None and np.array_equal(clipped, plan_u) else self.rollout(x0, clipped)
+            plan_u = clipped
             if not (np.all(np.isfinite(plan_x)) and np.all(np.isfinite(plan_u))):
                 return self._fallback(start, f"non-finite plan ({msg})", iters)
         except Exception as exc:  # any numerical breakdown: keep flying on the last good plan
@@ -116,8 +118,7 @@ class ShootingMPC:
         if not ok:
             i = int(np.argmax(viol))
             msg = f"{msg}; {task.names[i]} violated by {worst:.3g}"
-            fixed = getattr(self, "_fixed", None)
-            if fixed is not None and fixed.size == viol.size and fixed[i]:
+            if self._fixed_rows(x0, plan_u, task)[i]:
                 msg += " (unavoidable: fixed by the current state)"
         self._plan_u, self._plan_x = plan_u, plan_x
         return MPCResult(
@@ -143,27 +144,69 @@ class ShootingMPC:
             xs[t + 1] = step(xs[t], plan_u[t])
         return xs
 
-    def _warm_start(self, x0: np.ndarray, task: ShootingTask) -> np.ndarray:
-        """The previous plan, shifted by one step when x0 is nearer its x_1 than its x_0 (closed loop), kept
-        unshifted when x0 is nearer x_0 (a re-solve from the same state); tail filled with ``u_default``.
-        Without a previous plan: the cheapest of the task's constant guesses."""
+    def _warm_start(self, x0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, np.ndarray | None]:
+        """The initial guess ``(T, m)`` and, when candidates were scored, its predicted states ``(T+1, n)``
+        (else None): the cheapest by :meth:`ShootingTask.start_scores` (cost + 100 x
+        violation) of the previous plan and the task's candidate sequences ``task.u_starts``.
+
+        The previous plan is shifted by one step when x0 is nearer its x_1 than its x_0 (closed loop), kept
+        unshifted when x0 is nearer x_0 (a re-solve from the same state); its last step is filled per
+        ``self.tail``. It competes with the candidates only if ``task.starts_every_solve`` (otherwise it is
+        used as is); ties go to the previous plan, then to the earlier candidate."""
+        starts = np.clip(task.u_starts, task.u_low, task.u_high) if task.u_starts.size else task.u_starts
         if self._plan_u is None or self._plan_x is None:
-            best, best_u = np.inf, np.tile(task.u_default, (self.horizon, 1))
-            for guess in task.u_guesses:
-                u = np.tile(np.clip(guess, task.u_low, task.u_high), (self.horizon, 1))
-                xs = self.rollout(x0, u)
-                viol = task.violations(xs)
-                value = task.cost(xs) + 100.0 * float(np.maximum(viol, 0.0).sum())
-                if value < best:
-                    best, best_u = value, u
-            return best_u
+            if starts.shape[0] == 0:
+                return np.tile(task.u_default, (self.horizon, 1)), None
+            if starts.shape[0] == 1:
+                return starts[0].copy(), None
+            return self._cheapest(x0, starts, task)
         prev_u, prev_x = self._plan_u, self._plan_x
         shift = 1 if np.linalg.norm(x0 - prev_x[1]) < np.linalg.norm(x0 - prev_x[0]) else 0
         u = np.empty((self.horizon, self.m))
         keep = min(self.horizon, prev_u.shape[0] - shift)
         u[:keep] = prev_u[shift : shift + keep]
         u[keep:] = prev_u[-1] if self.tail == "repeat" else task.u_default
-        return np.clip(u, task.u_low, task.u_high)
+        u = np.clip(u, task.u_low, task.u_high)
+        if not task.starts_every_solve or starts.shape[0] == 0:
+            return u, None
+        return self._cheapest(x0, np.concatenate((u[None], starts)), task)
+
+    def _cheapest(self, x0: np.ndarray, cands: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, np.ndarray]:
+        """The candidate ``(T, m)`` of ``cands`` ``(K, T, m)`` with the lowest start score (the first among
+        ties) and its predicted states ``(T+1, n)``."""
+        xs = self._rollout_batch(x0, cands)
+        i = int(np.argmin(task.start_scores(xs)))
+        return cands[i].copy(), xs[i].copy()
+
+    def _score_starts(self, x0: np.ndarray, cands: np.ndarray, task: ShootingTask) -> np.ndarray:
+        """:meth:`ShootingTask.start_scores` of control sequences ``cands`` ``(K, T, m)`` from ``x0`` ``(n,)``
+        -> ``(K,)``."""
+        return task.start_scores(self._rollout_batch(x0, cands))
+
+    def _rollout_batch(self, x0: np.ndarray, cands: np.ndarray) -> np.ndarray:
+        """Predicted states ``(K, T+1, n)`` of control sequences ``cands`` ``(K, T, m)`` from ``x0`` ``(n,)``:
+        ONE batched rollout (T calls of ``dyn.step`` on ``(K, n), (K, m)``)."""
+        k, horizon = cands.shape[0], cands.shape[1]
+        xs = np.empty((k, horizon + 1, self.n))
+        xs[:, 0] = x0
+        x = xs[:, 0]
+        step = self.dyn.step
+        for t in range(horizon):
+            x = step(x, cands[:, t])
+            xs[:, t + 1] = x
+        return xs
+
+    def _fixed_rows(self, x0: np.ndarray, plan_u: np.ndarray, task: ShootingTask) -> np.ndarray:
+        """Which of ``task.violations``' rows ``(n_cons,)`` no control can move: the linear rows at t = 1 whose
+        state does not depend on u_0 (e.g. ``pz_1 = pz_0 + dt vz_0``); later rows and the attitude row are
+        taken as movable."""
+        fixed = np.zeros(task.n_cons, dtype=bool)
+        first = np.flatnonzero(task.cons_t == 1)
+        if first.size:
+            _, _, b = self.dyn.step_jac(x0[None], plan_u[:1])
+            reach = np.abs(b[0, task.cons_idx[first]]) @ (task.u_high - task.u_low)
+            fixed[first] = reach < 0.01 * self.feas_tol
+        return fixed
 
     def _fallback(self, start: float, why: str, iters: int = 0) -> MPCResult:
         """A safe result: the next control of the last good plan (or ``u_default``), clipped."""
@@ -180,7 +223,11 @@ class ShootingMPC:
             constraint_violation=float("inf"), converged=False,
         )  # fmt: skip
 
-    def _optimize(self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, int, bool, str]:
+    def _optimize(
+        self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask, xs0: np.ndarray | None = None
+    ) -> tuple[np.ndarray, int, bool, str, np.ndarray | None]:
+        """From the initial guess ``u0`` (with its predicted states ``xs0`` when known): optimised controls ``(T, m)``, iterations, converged, message, and the predicted states ``(T+1, n)``
+        of exactly those controls when the optimiser has them (else None: the caller rolls out)."""
         raise NotImplementedError
 
 
@@ -200,6 +247,11 @@ class SQPShootingMPC(ShootingMPC):
             barely affect the cost (the last ones of the horizon) from drifting.
         radial: weight of the radial curvature term of the Euclidean norm (1 = the exact Hessian of the
             smoothed norm, 0 = iteratively reweighted least squares).
+        qp_backend: "daqp" (a C active-set solver, default when installed) or "ipm" (numpy interior point
+            method, the fallback); both solve the same subproblem (:func:`~saml_ros.core.mpc.qp.solve_qp`).
+        undamped_check: before declaring convergence with a damped step (Levenberg-Marquardt weight above
+            ``rho0``), re-solve the QP once with ``rho0``: avoids stopping early in flat valleys where damping
+            makes every step predict little, at the price of more iterations (use with a small ``tol``).
     """
 
     def __init__(
@@ -216,12 +268,18 @@ class SQPShootingMPC(ShootingMPC):
         rho0: float = 1e-3,
         lm_floor: float = 1e-3,
         radial: float = 1.0,
+        qp_backend: str | None = None,
+        undamped_check: bool = False,
         **kwargs: Any,
     ) -> None:
         super().__init__(system, model, horizon, **kwargs)
+        self.qp_backend = qp_backend or DEFAULT_BACKEND
+        if self.qp_backend not in ("daqp", "ipm"):
+            raise ValueError(f"unknown qp_backend {qp_backend!r}; use 'daqp' or 'ipm'")
         self.max_iter, self.tol, self.max_time = max_iter, tol, max_time
         self.eps, self.penalty, self.penalty_max = eps, penalty, penalty_max
         self.rho0, self.lm_floor, self.radial = rho0, lm_floor, radial
+        self.undamped_check = undamped_check
         self.shrink = 1.0
         self._rho = rho0
         self._ipm_first = False  # the last QP had active state constraints: skip the box-only attempt
@@ -238,6 +296,12 @@ class SQPShootingMPC(ShootingMPC):
         super().reset()
         self._rho = self.rho0
         self._ipm_first = False
+
+    def _fixed_rows(self, x0: np.ndarray, plan_u: np.ndarray, task: ShootingTask) -> np.ndarray:
+        # the last linearisation's (all rows, from the full sensitivities)
+        if self._fixed.size == task.n_cons:
+            return self._fixed
+        return super()._fixed_rows(x0, plan_u, task)
 
     def _merit(self, xs: np.ndarray, task: ShootingTask, penalty: float) -> tuple[float, np.ndarray, np.ndarray]:
         """Merit (cost, norms smoothed + penalty * violation), residuals ``(T, k)``, constraint values."""
@@ -300,28 +364,35 @@ class SQPShootingMPC(ShootingMPC):
         self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray,
         h_vec: np.ndarray, pen: np.ndarray, stage_rows: bool,
     ) -> np.ndarray:
-        """The QP step: projected Newton on the box alone when that also satisfies the elastic rows (the state
-        constraints are inactive), the interior point method otherwise."""
+        """The QP step. DAQP (when installed): the elastic QP directly (its active-set method handles the
+        box-only case as fast as projected Newton). The numpy fallback: projected Newton on the box alone when
+        that also satisfies the elastic rows (the state constraints are inactive), the interior point method
+        otherwise."""
+        if self.qp_backend == "daqp":
+            self.stats["daqp_qp"] += 1
+            return solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="daqp", hard_first=not stage_rows).d
         if not stage_rows and not self._ipm_first:
             box = solve_box_qp(hess, grad, lo, hi)
             self.stats["box_qp"] += 1
             if box.converged and (not h_vec.size or (g_mat @ box.d - h_vec).max() <= 1e-9):
                 return box.d
         self.stats["ipm_qp"] += 1
-        qp = solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen)
+        qp = solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="ipm")
         if not stage_rows:
             # stay on the interior point method while a state constraint is (nearly) active
             self._ipm_first = bool((g_mat @ qp.d - h_vec).max() > -1e-6)
         return qp.d
 
-    def _optimize(self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, int, bool, str]:
+    def _optimize(
+        self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask, xs0: np.ndarray | None = None
+    ) -> tuple[np.ndarray, int, bool, str, np.ndarray | None]:
         start = time.perf_counter()
         T, m = self.horizon, self.m
-        self.stats = dict.fromkeys(("iterations", "box_qp", "ipm_qp", "rollouts", "jacobians"), 0)
+        self.stats = dict.fromkeys(("iterations", "box_qp", "ipm_qp", "daqp_qp", "rollouts", "jacobians"), 0)
         stage_rows = task.res_idx.size == 1
         penalty = self.penalty
         u = u0.copy()
-        xs = self.rollout(x0, u)
+        xs = self.rollout(x0, u) if xs0 is None else xs0
         merit, r, c = self._merit(xs, task, penalty)
         if not np.isfinite(merit):
             raise FloatingPointError("the warm start's prediction is not finite")
@@ -337,11 +408,18 @@ class SQPShootingMPC(ShootingMPC):
             scale = max(float(np.trace(hess)) / hess.shape[0], 1e-6)
             rows0 = float(pen @ np.maximum(-h_vec, 0.0))
             accepted = False
+            undamped_tried = False
             while True:
                 d = self._qp(hess + (rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec, pen,
                              stage_rows)
                 pred = -(grad @ d + 0.5 * d @ hess @ d) + rows0 - float(pen @ np.maximum(g_mat @ d - h_vec, 0.0))
                 if pred <= self.tol * (1.0 + abs(merit)):
+                    if self.undamped_check and rho > self.rho0 and not undamped_tried:
+                        undamped_tried = True
+                        # a heavily damped step predicts little even far from a stationary point (flat
+                        # valleys): only the (nearly) undamped model may declare convergence
+                        rho = self.rho0
+                        continue
                     converged = True
                     break
                 for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):
@@ -385,7 +463,7 @@ class SQPShootingMPC(ShootingMPC):
                 break
         self._rho = rho
         self.stats["iterations"] = it
-        return u, it, converged, msg
+        return u, it, converged, msg, xs
 
 
 class SLSQPShootingMPC(ShootingMPC):
@@ -409,7 +487,9 @@ class SLSQPShootingMPC(ShootingMPC):
         super().__init__(system, model, horizon, **kwargs)
         self.max_iter, self.ftol = max_iter, ftol
 
-    def _optimize(self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, int, bool, str]:
+    def _optimize(
+        self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask, xs0: np.ndarray | None = None
+    ) -> tuple[np.ndarray, int, bool, str, np.ndarray | None]:
         T, m = self.horizon, self.m
         cache: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
@@ -434,4 +514,4 @@ class SLSQPShootingMPC(ShootingMPC):
             constraints=constraints,
             options={"maxiter": self.max_iter, "ftol": self.ftol},
         )
-        return res.x.reshape(T, m), int(res.nit), bool(res.success), str(res.message)
+        return res.x.reshape(T, m), int(res.nit), bool(res.success), str(res.message), None

@@ -40,8 +40,12 @@ class ShootingTask:
     res_idx: np.ndarray  #: (k,) int, state indices entering the stage cost
     target: np.ndarray  #: (k,) the goal of those indices
     u_default: np.ndarray  #: (m,) tail fill of the shifted warm start, last-resort control
-    #: (G, m) constant control sequences tried as the cold start (the one with the lowest cost is used)
-    u_guesses: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: (G, T, m) candidate control sequences for the initial guess (see ``ShootingMPC._warm_start``): without a
+    #: previous plan the one with the lowest :meth:`start_scores` is used
+    u_starts: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    #: also score the candidates against the shifted previous plan at EVERY solve (one batched rollout,
+    #: ~0.15 ms at T = 10), not only without a previous plan: needed where a local solver can be trapped (friction)
+    starts_every_solve: bool = False
     cons_t: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) time index in 1..T
     cons_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) state index
     cons_sign: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: (nc,) +1 (upper) or -1 (lower bound)
@@ -76,6 +80,18 @@ class ShootingTask:
         """The exact objective of a predicted trajectory ``xs`` ``(T+1, n)`` (x_0 excluded)."""
         return float(self.stage_costs(xs[1:]).sum())
 
+    def start_scores(self, xs: np.ndarray, penalty: float = 100.0) -> np.ndarray:
+        """Score of candidate trajectories ``xs`` ``(K, T+1, n)`` -> ``(K,)``: the exact cost plus ``penalty``
+        times the summed violation of the paper's constraints (as :meth:`cost` and :meth:`violations`)."""
+        r = xs[:, 1:, self.res_idx] - self.target
+        score = np.sqrt(np.einsum("ktj,ktj->kt", r, r)).sum(1)
+        if self.cons_t.size:
+            lin = self.cons_sign * xs[:, self.cons_t, self.cons_idx] - self.cons_bound
+            score += penalty * np.maximum(lin, 0.0).sum(1)
+        if self.att_tol is not None:
+            score += penalty * np.maximum(np.abs(xs[:, self.horizon, self.att_qw] - 1.0) - self.att_tol, 0.0)
+        return score
+
     def violations(self, xs: np.ndarray) -> np.ndarray:
         """The paper's constraints ``g(x) <= 0`` of a trajectory (> 0 = violated): ``sign * x_t[idx] - bound``
         per linear row, then ``|qw_T - 1| - tol``; ``(T+1, n) -> (n_cons,)``."""
@@ -96,6 +112,32 @@ class ShootingTask:
         return np.append(lin, norm - bound), qv / norm
 
 
+def push_brake_sequences(
+    u_max: float, horizon: int, amplitudes: tuple[float, ...] = (1.0, 0.5, 0.25)
+) -> np.ndarray:
+    """Candidate controls ``(G, T, 1)`` for a scalar control bounded by ``|u| <= u_max``: the constant sequences
+    ``{0, +-u_max/2, +-u_max}``, then for each sign s, amplitude a (fraction of ``u_max``) and push length k
+    (1, 2, 4, ... with ``2 k <= T``; k = 1 when T = 1): "push at s a for k steps, then 0" and "push at s a for
+    k steps, brake at -s a for k steps, then 0" (the bang-bang that stops a frictionless mass again).
+
+    They let a local solver leave a dead zone (a model predicting that friction holds the mass for small
+    |u|: zero gradient around u = 0) and end near a goal; duplicates (short horizons) are dropped, the
+    order (rest first) is kept, so ties go to the earlier candidate. Depends only on ``u_max`` and T."""
+    T = int(horizon)
+    seqs = [np.full(T, c) for c in (0.0, 0.5, -0.5, 1.0, -1.0)]
+    pushes = [k for k in (2**i for i in range(T.bit_length())) if 2 * k <= T] or [1]
+    for s in (1.0, -1.0):
+        for a in amplitudes:
+            for k in pushes:
+                for brake in (0, k):
+                    u = np.zeros(T)
+                    u[:k] = s * a
+                    u[k : k + brake] = -s * a
+                    seqs.append(u)
+    unique = np.unique(np.array(seqs), axis=0, return_index=True)[1]
+    return (np.array(seqs)[np.sort(unique)] * u_max)[:, :, None]
+
+
 def friction_task(system: FrictionDoubleIntegrator, horizon: int = 10) -> ShootingTask:
     """Paper eq. double_integrator_mpc: ``min sum |p_t - p_goal|  s.t. |u_t| <= u_max`` (goal: position, m)."""
     return ShootingTask(
@@ -106,8 +148,10 @@ def friction_task(system: FrictionDoubleIntegrator, horizon: int = 10) -> Shooti
         res_idx=np.array([system.state.index("p")]),
         target=np.zeros(1),
         u_default=np.zeros(1),
-        # a learned model can reproduce stiction (dv'/du = 0 around u = 0): never start only from rest
-        u_guesses=np.array([[0.0], [0.5], [-0.5], [1.0], [-1.0]]) * system.u_max,
+        # a learned model reproduces stiction (dv'/du = 0 around u = 0 at rest, flat predicted cost): a solver
+        # started at rest, or from a shifted plan that rests, stays there; push-brake candidates leave it
+        u_starts=push_brake_sequences(system.u_max, horizon),
+        starts_every_solve=True,
     )
 
 
@@ -128,7 +172,7 @@ def quadrotor_task(
         res_idx=np.array([system.state.index(n) for n in ("px", "py", "pz")]),
         target=np.zeros(3),
         u_default=system.hover_thrust(),
-        u_guesses=system.hover_thrust()[None],
+        u_starts=np.tile(system.hover_thrust(), (1, horizon, 1)),  # cold start only: keeps the solve fast
         cons_t=t,
         cons_idx=np.full(horizon, iz),
         cons_sign=np.full(horizon, -1.0),
