@@ -20,6 +20,8 @@ class NumpyMLP:
     Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``(B, n_y)``; Jacobians ``(B, n_y, n_x)`` and ``(B, n_y, n_u)``.
     """
 
+    _wt: list[np.ndarray] | None = None  # transposed weights for :meth:`jac_u1`, made on first use
+
     def __init__(self, model: DynamicsModel, member: int = 0) -> None:
         if not 0 <= member < model.n_models:
             raise ValueError(f"member {member} out of range for an ensemble of {model.n_models}")
@@ -80,3 +82,35 @@ class NumpyMLP:
             jac = (jac * mask[:, None, :]) @ self.weights[i]
         jac_t = np.broadcast_to(jac, (x.shape[0], *jac.shape[1:])).transpose(0, 2, 1)
         return h, jac_t[:, :, : self.n_x], jac_t[:, :, self.n_x :]
+
+    def state_part(self, x: np.ndarray) -> np.ndarray:
+        """The first layer's pre-activation from the state alone, ``x @ W_x + b_0`` ``(d,)``, for
+        :meth:`forward_pre1` when many controls are tried at one state."""
+        return x @ self.w_x + self.biases[0]
+
+    def forward_pre1(self, x: np.ndarray, u: np.ndarray,
+                     x_part: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+        """phi for one sample ``(n_x,), (n_u,) -> (n_y,)`` and the hidden layers' pre-activations, from which
+        :meth:`jac_u1` takes the Jacobian (so that a trial point whose Jacobian turns out not to be needed costs
+        one forward pass). ``x_part``: :meth:`state_part` of ``x``, if already known."""
+        h = (x @ self.w_x + self.biases[0] if x_part is None else x_part) + u @ self.w_u
+        pre = [h]
+        for i in range(1, len(self.weights)):
+            a = self.slopes[i - 1]
+            h = (np.maximum(h, a * h) if self._max_ok[i - 1] else np.where(h >= 0.0, h, a * h)) @ self.weights[i]
+            h += self.biases[i]
+            pre.append(h)
+        pre.pop()
+        return h, pre
+
+    def jac_u1(self, pre: list[np.ndarray]) -> np.ndarray:
+        """``d phi / d u`` ``(n_y, n_u)`` at the sample whose pre-activations :meth:`forward_pre1` returned (reverse
+        mode; the PReLU derivative at a kink is taken from the ``h >= 0`` side, as in :meth:`forward_jac`)."""
+        if self._wt is None:  # transposed copies for the reverse pass, made on first use
+            self._wt = [np.ascontiguousarray(w.T) for w in self.weights[1:]]
+            self._wt.insert(0, np.ascontiguousarray(self.w_u.T))
+        n = len(self.weights)
+        g = self._wt[-1] * np.where(pre[-1] >= 0.0, 1.0, self.slopes[n - 2])
+        for i in range(n - 2, 0, -1):
+            g = (g @ self._wt[i]) * np.where(pre[i - 1] >= 0.0, 1.0, self.slopes[i - 1])
+        return g @ self._wt[0]

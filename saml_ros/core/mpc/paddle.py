@@ -12,10 +12,12 @@ Decision variables ``theta = [pvx, pvy, pvz (m/s), roll, pitch (rad)]``; the com
 ``v_post`` is the model in use (``f_hat + phi``, ``phi`` for a full model, or ``f_hat``), ``landing`` the
 ballistic landing point at the impact height (:func:`~saml_ros.core.systems.paddle_ball.landing_point`).
 
-Fast solver: Gauss-Newton on ``1/2 ||r||^2`` with exact Jacobians (model and landing point), the speed
-bounds linearised as elastic rows (as ``|v_rel|^2``), a Levenberg-Marquardt term and a backtracking line
-search on ``1/2 ||r||^2 + penalty * violation``; restarts from a few tilted guesses when a start ends short
-of the target. Reference: scipy SLSQP on the exact non-smooth objective with finite differences.
+Both solvers start from the same list (:meth:`PaddleProblem.guesses`, the previous solution first) and return the
+best feasible end point. Fast solver (:class:`GaussNewtonPaddle`): projected Gauss-Newton / Newton on
+``1/2 ||r||^2`` with exact first and second derivatives, in plain Python floats
+(:mod:`~saml_ros.core.mpc.paddle_eval`, :mod:`~saml_ros.core.mpc.paddle_row`) and its own multi-start rule
+(:mod:`~saml_ros.core.mpc.paddle_search`). Reference (:class:`SLSQPPaddle`): scipy SLSQP on the exact non-smooth
+objective with finite differences, restarting until a start reaches the target or two starts agree.
 """
 
 from __future__ import annotations
@@ -31,11 +33,14 @@ import scipy.optimize
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.qp import solve_box_qp, solve_qp
+from saml_ros.core.mpc.paddle_eval import PaddleEval
+from saml_ros.core.mpc.paddle_row import PaddleRowSolver, RowResult
+from saml_ros.core.mpc.paddle_search import SearchSettings, search
 from saml_ros.core.mpc.types import MPCResult
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.paddle_ball import PaddleBall
 
+_TILTS = ((0.0, 0.5), (0.0, -0.5), (0.5, 0.0), (-0.5, 0.0), (0.5, 0.5), (-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5))
 _DEFAULTS: dict[str, Any] = {"target_xy": (0.0, 0.0), "roll": (-0.4, 0.4), "pitch": (-0.4, 0.4), "v_rel": (3.0, 5.0)}
 
 
@@ -115,71 +120,19 @@ class PaddleProblem:
         lo, hi = self.goal.v_rel
         return np.array([lo * lo - s2, s2 - hi * hi])
 
-    def residual_jac(self, thetas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Landing residuals ``(B, 2)`` and their exact Jacobians ``d r / d theta`` ``(B, 2, 5)`` at ``(B, 5)``."""
-        bsz = thetas.shape[0]
-        r, p = thetas[:, 3], thetas[:, 4]
-        cr, sr, cp, sp = np.cos(r), np.sin(r), np.cos(p), np.sin(p)
-        u = np.concatenate((thetas[:, :3], np.stack((cr * sp, -sr, cr * cp), 1)), 1)
-        v_post, _, du = self.dyn.step_jac(np.broadcast_to(self.x, (bsz, 6)), u)
-        du_dth = np.zeros((bsz, 6, 5))
-        du_dth[:, 0:3, 0:3] = np.eye(3)
-        du_dth[:, 3:6, 3] = np.stack((-sr * sp, -cr, -sr * cp), 1)
-        du_dth[:, 3:6, 4] = np.stack((cr * cp, np.zeros(bsz), -cr * sp), 1)
-        g = self.system.g
-        up = v_post[:, 2] > 0.0
-        t = 2.0 * np.maximum(v_post[:, 2], 0.0) / g
-        dland = np.zeros((bsz, 2, 3))
-        dland[:, 0, 0] = dland[:, 1, 1] = t
-        dland[:, :, 2] = np.where(up[:, None], 2.0 * v_post[:, 0:2] / g, 0.0)
-        res = self.x[0:2] + v_post[:, 0:2] * t[:, None] - self.goal.target_xy
-        return res, dland @ du @ du_dth
-
-    def jacobians(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``r``, ``dr/dtheta`` (2, 5), ``c``, ``dc/dtheta`` (2, 5)."""
-        res, jac = self.residual_jac(theta[None])
-        v_rel = self.x[3:6] - theta[:3]
-        dc = np.zeros((2, 5))
-        dc[0, 0:3] = 2.0 * v_rel
-        dc[1, 0:3] = -2.0 * v_rel
-        return res[0], jac[0], self._speed(theta), dc
-
-    def residual_curvature(self, theta: np.ndarray, r: np.ndarray, jac: np.ndarray, h: float = 1e-6) -> np.ndarray:
-        """``sum_i r_i d^2 r_i / d theta^2`` ``(5, 5)``: forward differences of the exact Jacobian (one batched
-        evaluation), the term Gauss-Newton drops; it matters when the target cannot be reached (r != 0)."""
-        _, jacs = self.residual_jac(theta[None] + h * np.eye(5))
-        s = np.einsum("i,bij->bj", r, jacs - jac[None]) / h
-        return 0.5 * (s + s.T)
-
-    def project(self, theta: np.ndarray) -> np.ndarray:
-        """Nearly the closest point satisfying every constraint: the relative velocity scaled radially into
-        ``[v_min, v_max]``, then everything clipped to the box (which can only undo the first step at a corner
-        of the paddle-velocity box)."""
-        theta = np.clip(theta, self.lo, self.hi)
-        v_rel = self.x[3:6] - theta[:3]
-        speed = math.sqrt(float(v_rel @ v_rel))
-        lo, hi = self.goal.v_rel
-        if speed > hi or 0.0 < speed < lo:
-            theta = theta.copy()
-            theta[:3] = self.x[3:6] - v_rel * (min(max(speed, lo), hi) / speed)
-            theta = np.clip(theta, self.lo, self.hi)
-        return theta
-
     def guesses(self) -> list[np.ndarray]:
         """Start points: level paddle moving up so that |v_rel| is mid-range, then tilted variants."""
-        vb = self.x[3:6]
+        vb = self.x[3:6].tolist()
         mid = 0.5 * sum(self.goal.v_rel)
         rest = mid * mid - vb[0] ** 2 - vb[1] ** 2
         pvz = vb[2] + math.sqrt(rest) if rest > 0.0 else 0.0
-        base = np.clip(np.array([0.0, 0.0, pvz, 0.0, 0.0]), self.lo, self.hi)
-        out = [base]
-        for fr, fp in ((0.0, 0.5), (0.0, -0.5), (0.5, 0.0), (-0.5, 0.0), (0.5, 0.5), (-0.5, -0.5), (0.5, -0.5),
-                       (-0.5, 0.5)):
-            g = base.copy()
-            g[3] = self.lo[3] + (0.5 + 0.5 * fr) * (self.hi[3] - self.lo[3])
-            g[4] = self.lo[4] + (0.5 + 0.5 * fp) * (self.hi[4] - self.lo[4])
-            out.append(g)
-        return out
+        lo, hi = self.lo.tolist(), self.hi.tolist()
+        base = [min(max(c, lo[i]), hi[i]) for i, c in enumerate((0.0, 0.0, pvz, 0.0, 0.0))]
+        out = np.array([base] * 9)
+        for k, (fr, fp) in enumerate(_TILTS, start=1):  # roll, pitch at these fractions of their half-range
+            out[k, 3] = lo[3] + (0.5 + 0.5 * fr) * (hi[3] - lo[3])
+            out[k, 4] = lo[4] + (0.5 + 0.5 * fp) * (hi[4] - lo[4])
+        return list(out)
 
 
 class PaddleController:
@@ -217,29 +170,13 @@ class PaddleController:
         starts = prob.guesses()
         if self._theta is not None:
             starts.insert(0, np.clip(self._theta, prob.lo, prob.hi))
-        best: tuple[tuple[bool, float], np.ndarray, bool, str] | None = None
-        total = 0
         try:
-            for guess in starts:
-                theta, iters, conv, msg = self._optimize(prob, guess)
-                total += iters
-                r, c, v_post = prob.evaluate(theta)
-                bad = self._violation(c, g) > self.feas_tol or v_post[2] <= 0.0
-                key = (bad, float(np.linalg.norm(r)))
-                if best is None or key < best[0]:
-                    best = (key, theta, conv, msg)
-                if not best[0][0] and best[0][1] <= self.tol:
-                    break
-                # a second start ending at the best (feasible) cost found so far: take it as the minimum
-                if key is not best[0] and not bad and abs(key[1] - best[0][1]) <= max(self.tol, 1e-2 * best[0][1]):
-                    break
+            theta, total, conv, msg = self._search(prob, starts)
         except Exception as exc:  # numerical breakdown: the safe default
             return self._fallback(start, f"solver failure: {type(exc).__name__}: {exc}")
-        assert best is not None
-        _, theta, conv, msg = best
         theta = np.clip(theta, prob.lo, prob.hi)
         u = np.clip(prob.control(theta), self.system.control_low, self.system.control_high)
-        r, c, v_post = prob.evaluate(theta)
+        r, c, v_post = self._evaluate(prob, theta)
         if not (np.all(np.isfinite(v_post)) and np.all(np.isfinite(u))):
             return self._fallback(start, f"non-finite plan ({msg})", total)
         viol = self._violation(c, g)
@@ -275,75 +212,79 @@ class PaddleController:
             constraint_violation=float("inf"), converged=False,
         )  # fmt: skip
 
+    def _search(self, prob: PaddleProblem, starts: list[np.ndarray]) -> tuple[np.ndarray, int, bool, str]:
+        """Best end point over the starts: ``(theta, iterations, converged, message)``.
+
+        Runs :meth:`_optimize` from each start in turn and stops when a start reaches the target within
+        ``tol`` or a second start ends at the best (feasible) cost found so far (within 1 %).
+        """
+        g = prob.goal
+        best: tuple[tuple[bool, float], np.ndarray, bool, str] | None = None
+        total = 0
+        for guess in starts:
+            theta, iters, conv, msg = self._optimize(prob, guess)
+            total += iters
+            r, c, v_post = prob.evaluate(theta)
+            bad = self._violation(c, g) > self.feas_tol or v_post[2] <= 0.0
+            key = (bad, float(np.linalg.norm(r)))
+            if best is None or key < best[0]:
+                best = (key, theta, conv, msg)
+            if not best[0][0] and best[0][1] <= self.tol:
+                break
+            # a second start ending at the best (feasible) cost found so far: take it as the minimum
+            if key is not best[0] and not bad and abs(key[1] - best[0][1]) <= max(self.tol, 1e-2 * best[0][1]):
+                break
+        assert best is not None
+        return best[1], total, best[2], best[3]
+
     def _optimize(self, prob: PaddleProblem, theta0: np.ndarray) -> tuple[np.ndarray, int, bool, str]:
         raise NotImplementedError
 
+    def _evaluate(self, prob: PaddleProblem, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`PaddleProblem.evaluate` of the returned plan."""
+        return prob.evaluate(theta)
+
 
 class GaussNewtonPaddle(PaddleController):
-    """The fast paddle solver (module docstring). Options: ``max_iter`` per start, ``penalty``."""
+    """The fast paddle solver: exact-derivative projected Gauss-Newton / Newton from the same starts
+    (:mod:`~saml_ros.core.mpc.paddle_search`, :mod:`~saml_ros.core.mpc.paddle_row`).
+
+    Options: ``max_iter`` (iterations of one Newton run), ``max_time`` (s, optional budget of a solve; the best
+    point found by then is returned).
+    """
 
     def __init__(self, system: PaddleBall, model: DynamicsModel | None = None, member: int = 0,
-                 max_iter: int = 30, penalty: float = 10.0, rtol: float = 1e-9, **kwargs: Any) -> None:
+                 max_iter: int = 20, max_time: float | None = None, **kwargs: Any) -> None:
         super().__init__(system, model, member, **kwargs)
-        self.max_iter, self.penalty, self.rtol = max_iter, penalty, rtol
-        self.gn_iters = 4  # plain Gauss-Newton iterations before the residual curvature is added
+        self.max_iter, self.max_time = max_iter, max_time
+        self.settings = SearchSettings(tol=self.tol, max_iter=max_iter)
+        self._last: RowResult | None = None  # the end point of the last search
 
-    def _merit(self, r: np.ndarray, c: np.ndarray) -> float:
-        m = 0.5 * float(r @ r) + self.penalty * float(np.maximum(c, 0.0).sum())
-        return m if math.isfinite(m) else math.inf
+    def _search(self, prob: PaddleProblem, starts: list[np.ndarray]) -> tuple[np.ndarray, int, bool, str]:
+        g = prob.goal
+        deadline = math.inf if self.max_time is None else time.perf_counter() + self.max_time
+        row = PaddleRowSolver(PaddleEval(self.dyn, prob.x, g.target_xy, self.paddle.g), prob.lo.tolist(),
+                              prob.hi.tolist(), g.v_rel)
+        away = (g.target_xy - prob.x[0:2]).tolist()
 
-    def _optimize(self, prob: PaddleProblem, theta0: np.ndarray) -> tuple[np.ndarray, int, bool, str]:
-        theta = prob.project(theta0)
-        r, jr, c, jc = prob.jacobians(theta)
-        merit = self._merit(r, c)
-        rho = 1e-3
-        eye = np.eye(5)
-        lam = np.zeros(2)  # multipliers of the speed rows (last QP)
-        it = 0
-        for it in range(1, self.max_iter + 1):  # noqa: B007
-            if float(np.linalg.norm(r)) <= 0.1 * self.tol and c.max() <= 0.0:
-                return theta, it, True, "converged"
-            hess, grad = jr.T @ jr, jr.T @ r
-            if it > self.gn_iters and float(r @ r) > (10.0 * self.tol) ** 2:
-                # still far from the target after a few Gauss-Newton steps (probably unreachable): full Newton (Gauss-Newton + residual curvature), made positive definite
-                evals, evecs = np.linalg.eigh(hess + prob.residual_curvature(theta, r, jr))
-                hess = (evecs * np.maximum(evals, 1e-9 * max(float(evals.max()), 1e-12))) @ evecs.T
-            # curvature of the active upper speed bound (|v_rel|^2 is convex): lam * 2 I on the paddle velocity
-            hess[:3, :3] += 2.0 * max(float(lam[1] - lam[0]), 0.0) * np.eye(3)
-            scale = float(np.trace(hess)) / 5.0 + 1e-9
-            viol0 = float(np.maximum(c, 0.0).sum())
-            accepted = False
-            while not accepted:
-                h_lm = hess + rho * scale * eye
-                lo, hi = prob.lo - theta, prob.hi - theta
-                box = solve_box_qp(h_lm, grad, lo, hi)
-                if box.converged and float((c + jc @ box.d).max()) <= 0.0:
-                    d, lam = box.d, np.zeros(2)
-                else:
-                    qp = solve_qp(h_lm, grad, lo, hi, jc, -c, self.penalty)
-                    d, lam = qp.d, qp.mult
-                pred = -(grad @ d + 0.5 * d @ hess @ d) + self.penalty * (
-                    viol0 - float(np.maximum(c + jc @ d, 0.0).sum()))
-                if pred <= self.rtol * (1.0 + merit):
-                    return theta, it, True, "converged"
-                for alpha in (1.0, 0.5, 0.25, 0.125):
-                    # stepping along the curved speed bound: put the trial point back on it
-                    cand = prob.project(theta + alpha * d)
-                    rn, cn, _ = prob.evaluate(cand)
-                    mn = self._merit(rn, cn)
-                    if mn <= merit - 1e-4 * alpha * pred:
-                        accepted = True
-                        break
-                if accepted:
-                    rho = max(rho / 4.0, 1e-9) if alpha == 1.0 else rho * 2.0
-                else:
-                    rho = max(rho, 1e-3) * 10.0
-                    if rho > 1e6:
-                        return theta, it, False, "line search failed"
-            theta = cand
-            r, jr, c, jc = prob.jacobians(theta)
-            merit = self._merit(r, c)
-        return theta, it, False, "max_iter"
+        def tilt(theta: list[float]) -> float:
+            """how much the paddle leans towards the target: normal_xy . (target - p)"""
+            return math.sin(theta[4]) * away[0] - math.sin(theta[3]) * away[1]
+
+        best, total, msg = search(row, [s.tolist() for s in starts], tilt, self.settings, deadline)
+        self._last = best
+        return np.array(best.theta), total, best.converged, msg
+
+    def _evaluate(self, prob: PaddleProblem, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The search's own evaluation of the plan (the same model, in floats) when it returned this point."""
+        last, self._last = self._last, None
+        th = theta.tolist()
+        if last is None or last.point is None or last.point.theta != th:
+            return prob.evaluate(theta)
+        w = [c - p for c, p in zip(prob.x[3:6].tolist(), th[:3])]
+        s2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+        lo, hi = prob.goal.v_rel
+        return np.array(last.point.r), np.array([lo * lo - s2, s2 - hi * hi]), np.array(last.point.v)
 
 
 class SLSQPPaddle(PaddleController):
@@ -369,3 +310,4 @@ class SLSQPPaddle(PaddleController):
             options={"maxiter": self.max_iter, "ftol": self.ftol},
         )
         return np.clip(res.x, prob.lo, prob.hi), int(res.nit), bool(res.success), str(res.message)
+

@@ -1,0 +1,357 @@
+"""One start of the fast paddle-ball search, in plain Python floats: projected Gauss-Newton / Newton iterations on
+``F = 1/2 ||r(theta)||^2`` (``r`` the landing error, m) within the feasible set of
+:class:`~saml_ros.core.mpc.paddle_bounds.PaddleBounds`. Per iteration:
+
+1. **active set** (Bertsekas' projected Newton): the bounds touched by ``theta`` (within ``eps``) are held:
+   coordinates moved exactly onto their box bound, the step kept tangent to an active speed bound (``P``: the
+   orthogonal projector onto the remaining free directions). The Gauss-Newton modes keep those the gradient pushes
+   against (least-squares KKT multipliers); Newton keeps all, then releases the one with the most negative
+   multiplier of its own step, and re-solves (at a corner of box and speed bound the gradient's multipliers
+   flip-flop, and the iterates zig-zag);
+2. **step**, one of three models (``mode``):
+
+   * ``"velocity"``: Gauss-Newton towards a *target post-impact velocity* ``v*``, the velocity nearest the
+     predicted one that lands exactly on the target (``v*_xy v*_z = g/2 (target - p)``, a 1-D minimisation);
+     ``d = -P Dv^T (Dv P Dv^T + lam I)^-1 (v - v*)`` (3 x 3). ``v(theta)`` is far more linear than the landing
+     point (a product ``v_xy v_z``), so a reachable target is met in fewer iterations;
+   * ``"gauss-newton"``: ``d = -P J^T (J P J^T + lam I)^-1 r`` (2 x 2), the minimum-norm step of the
+     underdetermined landing equations;
+   * ``"newton"``: ``(P (J^T J + C) P + lam I) d = -P g`` with the exact residual curvature ``C``, by Cholesky,
+     or when that matrix is not positive definite from its eigen-decomposition with ``|eigenvalue|`` (no ascent
+     along negative curvature). Needed when the target cannot be reached: the optimum is then a fold of the
+     landing map on the constraint boundary, where ``J^T J`` is singular. Its length is capped by a trust radius;
+
+3. the trial point, projected back onto the feasible set, is evaluated and accepted if ``F`` decreases and the
+   ball still leaves upwards; the Levenberg-Marquardt damping ``lam`` (relative to the model's scale) and the trust
+   radius follow the ratio of actual to predicted decrease.
+
+One iteration costs one model evaluation (:meth:`PaddleEval.value`) plus, when the step is accepted, its
+derivatives (:meth:`PaddleEval.derivatives`; skipped while a Gauss-Newton run converges fast: the previous
+Jacobian is kept); the rest is a few hundred float operations.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from saml_ros.core.mpc.paddle_bounds import PaddleBounds
+from saml_ros.core.mpc.paddle_eval import PaddleEval, Point
+
+MODES = ("velocity", "gauss-newton", "newton")
+_ZERO = [0.0] * 5
+
+
+@dataclass
+class RowResult:
+    """End point of one start."""
+
+    theta: list[float]  #: feasible end point
+    cost: float  #: ||r|| (m), inf when the ball would not leave upwards
+    iterations: int  #: model evaluations after the first
+    converged: bool  #: met a stopping tolerance (not max_iter / failed damping / slow / abandoned)
+    slow: bool = False  #: stopped because an accepted step reduced ||r|| by less than the ``slow`` factor
+    abandoned: bool = False  #: stopped by the caller's ``abandon`` test
+    point: Point | None = None  #: the model's evaluation at ``theta``
+
+
+class PaddleRowSolver(PaddleBounds):
+    """Projected Gauss-Newton / Newton for one problem: ``ev`` (model, state, target) and the feasible set.
+
+    Args:
+        ev: the residual and its derivatives.
+        lo, hi: box of ``theta`` (5 floats each).
+        v_rel: ``(v_min, v_max)`` m/s, bounds of ``|v_ball - pv|``; ``v_ball`` is ``ev.x[3:6]``.
+    """
+
+    def __init__(self, ev: PaddleEval, lo: list[float], hi: list[float], v_rel: tuple[float, float]) -> None:
+        super().__init__(lo, hi, ev.x[3:6].tolist(), v_rel)
+        self.ev = ev
+        # landing on the target means v_xy v_z = c (m^2/s^2)
+        self.c = (-float(ev.offset[0]) / ev.k, -float(ev.offset[1]) / ev.k)
+        self.mu0 = 1e-2  # initial damping, relative to the model's scale
+        self.radius0 = 1.0  # initial trust radius of the Newton steps (m/s, rad)
+        self.shrink = 0.25  # trust radius after a rejected Newton step, relative to that step's length
+
+    # ------------------------------------------------------------------------------------------ iterations
+    def run(self, theta0: list[float], mode: str, max_iter: int, tol_zero: float = 1e-7, rtol: float = 1e-6,
+            slow: float = 1.0, slow_after: int = 8, abandon: Callable[[Point, int], bool] | None = None) -> RowResult:
+        """Iterate from ``theta0`` (projected first) with the step model ``mode`` (module docstring).
+
+        Stops at ``||r|| <= tol_zero`` (m); when ``F`` has not improved by a relative ``2 rtol`` in 3 iterations (a
+        rejected step whose model promised a real decrease does not count); when the damping fails; after
+        ``max_iter`` iterations; ``slow < 1``: once an accepted step after iteration ``slow_after`` reduced
+        ``||r||`` by less than this factor (a reachable target converges quadratically: this one is probably
+        out of reach); or when ``abandon(point, iteration)`` returns True after an accepted step (the caller's
+        test that this start is not worth finishing).
+        """
+        if mode not in MODES:
+            raise ValueError(f"unknown mode {mode!r}; valid: {MODES}")
+        ev = self.ev
+        newton = mode == "newton"
+        pt = ev.value(self.project(theta0))
+        if not pt.up:  # the ball would not leave upwards: no gradient to follow
+            return RowResult(pt.theta, math.inf, 0, False, point=pt)
+        jac, hess = self._derivatives(pt, newton)
+        dv_old = pt.dv
+        f = pt.f
+        mu = self.mu0
+        radius = self.radius0 if newton else math.inf  # cap on the step length (m/s, rad)
+        f_ref, stall = f, 0
+        it = 0
+        while it < max_iter:
+            it += 1
+            th = pt.theta
+            j0, j1 = jac
+            r0, r1 = pt.r
+            g = [j0[0] * r0 + j1[0] * r1, j0[1] * r0 + j1[1] * r1, j0[2] * r0 + j1[2] * r1, j0[3] * r0 + j1[3] * r1,
+                 j0[4] * r0 + j1[4] * r1]
+            free, unit, close = self.active_set(th, g, by_gradient=not newton)
+            if newton:
+                assert hess is not None
+                drop: set[int] = set()
+                for _ in range(4):  # release the bounds the Newton step would leave (negative multiplier)
+                    cl = _ZERO if close is None else close
+                    step = self._newton_step(hess, g, free, unit, cl, mu)
+                    if len(free) == 5 and unit is None:
+                        break
+                    worst = self.most_negative(th, g, hess, step, free, unit)
+                    if worst is None:
+                        break
+                    drop.add(worst)
+                    free, unit, close = self.active_set(th, g, drop, by_gradient=False)
+                size = math.sqrt(sum([(step[i] - cl[i]) ** 2 for i in range(5)]))
+                if size > radius:  # (the move onto the active bounds is not capped)
+                    step = [cl[i] + (step[i] - cl[i]) * (radius / size) for i in range(5)]
+            elif mode == "velocity":
+                step = self._velocity_step(pt, free, unit, close, mu)
+            else:
+                step = self._gauss_newton_step(jac, pt.r, free, unit, _ZERO if close is None else close, mu)
+            keep = None if len(free) == 5 else [i not in free for i in range(5)]
+            cand = self.project([th[0] + step[0], th[1] + step[1], th[2] + step[2], th[3] + step[3], th[4] + step[4]],
+                                keep)
+            dd = [cand[0] - th[0], cand[1] - th[1], cand[2] - th[2], cand[3] - th[3], cand[4] - th[4]]
+            if hess is None:
+                ja = j0[0] * dd[0] + j0[1] * dd[1] + j0[2] * dd[2] + j0[3] * dd[3] + j0[4] * dd[4]
+                jb = j1[0] * dd[0] + j1[1] * dd[1] + j1[2] * dd[2] + j1[3] * dd[3] + j1[4] * dd[4]
+                quad = ja * ja + jb * jb
+            else:
+                d0, d1, d2, d3, d4 = dd
+                quad = sum([d * (h[0] * d0 + h[1] * d1 + h[2] * d2 + h[3] * d3 + h[4] * d4) for d, h in zip(dd, hess)])
+            pred = -(g[0] * dd[0] + g[1] * dd[1] + g[2] * dd[2] + g[3] * dd[3] + g[4] * dd[4] + 0.5 * quad)
+            moved = math.sqrt(dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2] + dd[3] * dd[3] + dd[4] * dd[4])
+            cpt = ev.value(cand)
+            ok = cpt.up and cpt.f < f - 1e-4 * max(pred, 0.0)  # (a non-finite value is rejected too)
+            if ok:
+                ratio = (f - cpt.f) / pred if pred > 0.0 else 0.0
+                mu = max(mu * 0.1 if ratio > 0.75 else (mu * 2.0 if ratio < 0.25 else mu), 1e-15)
+                if ratio > 0.75:
+                    radius = max(radius, 2.0 * moved)
+                f_old = f
+                pt, f = cpt, cpt.f
+                if f <= 0.5 * tol_zero * tol_zero:
+                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, True, point=pt)
+                if slow < 1.0 and it > slow_after and f > slow * slow * f_old:
+                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, False, slow=True, point=pt)
+                if abandon is not None and abandon(pt, it):
+                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, False, abandoned=True, point=pt)
+                if not newton and f < 1e-4 * f_old and f_old < 1e-4:  # converging fast: keep the Jacobian (chord)
+                    cpt.dv = dv_old
+                else:
+                    jac, hess = self._derivatives(pt, newton)
+                    dv_old = pt.dv
+            else:
+                mu *= 20.0
+                if newton:
+                    radius = self.shrink * moved
+                if mu > 1e8 or radius < 1e-12:
+                    return RowResult(th, math.sqrt(2.0 * f), it, False, point=pt)
+            if f < (1.0 - 2.0 * rtol) * f_ref:
+                f_ref, stall = f, 0
+            elif ok or moved <= 1e-12 or 0.0 <= pred <= 2.0 * rtol * f:
+                stall += 1
+                if stall >= 3:
+                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, True, point=pt)
+        return RowResult(pt.theta, math.sqrt(2.0 * f), it, False, point=pt)
+
+    def _derivatives(self, pt: Point, newton: bool) -> tuple[list[list[float]], list[list[float]] | None]:
+        """``J`` and, for Newton, ``H = J^T J + C`` (5 x 5) at ``pt``."""
+        return self.ev.derivatives(pt, newton)
+
+    @staticmethod
+    def _project_rows(rows: list[list[float]], free: list[int], unit: list[float] | None) -> list[list[float]]:
+        """``rows`` (k x 5) restricted to the free coordinates and projected off the speed-bound normal."""
+        out = [[row[i] for i in free] for row in rows]
+        if unit is not None:
+            ut = [unit[i] for i in free]
+            for row in out:
+                p = sum(row[k] * ut[k] for k in range(len(free)))
+                for k in range(len(free)):
+                    row[k] -= p * ut[k]
+        return out
+
+    def _gauss_newton_step(self, jac: list[list[float]], r: tuple[float, float], free: list[int],
+                           unit: list[float] | None, close: list[float], mu: float) -> list[float]:
+        """``close - P J^T (J P J^T + lam I)^-1 (r + J close)``, 5 floats."""
+        step = list(close)
+        if not free:
+            return step
+        ja, jb = self._project_rows(jac, free, unit)
+        m = len(free)
+        aa = sum(c * c for c in ja)
+        ab = sum(ja[k] * jb[k] for k in range(m))
+        bb = sum(c * c for c in jb)
+        lam = mu * 0.5 * (aa + bb) + 1e-300
+        ra = r[0] + sum(jac[0][i] * close[i] for i in range(5))
+        rb = r[1] + sum(jac[1][i] * close[i] for i in range(5))
+        aa += lam
+        bb += lam
+        det = aa * bb - ab * ab
+        ya, yb = (bb * ra - ab * rb) / det, (aa * rb - ab * ra) / det
+        for k, i in enumerate(free):
+            step[i] -= ja[k] * ya + jb[k] * yb
+        return step
+
+    def target_velocity(self, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        """The post-impact velocity nearest ``v`` that lands exactly on the target: ``(c / z, z)`` with
+        ``c = g/2 (target - p)`` and ``z > 0`` minimising ``|c / z - v_xy|^2 + (z - v_z)^2`` (Newton in 1-D)."""
+        cx, cy = self.c
+        cc, cv = cx * cx + cy * cy, cx * v[0] + cy * v[1]
+        vz = v[2]
+        z = max(vz, 0.3)
+        for _ in range(12):
+            z2 = z * z
+            d1 = -cc / (z2 * z) + cv / z2 + (z - vz)  # (half the derivative)
+            d2 = 3.0 * cc / (z2 * z2) - 2.0 * cv / (z2 * z) + 1.0
+            z_new = max(z - d1 / (d2 if d2 > 0.0 else 1.0), 0.5 * z)
+            if abs(z_new - z) <= 1e-12 * z:
+                break
+            z = z_new
+        return cx / z, cy / z, z
+
+    def _velocity_step(self, pt: Point, free: list[int], unit: list[float] | None, close: list[float] | None,
+                       mu: float) -> list[float]:
+        """``close - P Dv^T (Dv P Dv^T + lam I)^-1 (v + Dv close - v*)``, 5 floats (module docstring)."""
+        dv = pt.dv
+        if not free or dv is None:
+            return [0.0] * 5 if close is None else list(close)
+        vs = self.target_velocity(pt.v)
+        e0, e1, e2 = pt.v[0] - vs[0], pt.v[1] - vs[1], pt.v[2] - vs[2]
+        if close is None:  # nothing active (the usual case): plain rows
+            a, b, c = dv
+        else:
+            e0 += sum(dv[0][i] * close[i] for i in range(5))
+            e1 += sum(dv[1][i] * close[i] for i in range(5))
+            e2 += sum(dv[2][i] * close[i] for i in range(5))
+            a, b, c = self._project_rows(dv, free, unit)
+        m00 = sum([x * x for x in a])
+        m11 = sum([x * x for x in b])
+        m22 = sum([x * x for x in c])
+        m01 = sum([x * y for x, y in zip(a, b)])
+        m02 = sum([x * y for x, y in zip(a, c)])
+        m12 = sum([x * y for x, y in zip(b, c)])
+        lam = mu * (m00 + m11 + m22) / 3.0 + 1e-300
+        m00, m11, m22 = m00 + lam, m11 + lam, m22 + lam
+        # symmetric 3 x 3 solve by the adjugate
+        c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m02 * m11
+        c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
+        det = m00 * c00 + m01 * c01 + m02 * c02
+        y0 = (c00 * e0 + c01 * e1 + c02 * e2) / det
+        y1 = (c01 * e0 + c11 * e1 + c12 * e2) / det
+        y2 = (c02 * e0 + c12 * e1 + c22 * e2) / det
+        if close is None:
+            return [-(a[i] * y0 + b[i] * y1 + c[i] * y2) for i in range(5)]
+        step = list(close)
+        for k, i in enumerate(free):
+            step[i] -= a[k] * y0 + b[k] * y1 + c[k] * y2
+        return step
+
+    @staticmethod
+    def _newton_step(hess: list[list[float]], g: list[float], free: list[int], unit: list[float] | None,
+                     close: list[float], mu: float) -> list[float]:
+        """``close + d``, ``(P H P + lam I) d = -P (g + H close)`` on the free coordinates, ``lam = mu`` times the
+        largest diagonal entry; by Cholesky when that matrix is positive definite, otherwise from the
+        eigen-decomposition with ``|eigenvalues|`` (no ascent along negative curvature); 5 floats."""
+        step = list(close)
+        if not free:
+            return step
+        m = len(free)
+        hm = [[hess[i][j] for j in free] for i in free]
+        if any(close):
+            rhs = [-(g[i] + sum([hess[i][j] * close[j] for j in range(5)])) for i in free]
+        else:
+            rhs = [-g[i] for i in free]
+        if unit is not None:  # P = I - u u^T on the free coordinates
+            ut = [unit[i] for i in free]
+            hu = [sum([row[q] * ut[q] for q in range(m)]) for row in hm]
+            uhu = sum([ut[k] * hu[k] for k in range(m)])
+            hm = [[hm[k][q] - hu[k] * ut[q] - ut[k] * hu[q] + uhu * ut[k] * ut[q] for q in range(m)] for k in range(m)]
+            ur = sum([ut[k] * rhs[k] for k in range(m)])
+            rhs = [rhs[k] - ur * ut[k] for k in range(m)]
+        scale = max(max(abs(hm[k][k]) for k in range(m)), 1e-300)
+        d = _cholesky_solve(hm, rhs, max(mu, 1e-10) * scale)
+        if d is None:
+            evals, evecs = np.linalg.eigh(np.array(hm))
+            mag = np.abs(evals)
+            d = (evecs @ ((np.array(rhs) @ evecs) / (mag + (mu * float(mag.max()) + 1e-300)))).tolist()
+        for k, i in enumerate(free):
+            step[i] += d[k]
+        return step
+
+    def flat_direction(self, theta: list[float]) -> list[float] | None:
+        """The direction (unit, 5 floats) of least curvature of ``F`` at ``theta`` within the active constraints:
+        the eigenvector of ``P H P`` with the smallest ``|eigenvalue|`` outside ``P``'s null space (the valley
+        along which distinct local minima of the piecewise-smooth landing error lie). None if nothing is free."""
+        pt = self.ev.value(theta)
+        if not pt.up:
+            return None
+        jac, hess = self._derivatives(pt, True)
+        assert hess is not None
+        g = [jac[0][j] * pt.r[0] + jac[1][j] * pt.r[1] for j in range(5)]
+        free, unit, _ = self.active_set(theta, g)
+        m = len(free) - (unit is not None)
+        if m <= 0:
+            return None
+        hm = np.array([[hess[i][j] for j in free] for i in free])
+        proj = np.eye(len(free))
+        if unit is not None:
+            u = np.array([unit[i] for i in free])
+            proj -= np.outer(u, u)
+            hm = proj @ hm @ proj
+        evals, evecs = np.linalg.eigh(hm)
+        inside = np.einsum("ij,ij->j", proj @ evecs, evecs) > 0.5  # eigenvectors within the free directions
+        k = int(np.argmin(np.where(inside, np.abs(evals), np.inf)))
+        out = [0.0] * 5
+        for q, i in enumerate(free):
+            out[i] = float(evecs[q, k])
+        return out
+
+
+def _cholesky_solve(a: list[list[float]], b: list[float], shift: float) -> list[float] | None:
+    """``(a + shift I)^-1 b`` for a small symmetric ``a`` (lists) by Cholesky; None if not positive definite."""
+    m = len(b)
+    low: list[list[float]] = []
+    for i in range(m):
+        row = a[i]
+        li = [0.0] * m
+        for j in range(i + 1):
+            lj = low[j] if j < i else li
+            acc = row[j] + (shift if i == j else 0.0) - sum([li[k] * lj[k] for k in range(j)])
+            if i == j:
+                if not acc > 0.0:
+                    return None
+                li[i] = math.sqrt(acc)
+            else:
+                li[j] = acc / lj[j]
+        low.append(li)
+    y = [0.0] * m
+    for i in range(m):
+        y[i] = (b[i] - sum([low[i][k] * y[k] for k in range(i)])) / low[i][i]
+    x = [0.0] * m
+    for i in range(m - 1, -1, -1):
+        x[i] = (y[i] - sum([low[k][i] * x[k] for k in range(i + 1, m)])) / low[i][i]
+    return x
+
