@@ -198,3 +198,24 @@ def test_paddle_trial_measures_landing_against_target() -> None:
             assert len(r["track"]) > 0.2 / world.timestep  # it flew
     assert isinstance(world.system, PaddleBall)
 
+
+
+def test_single_threaded_runner_decorator_pins_one_thread_and_restores() -> None:
+    import torch
+
+    from saml_ros.experiments.common import single_threaded
+
+    seen: list[int] = []
+
+    @single_threaded
+    def job(x: int) -> int:
+        seen.append(torch.get_num_threads())
+        return 2 * x
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        assert job(3) == 6 and seen == [1]
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(old)

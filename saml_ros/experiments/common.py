@@ -8,15 +8,16 @@ Student-t confidence interval, the paired t-test p-value and the Wilcoxon signed
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
 import torch
@@ -267,6 +268,22 @@ def compute_settings(threads: int = 1) -> Iterator[None]:
             yield
     finally:
         torch.set_num_threads(old)
+
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def single_threaded(run: Callable[P, R]) -> Callable[P, R]:
+    """Decorator of the runners' ``run``: the whole run under :func:`compute_settings` (one torch thread,
+    subnormals flushed), restored afterwards."""
+
+    @functools.wraps(run)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        with compute_settings():
+            return run(*args, **kwargs)
+
+    return wrapper
 
 
 def save_models(out: Path, trained: dict[str, Any]) -> dict[str, str]:

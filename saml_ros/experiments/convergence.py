@@ -33,13 +33,13 @@ from saml_ros.core.systems.base import System
 from saml_ros.core.trainer import TrainConfig, Transitions, evaluate_spec
 from saml_ros.experiments.common import (
     Timer,
-    compute_settings,
     flush_denormals,
     fmt,
     machine_info,
     md_table,
     progress_bar,
     quiet_trainer_warnings,
+    single_threaded,
     write_results,
 )
 from saml_ros.offline import generate_datasets, train_models
@@ -114,15 +114,11 @@ def pstar_check(system: System, sigma: float, eps: float, n: int, seed: int = 12
     }
 
 
+@single_threaded
 def run(settings: ConvergenceSettings, out: Path, progress: bool = True) -> dict[str, Any]:
     """Run the grid; write ``results.md``, ``results.json``, ``convergence_boxplot.png`` into ``out``.
 
-    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.compute_settings`)."""
-    with compute_settings():
-        return _run(settings, out, progress)
-
-
-def _run(settings: ConvergenceSettings, out: Path, progress: bool) -> dict[str, Any]:
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.single_threaded`)."""
     s = settings
     timer = Timer()
     system = get_system("friction")

@@ -29,7 +29,6 @@ from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
-    compute_settings,
     flush_denormals,
     fmt,
     fmt_ms,
@@ -41,6 +40,7 @@ from saml_ros.experiments.common import (
     progress_bar,
     quiet_trainer_warnings,
     save_models,
+    single_threaded,
     write_results,
 )
 from saml_ros.experiments.control import PlanChecks, closed_loop, make_mpc
@@ -119,15 +119,11 @@ def evaluate_controller(system: FrictionDoubleIntegrator, model: DynamicsModel |
             "solve_time_mean": float(t.mean()), "solve_time_max": float(t.max()), "checks": checks}
 
 
+@single_threaded
 def run(settings: FrictionSettings, out: Path, progress: bool = True) -> dict[str, Any]:
     """Train, evaluate, control; write ``results.md``, ``results.json`` and figures into ``out``.
 
-    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.compute_settings`)."""
-    with compute_settings():
-        return _run(settings, out, progress)
-
-
-def _run(settings: FrictionSettings, out: Path, progress: bool) -> dict[str, Any]:
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.single_threaded`)."""
     s = settings
     timer = Timer()
     info = machine_info()

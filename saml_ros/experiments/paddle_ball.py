@@ -37,7 +37,6 @@ from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
-    compute_settings,
     flush_denormals,
     fmt_ms,
     fmt_p,
@@ -48,6 +47,7 @@ from saml_ros.experiments.common import (
     progress_bar,
     quiet_trainer_warnings,
     save_models,
+    single_threaded,
     write_results,
 )
 from saml_ros.experiments.control import bound_violation, make_mpc
@@ -260,15 +260,11 @@ def validation_errors(model: DynamicsModel | None, system: PaddleBall, x: np.nda
             "n_slow": int((~fast).sum())}
 
 
+@single_threaded
 def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str, Any]:
     """Collect, train, validate, run the control trials; write results and figures into ``out``.
 
-    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.compute_settings`)."""
-    with compute_settings():
-        return _run(settings, out, progress)
-
-
-def _run(settings: PaddleSettings, out: Path, progress: bool) -> dict[str, Any]:
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.single_threaded`)."""
     s = settings
     timer = Timer()
     info = machine_info()

@@ -30,7 +30,6 @@ from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
-    compute_settings,
     flush_denormals,
     fmt,
     fmt_ms,
@@ -40,6 +39,7 @@ from saml_ros.experiments.common import (
     progress_bar,
     quiet_trainer_warnings,
     save_models,
+    single_threaded,
     write_results,
 )
 from saml_ros.experiments.control import PlanChecks, Rollout, closed_loop, make_mpc
@@ -167,15 +167,11 @@ def model_errors(cmp: Comparison, system: Quadrotor, n_test: int, seed: int = 10
     return out
 
 
+@single_threaded
 def run(settings: QuadrotorSettings, out: Path, progress: bool = True) -> dict[str, Any]:
     """Train SA and UA, evaluate their errors and the landing MPC; write results and figures into ``out``.
 
-    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.compute_settings`)."""
-    with compute_settings():
-        return _run(settings, out, progress)
-
-
-def _run(settings: QuadrotorSettings, out: Path, progress: bool) -> dict[str, Any]:
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.single_threaded`)."""
     s = settings
     timer = Timer()
     info = machine_info()
