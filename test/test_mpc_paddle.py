@@ -4,6 +4,7 @@ agreement with the SLSQP reference (saml_ros.core.mpc.paddle_eval / paddle_row /
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ import torch
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.paddle import PaddleProblem
+from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleProblem
 from saml_ros.core.mpc.paddle_eval import PaddleEval
 from saml_ros.core.mpc.paddle_row import PaddleRowSolver
 from saml_ros.core.systems import get_system
@@ -151,3 +152,49 @@ def test_search_respects_the_time_budget() -> None:
     res = ctrl.solve(prob.x, prob.goal)
     assert math.isfinite(res.cost) and np.all(res.u >= SYSTEM.control_low) and np.all(res.u <= SYSTEM.control_high)
     assert res.iterations <= 10  # the probe only
+
+
+def test_runs_reuse_known_points_and_cached_derivatives_exactly() -> None:
+    """A run handed the evaluation of its start point (and the derivatives cached on it) ends exactly where a run
+    from scratch ends; cached derivatives equal freshly computed ones, also when ``J`` was cached first. (The third
+    problem's Gauss-Newton run reaches a point where no free direction moves the landing point: ``J P J^T``
+    underflows to 0, which used to raise ZeroDivisionError.)"""
+    model = perturbed()
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        prob = problem(rng, model, spread=3.0)
+        ev = evaluator(prob)
+        row = PaddleRowSolver(ev, prob.lo.tolist(), prob.hi.tolist(), prob.goal.v_rel)
+        theta = row.project(rng.uniform(prob.lo, prob.hi).tolist())
+        pt = ev.value(theta)
+        jac_only, _ = ev.derivatives(pt, False)
+        jac, hess = ev.derivatives(pt, True)  # H added to a point that had J cached
+        fresh_jac, fresh_hess = ev.derivatives(ev.value(theta), True)
+        assert jac == jac_only == fresh_jac and hess == fresh_hess
+        for mode in ("gauss-newton", "newton"):
+            cold = row.run(theta, mode, max_iter=15)
+            warm = row.run(theta, mode, max_iter=15, start=pt)
+            assert (warm.theta, warm.cost, warm.iterations) == (cold.theta, cold.cost, cold.iterations)
+            moved = row.run(cold.theta, mode, max_iter=15, start=pt)  # a point of another theta is not used
+            assert moved.theta == row.run(cold.theta, mode, max_iter=15).theta
+
+
+def test_multistart_and_every_valley_point_stay_available() -> None:
+    """The optional multi-start (``max_runs > 1``) and relaxing every displaced valley point still give feasible
+    plans no worse than the reference by more than 1 % out of reach."""
+    model = perturbed()
+    fast = make_controller(SYSTEM, model, "fast")
+    assert isinstance(fast, GaussNewtonPaddle)
+    fast.settings = replace(fast.settings, max_runs=4, valley_pick=False)
+    ref = make_controller(SYSTEM, model, "slsqp")
+    rng = np.random.default_rng(11)
+    far = 0
+    for _ in range(8):
+        prob = problem(rng, model, spread=3.0)
+        fast.reset()
+        ref.reset()
+        res, want = fast.solve(prob.x, prob.goal), ref.solve(prob.x, prob.goal)
+        assert res.success, res.message
+        far += want.cost > 1e-3
+        assert res.cost <= want.cost * 1.01 + 1e-6
+    assert far >= 3

@@ -41,6 +41,8 @@ class Point:
     nw: float  #: n . w
     pre: list[np.ndarray] | None  #: the network's hidden pre-activations at this input
     dv: list[list[float]] | None = None  #: d v / d theta (3 x 5), set by :meth:`PaddleEval.derivatives`
+    jac: list[list[float]] | None = None  #: J (2 x 5), cached by :meth:`PaddleEval.derivatives`
+    hess: list[list[float]] | None = None  #: H (5 x 5), cached by :meth:`PaddleEval.derivatives`
 
 
 class PaddleEval:
@@ -86,7 +88,10 @@ class PaddleEval:
 
     def derivatives(self, pt: Point, curvature: bool) -> tuple[list[list[float]], list[list[float]] | None]:
         """``J`` (2 x 5) and, if ``curvature``, the Hessian ``H = J^T J + C`` (5 x 5) of ``1/2 ||r||^2`` at ``pt``
-        (lists of floats; zero where the ball would not leave upwards). Also sets ``pt.dv``."""
+        (lists of floats, read-only: cached on ``pt`` for later calls; zero where the ball would not leave upwards).
+        Also sets ``pt.dv``."""
+        if pt.jac is not None and (pt.hess is not None or not curvature):
+            return pt.jac, (pt.hess if curvature else None)
         if not pt.up:
             return [[0.0] * 5, [0.0] * 5], ([[0.0] * 5 for _ in range(5)] if curvature else None)
         cr, sr, cp, sp = pt.trig
@@ -123,6 +128,7 @@ class PaddleEval:
                 kz * d0[4] + kx * dz[4]],
                [kz * d1[0] + ky * dz[0], kz * d1[1] + ky * dz[1], kz * d1[2] + ky * dz[2], kz * d1[3] + ky * dz[3],
                 kz * d1[4] + ky * dz[4]]]
+        pt.jac = jac
         if not curvature:
             return jac, None
         # H = J^T J + C, C = sum_i r_i d2 r_i, r_i = p_i + k v_i v_z - target_i (i = x, y):
@@ -168,4 +174,5 @@ class PaddleEval:
         curv[3][4] += ang_rp
         curv[4][3] += ang_rp
         curv[4][4] += ang_pp
+        pt.hess = curv
         return jac, curv

@@ -26,8 +26,9 @@
    radius follow the ratio of actual to predicted decrease.
 
 One iteration costs one model evaluation (:meth:`PaddleEval.value`) plus, when the step is accepted, its
-derivatives (:meth:`PaddleEval.derivatives`; skipped while a Gauss-Newton run converges fast: the previous
-Jacobian is kept); the rest is a few hundred float operations.
+derivatives (:meth:`PaddleEval.derivatives`, computed when the next iteration needs them, so a run's last step
+costs none, and cached on the point for a run starting there; skipped while a Gauss-Newton run converges fast:
+the previous Jacobian is kept); the rest is a few hundred float operations.
 """
 
 from __future__ import annotations
@@ -78,25 +79,30 @@ class PaddleRowSolver(PaddleBounds):
 
     # ------------------------------------------------------------------------------------------ iterations
     def run(self, theta0: list[float], mode: str, max_iter: int, tol_zero: float = 1e-7, rtol: float = 1e-6,
-            slow: float = 1.0, slow_after: int = 8, abandon: Callable[[Point, int], bool] | None = None) -> RowResult:
+            slow: float = 1.0, slow_after: int = 8, abandon: Callable[[Point, int], bool] | None = None,
+            start: Point | None = None) -> RowResult:
         """Iterate from ``theta0`` (projected first) with the step model ``mode`` (module docstring).
 
-        Stops at ``||r|| <= tol_zero`` (m); when ``F`` has not improved by a relative ``2 rtol`` in 3 iterations (a
-        rejected step whose model promised a real decrease does not count); when the damping fails; after
+        Stops at ``||r|| <= tol_zero`` (m); when ``F`` has not improved by a relative ``2 rtol`` in 3 iterations (in
+        the Gauss-Newton modes a rejected step whose model promised a real decrease does not count; Newton near a
+        kink alternates tiny gains with rejected steps, which do count); when the damping fails; after
         ``max_iter`` iterations; ``slow < 1``: once an accepted step after iteration ``slow_after`` reduced
         ``||r||`` by less than this factor (a reachable target converges quadratically: this one is probably
         out of reach); or when ``abandon(point, iteration)`` returns True after an accepted step (the caller's
-        test that this start is not worth finishing).
+        test that this start is not worth finishing). ``start``: the model's evaluation at ``theta0`` if known (a
+        previous run's end point), used when ``theta0`` is feasible.
         """
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}; valid: {MODES}")
         ev = self.ev
         newton = mode == "newton"
-        pt = ev.value(self.project(theta0))
+        th0 = self.project(theta0)
+        pt = start if start is not None and start.theta == th0 else ev.value(th0)
         if not pt.up:  # the ball would not leave upwards: no gradient to follow
             return RowResult(pt.theta, math.inf, 0, False, point=pt)
         jac, hess = self._derivatives(pt, newton)
         dv_old = pt.dv
+        stale = False  # derivatives at pt still to compute (lazily: a run often ends right after a step)
         f = pt.f
         mu = self.mu0
         radius = self.radius0 if newton else math.inf  # cap on the step length (m/s, rad)
@@ -104,6 +110,9 @@ class PaddleRowSolver(PaddleBounds):
         it = 0
         while it < max_iter:
             it += 1
+            if stale:
+                jac, hess = self._derivatives(pt, newton)
+                dv_old, stale = pt.dv, False
             th = pt.theta
             j0, j1 = jac
             r0, r1 = pt.r
@@ -161,8 +170,7 @@ class PaddleRowSolver(PaddleBounds):
                 if not newton and f < 1e-4 * f_old and f_old < 1e-4:  # converging fast: keep the Jacobian (chord)
                     cpt.dv = dv_old
                 else:
-                    jac, hess = self._derivatives(pt, newton)
-                    dv_old = pt.dv
+                    stale = True
             else:
                 mu *= 20.0
                 if newton:
@@ -171,7 +179,7 @@ class PaddleRowSolver(PaddleBounds):
                     return RowResult(th, math.sqrt(2.0 * f), it, False, point=pt)
             if f < (1.0 - 2.0 * rtol) * f_ref:
                 f_ref, stall = f, 0
-            elif ok or moved <= 1e-12 or 0.0 <= pred <= 2.0 * rtol * f:
+            elif ok or newton or moved <= 1e-12 or 0.0 <= pred <= 2.0 * rtol * f:
                 stall += 1
                 if stall >= 3:
                     return RowResult(pt.theta, math.sqrt(2.0 * f), it, True, point=pt)
@@ -210,6 +218,8 @@ class PaddleRowSolver(PaddleBounds):
         aa += lam
         bb += lam
         det = aa * bb - ab * ab
+        if not det > 0.0:  # no free direction moves the landing point (J P J^T underflows): only the move onto bounds
+            return step
         ya, yb = (bb * ra - ab * rb) / det, (aa * rb - ab * ra) / det
         for k, i in enumerate(free):
             step[i] -= ja[k] * ya + jb[k] * yb
@@ -259,6 +269,8 @@ class PaddleRowSolver(PaddleBounds):
         c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m02 * m11
         c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
         det = m00 * c00 + m01 * c01 + m02 * c02
+        if not det > 0.0:  # no free direction moves v (Dv P Dv^T underflows): only the move onto the bounds
+            return [0.0] * 5 if close is None else list(close)
         y0 = (c00 * e0 + c01 * e1 + c02 * e2) / det
         y1 = (c01 * e0 + c11 * e1 + c12 * e2) / det
         y2 = (c02 * e0 + c12 * e1 + c22 * e2) / det
@@ -301,11 +313,12 @@ class PaddleRowSolver(PaddleBounds):
             step[i] += d[k]
         return step
 
-    def flat_direction(self, theta: list[float]) -> list[float] | None:
+    def flat_direction(self, theta: list[float], start: Point | None = None) -> list[float] | None:
         """The direction (unit, 5 floats) of least curvature of ``F`` at ``theta`` within the active constraints:
         the eigenvector of ``P H P`` with the smallest ``|eigenvalue|`` outside ``P``'s null space (the valley
-        along which distinct local minima of the piecewise-smooth landing error lie). None if nothing is free."""
-        pt = self.ev.value(theta)
+        along which distinct local minima of the piecewise-smooth landing error lie). None if nothing is free.
+        ``start``: the model's evaluation at ``theta``, if known."""
+        pt = start if start is not None and start.theta == theta else self.ev.value(theta)
         if not pt.up:
             return None
         jac, hess = self._derivatives(pt, True)
@@ -331,27 +344,39 @@ class PaddleRowSolver(PaddleBounds):
 
 
 def _cholesky_solve(a: list[list[float]], b: list[float], shift: float) -> list[float] | None:
-    """``(a + shift I)^-1 b`` for a small symmetric ``a`` (lists) by Cholesky; None if not positive definite."""
+    """``(a + shift I)^-1 b`` for a small symmetric ``a`` (lists) by Cholesky; None if not positive definite.
+    (Plain loops: about twice as fast as ``sum`` over list comprehensions at m <= 5, same rounding.)"""
     m = len(b)
     low: list[list[float]] = []
     for i in range(m):
         row = a[i]
         li = [0.0] * m
-        for j in range(i + 1):
-            lj = low[j] if j < i else li
-            acc = row[j] + (shift if i == j else 0.0) - sum([li[k] * lj[k] for k in range(j)])
-            if i == j:
-                if not acc > 0.0:
-                    return None
-                li[i] = math.sqrt(acc)
-            else:
-                li[j] = acc / lj[j]
+        for j in range(i):
+            lj = low[j]
+            acc = 0.0
+            for k in range(j):
+                acc += li[k] * lj[k]
+            li[j] = (row[j] - acc) / lj[j]
+        acc = 0.0
+        for k in range(i):
+            acc += li[k] * li[k]
+        acc = row[i] + shift - acc
+        if not acc > 0.0:
+            return None
+        li[i] = math.sqrt(acc)
         low.append(li)
     y = [0.0] * m
     for i in range(m):
-        y[i] = (b[i] - sum([low[i][k] * y[k] for k in range(i)])) / low[i][i]
+        li = low[i]
+        acc = 0.0
+        for k in range(i):
+            acc += li[k] * y[k]
+        y[i] = (b[i] - acc) / li[i]
     x = [0.0] * m
     for i in range(m - 1, -1, -1):
-        x[i] = (y[i] - sum([low[k][i] * x[k] for k in range(i + 1, m)])) / low[i][i]
+        acc = 0.0
+        for k in range(i + 1, m):
+            acc += low[k][i] * x[k]
+        x[i] = (y[i] - acc) / low[i][i]
     return x
 
