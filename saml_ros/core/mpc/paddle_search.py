@@ -40,15 +40,15 @@ class SearchSettings:
     probe_slow_after: int = 2  #: Gauss-Newton probe iterations after which a slow one ends it
     max_iter: int = 20  #: iterations of a Newton run
     rtol: float = 1e-4  #: relative decrease of ||r|| below which (3 times in a row) a Newton run has converged
-    max_runs: int = 1  #: Newton runs at most (the probe's end point first, then the starts)
+    max_runs: int = 16  #: Newton runs at most (the probe's end point first, then the starts)
     patience: int = 1  #: Newton runs in a row without improvement after which the multi-start stops
     screen_iter: int = 4  #: Gauss-Newton iterations before Newton from the starts after the first
     lose: float = 1.5  #: a run is losing once its cost exceeds (1 + lose / iteration) times the best one's
     same: float = 0.02  #: distance (fraction of each box side) and ...
     same_cost: float = 2e-3  #: ... relative cost difference within which a run heads into a known minimum
     valley: tuple[float, ...] = (-0.1, 0.1)  #: displacements along the flat direction (m/s, rad)
-    valley_pick: bool = True  #: relax only the displaced point with the lower landing error (else each one)
-    relax_iter: int = 4  #: Gauss-Newton iterations from a displaced point
+    valley_pick: bool = False  #: relax only the displaced point with the lower landing error (else each one)
+    relax_iter: int = 2  #: Gauss-Newton iterations from a displaced point
 
 
 def search(row: PaddleRowSolver, starts: list[list[float]], tilt: Callable[[list[float]], float], s: SearchSettings,
