@@ -132,5 +132,5 @@ def test_start_scores_match_cost_and_violations() -> None:
     xs = np.stack([ctrl.rollout(x0, s) for s in seqs])
     want = [task.cost(x) + 100.0 * np.maximum(task.violations(x), 0.0).sum() for x in xs]
     np.testing.assert_allclose(task.start_scores(xs), want, rtol=1e-12)
-    np.testing.assert_allclose(ctrl._score_starts(x0, seqs, task), want, rtol=1e-9)
+    np.testing.assert_allclose(task.start_scores(ctrl._rollout_batch(x0, seqs)), want, rtol=1e-9)
     assert task.violations(xs[0])[:-1].max() > 0 and task.violations(xs[1])[-1] > 0  # penalties exercised

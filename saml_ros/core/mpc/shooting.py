@@ -178,11 +178,6 @@ class ShootingMPC:
         i = int(np.argmin(task.start_scores(xs)))
         return cands[i].copy(), xs[i].copy()
 
-    def _score_starts(self, x0: np.ndarray, cands: np.ndarray, task: ShootingTask) -> np.ndarray:
-        """:meth:`ShootingTask.start_scores` of control sequences ``cands`` ``(K, T, m)`` from ``x0`` ``(n,)``
-        -> ``(K,)``."""
-        return task.start_scores(self._rollout_batch(x0, cands))
-
     def _rollout_batch(self, x0: np.ndarray, cands: np.ndarray) -> np.ndarray:
         """Predicted states ``(K, T+1, n)`` of control sequences ``cands`` ``(K, T, m)`` from ``x0`` ``(n,)``:
         ONE batched rollout (T calls of ``dyn.step`` on ``(K, n), (K, m)``)."""

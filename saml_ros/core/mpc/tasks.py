@@ -72,9 +72,9 @@ class ShootingTask:
         return replace(self, target=target)
 
     def stage_costs(self, xs: np.ndarray) -> np.ndarray:
-        """``||x[res_idx] - target||_2`` for each row of ``xs`` ``(N, n)`` -> ``(N,)``."""
-        r = xs[:, self.res_idx] - self.target
-        return np.sqrt(np.einsum("ij,ij->i", r, r))
+        """``||x[res_idx] - target||_2`` for each state of ``xs`` ``(..., n)`` -> ``(...)``."""
+        r = xs[..., self.res_idx] - self.target
+        return np.sqrt(np.einsum("...j,...j->...", r, r))
 
     def cost(self, xs: np.ndarray) -> float:
         """The exact objective of a predicted trajectory ``xs`` ``(T+1, n)`` (x_0 excluded)."""
@@ -82,23 +82,17 @@ class ShootingTask:
 
     def start_scores(self, xs: np.ndarray, penalty: float = 100.0) -> np.ndarray:
         """Score of candidate trajectories ``xs`` ``(K, T+1, n)`` -> ``(K,)``: the exact cost plus ``penalty``
-        times the summed violation of the paper's constraints (as :meth:`cost` and :meth:`violations`)."""
-        r = xs[:, 1:, self.res_idx] - self.target
-        score = np.sqrt(np.einsum("ktj,ktj->kt", r, r)).sum(1)
-        if self.cons_t.size:
-            lin = self.cons_sign * xs[:, self.cons_t, self.cons_idx] - self.cons_bound
-            score += penalty * np.maximum(lin, 0.0).sum(1)
-        if self.att_tol is not None:
-            score += penalty * np.maximum(np.abs(xs[:, self.horizon, self.att_qw] - 1.0) - self.att_tol, 0.0)
-        return score
+        times the summed violation of the paper's constraints (:meth:`cost` and :meth:`violations`, batched)."""
+        return self.stage_costs(xs[:, 1:]).sum(-1) + penalty * np.maximum(self.violations(xs), 0.0).sum(-1)
 
     def violations(self, xs: np.ndarray) -> np.ndarray:
         """The paper's constraints ``g(x) <= 0`` of a trajectory (> 0 = violated): ``sign * x_t[idx] - bound``
-        per linear row, then ``|qw_T - 1| - tol``; ``(T+1, n) -> (n_cons,)``."""
-        lin = self.cons_sign * xs[self.cons_t, self.cons_idx] - self.cons_bound
+        per linear row, then ``|qw_T - 1| - tol``; ``(..., T+1, n) -> (..., n_cons)``."""
+        lin = self.cons_sign * xs[..., self.cons_t, self.cons_idx] - self.cons_bound
         if self.att_tol is None:
             return lin
-        return np.append(lin, abs(xs[self.horizon, self.att_qw] - 1.0) - self.att_tol)
+        att = np.abs(xs[..., self.horizon, self.att_qw] - 1.0) - self.att_tol
+        return np.concatenate((lin, att[..., None]), axis=-1)
 
     def solver_violations(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The constraints in the form the SQP linearises: the linear rows as in :meth:`violations`, the
