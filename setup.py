@@ -32,7 +32,7 @@ setup(
     packages=find_packages(
         include=["saml_ros", "saml_ros.*", "sim_nodes", "sim_nodes.*", "msg_schemas", "msg_schemas.*"]
     ),
-    package_data={"sim_nodes": ["assets/*.xml"]},
+    package_data={"saml_ros.core.worlds": ["assets/*.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

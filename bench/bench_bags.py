@@ -48,7 +48,7 @@ def _load_publisher_module() -> Any:
 
 def record_once(rate_msgs: float, seconds: float, workdir: Path, env: dict[str, str], pubmod: Any) -> dict[str, Any]:
     """One recorder + publisher run at ``rate_msgs`` messages per second (0 = as fast as possible)."""
-    from saml_ros.bags import Bag
+    from saml_ros.bags.io import Bag
 
     steps_per_s = rate_msgs / MSGS_PER_STEP
     steps = int(max(steps_per_s, 2000 / MSGS_PER_STEP) * seconds) if rate_msgs > 0 else 20_000
@@ -61,7 +61,7 @@ def record_once(rate_msgs: float, seconds: float, workdir: Path, env: dict[str, 
     events[-1].pop("u")
     pubmod.save_events(events_path, events)
     bag = workdir / f"bag-{int(rate_msgs)}"
-    rec = subprocess.Popen([sys.executable, "-m", "saml_ros.entry", "record", "--system", "friction", "--namespace",
+    rec = subprocess.Popen([sys.executable, "-m", "saml_ros.executables", "record", "--system", "friction", "--namespace",
                             ns, "-o", str(bag)], cwd=REPO, env=env, stdout=subprocess.PIPE,
                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
@@ -87,8 +87,8 @@ def extraction_speed(n: int, workdir: Path) -> dict[str, float]:
     import numpy as np
 
     from msg_schemas import DATA_QOS, TypestoreFactory, get_schema
-    from saml_ros.bag_data import extract_transitions
-    from saml_ros.bags import BagWriter, jazzy_typestore
+    from saml_ros.bags.io import BagWriter, jazzy_typestore
+    from saml_ros.bags.transitions import extract_transitions
 
     schema = get_schema("friction")
     factory = TypestoreFactory(jazzy_typestore())

@@ -7,7 +7,7 @@
 2. two subscribers receive every burst at the same time (so both see the same stream and the same machine
    load, which on a shared machine changes from minute to minute): a bare rclpy subscriber process
    (SingleThreadedExecutor, a callback that only counts) and the real learner node
-   (``python -m saml_ros.entry learner``), which trains as fast as it can (``updates_per_second: 0``) and
+   (``python -m saml_ros.executables learner``), which trains as fast as it can (``updates_per_second: 0``) and
    publishes telemetry meanwhile;
 3. a burst is *lossless* for a subscriber when every message arrived (bare: its counts; learner: the messages
    its node took from DDS, from /diagnostics) and, for the learner, every transition of the burst was then
@@ -351,7 +351,7 @@ def ingest(args: argparse.Namespace) -> None:
         listener = LearnerCounts()
         run_dir = Path(tempfile.mkdtemp(prefix="bench_learner_"))
         with open(run_dir / "learner.log", "wb") as log:
-            learner = Child([sys.executable, "-m", "saml_ros.entry", "learner", "--ros-args", "-r", f"__ns:={NS}",
+            learner = Child([sys.executable, "-m", "saml_ros.executables", "learner", "--ros-args", "-r", f"__ns:={NS}",
                              "-p", "min_transitions:=200", "-p", "updates_per_second:=0.0",
                              "-p", f"run_dir:={run_dir / 'run'}", "-p", "checkpoint_period:=5.0",
                              "-p", "telemetry_rate:=5.0", "-p", "diagnostics_rate:=10.0"], env, log)

@@ -3,7 +3,7 @@
 Prints three numbers measured in one run, each as steps per second and as a multiple of real time
 (steps/s * dt):
 
-1. ``core``: the ROS-free :class:`~sim_nodes.sim_core.SteppedSim` answered in a Python loop (the simulator's
+1. ``core``: the ROS-free :class:`~saml_ros.core.worlds.sim_core.SteppedSim` answered in a Python loop (the simulator's
    own cost: validation, ``true_step``, ground contact, stamping);
 2. ``core + messages``: the same plus every message conversion a lockstep step makes (``msg_schemas``:
    decode ``cmd``, encode ``applied_cmd``, ``/clock`` and ``state``), still without DDS;
@@ -33,7 +33,7 @@ def bench_core(system_name: str, steps: int, with_messages: bool) -> float:
     from msg_schemas import get_schema
     from msg_schemas.telemetry import clock_to_msg
     from saml_ros.core.systems import get_system
-    from sim_nodes.sim_core import APPLIED, CLOCK, STATE, SimConfig, build_stepped_sim
+    from saml_ros.core.worlds.sim_core import APPLIED, CLOCK, STATE, SimConfig, build_stepped_sim
 
     system = get_system(system_name)
     schema = get_schema(system_name)
@@ -69,14 +69,14 @@ def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
     from msg_schemas import DATA_QOS, RCLPY, get_schema
     from msg_schemas.telemetry import DIAGNOSTICS_TOPIC, TELEMETRY_QOS, diagnostics_from_msg
     from saml_ros.core.systems import get_system
-    from sim_nodes.sim_core import SimConfig, build_stepped_sim
+    from saml_ros.core.worlds.sim_core import SimConfig, build_stepped_sim
 
     system = get_system(system_name)
     schema = get_schema(system_name)
     answer = build_stepped_sim(system, SimConfig()).holder.safe_default.copy()
     start = "[0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]" if system_name == "quadrotor" \
         else "[1.0, 0.0]"
-    cmd = [sys.executable, "-m", "saml_ros.entry", f"{system_name}_sim", "--ros-args",
+    cmd = [sys.executable, "-m", "saml_ros.executables", f"{system_name}_sim", "--ros-args",
            "-p", "mode:=lockstep", "-p", f"initial_state:={start}", "-p", "start_delay:=0.2",
            "-p", "lockstep_timeout:=2.0", "-p", "diagnostics_period:=0.5",
            "-p", f"publish_clock:={str(publish_clock).lower()}"]

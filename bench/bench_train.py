@@ -275,7 +275,7 @@ def _train_group(system: System, spec: ProblemSpec, x: np.ndarray, u: np.ndarray
                  cfg: TrainConfig, seeds: Sequence[int], hidden: tuple[int, ...]) -> tuple[float, PrimalDualTrainer,
                                                                                           Transitions]:
     """Seconds of ``fit`` for an ensemble with one member per seed and per-member datasets ``(E, N, .)``."""
-    from saml_ros.offline import train_models
+    from saml_ros.offline.pipelines import train_models
 
     tm = train_models(system, spec, x, u, y, cfg, list(seeds), hidden)
     data = Transitions(tm.model, spec, x, u, y)

@@ -44,7 +44,7 @@ import numpy as np
 import yaml
 
 from saml_ros.core.systems import get_system
-from saml_ros.mpc_node import GOAL_PARAMS
+from saml_ros.nodes.mpc import GOAL_PARAMS
 
 SYSTEMS = ("friction", "quadrotor", "paddle_ball")
 #: ROS node name of each child (bringup waits for them to appear before it stops them)
@@ -250,8 +250,8 @@ def child_env(domain_id: int | None) -> dict[str, str]:
 
 
 def node_argv(executable: str, namespace: str, params_file: Path | None, extra: Sequence[str] = ()) -> list[str]:
-    """``python -m saml_ros.entry <executable> [extra] --ros-args -r __ns:=<ns> [--params-file F]``."""
-    argv = [sys.executable, "-m", "saml_ros.entry", executable, *extra, "--ros-args", "-r", f"__ns:={namespace}"]
+    """``python -m saml_ros.executables <executable> [extra] --ros-args -r __ns:=<ns> [--params-file F]``."""
+    argv = [sys.executable, "-m", "saml_ros.executables", executable, *extra, "--ros-args", "-r", f"__ns:={namespace}"]
     if params_file is not None:
         argv += ["--params-file", str(params_file)]
     return argv
@@ -616,13 +616,13 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
         started.append(procs.start("mpc", node_argv("mpc", namespace, files["mpc"]), env, logs / "mpc.log"))
         record = opts.record or config.get("record")
         if record:
-            if importlib.util.find_spec("saml_ros.record") is None:
-                say("[bringup] --record: saml_ros.record is not available; not recording")
+            if importlib.util.find_spec("saml_ros.bags.record") is None:
+                say("[bringup] --record: saml_ros.bags.record is not available; not recording")
             else:
                 rec_args = ["--system", system, "-o", str(Path(record).resolve())]
                 if config["sim"].get("mode", "lockstep") == "lockstep":
                     rec_args.append("--use-sim-time")
-                started.append(procs.start("record", [sys.executable, "-m", "saml_ros.entry", "record", *rec_args],
+                started.append(procs.start("record", [sys.executable, "-m", "saml_ros.executables", "record", *rec_args],
                                            env, logs / "record.log"))
         say(f"[bringup] {system}: run dir {run_dir}; started " + ", ".join(f"{c.name} (pid {c.pid})" for c in started)
             + f"; ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0 (default)')}")

@@ -32,8 +32,8 @@ import numpy as np
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.trainer import TrainConfig
-from saml_ros.offline import compare
-from saml_ros.plots import plot_comparison, plot_error_map, plot_training_curves
+from saml_ros.offline.pipelines import compare
+from saml_ros.offline.plots import plot_comparison, plot_error_map, plot_training_curves
 
 #: simulated seconds of the live loop (60 landing episodes of 5 s)
 DEMO_SIM_TIME = 300.0

@@ -8,9 +8,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from saml_ros.core.params import Param
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from sim_nodes.sim_core import Param, SimBinding, SimConfig, SimCore, SteppedSim, friction_model
+from saml_ros.core.worlds.sim_core import SimConfig, SimCore, SteppedSim, friction_model
+from sim_nodes.binding import SimBinding
+from sim_nodes.sim_node import run
 
 
 def build(system: System, config: SimConfig, params: dict[str, Any]) -> SimCore:
@@ -34,7 +37,8 @@ BINDING = SimBinding(
 
 
 #: run the node (``friction_sim --ros-args ...``)
-main = BINDING.main
+def main() -> int:
+    return run(BINDING)
 
 
 if __name__ == "__main__":

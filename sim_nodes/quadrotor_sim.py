@@ -3,7 +3,7 @@
 State: 13-d rigid body (``state`` is a ``nav_msgs/Odometry``, so 3D viewers show the vehicle); command: four
 motor forces (N). Start states like the paper's landing task: x, y ~ U[-2, 2] m, z ~ U[1, 3] m, level, at
 rest. Safe default: hover thrust. Ground: the centre of mass stays at or above ``landing_height``
-(:func:`sim_nodes.sim_core.ground_contact`); a step changed by the ground publishes no ``applied_cmd``.
+(:func:`saml_ros.core.worlds.sim_core.ground_contact`); a step changed by the ground publishes no ``applied_cmd``.
 See docs/simulators.md.
 """
 
@@ -11,9 +11,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from saml_ros.core.params import Param
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.quadrotor import Quadrotor
-from sim_nodes.sim_core import Param, SimBinding, SimConfig, SimCore, SteppedSim, quadrotor_model
+from saml_ros.core.worlds.sim_core import SimConfig, SimCore, SteppedSim, quadrotor_model
+from sim_nodes.binding import SimBinding
+from sim_nodes.sim_node import run
 
 
 def build(system: System, config: SimConfig, params: dict[str, Any]) -> SimCore:
@@ -46,7 +49,8 @@ BINDING = SimBinding(
 
 
 #: run the node (``quadrotor_sim --ros-args ...``)
-main = BINDING.main
+def main() -> int:
+    return run(BINDING)
 
 
 if __name__ == "__main__":

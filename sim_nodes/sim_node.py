@@ -1,6 +1,6 @@
-"""The generic simulator node: a thin rclpy wrapper around a :class:`~sim_nodes.sim_core.SimCore`.
+"""The generic simulator node: a thin rclpy wrapper around a :class:`~saml_ros.core.worlds.sim_core.SimCore`.
 
-One class runs all three simulators; a :class:`~sim_nodes.sim_core.SimBinding` (in ``friction_sim.py``,
+One class runs all three simulators; a :class:`~saml_ros.core.worlds.sim_core.SimBinding` (in ``friction_sim.py``,
 ``quadrotor_sim.py``, ``paddle_ball_sim.py``) names the system, its extra parameters and how to build its core.
 
 * Topics (``msg_schemas``, relative to the namespace, default ``/<system>``): publishes ``state``,
@@ -43,8 +43,9 @@ from msg_schemas.telemetry import (
     clock_to_msg,
     diagnostics_to_msg,
 )
+from saml_ros.core.params import Param, coerce_param
 from saml_ros.core.systems import default_params, get_system
-from sim_nodes.sim_core import (
+from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
     FLIGHT,
@@ -52,11 +53,8 @@ from sim_nodes.sim_core import (
     STATE,
     TARGET,
     Output,
-    Param,
-    SimBinding,
-    coerce_param,
-    config_from_params,
 )
+from sim_nodes.binding import SimBinding, config_from_params
 
 #: exit code for invalid parameters (as argparse's usage errors)
 USAGE_ERROR = 2

@@ -20,7 +20,7 @@ Usage in a test module (``test/`` is on ``sys.path`` under pytest)::
   that appeared during the test and that no live process maps or holds open (:func:`clean_shm`; segments
   of other users' running participants are therefore never touched).
 * :func:`launch`: a saml_ros executable in its own process group, started with this venv's Python
-  (``python -m saml_ros.entry NAME --ros-args ...``), output in a log file (:meth:`Process.output`).
+  (``python -m saml_ros.executables NAME --ros-args ...``), output in a log file (:meth:`Process.output`).
 * :class:`TestNode` (fixture :func:`ros_node`): a stock rclpy node spun in a background thread, with helpers to
   collect messages, publish and call services.
 """
@@ -126,7 +126,7 @@ def launch(executable: str, *ros_args: str, env: dict[str, str] | None = None, n
     ``-r __ns:=<namespace>`` and ``params_file`` ``--params-file``. ``args`` come before ``--ros-args``.
     The environment is ``os.environ`` (so the test's ROS domain) updated with ``env``.
     """
-    cmd = [sys.executable, "-m", "saml_ros.entry", executable, *args]
+    cmd = [sys.executable, "-m", "saml_ros.executables", executable, *args]
     ros = list(ros_args)
     if namespace is not None:
         ros += ["-r", f"__ns:={namespace}"]

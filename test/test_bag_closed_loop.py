@@ -16,8 +16,8 @@ from bag_test_helpers import publish, ros_env_fixture, start_recorder, unique_ns
 from ros_helpers import RosDomain, wait_for
 
 from msg_schemas.telemetry import diagnostics_from_msg
-from saml_ros.bag_data import extract_transitions
-from saml_ros.bags import Bag
+from saml_ros.bags.io import Bag
+from saml_ros.bags.transitions import extract_transitions
 
 #: learner parameters for these runs: pairing only (training would only compete for the 2 CPU cores)
 LEARNER = ("-p", "system:=friction", "-p", "min_transitions:=100000", "-p", "buffer.capacity:=100000",

@@ -14,8 +14,8 @@ from bag_test_helpers import expected, publish, ros_env_fixture, start_publisher
 from ros_helpers import RosDomain, wait_for
 
 from msg_schemas import get_schema
-from saml_ros.bag_data import extract_transitions
-from saml_ros.bags import Bag, repair_bag
+from saml_ros.bags.io import Bag, repair_bag
+from saml_ros.bags.transitions import extract_transitions
 
 
 # ------------------------------------------------------------------------------------------ record

@@ -13,7 +13,7 @@ from ros_helpers import RosDomain
 
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, TypestoreFactory, get_schema
 from msg_schemas.telemetry import CheckpointInfo, checkpoint_to_msg, clock_from_msg, model_error_to_msg
-from saml_ros.bags import Bag, BagWriter, jazzy_typestore
+from saml_ros.bags.io import Bag, BagWriter, jazzy_typestore
 
 FACTORY = TypestoreFactory(jazzy_typestore())
 

@@ -1,6 +1,6 @@
-"""Bag I/O, offline pairing and bag errors (saml_ros.bags, saml_ros.bag_data, bag_info, train --bag); no ROS graph.
+"""Bag I/O, offline pairing and bag errors (saml_ros.bags.io, saml_ros.bags.transitions, bag_info, train --bag); no ROS graph.
 
-Bags are written with :class:`saml_ros.bags.BagWriter` from roll-outs of the systems' true dynamics
+Bags are written with :class:`saml_ros.bags.io.BagWriter` from roll-outs of the systems' true dynamics
 (``bag_publisher.rollout``, the same events the publisher process sends), and checked with the independent
 ``mcap`` + ``mcap-ros2-support`` readers as well as with our reader.
 """
@@ -22,9 +22,9 @@ from bag_test_helpers import expected
 
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, TypestoreFactory, get_schema
 from msg_schemas.telemetry import CheckpointInfo, checkpoint_to_msg, model_error_to_msg
-from saml_ros import bag_info
-from saml_ros.bag_data import extract_transitions, infer_system, transitions_from_bags
-from saml_ros.bags import Bag, BagError, BagWriter, jazzy_typestore, repair_bag, saml_topics
+from saml_ros.bags import info as bag_info
+from saml_ros.bags.io import Bag, BagError, BagWriter, jazzy_typestore, repair_bag, saml_topics
+from saml_ros.bags.transitions import extract_transitions, infer_system, transitions_from_bags
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 
@@ -343,10 +343,10 @@ def test_train_from_bags_fails_cleanly_on_bad_bags_and_trains_on_a_good_one(
     for kind, (path, _) in bad_bags.items():
         out = tmp_path / kind
         runs[kind] = subprocess.Popen(
-            [sys.executable, "-m", "saml_ros.entry", "train", "--system", "friction", "--bag", str(path),
+            [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--bag", str(path),
              "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     good = subprocess.run(
-        [sys.executable, "-m", "saml_ros.entry", "train", "--system", "friction", "--bag", str(friction_bag[0]),
+        [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--bag", str(friction_bag[0]),
          "--out", str(tmp_path / "good"), "--epochs", "2", "--no-progress"],
         cwd=REPO, capture_output=True, text=True, timeout=120)
     for kind, proc in runs.items():

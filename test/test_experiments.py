@@ -180,9 +180,9 @@ def test_paddle_experiment_tiny(paddle_run: tuple[Path, dict[str, Any], Any]) ->
 
 def test_paddle_trial_measures_landing_against_target() -> None:
     from saml_ros.core.systems.paddle_ball import PaddleBall
+    from saml_ros.core.worlds.paddle_world import PaddleBallWorld
     from saml_ros.experiments.control import make_mpc
     from saml_ros.experiments.paddle_ball import PaddleSettings, make_trials, run_trial
-    from sim_nodes.paddle_ball_world import PaddleBallWorld
 
     s = PaddleSettings()
     world = PaddleBallWorld(seed=0)

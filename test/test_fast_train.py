@@ -20,7 +20,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
-from saml_ros.offline import evaluate_models
+from saml_ros.offline.pipelines import evaluate_models
 
 FRICTION = get_system("friction")
 NEAR = {"norm": {"fields": ["x.p", "x.v"], "ord": "inf", "max": 0.5}}

@@ -40,7 +40,7 @@ ros_env = ros_helpers.ros_env  # fixture: a claimed private ROS domain; processe
 
 
 class Learner:
-    """One learner process (``python -m saml_ros.entry learner --ros-args -r __ns:=... -p ...``)."""
+    """One learner process (``python -m saml_ros.executables learner --ros-args -r __ns:=... -p ...``)."""
 
     def __init__(self, dom: ros_helpers.RosDomain, params: dict[str, Any], ns: str = "/friction",
                  env: dict[str, str] | None = None) -> None:

@@ -28,7 +28,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
-from saml_ros.mpc_node import make_gate, make_goal, parse_solver_options
+from saml_ros.nodes.mpc import make_gate, make_goal, parse_solver_options
 
 REPO = Path(__file__).resolve().parents[1]
 rclpy = pytest.importorskip("rclpy")
@@ -168,11 +168,11 @@ T0_NS = 1_000_000_000
 
 
 class MPCProcess:
-    """``python -m saml_ros.entry mpc --ros-args ...`` in its own process group, log in a file."""
+    """``python -m saml_ros.executables mpc --ros-args ...`` in its own process group, log in a file."""
 
     def __init__(self, tmp: Path, domain: int, params: dict[str, Any], ns: str = "/quadrotor") -> None:
         self.log_path = tmp / f"mpc-{time.monotonic_ns()}.log"
-        args = [sys.executable, "-m", "saml_ros.entry", "mpc", "--ros-args", "-r", f"__ns:={ns}"]
+        args = [sys.executable, "-m", "saml_ros.executables", "mpc", "--ros-args", "-r", f"__ns:={ns}"]
         for k, v in params.items():
             args += ["-p", f"{k}:={v}"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",

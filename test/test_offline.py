@@ -13,7 +13,7 @@ from saml_ros.core.model_io import load_model
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.trainer import TrainConfig
-from saml_ros.offline import compare
+from saml_ros.offline.pipelines import compare
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,7 +37,7 @@ def test_sufficient_beats_uniform_inside_region_and_loses_outside():
 def test_train_cli_writes_a_usable_checkpoint_and_report(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "saml_ros.entry", "train", "--system", "friction", "--samples", "2000",
+        [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--samples", "2000",
          "--epochs", "3", "--seeds", "2", "--test-samples", "1000", "--out", str(out), "--no-progress"],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
     )
@@ -58,7 +58,7 @@ def test_train_cli_rejects_a_bad_spec_without_writing(tmp_path):
     spec.write_text("objective: {loss: l2}\nconstraints:\n  - {eps: 0.1, region: {box: {x.q: [0, 1]}}}\n")
     out = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "saml_ros.entry", "train", "--system", "friction", "--spec", str(spec),
+        [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--spec", str(spec),
          "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 2

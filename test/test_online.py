@@ -382,7 +382,7 @@ def test_the_node_prelaunches_the_training_interpreter_without_importing_torch()
     import subprocess
     import sys
 
-    code = ("import sys; from saml_ros.learner_node import prelaunch_trainer; proc, conn = prelaunch_trainer(); "
+    code = ("import sys; from saml_ros.nodes.learner import prelaunch_trainer; proc, conn = prelaunch_trainer(); "
             "print('torch' in sys.modules); conn.close(); proc.wait(30)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "False", out.stderr

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 import saml_ros
-from saml_ros import entry
+from saml_ros import executables
 from saml_ros.executables import EXECUTABLES
 
 REPO = Path(__file__).resolve().parents[1]
@@ -78,12 +78,12 @@ def test_packaging_doc_lists_every_executable() -> None:
 
 
 def test_entry_rejects_unknown_names_with_the_list(capsys: pytest.CaptureFixture[str]) -> None:
-    assert entry.main(["no_such_exe"]) == 2
+    assert executables.main(["no_such_exe"]) == 2
     err = capsys.readouterr().err
     assert "no_such_exe" in err and all(name in err for name in EXECUTABLES)
-    assert entry.main([]) == 2
+    assert executables.main([]) == 2
     capsys.readouterr()
-    assert entry.main(["--help"]) == 0
+    assert executables.main(["--help"]) == 0
     out = capsys.readouterr().out
     assert all(name in out for name in EXECUTABLES)
 
@@ -97,18 +97,18 @@ def _probe() -> int:
 
 
 def test_entry_dispatches_lazily_with_argv(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    monkeypatch.setitem(entry.EXECUTABLES, "probe", f"{__name__}:_probe")
-    monkeypatch.setitem(entry.EXECUTABLES, "ghost", "saml_ros.no_such_module:main")
+    monkeypatch.setitem(executables.EXECUTABLES, "probe", f"{__name__}:_probe")
+    monkeypatch.setitem(executables.EXECUTABLES, "ghost", "saml_ros.no_such_module:main")
     monkeypatch.setattr(sys, "argv", ["entry"])
-    assert entry.main(["probe", "--flag", "x"]) == 7
+    assert executables.main(["probe", "--flag", "x"]) == 7
     assert _seen_argv[-1] == ["probe", "--flag", "x"]
-    assert entry.main(["ghost"]) == 2
+    assert executables.main(["ghost"]) == 2
     assert "not available" in capsys.readouterr().err
 
 
 def test_entry_module_exit_code_for_unknown_name() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "saml_ros.entry", "definitely_not_an_exe"],
+        [sys.executable, "-m", "saml_ros.executables", "definitely_not_an_exe"],
         capture_output=True, text=True, timeout=60, cwd=REPO,
     )  # fmt: skip
     assert proc.returncode == 2

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from saml_ros.core.systems.paddle_ball import PaddleBall
-from sim_nodes.paddle_ball_world import (
+from saml_ros.core.worlds.paddle_world import (
     CollectStats,
     Impact,
     PaddleBallWorld,

@@ -1,4 +1,4 @@
-"""ROS-free tests of the simulator cores (sim_nodes.sim_core, the paddle-ball core): stamping, pairing rule,
+"""ROS-free tests of the simulator cores (saml_ros.core.worlds.sim_core, the paddle-ball core): stamping, pairing rule,
 command validation / holding / timeouts, lockstep waiting and misses, episodes, resets, ground contact."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from saml_ros.core.params import coerce_param
 from saml_ros.core.systems import FrictionDoubleIntegrator, Quadrotor, get_system
-from sim_nodes.sim_core import (
+from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
     LOCKSTEP_T0_NS,
@@ -22,7 +23,6 @@ from sim_nodes.sim_core import (
     SimConfig,
     SteppedSim,
     build_stepped_sim,
-    coerce_param,
     friction_model,
     friction_start,
     ground_contact,
@@ -295,14 +295,14 @@ def test_coerce_param_accepts_yaml_spellings_and_names_bad_ones() -> None:
 # ---------------------------------------------------------------------------------------- paddle ball
 @pytest.fixture(scope="module")
 def ball_world():  # type: ignore[no-untyped-def]
-    from sim_nodes.paddle_ball_world import PaddleBallWorld
+    from saml_ros.core.worlds.paddle_world import PaddleBallWorld
 
     return PaddleBallWorld(seed=0)
 
 
 def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world) -> None:  # type: ignore[no-untyped-def]
-    from sim_nodes.paddle_ball_sim import PaddleBallSim
-    from sim_nodes.sim_core import FLIGHT, TARGET
+    from saml_ros.core.worlds.paddle_sim import PaddleBallSim
+    from saml_ros.core.worlds.sim_core import FLIGHT, TARGET
 
     sim = PaddleBallSim(ball_world, SimConfig(mode="lockstep", initial_state=(0, 0, 1.0, 0, 0, 0)),
                         flight_rate_hz=30.0)
@@ -331,8 +331,8 @@ def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world) ->
 
 
 def test_paddle_ball_realtime_bounces_on_the_safe_default_and_restarts_lost_balls(ball_world) -> None:  # type: ignore[no-untyped-def]
-    from sim_nodes.paddle_ball_sim import SAFE_DEFAULT, PaddleBallSim
-    from sim_nodes.sim_core import TARGET
+    from saml_ros.core.worlds.paddle_sim import SAFE_DEFAULT, PaddleBallSim
+    from saml_ros.core.worlds.sim_core import TARGET
 
     sim = PaddleBallSim(ball_world, SimConfig(mode="realtime", seed=2, cmd_timeout=0.1), publish_clock=False,
                         flight_rate_hz=0.0, tick_seconds=0.02)

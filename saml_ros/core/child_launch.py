@@ -1,5 +1,5 @@
 """Starting the learner's training interpreter, standard library only (no torch), so that the learner node can
-start it first thing and let it import torch while the node itself starts (see ``saml_ros.learner_node``).
+start it first thing and let it import torch while the node itself starts (see ``saml_ros.nodes.learner``).
 
 The child runs :func:`saml_ros.core.online.child_entry` on its end of a socket pair; :class:`~saml_ros.core.online.
 TrainingProcess` then sends it its setup.

@@ -42,7 +42,7 @@ from saml_ros.experiments.common import (
     single_threaded,
     write_results,
 )
-from saml_ros.offline import generate_datasets, train_models
+from saml_ros.offline.pipelines import generate_datasets, train_models
 
 NETS: tuple[tuple[int, ...], ...] = ((2, 1), (4, 2), (8, 4), (16, 8))
 SIZES: tuple[int, ...] = (100, 1000, 5000, 10000, 15000)

@@ -4,7 +4,7 @@ performance on the true system.
 Training: the paper's settings (4-2 PReLU residual net, 15,000 samples p ~ U[-2, 2], v ~ U[-2.5, 2.5],
 u ~ U[-10, 10], Adam 1e-3 / 1e-4, batch 128, 200 epochs; the paper spec: conditional l2 <= 0.035 where
 ||[p, v]||_inf <= 0.5), one dataset and initialisation per seed, all seeds trained as one ensemble
-(:func:`saml_ros.offline.compare`).
+(:func:`saml_ros.offline.pipelines.compare`).
 
 Controller table: the MPC of paper eq. (double_integrator_mpc), T = 10, |u| <= 10, run on the TRUE system from
 ``n_starts`` random starts x_start = (p0 ~ U[-2, 2], v0 = 0) for ``steps`` closed-loop steps. The reported cost
@@ -44,8 +44,8 @@ from saml_ros.experiments.common import (
     write_results,
 )
 from saml_ros.experiments.control import PlanChecks, closed_loop, make_mpc
-from saml_ros.offline import Comparison, compare
-from saml_ros.plots import plot_error_map, plot_training_curves
+from saml_ros.offline.pipelines import Comparison, compare
+from saml_ros.offline.plots import plot_error_map, plot_training_curves
 
 #: the paper's controller-performance table (200 trials, mean ± std)
 PAPER_COST = {"uniform": ("5.51 ± 3.46", "5.66 ± 0.89"), "sufficient": ("4.73 ± 3.38", "4.57 ± 0.73")}

@@ -1,7 +1,7 @@
 """Ball bouncing (paper, "Ball Bouncing"): full and residual impact models, Uniformly vs Sufficiently Accurate,
 evaluated by an MPC that bounces a ball in the MuJoCo world towards a target.
 
-Data: random bounces in the MuJoCo world (:func:`sim_nodes.paddle_ball_world.collect_impacts`; the paper's
+Data: random bounces in the MuJoCo world (:func:`saml_ros.core.worlds.paddle_world.collect_impacts`; the paper's
 "42 minutes" of bounces are about 2500 impacts) and a separate validation set from another world and seed.
 
 Models: 128-128 PReLU, input ``[x^-, u]``, output the post-impact ball velocity; ``full`` (no base model) and
@@ -34,6 +34,7 @@ from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point, roll_pitch_from_normal
 from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.worlds.paddle_world import CollectStats, PaddleBallWorld, collect_impacts, impacts_to_arrays
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
@@ -51,8 +52,7 @@ from saml_ros.experiments.common import (
     write_results,
 )
 from saml_ros.experiments.control import bound_violation, make_mpc
-from saml_ros.offline import TrainedModels, train_models
-from sim_nodes.paddle_ball_world import CollectStats, PaddleBallWorld, collect_impacts, impacts_to_arrays
+from saml_ros.offline.pipelines import TrainedModels, train_models
 
 PAPER = {("full", "uniform"): ("20.8%", "0.3136"), ("full", "sufficient"): ("0.8%", "0.2124"),
          ("residual", "uniform"): ("0%", "0.164"), ("residual", "sufficient"): ("0%", "0.156")}

@@ -7,8 +7,8 @@ constraint. Several seeds train as one ensemble (one dataset and initialisation 
 
 Control: the paper's landing MPC (T = 10, 0 <= u <= 10 N, pz >= 0.2 m on every predicted state, |qw_T - 1| <=
 0.05, cost sum_t ||p_t - 0||_2) from random starts (x, y ~ U[-2, 2] m, z ~ U[1, 3] m, level, at rest:
-``sim_nodes.sim_core.quadrotor_start``), run for ``steps`` steps on the TRUE system with the simulator's ground
-contact (``sim_nodes.sim_core.quadrotor_model``: the centre of mass cannot go below 0.1 m). The reported cost
+``saml_ros.core.worlds.sim_core.quadrotor_start``), run for ``steps`` steps on the TRUE system with the simulator's ground
+contact (``saml_ros.core.worlds.sim_core.quadrotor_model``: the centre of mass cannot go below 0.1 m). The reported cost
 is sum_{t=1..steps} ||p_t||_2 over the closed-loop positions.
 """
 
@@ -43,8 +43,8 @@ from saml_ros.experiments.common import (
     write_results,
 )
 from saml_ros.experiments.control import PlanChecks, Rollout, closed_loop, make_mpc
-from saml_ros.offline import Comparison, compare
-from saml_ros.plots import plot_training_curves
+from saml_ros.offline.pipelines import Comparison, compare
+from saml_ros.offline.plots import plot_training_curves
 
 PAPER = {"mpc_cost": {"sufficient": "4.21 ± 1.88", "uniform": "4.55 ± 1.90"},
          "loss": {"sufficient": "6.52e-4", "uniform": "6.16e-4"},
@@ -83,7 +83,7 @@ class QuadrotorSettings:
 
 def landing_starts(system: Quadrotor, n: int, seed: int) -> np.ndarray:
     """``(n, 13)`` level, motionless starts at x, y ~ U[-2, 2] m, z ~ U[1, 3] m (the simulator's sampler)."""
-    from sim_nodes.sim_core import quadrotor_start
+    from saml_ros.core.worlds.sim_core import quadrotor_start
 
     rng = np.random.default_rng(seed)
     return np.stack([quadrotor_start(system, rng) for _ in range(n)])
@@ -91,7 +91,7 @@ def landing_starts(system: Quadrotor, n: int, seed: int) -> np.ndarray:
 
 def plant(system: Quadrotor, landing_height: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """The simulated true system: ``true_step`` then the simulator's ground contact; ``(13,), (4,) -> (13,)``."""
-    from sim_nodes.sim_core import FastStep, quadrotor_model
+    from saml_ros.core.worlds.sim_core import FastStep, quadrotor_model
 
     step = FastStep(system)
     model = quadrotor_model(system, landing_height)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 #: exit status for configuration errors (the node never starts)
 CONFIG_ERROR = 2
@@ -171,7 +171,7 @@ def _build_node_class() -> type:
                 threads=p.train_threads,
                 sources=tuple((ns, pairing) for ns in p.namespaces),
                 channels=tuple((p.namespaces.index(ns), kind) for ns, kind, _, _ in self.channels),
-                decoder="saml_ros.learner_node:make_decoder",
+                decoder="saml_ros.nodes.learner:make_decoder",
                 decoder_args=(p.system, [(kind, topic) for _, kind, topic, _ in self.channels]),
             )
             self.trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,

@@ -6,7 +6,7 @@
     bag_info runs/killed --repair              # recover a bag whose recorder was killed -> runs/killed_repaired
 
 The system is read from metadata.yaml (``custom_data`` written by ``record --system``) or inferred from
-the topics; transitions are extracted with :mod:`saml_ros.bag_data` (the learner's pairing), and the
+the topics; transitions are extracted with :mod:`saml_ros.bags.transitions` (the learner's pairing), and the
 fraction of them inside each constraint region of the system's paper spec is reported. Exit status 1 when
 the bag cannot be read (the message says why), 0 otherwise.
 """
@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from saml_ros.bags import Bag, BagError, join_topic, repair_bag
+from saml_ros.bags.io import Bag, BagError, join_topic, repair_bag
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -73,7 +73,7 @@ def _transitions_summary(bag: Bag, system: str | None, namespaces: Sequence[str]
     import torch
 
     from msg_schemas.telemetry import REJECT_REASONS
-    from saml_ros.bag_data import extract_transitions, infer_system
+    from saml_ros.bags.transitions import extract_transitions, infer_system
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems import get_system
 

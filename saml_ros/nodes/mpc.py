@@ -48,7 +48,7 @@ from saml_ros.core.model_watch import REFUSAL_REASONS, ModelWatcher, ReadyModel
 from saml_ros.core.mpc.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
-from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 MODES = ("lockstep", "realtime")
 #: exit code for invalid parameters (as argparse's usage errors)

@@ -14,7 +14,7 @@ from saml_ros.core.trainer import History
 if TYPE_CHECKING:
     from saml_ros.core.models import DynamicsModel
     from saml_ros.core.systems.base import System
-    from saml_ros.offline import Comparison
+    from saml_ros.offline.pipelines import Comparison
 
 
 def _plt():  # type: ignore[no-untyped-def]

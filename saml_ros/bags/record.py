@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from saml_ros.bags import (
+from saml_ros.bags.io import (
     CUSTOM_NAMESPACES,
     CUSTOM_SCHEMA_HASH,
     CUSTOM_SYSTEM,
@@ -42,7 +42,7 @@ from saml_ros.bags import (
     qos_from_rclpy,
     saml_topics,
 )
-from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped
 
 #: topics recorded next to the namespaces' topics by default
 GLOBAL_DEFAULT_TOPICS = ("/clock", "/diagnostics")

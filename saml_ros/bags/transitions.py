@@ -9,7 +9,7 @@ exactly as the learner counts them (``SchemaError.reason``). A transition never 
     x, u, y = transitions_from_bags([Path("runs/flight1")], get_system("quadrotor"))
 
 Every problem (missing path, unfinished or truncated recording, empty bag, missing topic, wrong message
-type, undecodable message, no transition at all) raises :class:`~saml_ros.bags.BagError` naming the bag.
+type, undecodable message, no transition at all) raises :class:`~saml_ros.bags.io.BagError` naming the bag.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from msg_schemas import SYSTEM_NAMES, SchemaError, SystemSchema, get_schema
-from saml_ros.bags import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError, join_topic, normalize_namespace
+from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError, join_topic, normalize_namespace
 from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
 from saml_ros.core.systems import get_system
 
@@ -245,7 +245,7 @@ def transitions_from_bags(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(x, u, y)`` float64 arrays ``(N, n_x), (N, n_u), (N, n_y)`` of every transition in ``paths``.
 
-    See :func:`extract_transitions`; raises :class:`~saml_ros.bags.BagError` (a ``ValueError``) on any problem.
+    See :func:`extract_transitions`; raises :class:`~saml_ros.bags.io.BagError` (a ``ValueError``) on any problem.
     """
     out = extract_transitions(paths, system, namespaces)
     return out.x, out.u, out.y

@@ -29,8 +29,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from saml_ros.bags import Bag, BagError, message_class, rclpy_qos_for_playback
-from saml_ros.node_main import catch_stop_signals, full_argv, init_rclpy, shutdown
+from saml_ros.bags.io import Bag, BagError, message_class, rclpy_qos_for_playback
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown
 
 CLOCK_TOPIC = "/clock"
 

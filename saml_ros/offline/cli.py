@@ -24,8 +24,8 @@ from saml_ros.core.model_io import save_checkpoint
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
 from saml_ros.core.trainer import TrainConfig
-from saml_ros.offline import evaluate_models, generate_datasets, mean_std, train_models
-from saml_ros.plots import plot_training_curves
+from saml_ros.offline.pipelines import evaluate_models, generate_datasets, mean_std, train_models
+from saml_ros.offline.plots import plot_training_curves
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -104,9 +104,9 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.bag:
         try:
-            from saml_ros.bag_data import transitions_from_bags
+            from saml_ros.bags.transitions import transitions_from_bags
         except ImportError:
-            print("train: training from bags needs saml_ros.bag_data (not available in this build)",
+            print("train: training from bags needs saml_ros.bags.transitions (not available in this build)",
                   file=sys.stderr)
             return 2
         try:

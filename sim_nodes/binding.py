@@ -1,0 +1,84 @@
+"""How a simulator node is described: its parameters and the ROS-free core it runs (:class:`SimBinding`).
+
+Each simulator module (``friction_sim``, ``quadrotor_sim``, ``paddle_ball_sim``) defines one ``BINDING``; the
+generic rclpy node in :mod:`sim_nodes.sim_node` runs it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from saml_ros.core.params import Param
+from saml_ros.core.systems.base import System
+from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS, SimConfig, SimCore
+
+#: parameters of every simulator node (a binding may override a default by listing the same name)
+COMMON_PARAMS: tuple[Param, ...] = (
+    Param("mode", "realtime", "realtime: step every 1 / rate_hz wall seconds with the newest command | "
+                              "lockstep: publish x_k, wait for the cmd stamped t_k, step (as fast as the slowest "
+                              "participant)"),
+    Param("rate_hz", 10.0, "realtime step rate (Hz, wall clock)"),
+    Param("cmd_timeout", 0.5, "a command is held this long (s; wall clock in realtime, simulated time in "
+                              "lockstep), then the safe default applies and is counted (0 = hold forever)"),
+    Param("lockstep_timeout", 1.0, "lockstep: wall seconds to wait for the cmd answering a state before "
+                                   "applying the held command / safe default (counted as a miss)"),
+    Param("max_sim_time", 0.0, "simulated seconds after which the node exits (0 = run forever)"),
+    Param("episode_steps", 0, "steps per episode, then a new start state (0 = one endless episode)"),
+    Param("initial_state", [], "start state of every episode (the system's state vector); empty = drawn by "
+                               "the start sampler"),
+    Param("seed", 0, "seed of the start sampler (negative: fresh entropy)"),
+    Param("publish_clock", True, "publish simulated time on /clock (lockstep runs: other nodes set "
+                                 "use_sim_time); turn off when several simulators share a ROS domain"),
+    Param("start_delay", 1.0, "wall seconds between start-up and the first state (lets discovery finish)"),
+    Param("wait_for_controller", True, "lockstep: also wait until the cmd topic has a publisher and state "
+                                       "has a subscriber before the first state"),
+    Param("min_state_subscribers", 1, "lockstep with wait_for_controller: matched state subscriptions to wait "
+                                      "for before the first state (e.g. MPC + learner + recorder = 3)"),
+    Param("min_applied_cmd_subscribers", 0, "lockstep with wait_for_controller: matched applied_cmd "
+                                            "subscriptions to wait for (learner, recorder) before the first state"),
+    Param("cmd_reject_margin", 0.5, "commands further outside the control bounds than this fraction of the "
+                                    "bounds' width are rejected; closer ones are clipped"),
+    Param("diagnostics_period", 1.0, "seconds between /diagnostics messages (wall clock)"),
+)
+
+
+@dataclass(frozen=True)
+class SimBinding:
+    """Everything the generic node needs to run one system's simulator.
+
+    Attributes:
+        system: registry name (also the default namespace ``/<system>``).
+        node_name: node (and executable) name, e.g. ``"quadrotor_sim"``.
+        params: system-specific parameters, and overridden defaults of :data:`COMMON_PARAMS`.
+        system_params: constructor parameters of the system exposed as ``system.<name>``, with descriptions.
+        build: ``(system, config, params) -> SimCore``; ``params`` maps every parameter name to its value.
+    """
+
+    system: str
+    node_name: str
+    params: tuple[Param, ...]
+    system_params: tuple[tuple[str, str], ...]
+    build: Callable[[System, SimConfig, dict[str, Any]], SimCore]
+
+    def all_params(self) -> list[Param]:
+        """Common parameters (with this binding's defaults) followed by the system-specific ones."""
+        own = {p.name: p for p in self.params}
+        out = [own.pop(p.name, p) for p in COMMON_PARAMS]
+        return out + list(own.values())
+
+
+def config_from_params(p: dict[str, Any], t0_ns: int = LOCKSTEP_T0_NS) -> SimConfig:
+    """The :class:`SimConfig` of the node parameters ``p`` (names of :data:`COMMON_PARAMS`)."""
+    return SimConfig(
+        mode=p["mode"],
+        cmd_timeout=p["cmd_timeout"],
+        lockstep_timeout=p["lockstep_timeout"],
+        max_sim_time=p["max_sim_time"],
+        episode_steps=p["episode_steps"],
+        initial_state=tuple(p["initial_state"]),
+        seed=p["seed"],
+        reject_margin=p["cmd_reject_margin"],
+        t0_ns=t0_ns,
+    )
