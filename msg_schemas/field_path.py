@@ -223,7 +223,7 @@ class ResolvedPath:
             if hop.index is None:
                 continue
             if isinstance(hop.index, str):
-                names = list(getattr(owner, "name"))
+                names = list(owner.name)
                 try:
                     i = names.index(hop.index)
                 except ValueError:
@@ -260,10 +260,10 @@ class ResolvedPath:
                 obj = getattr(owner, hop.name)
                 continue
             if isinstance(hop.index, str):
-                names = list(getattr(owner, "name"))
+                names = list(owner.name)
                 if hop.index not in names:
                     names.append(hop.index)
-                    setattr(owner, "name", names)
+                    owner.name = names
                 i = names.index(hop.index)
             else:
                 i = hop.index
@@ -412,7 +412,7 @@ def pad_named_arrays(msg: Any, paths: Sequence[ResolvedPath]) -> None:
         for hop in rp.hops:
             owner, obj = obj, getattr(obj, hop.name)
             if isinstance(hop.index, str):
-                n = len(list(getattr(owner, "name")))
+                n = len(list(owner.name))
                 if len(obj) < n:
                     setattr(owner, hop.name, _as_array_like(obj, [float(v) for v in obj] + [0.0] * (n - len(obj))))
                 break
