@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from rclpy.signals import SignalHandlerOptions
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 DOCK_BOX = ((0.8, 1.8), (-0.4, 0.4))
 ARENA = 2.0

@@ -331,7 +331,7 @@ def _import_target(target: str) -> Callable[..., Any]:
         obj = getattr(obj, part)
     if not callable(obj):
         raise BaseModelError(f"base model function {target!r}: {attr!r} is not callable")
-    return obj  # type: ignore[no-any-return]
+    return obj
 
 
 def _entry_point(name: str) -> tuple[str, Callable[..., Any]]:

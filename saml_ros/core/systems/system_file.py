@@ -35,8 +35,14 @@ import yaml
 from saml_ros.core.layout import Field, VectorLayout
 from saml_ros.core.resampling import MIXED_POLICIES, STATE_RULES, ResampleConfig
 from saml_ros.core.systems.base import System
-from saml_ros.core.systems.base_models import BaseModel, BaseModelError, BaseModelSpec, FieldInfo, Layouts, \
-    build_base_model
+from saml_ros.core.systems.base_models import (
+    BaseModel,
+    BaseModelError,
+    BaseModelSpec,
+    FieldInfo,
+    Layouts,
+    build_base_model,
+)
 
 #: format version of system files (``version:`` key, optional)
 FORMAT_VERSION = 1
