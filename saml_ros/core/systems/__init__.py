@@ -41,9 +41,17 @@ def default_params(name: str) -> dict[str, Any]:
 def get_system(name: str, **overrides: Any) -> System:
     """Build system ``name`` (one of :data:`SYSTEM_NAMES`) with parameters ``overrides``.
 
+    ``get_system(name, definition=...)`` rebuilds a robot described by a system file from its stored definition
+    (:meth:`~saml_ros.core.systems.system_file.FileSystem.params`).
+
     Raises ``ValueError`` for an unknown name, an unknown parameter (listing the valid ones) or an invalid
     parameter value.
     """
+    if set(overrides) == {"definition"} and name not in _REGISTRY:
+        # a robot described by a system file: checkpoints and training processes carry its whole definition
+        from saml_ros.core.systems.system_file import system_from_params
+
+        return system_from_params(overrides)
     cls = system_class(name)
     valid = default_params(name)
     unknown = sorted(set(overrides) - set(valid))
