@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from msg_schemas import SYSTEM_NAMES, SchemaError, SystemSchema, get_schema
-from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError, join_topic, normalize_namespace
 from msg_schemas.path_codec import FieldPathCodec
+from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError, join_topic, normalize_namespace
 from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
 from saml_ros.core.resampling import ResamplingPairer
 from saml_ros.core.systems import get_system
