@@ -171,7 +171,7 @@ def export_model(model: DynamicsModel, out_dir: str | Path, formats: Sequence[st
     if "numpy" in formats:
         path = out / "weights.npz"
         weights = numpy_weights(model, member)
-        np.savez(path, **weights)
+        np.savez(path, **weights)  # type: ignore[arg-type]
         with np.load(path, allow_pickle=False) as f:
             phi = numpy_residual({k: f[k] for k in f.files}, x.numpy(), u.numpy())
         result.files["numpy"] = path

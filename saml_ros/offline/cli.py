@@ -87,6 +87,7 @@ def load_spec(system: Any, path: Path | None, uniform: bool) -> ProblemSpec:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
+    system: Any
     if args.system_file is not None:
         from saml_ros.core.systems.system_file import SystemFileError, load_system_file
 
