@@ -3,7 +3,8 @@ through the dock approach, publishing unstamped ``cmd_vel`` (geometry_msgs/Twist
 
     python examples/diff_drive/wander.py --ros-args -r __ns:=/dd -p seed:=1
 
-It follows random waypoints (``dock_fraction`` of them in the dock approach, the rest anywhere in the arena)
+It follows random waypoints (the first and ``dock_fraction`` of the others in the dock approach, the rest anywhere
+in the arena)
 with a proportional heading controller, random speed and command noise, so the data covers the workspace and
 the commands. Nothing here uses saml_ros.
 """
@@ -38,7 +39,8 @@ class Wander(Node):
         self.pub = self.create_publisher(Twist, "cmd_vel", qos)
         self.create_subscription(Odometry, "odom", self.on_odom, qos)
         self.pose: tuple[float, float, float] | None = None
-        self.goal = self.new_goal()
+        (x0, x1), (y0, y1) = DOCK_BOX
+        self.goal = (float(self.rng.uniform(x0, x1)), float(self.rng.uniform(y0, y1)))  # it starts by docking
         self.speed = 0.3
         self.create_timer(1.0 / rate, self.tick)
 

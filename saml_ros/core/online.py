@@ -54,6 +54,7 @@ from saml_ros.core.child_launch import LaunchedChild, launch_child
 from saml_ros.core.model_io import MODEL_KIND, LoadedModel, model_from_payload, save_checkpoint
 from saml_ros.core.models import MODEL_KINDS, DynamicsModel
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
+from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
 from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
@@ -235,7 +236,7 @@ class OnlineLearner:
         self.model.to(cfg.train.torch_dtype)
         self.trainer: PrimalDualTrainer | None = None
         self._recent = _Recent(cfg.telemetry_window, n_x, n_u, n_y)
-        self._sources: list[StampPairer] = []
+        self._sources: list[StampPairer | ResamplingPairer] = []
         self._lock = threading.RLock()
         self._rng = np.random.default_rng(cfg.train.seed)
         self._acc_n = 0
@@ -255,16 +256,21 @@ class OnlineLearner:
         self.compute_model_metrics()
 
     # ------------------------------------------------------------------------------------------ sources
-    def add_source(self, name: str, pairing: PairingConfig) -> int:
-        """Register a source (robot / namespace) with its pairing rule; returns its index."""
-        p = StampPairer(pairing, source=len(self._sources), name=name)
+    def add_source(self, name: str, pairing: PairingConfig | ResampleConfig) -> int:
+        """Register a source (robot / namespace) with its pairing rule (exact stamps, or resampling onto a fixed
+        period for a robot's own unsynchronised topics); returns its index."""
+        p: StampPairer | ResamplingPairer
+        if isinstance(pairing, ResampleConfig):
+            p = ResamplingPairer(pairing, source=len(self._sources), name=name)
+        else:
+            p = StampPairer(pairing, source=len(self._sources), name=name)
         for reason in REJECT_REASONS:
             p.counts.setdefault(reason, 0)
         self._sources.append(p)
         return p.source
 
     @property
-    def sources(self) -> list[StampPairer]:
+    def sources(self) -> list[StampPairer | ResamplingPairer]:
         return list(self._sources)
 
     def ingest(self, source: int, kind: str, stamp_ns: int, vector: Any) -> AddResult:
@@ -604,7 +610,7 @@ class LearnerSetup:
     niceness: int = 10
     threads: int = 1
     flush_denormal: bool = True
-    sources: tuple[tuple[str, PairingConfig], ...] = ()
+    sources: tuple[tuple[str, PairingConfig | ResampleConfig], ...] = ()
     channels: tuple[tuple[int, str], ...] = ()
     decoder: str | None = None
     decoder_args: Any = None

@@ -62,6 +62,7 @@ class LearnerParams:
     """The node's parameters after validation (units in the names' descriptions, docs/learner.md)."""
 
     system: str
+    system_file: str
     namespaces: list[str]
     spec_file: str
     model_kind: str
@@ -104,7 +105,7 @@ def _build_node_class() -> type:
     from rclpy.qos import HistoryPolicy
 
     import msg_schemas.telemetry as tele
-    from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, get_schema
+    from msg_schemas import CHECKPOINT_QOS, TELEMETRY_QOS, get_schema
     from saml_ros.core.checkpoint import CheckpointStore
     from saml_ros.core.model_io import system_params
     from saml_ros.core.online import (
@@ -116,6 +117,7 @@ def _build_node_class() -> type:
         assemble_telemetry,
     )
     from saml_ros.core.pairing import PairingConfig
+    from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
     from saml_ros.core.spec import ProblemSpec, SpecError
     from saml_ros.core.systems import get_system
     from saml_ros.core.trainer import TrainConfig
@@ -129,11 +131,7 @@ def _build_node_class() -> type:
         def __init__(self, namespace: str | None, launched: Any = None) -> None:
             super().__init__(NODE_NAME, namespace=namespace)
             self.p = p = self._read_parameters()
-            try:
-                self.system = get_system(p.system, **({"dt": p.dt} if p.dt > 0 else {}))
-                self.schema = get_schema(p.system)
-            except (ValueError, TypeError) as exc:
-                raise ConfigError(f"parameter 'system' / 'dt': {exc}") from None
+            self.system, self.schema = self._load_system(p)
             self.spec = self._load_spec(p)
             try:
                 train = TrainConfig.from_dict(p.train)
@@ -143,7 +141,9 @@ def _build_node_class() -> type:
                     min_transitions=p.min_transitions, telemetry_window=p.telemetry_window,
                     checkpoint_keep=p.checkpoint_keep,
                 )
-                pairing = PairingConfig.for_system(
+                # a robot from a system file: its own unsynchronised topics, resampled onto the file's period
+                own_pairing = getattr(self.system, "pairing", None)
+                pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(
                     self.system, self.schema.target_pairing, tolerance=p.pairing_tolerance, window=p.pairing_window,
                     max_slots=max(10_000, 10 * p.pairing_window),
                 )
@@ -151,28 +151,32 @@ def _build_node_class() -> type:
                                   checkpoint_period=p.checkpoint_period)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
-            self.run_dir = run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
+            self.run_dir = run_dir = Path(p.run_dir or f"runs/{self.system.name}").expanduser().resolve()
             try:
                 CheckpointStore(run_dir, keep=p.checkpoint_keep)  # fail here, clearly, if it cannot be created
             except OSError as exc:
                 raise ConfigError(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
             sc = self.schema
-            kinds = [("state", sc.state_topic, sc.state.msg_type), ("applied_cmd", sc.applied_cmd_topic,
-                                                                    sc.control.msg_type)]
+            kinds = [("state", sc.state_topic, sc.state), ("applied_cmd", sc.applied_cmd_topic, sc.control)]
             if sc.target_pairing == "same":
-                kinds.append(("target", sc.target_topic, sc.target.msg_type))
+                kinds.append(("target", sc.target_topic, sc.target))
             #: one channel per (namespace, kind): (namespace, kind, topic, message type)
-            self.channels = [(ns, kind, topic_in(ns, name), msg_type)
-                             for ns in p.namespaces for kind, name, msg_type in kinds]
+            self.channels = [(ns, kind, topic_in(ns, name), codec.msg_type)
+                             for ns in p.namespaces for kind, name, codec in kinds]
+            #: channels whose messages have no header: stamped with their receipt time (a robot's cmd_vel)
+            self.unstamped = [getattr(codec, "stamped", True) is False for _ in p.namespaces for _, _, codec in kinds]
+            self.channel_qos = [sc.topic(name).qos for _ in p.namespaces for _, name, _ in kinds]
             self.received = [0] * len(self.channels)
             setup = LearnerSetup(
-                system=p.system, system_params=system_params(self.system), spec=self.spec.to_dict(), config=config,
+                system=self.system.name, system_params=system_params(self.system), spec=self.spec.to_dict(),
+                config=config,
                 run_dir=str(run_dir), resume=p.resume, loop=loop, niceness=p.training_niceness,
                 threads=p.train_threads,
                 sources=tuple((ns, pairing) for ns in p.namespaces),
                 channels=tuple((p.namespaces.index(ns), kind) for ns, kind, _, _ in self.channels),
                 decoder="saml_ros.nodes.learner:make_decoder",
-                decoder_args=(p.system, [(kind, topic) for _, kind, topic, _ in self.channels]),
+                decoder_args=(self.system.name, [(kind, topic) for _, kind, topic, _ in self.channels],
+                              system_params(self.system) if p.system_file else None),
             )
             self.trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
                                            on_error=self._child_error)
@@ -198,11 +202,14 @@ def _build_node_class() -> type:
             # message objects here is most of a bare subscriber's per-message cost
             # KEEP_ALL: a burst that outruns the callbacks (e.g. while the training process imports torch) waits in
             # the reader queue instead of overwriting older transitions; reliable writers are slowed, not dropped
-            data_qos = DATA_QOS.to_rclpy()
-            data_qos.history = HistoryPolicy.KEEP_ALL
+            def data_qos(spec: Any) -> Any:
+                qos = spec.to_rclpy()
+                qos.history = HistoryPolicy.KEEP_ALL
+                return qos
+
             self._subs = [
-                self.create_subscription(self._msg_type(msg_type), topic, self._make_callback(ch), data_qos,
-                                         callback_group=self.data_group, raw=True)
+                self.create_subscription(self._msg_type(msg_type), topic, self._make_callback(ch),
+                                         data_qos(self.channel_qos[ch]), callback_group=self.data_group, raw=True)
                 for ch, (_, _, topic, msg_type) in enumerate(self.channels)
             ]
             self.create_timer(1.0 / p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group)
@@ -211,7 +218,8 @@ def _build_node_class() -> type:
             if r is not None:
                 self._announce(r["path"], r["version"])
             self.get_logger().info(
-                f"learner for {p.system!r} on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
+                f"learner for {self.system.name!r}" + (f" (system file {p.system_file})" if p.system_file else "")
+                + f" on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
                 f"({self.spec.describe()}), model {config.kind} {ready.hidden}, run_dir {run_dir}, "
                 + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
                    else "fresh start")
@@ -238,7 +246,9 @@ def _build_node_class() -> type:
 
         def _read_parameters(self) -> LearnerParams:
             d = self._declare
-            system = d("system", "friction", "system name: friction | quadrotor | paddle_ball")
+            system = d("system", "friction", "system name: friction | quadrotor | paddle_ball (ignored with system_file)")
+            system_file = d("system_file", "", "a robot described by a system file (YAML, docs/your_robot.md): its own "
+                            "topics, field paths, units, base model and spec; empty = the built-in 'system'")
             namespaces = d("namespaces", [], "namespaces whose state/applied_cmd are paired (each separately, one "
                            "shared buffer); empty = this node's namespace", Parameter.Type.STRING_ARRAY)
             spec_file = d("spec_file", "", "problem spec YAML (docs/spec.md); empty = the paper's spec")
@@ -292,12 +302,29 @@ def _build_node_class() -> type:
             if len(set(nss)) != len(nss):
                 raise ConfigError(f"parameter 'namespaces' lists a namespace twice: {nss}")
             return LearnerParams(
-                system=system, namespaces=nss, spec_file=spec_file, model_kind=kind, model_hidden=list(hidden),
+                system=system, system_file=system_file, namespaces=nss, spec_file=spec_file, model_kind=kind, model_hidden=list(hidden),
                 train=train, buffer_capacity=cap, buffer_policy=policy, min_transitions=min_tr,
                 updates_per_second=ups, checkpoint_period=period, checkpoint_keep=keep, run_dir=run_dir,
                 resume=resume, telemetry_rate=rate, telemetry_window=err_window, diagnostics_rate=diag, dt=dt,
                 pairing_window=window, pairing_tolerance=tol, training_niceness=nice, train_threads=threads,
             )
+
+        def _load_system(self, p: LearnerParams) -> tuple[Any, Any]:
+            if p.system_file:
+                from saml_ros.core.systems.system_file import SystemFileError, load_system_file
+
+                if p.dt > 0:
+                    raise ConfigError("parameter 'dt': a robot from a system file takes its period from the file "
+                                      "('dt' there)")
+                try:
+                    system = load_system_file(p.system_file)
+                    return system, system.schema()
+                except (SystemFileError, ValueError) as exc:
+                    raise ConfigError(f"parameter 'system_file': {exc}") from None
+            try:
+                return get_system(p.system, **({"dt": p.dt} if p.dt > 0 else {})), get_schema(p.system)
+            except (ValueError, TypeError) as exc:
+                raise ConfigError(f"parameter 'system' / 'dt': {exc}") from None
 
         def _load_spec(self, p: LearnerParams) -> ProblemSpec:
             try:
@@ -316,14 +343,25 @@ def _build_node_class() -> type:
             return RCLPY.cls(type_name)
 
         # ------------------------------------------------------------------------------ ingest
-        def _make_callback(self, channel: int) -> Callable[[bytes], None]:
+        def _make_callback(self, channel: int) -> Callable[..., None]:
             submit, received = self.trainer.submit_raw, self.received
 
             def callback(data: bytes) -> None:
                 received[channel] += 1
                 submit(channel, data)
 
-            return callback
+            if not self.unstamped[channel]:
+                return callback
+            clock = self.get_clock()
+            sim_time = bool(self.get_parameter("use_sim_time").value)
+
+            def stamp_on_receipt(data: bytes, info: Any) -> None:
+                # the middleware's receive time (system clock, like the robot's stamps) unless on simulated time
+                t = int(info["received_timestamp"]) if not sim_time and info else clock.now().nanoseconds
+                received[channel] += 1
+                submit(channel, (data, t))
+
+            return stamp_on_receipt
 
         # ------------------------------------------------------------------------------ training process
         def _child_log(self, level: int, text: str) -> None:
@@ -384,6 +422,9 @@ def _build_node_class() -> type:
                 values[f"rejected/{reason}"] = totals.get(reason, 0)
             for key in ("time_resets", "reanchors", "expired", "overflow"):
                 values[key] = totals.get(key, 0)
+            for key in RESAMPLE_COUNTERS:  # a robot's own topics: gaps, jitter, missing, unstamped, ...
+                if key in totals and key not in values and not key.startswith("received/"):
+                    values[key] = totals[key]
             by_source = tr.source_counts
             for ns in self.p.namespaces:
                 c = by_source.get(ns, {})
@@ -403,10 +444,11 @@ def _build_node_class() -> type:
     return LearnerNode
 
 
-def make_decoder(args: tuple[str, list[tuple[str, str]]]) -> Callable[[int, bytes], tuple[Any, int]]:
+def make_decoder(args: tuple[Any, ...]) -> Callable[[int, Any], tuple[Any, int]]:
     """Decoder of the node's raw messages, built in the training process (``LearnerSetup.decoder``).
 
-    ``args = (system, [(kind, topic) per channel])``; the returned ``decode(channel, payload)`` deserializes the
+    ``args = (system, [(kind, topic) per channel], system params or None)`` (params: a robot from a system file,
+    whose unstamped messages arrive as ``(CDR bytes, receipt time ns)``); the returned ``decode(channel, payload)`` deserializes the
     CDR bytes into the channel's stock message and converts it with msg_schemas, returning ``(vector, stamp_ns)``
     or raising :class:`msg_schemas.SchemaError` (reason ``shape``, ``names``, ``nan``, ...).
     """
@@ -414,18 +456,30 @@ def make_decoder(args: tuple[str, list[tuple[str, str]]]) -> Callable[[int, byte
 
     from msg_schemas import RCLPY, SchemaError, get_schema
 
-    system, channels = args
-    sc = get_schema(system)
+    system, channels, *rest = args
+    params = rest[0] if rest else None
+    if params:  # a robot from a system file: its codecs read the field paths of its own messages
+        from saml_ros.core.systems.system_file import system_from_params
+
+        sc = system_from_params(params).schema()
+    else:
+        sc = get_schema(system)
     codecs = {"state": (sc.state, sc.state_from_msg), "applied_cmd": (sc.control, sc.control_from_msg),
               "target": (sc.target, sc.target_from_msg)}
-    table = [(RCLPY.cls(codecs[kind][0].msg_type), codecs[kind][1], topic) for kind, topic in channels]
+    table = [(RCLPY.cls(codecs[kind][0].msg_type), codecs[kind][1], topic, codecs[kind][0])
+             for kind, topic in channels]
 
-    def decode(channel: int, payload: bytes) -> tuple[Any, int]:
-        cls, from_msg, topic = table[channel]
+    def decode(channel: int, payload: Any) -> tuple[Any, int]:
+        cls, from_msg, topic, codec = table[channel]
+        receipt = None
+        if isinstance(payload, tuple):  # (CDR bytes, receipt time ns) of an unstamped message
+            payload, receipt = payload
         try:
             msg = deserialize_message(payload, cls)
         except Exception as exc:  # noqa: BLE001 - malformed CDR
             raise SchemaError(topic, "(serialized)", "format", f"cannot deserialize: {exc}") from None
+        if receipt is not None:
+            return codec.from_msg(msg, topic, receipt_ns=receipt)
         vec, stamp = from_msg(msg, topic)
         return vec, stamp
 
@@ -441,12 +495,26 @@ def create_node(launched: Any = None) -> Any:
     probe = Node(NODE_NAME)
     try:
         system = probe.declare_parameter("system", "friction").value
+        system_file = probe.declare_parameter("system_file", "").value
     except Exception as exc:  # noqa: BLE001
         raise ConfigError(f"parameter 'system': {exc}") from None
+    if system_file:  # a robot's default namespace is /<name in its file>
+        system = _system_file_name(system_file) or system
     remapped = probe.get_namespace() != "/"
     probe.destroy_node()
     cls = _build_node_class()
     return cls(None if remapped else f"/{system}", launched)
+
+
+def _system_file_name(path: str) -> str | None:
+    """The ``name`` of a system file, or None when it cannot be read (the node reports why when it loads it)."""
+    import yaml
+
+    try:
+        name = yaml.safe_load(Path(path).read_text()).get("name")
+    except Exception:  # noqa: BLE001 - reported properly by the node
+        return None
+    return name if isinstance(name, str) and name.isidentifier() else None
 
 
 def prelaunch_trainer() -> Any:
