@@ -55,11 +55,16 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
         "-p", "checkpoint_period:=2.0", "-p", "telemetry_rate:=4.0", "-p", "train.primal_lr:=0.003",
         "-p", "train.batch_size:=256", namespace=NS)
     rec = ros_env.launch("record", args=["-o", str(bag), "--topics", f"{NS}/odom", f"{NS}/cmd_vel"])
-    robot = launch_script(ros_env, EXAMPLE / "robot.py", "-p", "x0:=0.4")  # starts 0.3 m before the dock approach
-    wander = launch_script(ros_env, EXAMPLE / "wander.py", "-p", "seed:=3")
     telemetry: list[dict[str, float]] = []
     ros_node.subscribe(JointState, f"{NS}/learner/model_error",
                        callback=lambda m: telemetry.append(tele.model_error_from_msg(m)[0]))
+    # the robot starts once the learner listens, so the learner sees its first drive into the dock approach
+    wait_for(lambda: telemetry or not learner.alive(), timeout=60, what="the learner to start")
+    assert learner.alive(), learner.output()
+    wait_for(lambda: "record: recording" in rec.output() or "record: writing" in rec.output() or not rec.alive(),
+             what="the recorder")
+    robot = launch_script(ros_env, EXAMPLE / "robot.py", "-p", "x0:=0.4")  # starts 0.3 m before the dock approach
+    wander = launch_script(ros_env, EXAMPLE / "wander.py", "-p", "seed:=3")
 
     key = "error_in/dock_approach"
 
@@ -69,8 +74,9 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
         return vals[-1] if vals else None
 
     try:
-        wait_for(lambda: first_in_region() is not None or not learner.alive(), timeout=60,
-                 what="the first in-region model error")
+        wait_for(lambda: first_in_region() is not None or not learner.alive(), timeout=45,
+                 what="the first in-region model error: " + str([(t["updates"], t["n_in/dock_approach"])
+                                                                 for t in telemetry[-5:]]))
         assert learner.alive(), learner.output()
         base_err = first_in_region()
         assert base_err is not None
