@@ -169,3 +169,14 @@ def test_export_refuses_unknown_formats(tmp_path: Path) -> None:
 def test_train_system_file_without_bag_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["--system-file", str(SYSTEM_FILE)]) == 2
     assert "has no simulator in saml_ros: give its recordings with --bag" in capsys.readouterr().err
+
+
+def test_bag_info_with_a_system_file(recording: tuple[Path, dict], capsys: pytest.CaptureFixture[str]) -> None:
+    from saml_ros.bags import info
+
+    bag, _ = recording
+    assert info.main([str(bag), "--system-file", str(SYSTEM_FILE)]) == 0
+    out = capsys.readouterr().out
+    n = len(extract_transitions([bag], load_system_file(SYSTEM_FILE)))
+    assert "system:      diff_drive" in out and f"transitions: {n} (/dd: {n})" in out
+    assert "unstamped/applied_cmd" in out and "dock_approach:" in out
