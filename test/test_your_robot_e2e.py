@@ -55,6 +55,9 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
         "-p", "checkpoint_period:=2.0", "-p", "telemetry_rate:=4.0", "-p", "train.primal_lr:=0.003",
         "-p", "train.batch_size:=256", namespace=NS)
     rec = ros_env.launch("record", args=["-o", str(bag), "--topics", f"{NS}/odom", f"{NS}/cmd_vel"])
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    diagnostics = ros_node.subscribe(DiagnosticArray, "/diagnostics")
     telemetry: list[dict[str, float]] = []
     ros_node.subscribe(JointState, f"{NS}/learner/model_error",
                        callback=lambda m: telemetry.append(tele.model_error_from_msg(m)[0]))
@@ -97,6 +100,13 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
     assert rec.stop(timeout=20) == 0, rec.output()
     out = learner.output()
     assert "configuration error" not in out and "system file" in out, out
+    # /diagnostics carries the resampling counters of the robot's own topics
+    entries = [e for m in diagnostics for e in tele.diagnostics_from_msg(m)[0] if e.name.endswith("learner")]
+    assert entries, "no learner diagnostics"
+    values = entries[-1].values
+    assert int(values["unstamped/applied_cmd"]) > 0 and int(values["paired"]) > 200, values
+    assert int(values["intervals"]) == sum(int(values[k]) for k in ("paired", "gap", "no_cmd", "stale_cmd",
+                                                                  "ambiguous_cmd")), values
     assert last[key] < 0.5 * base_err and last["rejected/duplicate"] == 0, last
 
     # the checkpoint, through the Python API; its export equals it
