@@ -10,7 +10,7 @@ import torch
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
 
 def _two_groups(n: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

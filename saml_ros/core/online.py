@@ -5,7 +5,7 @@
 * one :class:`~saml_ros.core.pairing.StampPairer` per source (robot / namespace), fed ``(kind, stamp, vector)``
   events by :meth:`OnlineLearner.ingest`; paired transitions go into one shared
   :class:`~saml_ros.core.buffer.ReplayBuffer` and into a small window of the most recent transitions;
-* the model and the :class:`~saml_ros.core.trainer.PrimalDualTrainer`, created once ``min_transitions``
+* the model and the :class:`~saml_ros.core.training.PrimalDualTrainer`, created once ``min_transitions``
   transitions have arrived: the input/output normalisation is fitted on exactly those transitions and then
   frozen (it is part of the model, so it is checkpointed and restored with it);
 * the update loop (:meth:`update`: ``n`` primal-dual steps on minibatches sampled from the buffer);
@@ -13,7 +13,7 @@
   model on the most recent transitions inside / outside each constraint region, the objective, constraint
   estimates and Lagrangian (means over the minibatches since the previous telemetry), lambda, buffer size,
   update count and rejection counters, named as :func:`msg_schemas.telemetry.model_error_names`;
-* periodic checkpoints (:meth:`save_checkpoint`, via :func:`saml_ros.core.model_io.save_checkpoint`) and
+* periodic checkpoints (:meth:`save_checkpoint`, via :func:`saml_ros.core.training.save_checkpoint`) and
   resume from the newest *valid* checkpoint of a run directory (weights, normalisation, lambda, optimizer
   states, update count).
 
@@ -51,12 +51,12 @@ from msg_schemas.telemetry import REJECT_REASONS, model_error_names
 from saml_ros.core.buffer import Policy, ReplayBuffer
 from saml_ros.core.checkpoint import CheckpointError, CheckpointStore, read_checkpoint
 from saml_ros.core.child_launch import LaunchedChild, launch_child
-from saml_ros.core.model_io import MODEL_KIND, LoadedModel, model_from_payload, save_checkpoint
+from saml_ros.core.model_io import MODEL_KIND, LoadedModel, model_from_payload
 from saml_ros.core.models import MODEL_KINDS, DynamicsModel
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, resume_trainer, save_checkpoint
 
 log = logging.getLogger("saml_ros.online")
 
@@ -338,7 +338,7 @@ class OnlineLearner:
                     self._acc_con += vals.constraints[0].double().numpy()
                 if tr.steps % (self.config.train.log_every or 100) == 0:
                     tr.log_point()
-                    _trim_history(tr)
+                    tr.history.keep_last(HISTORY_ROWS)
             return n_steps
 
     def _start_training(self) -> None:
@@ -516,11 +516,11 @@ class OnlineLearner:
 
     def _make_trainer(self, loaded: LoadedModel) -> PrimalDualTrainer:
         cfg = self.config.train
-        trainer = dataclasses.replace(loaded, spec=self.spec).trainer(cfg)
+        trainer = resume_trainer(dataclasses.replace(loaded, spec=self.spec), cfg)
         # torch optimizers restore the learning rate saved with their state: the configured one wins
-        for opt, lr in ((trainer.primal_opt, cfg.primal_lr), (trainer.dual_opt, cfg.dual_lr)):
-            for group in opt.param_groups:
-                group["lr"] = lr
+        for group in trainer.primal_opt.param_groups:
+            group["lr"] = cfg.primal_lr
+        trainer.dual.set_lr(cfg.dual_lr)
         return trainer
 
     def _adopt(self, trainer: PrimalDualTrainer, path: Path, version: int, skipped: list[tuple[Path, str]]) -> None:
@@ -537,14 +537,6 @@ class OnlineLearner:
             log.warning("resume: skipped %s: %s", p, why)
         log.info("resume: loaded %s (version %d, %d updates, lambda %s)", path, version, trainer.steps,
                  self.lam.tolist())
-
-
-def _trim_history(tr: PrimalDualTrainer) -> None:
-    h = tr.history
-    extra = len(h.step) - HISTORY_ROWS
-    if extra > 0:
-        for name in ("step", "epoch", "objective", "constraints", "lambdas", "lagrangian", "wall_time"):
-            del getattr(h, name)[:extra]
 
 
 # ------------------------------------------------------------------------------------ training process

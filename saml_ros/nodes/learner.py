@@ -118,7 +118,7 @@ def _build_node_class() -> type:
     from saml_ros.core.pairing import PairingConfig
     from saml_ros.core.spec import ProblemSpec, SpecError
     from saml_ros.core.systems import get_system
-    from saml_ros.core.trainer import TrainConfig
+    from saml_ros.core.training import TrainConfig
 
     # rcl_interfaces ships no type information; through importlib it is simply Any
     ParameterDescriptor = importlib.import_module("rcl_interfaces.msg").ParameterDescriptor

@@ -20,10 +20,9 @@ import torch
 import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_io import save_checkpoint
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig, save_checkpoint
 from saml_ros.offline.pipelines import evaluate_models, generate_datasets, mean_std, train_models
 from saml_ros.offline.plots import plot_training_curves
 
