@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from msg_schemas.decode import make_decoder
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 #: exit status for configuration errors (the node never starts)
@@ -171,7 +172,7 @@ def _build_node_class() -> type:
                 threads=p.train_threads,
                 sources=tuple((ns, pairing) for ns in p.namespaces),
                 channels=tuple((p.namespaces.index(ns), kind) for ns, kind, _, _ in self.channels),
-                decoder="saml_ros.nodes.learner:make_decoder",
+                decoder=make_decoder,
                 decoder_args=(p.system, [(kind, topic) for _, kind, topic, _ in self.channels]),
             )
             self.trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
@@ -401,35 +402,6 @@ def _build_node_class() -> type:
             self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
     return LearnerNode
-
-
-def make_decoder(args: tuple[str, list[tuple[str, str]]]) -> Callable[[int, bytes], tuple[Any, int]]:
-    """Decoder of the node's raw messages, built in the training process (``LearnerSetup.decoder``).
-
-    ``args = (system, [(kind, topic) per channel])``; the returned ``decode(channel, payload)`` deserializes the
-    CDR bytes into the channel's stock message and converts it with msg_schemas, returning ``(vector, stamp_ns)``
-    or raising :class:`msg_schemas.SchemaError` (reason ``shape``, ``names``, ``nan``, ...).
-    """
-    from rclpy.serialization import deserialize_message
-
-    from msg_schemas import RCLPY, SchemaError, get_schema
-
-    system, channels = args
-    sc = get_schema(system)
-    codecs = {"state": (sc.state, sc.state_from_msg), "applied_cmd": (sc.control, sc.control_from_msg),
-              "target": (sc.target, sc.target_from_msg)}
-    table = [(RCLPY.cls(codecs[kind][0].msg_type), codecs[kind][1], topic) for kind, topic in channels]
-
-    def decode(channel: int, payload: bytes) -> tuple[Any, int]:
-        cls, from_msg, topic = table[channel]
-        try:
-            msg = deserialize_message(payload, cls)
-        except Exception as exc:  # noqa: BLE001 - malformed CDR
-            raise SchemaError(topic, "(serialized)", "format", f"cannot deserialize: {exc}") from None
-        vec, stamp = from_msg(msg, topic)
-        return vec, stamp
-
-    return decode
 
 
 def create_node(launched: Any = None) -> Any:
