@@ -43,7 +43,7 @@ from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
 
 def train_quick(system: System, n: int, epochs: int, seed: int = 0) -> tuple[DynamicsModel, float]:

@@ -13,7 +13,7 @@ the docs treat a user's robot like a built-in system.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -133,3 +133,20 @@ def robot_schema(system: str, state_topic: str, state: FieldPathCodec, cmd_topic
     return SystemSchema(system=system, state=state, control=control, target=state, topics=topics,
                         target_topic=state_topic, target_pairing="next", description=description,
                         state_topic=state_topic, cmd_topic=cmd_topic, applied_cmd_topic=cmd_topic)
+
+
+def robot_schema_from_definition(definition: Mapping[str, Any]) -> SystemSchema:
+    """The :class:`SystemSchema` of a robot from its parsed system file (``saml_ros.core.systems.system_file``):
+    the ``state`` and ``control`` sections' topics, message types, field paths, frames and QoS."""
+
+    def codec(sec: Mapping[str, Any]) -> FieldPathCodec:
+        return FieldPathCodec(sec["type"], [PathField(f["name"], f["unit"], f["path"]) for f in sec["fields"]],
+                              frame_id=sec.get("frame_id", ""), child_frame_id=sec.get("child_frame_id", ""))
+
+    def qos(sec: Mapping[str, Any]) -> QosSpec:
+        q = sec.get("qos") or {}
+        return QosSpec(reliable=bool(q.get("reliable", True)), depth=int(q.get("depth", DATA_QOS.depth)))
+
+    st, ct = definition["state"], definition["control"]
+    return robot_schema(str(definition["name"]), st["topic"], codec(st), ct["topic"], codec(ct),
+                        str(definition.get("description", "")), state_qos=qos(st), cmd_qos=qos(ct))

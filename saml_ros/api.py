@@ -22,10 +22,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.checkpoint import CheckpointStore, read_checkpoint
 from saml_ros.core.export import FORMATS, ExportResult, export_model
-from saml_ros.core.model_io import LoadedModel
-from saml_ros.core.model_io import load_model as _load_checkpoint
+from saml_ros.core.model_io import LoadedModel, model_from_payload
 
 
 class Model:
@@ -123,7 +122,16 @@ def resolve_checkpoint(path: str | Path) -> Path:
 
 def load_model(path: str | Path, member: int = 0) -> Model:
     """Load a checkpoint (or a run directory's newest) as a :class:`Model` (ensemble member ``member``)."""
-    loaded = _load_checkpoint(resolve_checkpoint(path))
+    ckpt = resolve_checkpoint(path)
+    expect = None
+    arrays, meta = read_checkpoint(ckpt)
+    definition = (meta.get("system_params") or {}).get("definition") if isinstance(meta, dict) else None
+    base = (definition or {}).get("base_model") or {}
+    if definition and (base.get("function") or base.get("entry_point")):  # a robot whose base model is user code: import it here
+        from saml_ros.user_code import system_from_definition
+
+        expect = system_from_definition(definition)
+    loaded = model_from_payload(arrays, meta, expect, ckpt)
     if not 0 <= member < loaded.model.n_models:
         raise ValueError(f"member {member} outside the ensemble of {loaded.model.n_models}")
     return Model(loaded, member)

@@ -31,7 +31,7 @@ import numpy as np
 
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 from saml_ros.offline.pipelines import compare
 from saml_ros.offline.plots import plot_comparison, plot_error_map, plot_training_curves
 

@@ -22,12 +22,11 @@ import torch
 from ros_helpers import RosDomain, ros_env  # noqa: F401  (fixture by import)
 
 from saml_ros.core.checkpoint import CheckpointStore, atomic_write
-from saml_ros.core.model_io import save_checkpoint
 from saml_ros.core.model_watch import ModelWatcher
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
 from saml_ros.nodes.mpc import make_gate, make_goal, parse_solver_options
 
 REPO = Path(__file__).resolve().parents[1]

@@ -21,10 +21,10 @@ from saml_ros.core.systems.base_models import BaseModelError
 from saml_ros.core.systems.system_file import (
     FileSystem,
     SystemFileError,
-    load_system_file,
     parse_definition,
     system_from_params,
 )
+from saml_ros.user_code import load_system_file, resolve_base_model
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "diff_drive" / "system.yaml"
@@ -35,7 +35,7 @@ def example() -> dict[str, Any]:
 
 
 def build(raw: dict[str, Any], tmp: Path | None = None) -> FileSystem:
-    system = FileSystem(parse_definition(raw, "test.yaml", tmp), "test.yaml")
+    system = FileSystem(parse_definition(raw, "test.yaml", tmp), "test.yaml", resolve=resolve_base_model)
     system.schema()
     return system
 
@@ -284,3 +284,30 @@ def test_field_path_errors_name_path_and_type() -> None:
         resolve("pose.covariance[36]", "nav_msgs/msg/Odometry")
     with pytest.raises(FieldPathError, match=r"unknown conversion 'heading'"):
         resolve("heading(pose.pose.orientation)", "nav_msgs/msg/Odometry")
+
+
+def test_user_base_model_reaches_a_training_process_and_a_checkpoint(user_module: str, tmp_path: Path) -> None:
+    """The core imports no code by name: the learner hands its training process the user's function pickled by
+    reference, and saml_ros.api imports it for a checkpoint that names it."""
+    import pickle
+
+    from saml_ros.api import load_model
+    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.systems import get_system
+    from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
+
+    s = build(mutate("base_model", {"function": f"{user_module}:good", "params": {"gain": 2.0}}))
+    params = pickle.loads(pickle.dumps({**s.params(), "base_function": s.user_function}))
+    again = get_system(s.name, **params)
+    x, u = s.sample_inputs(6, np.random.default_rng(2))
+    np.testing.assert_array_equal(again.base_step_np(x, u), s.base_step_np(x, u))
+    with pytest.raises(SystemFileError, match="user code is imported only when the system file is loaded"):
+        get_system(s.name, **s.params())  # the definition alone: the core does not import my_robot_models
+    model = DynamicsModel(s, [4])
+    model.fit_normalization(x, u, s.base_step_np(x, u) + 0.01)
+    trainer = PrimalDualTrainer(model, ProblemSpec.for_system(s.paper_spec(), s), TrainConfig())
+    save_checkpoint(CheckpointStore(tmp_path), trainer)
+    loaded = load_model(tmp_path)
+    np.testing.assert_allclose(loaded.predict(x, u), model.predict_np(x, u), atol=1e-6)

@@ -203,7 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     path = args.bag
     system: Any = args.system
     if args.system_file is not None:
-        from saml_ros.core.systems.system_file import SystemFileError, load_system_file
+        from saml_ros.core.systems.system_file import SystemFileError
+        from saml_ros.user_code import load_system_file
 
         try:
             system = load_system_file(args.system_file)

@@ -1,8 +1,8 @@
 """Starting the learner's training interpreter, standard library only (no torch), so that the learner node can
 start it first thing and let it import torch while the node itself starts (see ``saml_ros.nodes.learner``).
 
-The child runs :func:`saml_ros.core.online.child_entry` on its end of a socket pair; :class:`~saml_ros.core.online.
-TrainingProcess` then sends it its setup.
+The child runs :func:`saml_ros.core.online.child.child_entry` on its end of a socket pair;
+:class:`~saml_ros.core.online.process.TrainingProcess` then sends it its setup.
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-#: a started training interpreter waiting for its :class:`~saml_ros.core.online.LearnerSetup`:
+#: a started training interpreter waiting for its :class:`~saml_ros.core.online.process.LearnerSetup`:
 #: ``(process, connection)``
 LaunchedChild = tuple["subprocess.Popen[bytes]", Any]
 #: what the training interpreter runs (``argv[1]`` = its socket's file descriptor)
-CHILD_CODE = "import sys; from saml_ros.core.online import child_entry; child_entry(int(sys.argv[1]))"
+CHILD_CODE = "import sys; from saml_ros.core.online.child import child_entry; child_entry(int(sys.argv[1]))"
 
 
 def launch_child() -> LaunchedChild:

@@ -291,7 +291,7 @@ def save_models(out: Path, trained: dict[str, Any]) -> dict[str, str]:
     (load with ``saml_ros.core.model_io.load_model``; member i was trained with seed ``seeds[i]``).
     Returns ``name -> checkpoint path``."""
     from saml_ros.core.checkpoint import CheckpointStore
-    from saml_ros.core.model_io import save_checkpoint
+    from saml_ros.core.training import save_checkpoint
 
     paths = {}
     for name, tm in trained.items():

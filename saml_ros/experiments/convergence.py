@@ -30,7 +30,7 @@ import numpy as np
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
-from saml_ros.core.trainer import TrainConfig, Transitions, evaluate_spec
+from saml_ros.core.training import TrainConfig, Transitions, evaluate_spec
 from saml_ros.experiments.common import (
     Timer,
     flush_denormals,

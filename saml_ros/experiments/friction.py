@@ -25,7 +25,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,

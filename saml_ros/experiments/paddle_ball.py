@@ -33,7 +33,7 @@ from saml_ros.core.mpc.types import Controller, MPCResult
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point, roll_pitch_from_normal
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 from saml_ros.core.worlds.paddle_world import CollectStats, PaddleBallWorld, collect_impacts, impacts_to_arrays
 from saml_ros.experiments.common import (
     PAIRED_HEADER,

@@ -26,7 +26,7 @@ from saml_ros.core.mpc.types import MPCResult
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from msg_schemas.decode import make_decoder
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 #: exit status for configuration errors (the node never starts)
@@ -120,7 +121,7 @@ def _build_node_class() -> type:
     from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
     from saml_ros.core.spec import ProblemSpec, SpecError
     from saml_ros.core.systems import get_system
-    from saml_ros.core.trainer import TrainConfig
+    from saml_ros.core.training import TrainConfig
 
     # rcl_interfaces ships no type information; through importlib it is simply Any
     ParameterDescriptor = importlib.import_module("rcl_interfaces.msg").ParameterDescriptor
@@ -168,15 +169,15 @@ def _build_node_class() -> type:
             self.channel_qos = [sc.topic(name).qos for _ in p.namespaces for _, name, _ in kinds]
             self.received = [0] * len(self.channels)
             setup = LearnerSetup(
-                system=self.system.name, system_params=system_params(self.system), spec=self.spec.to_dict(),
+                system=self.system.name, system_params=self._system_params(), spec=self.spec.to_dict(),
                 config=config,
                 run_dir=str(run_dir), resume=p.resume, loop=loop, niceness=p.training_niceness,
                 threads=p.train_threads,
                 sources=tuple((ns, pairing) for ns in p.namespaces),
                 channels=tuple((p.namespaces.index(ns), kind) for ns, kind, _, _ in self.channels),
-                decoder="saml_ros.nodes.learner:make_decoder",
+                decoder=make_decoder,
                 decoder_args=(self.system.name, [(kind, topic) for _, kind, topic, _ in self.channels],
-                              system_params(self.system) if p.system_file else None),
+                              getattr(self.system, "definition", None)),  # a robot's field paths
             )
             self.trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
                                            on_error=self._child_error)
@@ -311,7 +312,8 @@ def _build_node_class() -> type:
 
         def _load_system(self, p: LearnerParams) -> tuple[Any, Any]:
             if p.system_file:
-                from saml_ros.core.systems.system_file import SystemFileError, load_system_file
+                from saml_ros.core.systems.system_file import SystemFileError
+                from saml_ros.user_code import load_system_file
 
                 if p.dt > 0:
                     raise ConfigError("parameter 'dt': a robot from a system file takes its period from the file "
@@ -325,6 +327,13 @@ def _build_node_class() -> type:
                 return get_system(p.system, **({"dt": p.dt} if p.dt > 0 else {})), get_schema(p.system)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(f"parameter 'system' / 'dt': {exc}") from None
+
+        def _system_params(self) -> dict[str, Any]:
+            """What the training process rebuilds the system from; a robot's base model function (user code the
+            node imported) travels pickled by reference."""
+            params = system_params(self.system)
+            function = getattr(self.system, "user_function", None)
+            return params if function is None else {**params, "base_function": function}
 
         def _load_spec(self, p: LearnerParams) -> ProblemSpec:
             try:
@@ -442,48 +451,6 @@ def _build_node_class() -> type:
             self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
     return LearnerNode
-
-
-def make_decoder(args: tuple[Any, ...]) -> Callable[[int, Any], tuple[Any, int]]:
-    """Decoder of the node's raw messages, built in the training process (``LearnerSetup.decoder``).
-
-    ``args = (system, [(kind, topic) per channel], system params or None)`` (params: a robot from a system file,
-    whose unstamped messages arrive as ``(CDR bytes, receipt time ns)``); the returned ``decode(channel, payload)`` deserializes the
-    CDR bytes into the channel's stock message and converts it with msg_schemas, returning ``(vector, stamp_ns)``
-    or raising :class:`msg_schemas.SchemaError` (reason ``shape``, ``names``, ``nan``, ...).
-    """
-    from rclpy.serialization import deserialize_message
-
-    from msg_schemas import RCLPY, SchemaError, get_schema
-
-    system, channels, *rest = args
-    params = rest[0] if rest else None
-    if params:  # a robot from a system file: its codecs read the field paths of its own messages
-        from saml_ros.core.systems.system_file import system_from_params
-
-        sc = system_from_params(params).schema()
-    else:
-        sc = get_schema(system)
-    codecs = {"state": (sc.state, sc.state_from_msg), "applied_cmd": (sc.control, sc.control_from_msg),
-              "target": (sc.target, sc.target_from_msg)}
-    table = [(RCLPY.cls(codecs[kind][0].msg_type), codecs[kind][1], topic, codecs[kind][0])
-             for kind, topic in channels]
-
-    def decode(channel: int, payload: Any) -> tuple[Any, int]:
-        cls, from_msg, topic, codec = table[channel]
-        receipt = None
-        if isinstance(payload, tuple):  # (CDR bytes, receipt time ns) of an unstamped message
-            payload, receipt = payload
-        try:
-            msg = deserialize_message(payload, cls)
-        except Exception as exc:  # noqa: BLE001 - malformed CDR
-            raise SchemaError(topic, "(serialized)", "format", f"cannot deserialize: {exc}") from None
-        if receipt is not None:
-            return codec.from_msg(msg, topic, receipt_ns=receipt)
-        vec, stamp = from_msg(msg, topic)
-        return vec, stamp
-
-    return decode
 
 
 def create_node(launched: Any = None) -> Any:

@@ -20,10 +20,9 @@ import torch
 import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_io import save_checkpoint
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig, save_checkpoint
 from saml_ros.offline.pipelines import evaluate_models, generate_datasets, mean_std, train_models
 from saml_ros.offline.plots import plot_training_curves
 
@@ -89,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
     system: Any
     if args.system_file is not None:
-        from saml_ros.core.systems.system_file import SystemFileError, load_system_file
+        from saml_ros.core.systems.system_file import SystemFileError
+        from saml_ros.user_code import load_system_file
 
         try:
             system = load_system_file(args.system_file)

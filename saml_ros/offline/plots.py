@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from saml_ros.core.trainer import History
+from saml_ros.core.training import History
 
 if TYPE_CHECKING:
     from saml_ros.core.models import DynamicsModel

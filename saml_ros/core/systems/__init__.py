@@ -41,13 +41,14 @@ def default_params(name: str) -> dict[str, Any]:
 def get_system(name: str, **overrides: Any) -> System:
     """Build system ``name`` (one of :data:`SYSTEM_NAMES`) with parameters ``overrides``.
 
-    ``get_system(name, definition=...)`` rebuilds a robot described by a system file from its stored definition
-    (:meth:`~saml_ros.core.systems.system_file.FileSystem.params`).
+    ``get_system(name, definition=...[, base_function=f])`` rebuilds a robot described by a system file from its
+    stored definition (:meth:`~saml_ros.core.systems.system_file.FileSystem.params`; ``base_function``: its
+    user base model function, already imported).
 
     Raises ``ValueError`` for an unknown name, an unknown parameter (listing the valid ones) or an invalid
     parameter value.
     """
-    if set(overrides) == {"definition"} and name not in _REGISTRY:
+    if "definition" in overrides and set(overrides) <= {"definition", "base_function"} and name not in _REGISTRY:
         # a robot described by a system file: checkpoints and training processes carry its whole definition
         from saml_ros.core.systems.system_file import system_from_params
 

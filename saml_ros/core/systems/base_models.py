@@ -23,14 +23,13 @@ a yaw in ``rad``, ...) and raises :class:`BaseModelError` naming the field.
 
 A user's own base model (``base_model: {function: "my_pkg.dynamics:f_hat", params: {...}}`` or
 ``{entry_point: NAME}`` for an entry point ``NAME`` in the group ``saml_ros.systems`` of an installed package)
-is a function ``f_hat(x, u, *, dt, **params) -> torch.Tensor (B, n_x)``. It is imported and called on a probe
-batch when the system is loaded; an import failure, a non-tensor result, a wrong shape, non-finite values or a
+is a function ``f_hat(x, u, *, dt, **params) -> torch.Tensor (B, n_x)``. It is imported (by
+:mod:`saml_ros.user_code`: the core imports no code by name) and called on a probe batch when the system is loaded; an import failure, a non-tensor result, a wrong shape, non-finite values or a
 result that depends on the batch composition raise :class:`BaseModelError` there, not later in a node.
 """
 
 from __future__ import annotations
 
-import importlib
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -39,6 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
+#: entry point group of installed base models (``base_model: {entry_point: NAME}``; see saml_ros.user_code)
 ENTRY_POINT_GROUP = "saml_ros.systems"
 BUILTINS: tuple[str, ...] = ("zero", "hold", "constant_velocity", "double_integrator", "unicycle", "linear")
 
@@ -315,43 +315,6 @@ class _UserFunction(BaseModel):
         return out.to(x.dtype)
 
 
-def _import_target(target: str) -> Callable[..., Any]:
-    module, sep, attr = str(target).partition(":")
-    if not sep or not module or not attr:
-        raise BaseModelError(f"base model function {target!r}: expected 'module.path:function'")
-    try:
-        mod = importlib.import_module(module)
-    except Exception as exc:  # noqa: BLE001 - any import failure is a configuration error
-        raise BaseModelError(f"base model function {target!r}: cannot import module {module!r}: "
-                             f"{type(exc).__name__}: {exc}") from None
-    obj: Any = mod
-    for part in attr.split("."):
-        if not hasattr(obj, part):
-            raise BaseModelError(f"base model function {target!r}: module {module!r} has no {attr!r}")
-        obj = getattr(obj, part)
-    if not callable(obj):
-        raise BaseModelError(f"base model function {target!r}: {attr!r} is not callable")
-    return obj
-
-
-def _entry_point(name: str) -> tuple[str, Callable[..., Any]]:
-    from importlib.metadata import entry_points
-
-    eps = {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
-    if name not in eps:
-        raise BaseModelError(f"base model entry point {name!r}: no entry point of that name in group "
-                             f"{ENTRY_POINT_GROUP!r} (installed: {sorted(eps) or 'none'})")
-    ep = eps[name]
-    try:
-        obj = ep.load()
-    except Exception as exc:  # noqa: BLE001
-        raise BaseModelError(f"base model entry point {name!r} ({ep.value}): failed to import: "
-                             f"{type(exc).__name__}: {exc}") from None
-    if not callable(obj):
-        raise BaseModelError(f"base model entry point {name!r} ({ep.value}) is not callable")
-    return ep.value, obj
-
-
 # ------------------------------------------------------------------------------------------ factory
 @dataclass
 class BaseModelSpec:
@@ -388,10 +351,13 @@ class BaseModelSpec:
         return out
 
 
-def build_base_model(spec: BaseModelSpec, lay: Layouts, *, probe: bool = True) -> BaseModel:
+def build_base_model(spec: BaseModelSpec, lay: Layouts, *, probe: bool = True,
+                     function: Callable[..., Any] | None = None) -> BaseModel:
     """The base model ``spec`` describes for ``lay``; with ``probe`` it is called on a probe batch first.
 
-    Raises :class:`BaseModelError` (see the module docstring).
+    A user's function (``spec.function`` / ``spec.entry_point``) must be given as ``function``: the core never
+    imports code by name; :func:`saml_ros.user_code.resolve_base_model` does, for the learner node, ``train``,
+    ``bag_info`` and :mod:`saml_ros.api`. Raises :class:`BaseModelError` (see the module docstring).
     """
     model: BaseModel
     if spec.builtin is not None:
@@ -408,12 +374,12 @@ def build_base_model(spec: BaseModelSpec, lay: Layouts, *, probe: bool = True) -
             model = _Linear(lay, spec.params)
         else:
             raise BaseModelError(f"base_model.builtin: unknown built-in {name!r}; valid: {list(BUILTINS)}")
-    elif spec.function is not None:
-        model = _UserFunction(spec.function, _import_target(spec.function), lay, spec.params, spec.to_dict())
     else:
-        assert spec.entry_point is not None
-        value, fn = _entry_point(spec.entry_point)
-        model = _UserFunction(f"entry point {spec.entry_point!r} ({value})", fn, lay, spec.params, spec.to_dict())
+        label = spec.function if spec.function is not None else f"entry point {spec.entry_point!r}"
+        if function is None:
+            raise BaseModelError(f"base model {label}: user code is imported only when the system file is loaded "
+                                 "through saml_ros.user_code (the learner node, train, bag_info, saml_ros.api)")
+        model = _UserFunction(str(label), function, lay, spec.params, spec.to_dict())
     if probe:
         probe_base_model(model, lay)
     return model

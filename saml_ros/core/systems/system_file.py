@@ -1,6 +1,6 @@
 """Systems defined outside saml_ros: a YAML *system file* describing a user's robot (see docs/your_robot.md).
 
-    system = load_system_file("examples/diff_drive/system.yaml")     # SystemFileError if anything is wrong
+    system = read_system_file("examples/diff_drive/system.yaml")     # SystemFileError if anything is wrong
     system.schema()        # topics and field paths (msg_schemas.SystemSchema)
     system.pairing()       # the resampling rule (saml_ros.core.resampling.ResampleConfig)
 
@@ -24,7 +24,7 @@ from __future__ import annotations
 import copy
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -273,12 +273,17 @@ class FileSystem(System):
     Args:
         definition: the dict :func:`parse_definition` returns (or a checkpoint stored).
         where: label for error messages (the file name).
+        resolve: imports a user's base model function from its ``base_model`` section
+            (:func:`saml_ros.user_code.resolve_base_model`; the core imports nothing by name).
+        function: the user's base model function, already imported (e.g. unpickled in a training process).
 
     Raises:
         SystemFileError: the base model cannot be built, or the spec / pairing does not fit.
     """
 
-    def __init__(self, definition: Mapping[str, Any], where: str = "<definition>") -> None:
+    def __init__(self, definition: Mapping[str, Any], where: str = "<definition>", *,
+                 resolve: Callable[[BaseModelSpec], Callable[..., Any] | None] | None = None,
+                 function: Callable[..., Any] | None = None) -> None:
         d = copy.deepcopy(dict(definition))
         self.definition = d
         self.where = where
@@ -300,7 +305,12 @@ class FileSystem(System):
         lay = Layouts(tuple(FieldInfo(f["name"], f["unit"], *f["bounds"]) for f in sf),
                       tuple(FieldInfo(f["name"], f["unit"], *f["bounds"]) for f in cf), self.dt)
         try:
-            self.base_model: BaseModel = build_base_model(BaseModelSpec.parse(d["base_model"]), lay)
+            spec = BaseModelSpec.parse(d["base_model"])
+            if function is None and resolve is not None:
+                function = resolve(spec)
+            #: the user's base model function (None for a built-in); picklable by reference
+            self.user_function = function
+            self.base_model: BaseModel = build_base_model(spec, lay, function=function)
         except BaseModelError as exc:
             raise SystemFileError(where, "base_model", str(exc)) from None
         self._check_spec()
@@ -353,18 +363,9 @@ class FileSystem(System):
     # ------------------------------------------------------------------------------------------ topics
     def schema(self) -> Any:
         """The robot's :class:`msg_schemas.SystemSchema` (field paths validated)."""
-        from msg_schemas.base import QosSpec
-        from msg_schemas.path_codec import FieldPathCodec, PathField, robot_schema
+        from msg_schemas.path_codec import robot_schema_from_definition
 
-        def codec(sec: dict[str, Any]) -> FieldPathCodec:
-            return FieldPathCodec(sec["type"], [PathField(f["name"], f["unit"], f["path"]) for f in sec["fields"]],
-                                  frame_id=sec.get("frame_id", ""), child_frame_id=sec.get("child_frame_id", ""))
-
-        st, ct = self.definition["state"], self.definition["control"]
-        qos = {k: QosSpec(reliable=s.get("qos", {}).get("reliable", True), depth=s.get("qos", {}).get("depth", 100))
-               for k, s in (("state", st), ("control", ct))}
-        return robot_schema(self.name, st["topic"], codec(st), ct["topic"], codec(ct), self.description,
-                            state_qos=qos["state"], cmd_qos=qos["control"])
+        return robot_schema_from_definition(self.definition)
 
     def pairing(self) -> ResampleConfig:
         """The resampling rule for this robot's topics (``pairing`` section; see saml_ros.core.resampling)."""
@@ -419,8 +420,13 @@ def _boxes(region: Any) -> list[tuple[str, tuple[Any, Any]]]:
     return out
 
 
-def load_system_file(path: str | Path) -> FileSystem:
-    """Read, validate and build the system of ``path`` (see the module docstring); :class:`SystemFileError`."""
+def read_system_file(path: str | Path, *,
+                     resolve: Callable[[BaseModelSpec], Callable[..., Any] | None] | None = None) -> FileSystem:
+    """Read, validate and build the system of ``path`` (see the module docstring); :class:`SystemFileError`.
+
+    ``resolve`` imports a user's base model (:func:`saml_ros.user_code.load_system_file` passes it); without it
+    only built-in base models load.
+    """
     p = Path(path)
     try:
         raw = yaml.safe_load(p.read_text())
@@ -429,13 +435,18 @@ def load_system_file(path: str | Path) -> FileSystem:
     except (OSError, yaml.YAMLError) as exc:
         raise SystemFileError(str(p), "", f"cannot read it as YAML: {exc}") from None
     definition = parse_definition(raw, str(p), p.parent)
-    system = FileSystem(definition, str(p))
-    system.schema()
+    system = FileSystem(definition, str(p), resolve=resolve)
+    try:
+        system.schema()
+    except ValueError as exc:
+        raise SystemFileError(str(p), "", str(exc)) from None
     return system
 
 
 def system_from_params(params: Mapping[str, Any]) -> FileSystem:
-    """Rebuild a :class:`FileSystem` from :meth:`FileSystem.params` (what checkpoints store)."""
+    """Rebuild a :class:`FileSystem` from :meth:`FileSystem.params` (what checkpoints store), plus optionally
+    ``base_function``: the user's base model function, already imported (what the learner hands its training
+    process, pickled by reference)."""
     definition = params["definition"]
-    return FileSystem(parse_definition(definition, f"stored definition of {definition.get('name')!r}"),
-                      f"stored definition of {definition.get('name')!r}")
+    where = f"stored definition of {definition.get('name')!r}"
+    return FileSystem(parse_definition(definition, where), where, function=params.get("base_function"))
