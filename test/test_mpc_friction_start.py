@@ -1,4 +1,4 @@
-"""The friction MPC's initial guess (ShootingMPC._warm_start, tasks.push_brake_sequences): a model with a dead
+"""The friction MPC's initial guess (ShootingMPC._warm_start, shooting.tasks.push_brake_sequences): a model with a dead
 zone (friction holds the cart at rest for small |u|, so the predicted cost is flat around u = 0) must not trap
 either solver at rest, neither on a cold start nor when the previous plan rests."""
 
@@ -11,7 +11,7 @@ import torch
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
 from saml_ros.core.mpc.shooting import ShootingMPC
-from saml_ros.core.mpc.tasks import make_task, push_brake_sequences
+from saml_ros.core.mpc.shooting.tasks import make_task, push_brake_sequences
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 

@@ -1,7 +1,7 @@
 """Closed-loop evaluation of an MPC on the TRUE system, recording a check of every returned plan.
 
 The experiments do not use :func:`saml_ros.core.mpc.closed_loop` because they also check each
-:class:`~saml_ros.core.mpc.types.MPCResult` (control bounds on the whole planned sequence, the quadrotor's
+:class:`~saml_ros.core.mpc.contract.MPCResult` (control bounds on the whole planned sequence, the quadrotor's
 height bound on the predicted states) and count unsuccessful solves.
 """
 
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc.types import Controller, MPCResult
+from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.systems.base import System
 
 #: tolerance on control bounds of returned plans (solvers clip, so anything above rounding is a bug)

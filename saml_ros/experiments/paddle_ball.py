@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc.types import Controller, MPCResult
+from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point, roll_pitch_from_normal

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc.types import MPCResult
+from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.quadrotor import Quadrotor

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.mpc.types import Controller
+from saml_ros.core.mpc.contract import Controller
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.paddle_ball import PaddleBall
 
