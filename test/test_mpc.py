@@ -171,10 +171,10 @@ def test_plans_respect_control_bounds(name: str, solver: str) -> None:
 def test_friction_mpc_drives_true_system_to_origin() -> None:
     system = get_system("friction")
     out = closed_loop(system, make_controller(system), np.array([1.5, 0.0]), 30)
-    assert out["xs"].shape == (31, 2) and out["us"].shape == (30, 1)
-    assert abs(out["xs"][-1, 0]) < 0.05 and abs(out["xs"][-1, 1]) < 0.2
-    assert np.all(np.abs(out["us"]) <= 10.0)
-    np.testing.assert_allclose(out["stage_costs"], np.abs(out["xs"][1:, 0]))
+    assert out.xs.shape == (31, 2) and out.us.shape == (30, 1)
+    assert abs(out.xs[-1, 0]) < 0.05 and abs(out.xs[-1, 1]) < 0.2
+    assert np.all(np.abs(out.us) <= 10.0)
+    np.testing.assert_allclose(out.stage_costs, np.abs(out.xs[1:, 0]))
 
 
 def test_friction_learned_model_escapes_stiction() -> None:
@@ -285,9 +285,10 @@ def test_paddle_goal_validation_and_closed_loop() -> None:
     system = get_system("paddle_ball")
     x0 = np.array([0.1, -0.1, 0.0, 0.2, 0.1, -4.0])
     out = closed_loop(system, make_controller(system), x0, 3, goal={"target_xy": (0.0, 0.0)})
-    assert out["xs"].shape[1] == 6 and out["landing"].shape[1] == 2 and not out["dropped"]
+    assert out.landing is not None
+    assert out.xs.shape[1] == 6 and out.landing.shape[1] == 2 and not out.dropped
     # the base model's restitution is wrong (0.6 vs 0.8) and the paddle has a hidden tilt: the true ball misses
-    assert out["stage_costs"].max() > 0.05
+    assert out.stage_costs.max() > 0.05
 
 
 # ------------------------------------------------------------------------------------------ hot swap, warm start

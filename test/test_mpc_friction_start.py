@@ -82,8 +82,8 @@ def test_resting_previous_plan_does_not_trap(solver: str) -> None:
 @pytest.mark.parametrize("solver", ["fast", "slsqp"])
 def test_closed_loop_from_dead_zone_reaches_goal(solver: str) -> None:
     out = closed_loop(SYSTEM, make_controller(SYSTEM, dead_zone_model(), solver), np.array([0.15, 0.0]), 30)
-    assert abs(out["xs"][-1, 0]) < 0.05
-    assert np.all(np.abs(out["us"]) <= SYSTEM.u_max)
+    assert abs(out.xs[-1, 0]) < 0.05
+    assert np.all(np.abs(out.us) <= SYSTEM.u_max)
 
 
 def test_converged_plan_wins_the_start_of_a_re_solve() -> None:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc import closed_loop, make_controller
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
@@ -43,7 +44,7 @@ from saml_ros.experiments.common import (
     single_threaded,
     write_results,
 )
-from saml_ros.experiments.control import PlanChecks, closed_loop, make_mpc
+from saml_ros.experiments.plan_checks import PlanChecks
 from saml_ros.offline.pipelines import Comparison, compare
 from saml_ros.offline.plots import plot_error_map, plot_training_curves
 
@@ -100,17 +101,16 @@ def trajectory_cost(xs: np.ndarray) -> tuple[float, float]:
 def evaluate_controller(system: FrictionDoubleIntegrator, model: DynamicsModel | None, solver: str,
                         x0s: np.ndarray, steps: int, horizon: int, bar: Any = None) -> dict[str, Any]:
     """Closed loops from every start: raw and normalised costs ``(S,)``, final states, plan checks."""
-    ctrl = make_mpc(system, model, solver, horizon=horizon)
+    ctrl = make_controller(system, model, solver, horizon=horizon)
     raw, norm, final, times = [], [], [], []
     checks = PlanChecks()
     for x0 in x0s:
-        ro = closed_loop(ctrl, x0, steps, system.true_step_np)
-        r, nn = trajectory_cost(ro.xs)
+        run = closed_loop(system, ctrl, x0, steps, on_step=checks.hook(system))
+        r, nn = trajectory_cost(run.xs)
         raw.append(r)
         norm.append(nn)
-        final.append(ro.xs[-1])
-        times.append(ro.solve_times)
-        checks.merge(ro.plans)
+        final.append(run.xs[-1])
+        times.append(run.solve_times)
         if bar is not None:
             bar.update(1)
     t = np.concatenate(times)
@@ -312,8 +312,8 @@ def plot_trajectories(system: FrictionDoubleIntegrator, cmp: Comparison, s: Fric
     t = np.arange(s.steps + 1) * system.dt
     for j, p0 in enumerate(p0s):
         for label, model in models.items():
-            ro = closed_loop(make_mpc(system, model, solver, horizon=s.horizon), np.array([p0, 0.0]), s.steps,
-                             system.true_step_np)
+            ro = closed_loop(system, make_controller(system, model, solver, horizon=s.horizon), np.array([p0, 0.0]),
+                             s.steps)
             raw, norm = trajectory_cost(ro.xs)
             axes[0, j].plot(t, ro.xs[:, 0], color=colors[label], label=f"{LABELS[label]} (cost {raw:.2f})",
                             ls="--" if label == "base" else "-")

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc.contract import Controller, MPCResult
+from saml_ros.core.mpc import Controller, MPCResult, make_controller
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point, roll_pitch_from_normal
@@ -51,7 +51,7 @@ from saml_ros.experiments.common import (
     single_threaded,
     write_results,
 )
-from saml_ros.experiments.control import bound_violation, make_mpc
+from saml_ros.experiments.plan_checks import bound_violation
 from saml_ros.offline.pipelines import TrainedModels, train_models
 
 PAPER = {("full", "uniform"): ("20.8%", "0.3136"), ("full", "sufficient"): ("0.8%", "0.2124"),
@@ -297,7 +297,7 @@ def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str,
         for name, members in models.items():
             rows = []
             for model in members:
-                ctrl = make_mpc(system, model, s.solver)
+                ctrl = make_controller(system, model, s.solver)
                 for j, trial in enumerate(trials):
                     r = run_trial(world, ctrl, trial, s, record=(j == 0 and model is members[0]))
                     if "track" in r:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc.contract import MPCResult
+from saml_ros.core.mpc import ClosedLoopRun, MPCResult, closed_loop, make_controller
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.quadrotor import Quadrotor
@@ -42,7 +42,7 @@ from saml_ros.experiments.common import (
     single_threaded,
     write_results,
 )
-from saml_ros.experiments.control import PlanChecks, Rollout, closed_loop, make_mpc
+from saml_ros.experiments.plan_checks import PlanChecks
 from saml_ros.offline.pipelines import Comparison, compare
 from saml_ros.offline.plots import plot_training_curves
 
@@ -112,7 +112,7 @@ def height_violation(res: MPCResult) -> float:
     return float(max(0.0, np.max(MIN_HEIGHT - pz)))
 
 
-def rollout_metrics(ro: Rollout) -> dict[str, float]:
+def rollout_metrics(ro: ClosedLoopRun) -> dict[str, float]:
     """Cost sum_{t>=1} ||p_t||, final distance to the target, final xy error, final height, time below 0.3 m."""
     p = ro.xs[:, 0:3]
     dist = np.linalg.norm(p[1:], axis=1)
@@ -125,15 +125,15 @@ def rollout_metrics(ro: Rollout) -> dict[str, float]:
 def evaluate_controller(system: Quadrotor, model: DynamicsModel | None, s: QuadrotorSettings, x0s: np.ndarray,
                         bar: Any = None) -> dict[str, Any]:
     """Closed loops from every start with one model: metrics per start and merged plan checks."""
-    ctrl = make_mpc(system, model, s.solver, horizon=s.horizon)
+    ctrl = make_controller(system, model, s.solver, horizon=s.horizon)
     f = plant(system, s.landing_height)
     metrics: list[dict[str, float]] = []
     checks = PlanChecks()
     xs, times = [], []
     for x0 in x0s:
-        ro = closed_loop(ctrl, x0, s.steps, f, goal=np.zeros(3), state_violation=height_violation)
+        ro = closed_loop(system, ctrl, x0, s.steps, goal=np.zeros(3), true_step=f,
+                         on_step=checks.hook(system, height_violation))
         metrics.append(rollout_metrics(ro))
-        checks.merge(ro.plans)
         xs.append(ro.xs)
         times.append(ro.solve_times)
         if bar is not None:
