@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import MPCResult, closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc import LoopStep, MPCResult, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
@@ -90,30 +90,17 @@ def shooting_problems(system: System, model: DynamicsModel, starts: list[np.ndar
     ctrl = make_controller(system, model, "fast")
     assert isinstance(ctrl, ShootingMPC)
     problems: list[tuple[np.ndarray, Any]] = []
-    times: list[float] = []
-    cpus: list[float] = []
-    stage: list[float] = []
-    for x0 in starts:
-        ctrl.reset()
-        x = x0.copy()
-        for _ in range(steps):
-            warm = ctrl.warm_start_plan()
-            problems.append((x.copy(), warm))
-            res, cpu = timed(lambda x=x: ctrl.solve(x, goal))  # type: ignore[misc]
-            times.append(res.solve_time)
-            cpus.append(cpu)
-            x = system.true_step_np(x, res.u)
-            stage.append(float(np.linalg.norm(_stage_residual(system, x, goal))))
-    t = np.array(times)
+    warm: list[Any] = [None]  # the plan the next solve starts from (the runner resets the controller first)
+
+    def record(step: LoopStep) -> None:
+        problems.append((step.x.copy(), None if step.index == 0 else warm[0]))
+        warm[0] = ctrl.warm_start_plan()
+
+    runs = [closed_loop(system, ctrl, x0, steps, goal, on_step=record) for x0 in starts]
+    t = np.concatenate([r.solve_times for r in runs])
     return problems, {"mean": t.mean(), "p95": np.percentile(t, 95), "max": t.max(), "n": t.size,
-                      "cpu": float(np.mean(cpus)),
-                      "stage": float(np.sum(stage) / len(starts))}
-
-
-def _stage_residual(system: System, x: np.ndarray, goal: Any) -> np.ndarray:
-    if system.name == "friction":
-        return x[:1] - (0.0 if goal is None else np.asarray(goal))
-    return x[:3] - (np.zeros(3) if goal is None else np.asarray(goal))
+                      "cpu": float(np.mean(np.concatenate([r.cpu_times for r in runs]))),
+                      "stage": float(np.sum(np.concatenate([r.stage_costs for r in runs])) / len(starts))}
 
 
 #: the fast solver with a tight tolerance: stops only when the undamped QP predicts less than 1e-5 (1 + merit)
@@ -274,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
               f"({quad_hz:.0f} Hz wall, {1 / quad_loop['cpu']:.0f} Hz by CPU time)")
         out = closed_loop(quad, make_controller(quad, models["quadrotor"]), quad_starts[0], 50)
         print(f"quadrotor landing from {quad_starts[0][:3].tolist()}: final position "
-              f"{np.round(out['xs'][-1, :3], 3).tolist()}")
+              f"{np.round(out.xs[-1, :3], 3).tolist()}")
     print(f"\ntotal {time.perf_counter() - t_start:.0f} s")
     return 0
 

@@ -45,7 +45,7 @@ from msg_schemas.telemetry import (
 )
 from saml_ros.core.model_io import LoadedModel
 from saml_ros.core.model_watch import REFUSAL_REASONS, ModelWatcher, ReadyModel
-from saml_ros.core.mpc.qp import DEFAULT_BACKEND as QP_BACKEND
+from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help

@@ -284,22 +284,19 @@ class NumpyDynamics:
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Predicted target ``(B, n_y)``."""
-        if self.base is None:
-            assert self.mlp is not None
-            return self.mlp.forward(x, u)
-        y = self.base.step(x, u)
-        if self.mlp is not None:
-            y = y + self.mlp.forward(x, u)
-        return y
+        return self._plus_phi(None if self.base is None else self.base.step(x, u), x, u)
 
     def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Prediction for one sample ``(n_x,), (n_u,) -> (n_y,)`` (the rollout's hot path)."""
-        if self.base is None:
+        return self._plus_phi(None if self.base is None else self.base.step1(x, u), x, u)
+
+    def _plus_phi(self, y: np.ndarray | None, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The base prediction ``y`` plus phi (in place), phi alone for a full model (``y`` None), or ``y``."""
+        if y is None:
             assert self.mlp is not None
-            return self.mlp.forward1(x, u)
-        y = self.base.step1(x, u)
+            return self.mlp.forward(x, u)
         if self.mlp is not None:
-            y += self.mlp.forward1(x, u)
+            y += self.mlp.forward(x, u)
         return y
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
@@ -325,15 +322,3 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         1,
     )
 
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` for each row of ``(B, 3)``: ``(B, 3, 3)`` with ``[v]x w = v x w``."""
-    z = np.zeros_like(v[:, 0])
-    return np.stack(
-        (
-            np.stack((z, -v[:, 2], v[:, 1]), 1),
-            np.stack((v[:, 2], z, -v[:, 0]), 1),
-            np.stack((-v[:, 1], v[:, 0], z), 1),
-        ),
-        1,
-    )

@@ -5,9 +5,9 @@ from __future__ import annotations
 from typing import Any
 
 from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.contract import Controller
 from saml_ros.core.mpc.paddle import GaussNewtonPaddle, SLSQPPaddle
 from saml_ros.core.mpc.shooting import SLSQPShootingMPC, SQPShootingMPC
-from saml_ros.core.mpc.types import Controller
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.paddle_ball import PaddleBall
