@@ -43,54 +43,18 @@ from typing import IO, Any
 import numpy as np
 import yaml
 
-from saml_ros.core.systems import get_system
-from saml_ros.nodes.mpc import GOAL_PARAMS
+from saml_ros.core.systems import get_entry, system_names
 
-SYSTEMS = ("friction", "quadrotor", "paddle_ball")
-#: ROS node name of each child (bringup waits for them to appear before it stops them)
-NODE_NAMES = {"sim": "{system}_sim", "learner": "learner", "mpc": "mpc", "record": "record"}
+#: ROS node name of each child (bringup waits for them to appear before it stops them); the simulator's is its
+#: registry entry's ``sim_node``
+NODE_NAMES = {"learner": "learner", "mpc": "mpc", "record": "record"}
 NODE_SECTIONS = ("sim", "learner", "mpc")
-
-#: default configuration per system; ``config/bringup_quadrotor.yaml`` holds the same values. A lockstep loop runs
-#: as fast as the CPUs allow, so the learner's training process gets the default niceness (0), not the learner's
-#: own default (10, which protects realtime loops): at niceness 10 it starved (about 30 updates/s instead of ~270
-#: on this 2-core machine) and the half-trained models made the MPC land worse than f_hat. The quadrotor MPC only
-#: takes checkpoints whose recorded in-region constraint estimate is <= 0.002 (one-step squared error <= 0.003 where
-#: pz <= 1.5 m, eps = 0.001): the first, barely trained models sent some landings metres off target.
-DEFAULTS: dict[str, dict[str, Any]] = {
-    "quadrotor": {
-        "system": "quadrotor",
-        "sim_time": 300.0,
-        "sim": {"mode": "lockstep", "episode_steps": 50, "seed": 0, "lockstep_timeout": 5.0},
-        "learner": {"min_transitions": 200, "checkpoint_period": 5.0, "updates_per_second": 0.0,
-                    "training_niceness": 0, "train.batch_size": 128},
-        "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5, "gate.max_constraint": 0.002},
-    },
-    "friction": {
-        "system": "friction",
-        "sim_time": 300.0,
-        "sim": {"mode": "lockstep", "episode_steps": 100, "seed": 0, "lockstep_timeout": 5.0},
-        "learner": {"min_transitions": 200, "checkpoint_period": 5.0, "updates_per_second": 0.0,
-                    "training_niceness": 0},
-        "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5},
-    },
-    "paddle_ball": {
-        "system": "paddle_ball",
-        "sim_time": 300.0,
-        "sim": {"mode": "lockstep", "seed": 0, "lockstep_timeout": 5.0},
-        "learner": {"min_transitions": 100, "checkpoint_period": 5.0, "updates_per_second": 0.0,
-                    "training_niceness": 0},
-        "mpc": {"solver": "fast", "poll_period": 0.5},
-    },
-}
 
 
 # ------------------------------------------------------------------------------------------ config
 def default_config(system: str) -> dict[str, Any]:
-    """A deep copy of :data:`DEFAULTS` for ``system``."""
-    if system not in DEFAULTS:
-        raise ValueError(f"unknown system {system!r}; valid names are {list(DEFAULTS)}")
-    return copy.deepcopy(DEFAULTS[system])
+    """A deep copy of ``system``'s default bringup configuration (its registry entry's ``bringup``)."""
+    return copy.deepcopy(dict(get_entry(system).bringup))
 
 
 def merge_config(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
@@ -259,20 +223,17 @@ def node_argv(executable: str, namespace: str, params_file: Path | None, extra: 
 
 # ------------------------------------------------------------------------------------ task metrics
 def goal_position(system: str, mpc_params: Mapping[str, Any]) -> np.ndarray:
-    """The position the task error is measured from: friction ``[p]``, quadrotor ``[x, y, z]``, paddle ``[x, y]``."""
-    key = "target_xy" if system == "paddle_ball" else "position"
-    default = next(g.default for g in GOAL_PARAMS[system] if g.name == key)
-    return np.atleast_1d(np.asarray(mpc_params.get(f"goal.{key}", default), dtype=np.float64))
+    """The position the task error is measured from (the MPC's ``goal.<goal_position>``, e.g. friction ``[p]``,
+    quadrotor ``[x, y, z]``, paddle ``[x, y]``)."""
+    entry = get_entry(system)
+    return entry.position_goal({k[len("goal."):]: v for k, v in mpc_params.items() if k.startswith("goal.")})
 
 
 def task_error(system: str, x: np.ndarray, goal: np.ndarray) -> float:
-    """Distance (m) of state ``x`` from the goal: friction |p - p_goal|, quadrotor ||p - p_goal||_2 (3-D),
-    paddle ball: the ball's xy at an impact vs the target xy (where the previous bounce brought it)."""
-    if system == "friction":
-        return abs(float(x[0] - goal[0]))
-    if system == "quadrotor":
-        return float(np.linalg.norm(x[0:3] - goal))
-    return float(np.linalg.norm(x[0:2] - goal))
+    """Distance (m) of state ``x`` from the goal over the entry's ``goal_fields``: friction |p - p_goal|,
+    quadrotor ||p - p_goal||_2 (3-D), paddle ball: the ball's xy at an impact vs the target xy (where the
+    previous bounce brought it)."""
+    return get_entry(system).task_error(x, goal)
 
 
 @dataclass
@@ -341,7 +302,7 @@ class EpisodeTracker:
             return None
         final = cur["final"]
         err = task_error(self.system, final, self.goal)
-        xy = float(np.linalg.norm(final[0:2] - self.goal[0:2])) if self.system == "quadrotor" else err
+        xy = get_entry(self.system).task_error(final, self.goal, fields=2)
         ep = Episode(len(self.episodes), cur["t_start"], cur["t_end"], cur["steps"], cur["start"], final, err, xy,
                      cur["model_first"], cur["model_last"])
         self.episodes.append(ep)
@@ -412,7 +373,7 @@ def format_summary(res: BringupResult, n_last: int = 5) -> str:
 
     lines.append(f"  task error, base model f_hat:   {stat(base, 'error')}")
     lines.append(f"  task error, last learned models: {stat(learned, 'error')}")
-    if res.system == "quadrotor":
+    if len(get_entry(res.system).goal_fields) > 2:
         lines.append(f"  horizontal landing error: base {stat(base, 'xy_error')}; learned {stat(learned, 'xy_error')}")
     on_learned = [e for e in res.episodes if e.model_first > 0]
     if on_learned:
@@ -445,7 +406,7 @@ class Monitor:
 
         from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, get_schema
 
-        self.system = get_system(system)
+        self.system = get_entry(system).make_system()
         self.schema = get_schema(system)
         self.result = result
         self.namespace = namespace
@@ -575,7 +536,7 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
     from rclpy.signals import SignalHandlerOptions
 
     system = str(config["system"])
-    get_system(system)
+    entry = get_entry(system)
     namespace = f"/{system}"
     run_dir = make_run_dir(system, opts.run_dir)
     (run_dir / "checkpoints").mkdir(exist_ok=True)
@@ -641,9 +602,9 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
             recording = any(c.name == "record" for c in started)
             waits = ["-p", f"min_state_subscribers:={want + (1 if recording else 0)}",
                      "-p", f"min_applied_cmd_subscribers:={(1 if opts.learner else 0) + (1 if recording else 0)}"]
-            sim = procs.start("sim", node_argv(f"{system}_sim", namespace, files["sim"]) + waits, env,
+            sim = procs.start("sim", node_argv(entry.sim_node, namespace, files["sim"]) + waits, env,
                               logs / "sim.log")
-            say(f"[bringup] consumers ready after {time.monotonic() - t_wall0:.1f} s; started {system}_sim "
+            say(f"[bringup] consumers ready after {time.monotonic() - t_wall0:.1f} s; started {entry.sim_node} "
                 f"(pid {sim.pid}); running for {float(config['sim_time']):g} s of simulated time")
         t_sim0: float | None = None
         next_progress = time.monotonic() + opts.progress_period
@@ -667,8 +628,9 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
         if monitor is not None:
             # SIGINT before a child installed its handlers (still importing) would kill it with a traceback:
             # give children that are still starting a moment to show up in the graph first
-            monitor.wait_nodes_up({c.name: NODE_NAMES.get(c.name, c.name).format(system=system)
-                                   for c in procs.children if c.proc.poll() is None}, timeout=30.0)
+            names = {**NODE_NAMES, "sim": entry.sim_node}
+            monitor.wait_nodes_up({c.name: names.get(c.name, c.name) for c in procs.children if c.proc.poll() is None},
+                                  timeout=30.0)
         result.returncodes = procs.stop()
         if monitor is not None:
             monitor.node.destroy_node()
@@ -689,7 +651,7 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bringup", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n", 1)[1])
-    p.add_argument("--system", choices=SYSTEMS, help="system to run (default: the config's, else quadrotor)")
+    p.add_argument("--system", choices=system_names(), help="system to run (default: the config's, else quadrotor)")
     p.add_argument("--config", type=Path, help="bringup YAML (sections sim, learner, mpc; see config/bringup_quadrotor.yaml)")
     p.add_argument("--sim-time", type=float, help="stop after this many seconds of simulated time (0 = until Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.PARAM=VALUE",

@@ -23,7 +23,6 @@ import numpy as np
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
@@ -127,8 +126,7 @@ def run(settings: FrictionSettings, out: Path, progress: bool = True) -> dict[st
     s = settings
     timer = Timer()
     info = machine_info()
-    system = get_system("friction")
-    assert isinstance(system, FrictionDoubleIntegrator)
+    system = FrictionDoubleIntegrator()
     spec = ProblemSpec.for_system(system.paper_spec(), system)
     config = TrainConfig(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
     with timer("train"), quiet_trainer_warnings(), flush_denormals():

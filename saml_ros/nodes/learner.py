@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from msg_schemas.names import join_topic, normalize_namespace
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 #: exit status for configuration errors (the node never starts)
@@ -83,17 +84,6 @@ class LearnerParams:
     pairing_tolerance: float
     training_niceness: int
     train_threads: int
-
-
-def normalize_namespace(ns: str) -> str:
-    """``"friction"`` / ``"/friction/"`` -> ``"/friction"``; ``""`` / ``"/"`` -> ``"/"``."""
-    ns = "/" + ns.strip().strip("/")
-    return ns
-
-
-def topic_in(ns: str, name: str) -> str:
-    """Absolute topic ``name`` inside namespace ``ns``."""
-    return f"/{name}" if ns == "/" else f"{ns}/{name}"
 
 
 def _build_node_class() -> type:
@@ -162,7 +152,7 @@ def _build_node_class() -> type:
             if sc.target_pairing == "same":
                 kinds.append(("target", sc.target_topic, sc.target.msg_type))
             #: one channel per (namespace, kind): (namespace, kind, topic, message type)
-            self.channels = [(ns, kind, topic_in(ns, name), msg_type)
+            self.channels = [(ns, kind, join_topic(ns, name), msg_type)
                              for ns in p.namespaces for kind, name, msg_type in kinds]
             self.received = [0] * len(self.channels)
             setup = LearnerSetup(

@@ -24,14 +24,13 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
-from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, SchemaError, SystemSchema, get_schema
+from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, SchemaError, SystemSchema
 from msg_schemas.telemetry import (
     CHECKPOINT_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -45,93 +44,25 @@ from msg_schemas.telemetry import (
 )
 from saml_ros.core.model_io import LoadedModel
 from saml_ros.core.model_watch import REFUSAL_REASONS, ModelWatcher, ReadyModel
+from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.mpc.qp import DEFAULT_BACKEND as QP_BACKEND
-from saml_ros.core.systems import get_system
+from saml_ros.core.systems import get_entry
 from saml_ros.core.systems.base import System
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
 
 MODES = ("lockstep", "realtime")
 #: exit code for invalid parameters (as argparse's usage errors)
 USAGE_ERROR = 2
-SOLVERS = ("fast", "slsqp")
 
 
 # ------------------------------------------------------------------------------------ goals (ROS-free)
-@dataclass(frozen=True)
-class GoalParam:
-    """One goal parameter ``goal.<name>`` of a system: default value, unit and meaning."""
-
-    name: str
-    default: Any
-    description: str
-
-
-#: goal parameters per system (declared as ``goal.<name>``)
-GOAL_PARAMS: dict[str, tuple[GoalParam, ...]] = {
-    "friction": (GoalParam("position", 0.0, "target position p (m); the paper drives the cart to the origin"),),
-    "quadrotor": (
-        GoalParam("position", [0.0, 0.0, 0.0], "landing target [x, y, z] (m, world); the paper lands at the origin"),
-    ),
-    "paddle_ball": (
-        GoalParam("target_xy", [0.0, 0.0], "where the ball should come down, [x, y] (m, world)"),
-        GoalParam("roll_min", -0.4, "lower bound of the paddle roll (rad)"),
-        GoalParam("roll_max", 0.4, "upper bound of the paddle roll (rad)"),
-        GoalParam("pitch_min", -0.4, "lower bound of the paddle pitch (rad)"),
-        GoalParam("pitch_max", 0.4, "upper bound of the paddle pitch (rad)"),
-        GoalParam("v_rel_min", 3.0, "lower bound of the ball's speed relative to the paddle after impact (m/s)"),
-        GoalParam("v_rel_max", 5.0, "upper bound of the ball's speed relative to the paddle after impact (m/s)"),
-    ),
-}
-
-#: task options per system forwarded to ``make_controller`` (declared as ``task.<name>``)
-TASK_PARAMS: dict[str, tuple[GoalParam, ...]] = {
-    "friction": (),
-    "quadrotor": (
-        GoalParam("min_height", 0.2, "lowest allowed height of the centre of mass over the horizon (m)"),
-        GoalParam("qw_tol", 0.05, "attitude at the end of the horizon: |qw_T - 1| <= qw_tol"),
-    ),
-    "paddle_ball": (),
-}
-
-
 def make_goal(system: str, values: dict[str, Any]) -> Any:
     """The ``goal`` argument of ``Controller.solve`` from the ``goal.*`` parameter values of ``system``.
 
     Raises:
         ValueError: a value has the wrong size, is not finite, or a bound pair is inverted.
     """
-    def vec(name: str, size: int) -> np.ndarray:
-        arr = np.atleast_1d(np.asarray(values[name], dtype=np.float64))
-        if arr.shape != (size,) or not np.all(np.isfinite(arr)):
-            raise ValueError(f"goal.{name} must be {size} finite number(s), got {values[name]!r}")
-        return arr
-
-    if system == "friction":
-        return vec("position", 1)
-    if system == "quadrotor":
-        return vec("position", 3)
-    if system == "paddle_ball":
-        from saml_ros.core.mpc import paddle_goal
-
-        for lo, hi in (("roll_min", "roll_max"), ("pitch_min", "pitch_max"), ("v_rel_min", "v_rel_max")):
-            if not float(values[lo]) <= float(values[hi]):
-                raise ValueError(f"goal.{lo} = {values[lo]} must be <= goal.{hi} = {values[hi]}")
-        return paddle_goal(
-            target_xy=vec("target_xy", 2),
-            roll=(float(values["roll_min"]), float(values["roll_max"])),
-            pitch=(float(values["pitch_min"]), float(values["pitch_max"])),
-            v_rel=(float(values["v_rel_min"]), float(values["v_rel_max"])),
-        )
-    raise ValueError(f"no MPC goal for system {system!r}")
-
-
-def safe_control(system: System) -> np.ndarray:
-    """The control published when a solve raises: the simulators' safe default (see docs/architecture.md)."""
-    if system.name == "quadrotor":
-        return np.asarray(system.hover_thrust(), dtype=np.float64)  # type: ignore[attr-defined]
-    if system.name == "paddle_ball":
-        return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
-    return np.zeros(system.control.size)
+    return get_entry(system).make_goal(values)
 
 
 def make_gate(max_constraint: float, min_updates: int) -> Callable[[LoadedModel], str | None] | None:
@@ -184,23 +115,24 @@ def _build_node_class() -> type:
 
         def __init__(self, system_name: str, namespace: str | None = None) -> None:
             super().__init__("mpc", namespace=namespace)
-            self.system: System = get_system(system_name)
-            self.schema: SystemSchema = get_schema(system_name)
+            self.entry = entry = get_entry(system_name)
+            self.system: System = entry.make_system()
+            self.schema: SystemSchema = entry.schema()
             p = self._declare_parameters(parameter_descriptor)
             self.mode: str = p["mode"]
             self.rate_hz: float = p["rate_hz"]
             self.deadline_s = self._deadline(p["deadline_ms"])
-            self.goal = make_goal(system_name, {g.name: p[f"goal.{g.name}"] for g in GOAL_PARAMS[system_name]})
+            self.goal = entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params})
             options = parse_solver_options(p["solver_options"])
-            options.update({t.name: p[f"task.{t.name}"] for t in TASK_PARAMS[system_name]})
+            options.update({t.name: p[f"task.{t.name}"] for t in entry.task_params})
             from saml_ros.core.mpc import make_controller
 
-            if system_name != "paddle_ball":  # the paddle problem is one-shot (no horizon)
+            if entry.mpc_horizon:  # a one-shot problem (the paddle's) has no horizon
                 options["horizon"] = p["horizon"]
             self.controller = make_controller(self.system, None, solver=p["solver"], member=p["member"], **options)
             self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
             self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
-            self.u_safe = np.clip(safe_control(self.system), self.u_low, self.u_high)
+            self.u_safe = np.clip(self.system.safe_control(), self.u_low, self.u_high)
 
             self.model_version = 0
             self.model_path = ""
@@ -240,7 +172,7 @@ def _build_node_class() -> type:
             self.create_timer(1.0 / max(p["diagnostics_rate"], 1e-3), self._publish_diagnostics, clock=steady)
             self.get_logger().info(
                 f"{system_name} MPC ({p['solver']}{', QP ' + QP_BACKEND if p['solver'] == 'fast' else ''}, "
-                f"{'one-shot' if system_name == 'paddle_ball' else 'T=' + str(p['horizon'])}, {self.mode}"
+                f"{'T=' + str(p['horizon']) if entry.mpc_horizon else 'one-shot'}, {self.mode}"
                 f"{f' at {self.rate_hz:g} Hz' if self.mode == 'realtime' else ''}, deadline "
                 f"{1e3 * self.deadline_s:.0f} ms), goal {self.goal!r}, run_dir {run_dir or '(none)'}"
             )
@@ -269,8 +201,8 @@ def _build_node_class() -> type:
                                                   "take every valid checkpoint"),
                 ("gate.min_updates", 0, "hold back checkpoints with fewer learner updates than this"),
             ]
-            table += [(f"goal.{g.name}", g.default, g.description) for g in GOAL_PARAMS[name]]
-            table += [(f"task.{t.name}", t.default, t.description) for t in TASK_PARAMS[name]]
+            table += [(f"goal.{g.name}", g.default, g.description) for g in self.entry.goal_params]
+            table += [(f"task.{t.name}", t.default, t.description) for t in self.entry.task_params]
             out: dict[str, Any] = {}
             for key, default, text in table:
                 self.declare_parameter(key, default, descriptor(description=text))
@@ -445,7 +377,7 @@ def create_node() -> Any:
     system = probe.declare_parameter("system", "friction").value
     remapped = probe.get_namespace() != "/"
     probe.destroy_node()
-    get_system(system)  # a clear error for an unknown name
+    get_entry(system)  # a clear error for an unknown name
     cls = _build_node_class()
     return cls(system, None if remapped else f"/{system}")
 
