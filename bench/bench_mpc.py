@@ -225,6 +225,49 @@ CASES: dict[str, Case] = {
 SYSTEMS = tuple(CASES)
 
 
+def report(system: System, model: DynamicsModel, case: Case, results: dict[str, dict[str, Stats]],
+           loops: dict[str, dict[str, Any]], starts: list[np.ndarray]) -> None:
+    """Print the tables of one system's run (see the module docstring)."""
+    name = system.name
+    print("\n1. identical problems (same model, horizon, states and warm starts), one core")
+    print(f"{'system':<12} {'solver':<12} {'n':>5} {'wall ms':>9} {'rate Hz':>9} {'cpu ms':>9} {'mean cost':>10} "
+          f"{'infeas':>6}")
+    for label, res in results.items():
+        for solver in res:
+            print(row(label, solver, res[solver]))
+    print(f"\n{'system / solver':<25} {'rate fast/slsqp: wall':>22} {'cpu':>7} {'mean cost fast/slsqp: all':>26} "
+          f"{'both feasible':>14}  target (cpu rate >= 20x, cost <= 1)")
+    for label, res in results.items():
+        for fast in (solver for solver in res if solver != "slsqp"):
+            print(ratio_row(f"{label} / {fast}", res[fast], res["slsqp"]))
+
+    if case.problems is not None:
+        f, r = results[name]["fast"], results[name]["slsqp"]
+        reach = np.array(r.cost) < 1e-3
+        for label, sel in (("reachable", reach), ("unreachable", ~reach)):
+            if sel.any():
+                tf, tr = np.mean(np.array(f.wall)[sel]), np.mean(np.array(r.wall)[sel])
+                print(f"{name} {label:<11} targets ({int(sel.sum())}): fast {1e3 * tf:.2f} ms, "
+                      f"slsqp {1e3 * tr:.2f} ms, {tr / tf:.1f}x; mean cost fast {np.mean(np.array(f.cost)[sel]):.4f}, "
+                      f"slsqp {np.mean(np.array(r.cost)[sel]):.4f}")
+
+    if loops:
+        print("\n2. fast controller in closed loop on the true system (warm-started), one core")
+        print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'cpu ms':>8} "
+              f"{'stage cost':>11}")
+    for label, loop in loops.items():
+        print(f"{label:<12} {loop['n']:>6} {1e3 * loop['mean']:>8.2f} {1e3 * loop['p95']:>8.2f} "
+              f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {1e3 * loop['cpu']:>8.2f} {loop['stage']:>11.3f}")
+    if case.target_hz is not None:
+        loop_hz = 1 / loops[name]["mean"]
+        print(f"{name} target >= {case.target_hz:.0f} Hz (mean solve <= {1e3 / case.target_hz:.0f} ms wall): "
+              f"{'yes' if loop_hz >= case.target_hz else 'NO'} ({loop_hz:.0f} Hz wall, "
+              f"{1 / loops[name]['cpu']:.0f} Hz by CPU time)")
+        out = closed_loop(system, make_controller(system, model), starts[0], case.steps)
+        print(f"{name} landing from {starts[0][:3].tolist()}: final position "
+              f"{np.round(out['xs'][-1, :3], 3).tolist()}")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench_mpc", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="fewer states (a smoke run, about a minute)")
@@ -269,43 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         n_problems = args.paddle_problems or (40 if args.quick else 200)
         results[name] = compare_one_shot(system, model, case.problems(n_problems, args.paddle_seed))
 
-    print("\n1. identical problems (same model, horizon, states and warm starts), one core")
-    print(f"{'system':<12} {'solver':<12} {'n':>5} {'wall ms':>9} {'rate Hz':>9} {'cpu ms':>9} {'mean cost':>10} "
-          f"{'infeas':>6}")
-    for label, res in results.items():
-        for solver in res:
-            print(row(label, solver, res[solver]))
-    print(f"\n{'system / solver':<25} {'rate fast/slsqp: wall':>22} {'cpu':>7} {'mean cost fast/slsqp: all':>26} "
-          f"{'both feasible':>14}  target (cpu rate >= 20x, cost <= 1)")
-    for label, res in results.items():
-        for fast in (solver for solver in res if solver != "slsqp"):
-            print(ratio_row(f"{label} / {fast}", res[fast], res["slsqp"]))
-
-    if case.problems is not None:
-        f, r = results[name]["fast"], results[name]["slsqp"]
-        reach = np.array(r.cost) < 1e-3
-        for label, sel in (("reachable", reach), ("unreachable", ~reach)):
-            if sel.any():
-                tf, tr = np.mean(np.array(f.wall)[sel]), np.mean(np.array(r.wall)[sel])
-                print(f"{name} {label:<11} targets ({int(sel.sum())}): fast {1e3 * tf:.2f} ms, "
-                      f"slsqp {1e3 * tr:.2f} ms, {tr / tf:.1f}x; mean cost fast {np.mean(np.array(f.cost)[sel]):.4f}, "
-                      f"slsqp {np.mean(np.array(r.cost)[sel]):.4f}")
-
-    if loops:
-        print("\n2. fast controller in closed loop on the true system (warm-started), one core")
-        print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'cpu ms':>8} "
-              f"{'stage cost':>11}")
-    for label, loop in loops.items():
-        print(f"{label:<12} {loop['n']:>6} {1e3 * loop['mean']:>8.2f} {1e3 * loop['p95']:>8.2f} "
-              f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {1e3 * loop['cpu']:>8.2f} {loop['stage']:>11.3f}")
-    if case.target_hz is not None:
-        loop_hz = 1 / loops[name]["mean"]
-        print(f"{name} target >= {case.target_hz:.0f} Hz (mean solve <= {1e3 / case.target_hz:.0f} ms wall): "
-              f"{'yes' if loop_hz >= case.target_hz else 'NO'} ({loop_hz:.0f} Hz wall, "
-              f"{1 / loops[name]['cpu']:.0f} Hz by CPU time)")
-        out = closed_loop(system, make_controller(system, model), starts[0], case.steps)
-        print(f"{name} landing from {starts[0][:3].tolist()}: final position "
-              f"{np.round(out['xs'][-1, :3], 3).tolist()}")
+    report(system, model, case, results, loops, starts)
     print(f"\ntotal {time.perf_counter() - t_start:.0f} s")
     return 0
 

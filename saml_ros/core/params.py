@@ -19,19 +19,22 @@ class Param:
     """One node parameter: name, default (its type is the parameter's type) and description.
 
     ``item_type`` is the element type of a list parameter (``float``, ``int`` or ``str``); it matters when the
-    default is an empty list, which does not show it.
+    default is an empty list, which does not show it. ``finite=False`` lets a float parameter be infinite
+    (never NaN).
     """
 
     name: str
     default: Any
     description: str
     item_type: type = float
+    finite: bool = True
 
 
-def coerce_param(name: str, value: Any, default: Any, item_type: type = float) -> Any:
+def coerce_param(name: str, value: Any, default: Any, item_type: type = float, finite: bool = True) -> Any:
     """A parameter value converted to the type of ``default`` (ints are accepted for floats, integral floats
-    for ints; a list parameter takes any sequence of ``item_type`` values, numbers for ``float``; an empty YAML
-    list arrives as ``None``); ``ValueError`` naming the parameter otherwise."""
+    for ints; floats must be finite unless ``finite`` is False, never NaN; a list parameter takes any sequence
+    of ``item_type`` values, numbers for ``float``; an empty YAML list arrives as ``None``); ``ValueError``
+    naming the parameter otherwise."""
     def bad() -> ValueError:
         what = f"a list of {item_type.__name__}" if isinstance(default, list) else type(default).__name__
         return ValueError(f"parameter {name!r}: expected {what}, got {value!r}")
@@ -45,7 +48,9 @@ def coerce_param(name: str, value: Any, default: Any, item_type: type = float) -
             raise bad()
         return int(value)
     if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, int | float) or math.isnan(value):
+            raise bad()
+        if finite and not math.isfinite(value):
             raise bad()
         return float(value)
     if isinstance(default, str):
@@ -69,7 +74,8 @@ def read_params(params: Iterable[Param], values: Mapping[str, Any]) -> dict[str,
     (:func:`coerce_param`), its default where ``values`` has none. ``ValueError`` naming the first bad one."""
     out: dict[str, Any] = {}
     for p in params:
-        out[p.name] = coerce_param(p.name, values[p.name], p.default, p.item_type) if p.name in values else p.default
+        out[p.name] = (coerce_param(p.name, values[p.name], p.default, p.item_type, p.finite) if p.name in values
+                       else p.default)
     return out
 
 
