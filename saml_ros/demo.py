@@ -2,7 +2,8 @@
 
 ``demo`` starts, as separate processes, the quadrotor simulator (lockstep), the learner (the paper's Sufficiently
 Accurate problem: squared one-step error <= 0.001 where pz <= 1.5 m) and the landing MPC, for a fixed simulated
-time (:func:`saml_ros.bringup.run` with the embedded configuration ``saml_ros.bringup.DEFAULTS["quadrotor"]``).
+time (:func:`saml_ros.bringup.run` with ``saml_ros.bringup.default_config("quadrotor")``, the quadrotor registry
+entry's ``bringup`` defaults).
 The MPC starts on the base model f_hat (no ground effect) and hot-swaps each checkpoint the learner writes.
 
 Then it prints a before/after summary:

@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from saml_ros.core.systems.base_models import ENTRY_POINT_GROUP, BaseModelError, BaseModelSpec
-from saml_ros.core.systems.system_file import FileSystem, read_system_file
+from saml_ros.core.systems.robot_entry import register_robot
+from saml_ros.core.systems.system_file import FileSystem, SystemFileError, read_system_file
 
 
 def import_function(target: str) -> Callable[..., Any]:
@@ -69,8 +70,14 @@ def resolve_base_model(spec: BaseModelSpec) -> Callable[..., Any] | None:
 
 def load_system_file(path: str | Path) -> FileSystem:
     """Read, validate and build the robot of system file ``path``, importing its base model if it is user code
-    (see :func:`saml_ros.core.systems.system_file.read_system_file`)."""
-    return read_system_file(path, resolve=resolve_base_model)
+    (see :func:`saml_ros.core.systems.system_file.read_system_file`), and register it under its name
+    (:func:`saml_ros.core.systems.robot_entry.register_robot`); ``SystemFileError`` on any problem."""
+    system = read_system_file(path, resolve=resolve_base_model)
+    try:
+        register_robot(system)
+    except ValueError as exc:
+        raise SystemFileError(str(path), "name", str(exc)) from None
+    return system
 
 
 def system_from_definition(definition: dict[str, Any], where: str = "") -> FileSystem:

@@ -7,6 +7,7 @@ import copy
 import math
 import sys
 import textwrap
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,17 @@ from saml_ros.user_code import load_system_file, resolve_base_model
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "diff_drive" / "system.yaml"
+
+
+@pytest.fixture(autouse=True)
+def _forget_registered_robots() -> Iterator[None]:
+    """Robots these tests load are registered by name; other test modules expect only the built-in systems."""
+    from saml_ros.core.systems import system_names, unregister_system
+
+    before = set(system_names())
+    yield
+    for name in set(system_names()) - before:
+        unregister_system(name)
 
 
 def example() -> dict[str, Any]:
@@ -303,6 +315,9 @@ def test_user_base_model_reaches_a_training_process_and_a_checkpoint(user_module
     again = get_system(s.name, **params)
     x, u = s.sample_inputs(6, np.random.default_rng(2))
     np.testing.assert_array_equal(again.base_step_np(x, u), s.base_step_np(x, u))
+    from saml_ros.core.systems import unregister_system
+
+    unregister_system(s.name)  # a fresh process: the registry has not seen the robot
     with pytest.raises(SystemFileError, match="user code is imported only when the system file is loaded"):
         get_system(s.name, **s.params())  # the definition alone: the core does not import my_robot_models
     model = DynamicsModel(s, [4])

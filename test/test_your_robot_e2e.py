@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,17 @@ NS = "/dd"
 
 ros_env = ros_helpers.ros_env
 ros_node = ros_helpers.ros_node
+
+
+@pytest.fixture(autouse=True)
+def _forget_registered_robots() -> Iterator[None]:
+    """Robots these tests load are registered by name; other test modules expect only the built-in systems."""
+    from saml_ros.core.systems import system_names, unregister_system
+
+    before = set(system_names())
+    yield
+    for name in set(system_names()) - before:
+        unregister_system(name)
 
 
 def launch_script(dom: RosDomain, script: Path, *ros_args: str) -> Process:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from saml_ros.api import load_model
 from saml_ros.bags.io import BagWriter
 from saml_ros.bags.transitions import extract_transitions
 from saml_ros.core.export import ExportError, export_model, numpy_residual
+from saml_ros.core.systems.system_file import read_system_file
 from saml_ros.offline import cli, export_cli
 from saml_ros.user_code import load_system_file
 
@@ -29,6 +31,17 @@ import dynamics  # noqa: E402
 DT_NS = 20_000_000
 T0 = 1_800_000_000 * 1_000_000_000
 DOCK = ((0.7, 1.9), (-0.5, 0.5))
+
+
+@pytest.fixture(autouse=True)
+def _forget_registered_robots() -> Iterator[None]:
+    """Robots these tests load are registered by name; other test modules expect only the built-in systems."""
+    from saml_ros.core.systems import system_names, unregister_system
+
+    before = set(system_names())
+    yield
+    for name in set(system_names()) - before:
+        unregister_system(name)
 
 
 def simulate(seconds: float, seed: int) -> tuple[list, list, dict[int, tuple[np.ndarray, np.ndarray]]]:
@@ -66,7 +79,7 @@ def simulate(seconds: float, seed: int) -> tuple[list, list, dict[int, tuple[np.
 
 
 def write_bag(path: Path, odom: list, cmds: list) -> None:
-    system = load_system_file(SYSTEM_FILE)
+    system = read_system_file(SYSTEM_FILE)  # not registered: the fixture outlives the per-test clean-up
     sc = system.schema()
     fac = TypestoreFactory()
     events = [(t + 700_000, "/dd/odom", sc.state_to_msg(x, t, factory=fac)) for t, x in odom]

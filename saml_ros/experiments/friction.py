@@ -23,7 +23,6 @@ import numpy as np
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
-from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
@@ -125,8 +124,7 @@ def run(settings: FrictionSettings, out: Path, progress: bool = True) -> dict[st
     s = settings
     timer = Timer()
     info = machine_info()
-    system = get_system("friction")
-    assert isinstance(system, FrictionDoubleIntegrator)
+    system = FrictionDoubleIntegrator()
     spec, cmp = train_paper_comparison(system, s.seeds, s.n_train, s.n_test, s.hidden, s.epochs, timer, progress)
     models = {"uniform": cmp.uniform.model, "sufficient": cmp.sufficient.model}
     x0s = starts(s.n_starts, s.start_seed)

@@ -31,7 +31,6 @@ import torch
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import Controller, MPCResult, make_controller
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point, roll_pitch_from_normal
 from saml_ros.core.training import TrainConfig
 from saml_ros.core.worlds.paddle_world import CollectStats, PaddleBallWorld, collect_impacts, impacts_to_arrays
@@ -269,8 +268,7 @@ def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str,
     s = settings
     timer = Timer()
     info = machine_info()
-    system = get_system("paddle_ball")
-    assert isinstance(system, PaddleBall)
+    system = PaddleBall()
     specs = {"sufficient": ProblemSpec.for_system(system.paper_spec(), system),
              "uniform": ProblemSpec.for_system(uniform_spec(), system)}
     with timer("collect"):

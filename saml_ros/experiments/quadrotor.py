@@ -23,7 +23,6 @@ import numpy as np
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import ClosedLoopRun, MPCResult, closed_loop, make_controller
-from saml_ros.core.systems import get_system
 from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
@@ -173,8 +172,7 @@ def run(settings: QuadrotorSettings, out: Path, progress: bool = True) -> dict[s
     s = settings
     timer = Timer()
     info = machine_info()
-    system = get_system("quadrotor")
-    assert isinstance(system, Quadrotor)
+    system = Quadrotor()
     spec, cmp = train_paper_comparison(system, s.seeds, s.n_train, min(s.n_test, 10000), s.hidden, s.epochs, timer,
                                        progress)
     with timer("test errors"):

@@ -21,7 +21,7 @@ import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.spec import ProblemSpec, SpecError
-from saml_ros.core.systems import SYSTEM_NAMES, get_system
+from saml_ros.core.systems import get_entry, get_system, system_names
 from saml_ros.core.training import TrainConfig, save_checkpoint
 from saml_ros.offline.pipelines import evaluate_models, generate_datasets, mean_std, train_models
 from saml_ros.offline.plots import plot_training_curves
@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--system", choices=SYSTEM_NAMES)
+    which.add_argument("--system", choices=system_names())
     which.add_argument("--system-file", type=Path, help="a robot described by a system file (docs/your_robot.md); "
                        "its data comes from --bag")
     p.add_argument("--spec", type=Path, help="problem spec YAML (default: the paper's spec for the system)")
@@ -57,14 +57,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="output run directory (default: runs/train-<system>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
-
-
-#: the paper's dataset sizes and epochs per system
-PAPER_DEFAULTS: dict[str, dict[str, int]] = {
-    "friction": {"samples": 15000, "epochs": 200},
-    "quadrotor": {"samples": 10000, "epochs": 3000},
-    "paddle_ball": {"samples": 20000, "epochs": 200},
-}
 
 
 def _parse_noise(items: list[str]) -> dict[str, float]:
@@ -92,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         from saml_ros.user_code import load_system_file
 
         try:
-            system = load_system_file(args.system_file)
+            system = load_system_file(args.system_file)  # registers the robot
         except SystemFileError as exc:
             print(f"train: {exc}", file=sys.stderr)
             return 2
@@ -112,9 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     except (SpecError, KeyError, OSError) as exc:
         print(f"train: {exc}", file=sys.stderr)
         return 2
-    defaults = PAPER_DEFAULTS.get(system.name, {"samples": 0, "epochs": 200})
-    epochs = args.epochs if args.epochs is not None else defaults["epochs"]
-    n_train = args.samples or defaults["samples"]
+    entry = get_entry(system.name)  # the paper's dataset size and epochs
+    epochs = args.epochs if args.epochs is not None else entry.paper_epochs
+    n_train = args.samples or entry.paper_samples
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
     config = TrainConfig(epochs=epochs, batch_size=args.batch_size, primal_lr=args.primal_lr,
                          dual_lr=args.dual_lr, primal_optimizer=args.primal_optimizer,

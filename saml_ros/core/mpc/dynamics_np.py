@@ -23,6 +23,7 @@ from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.core.systems.registry import find_entry
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -251,14 +252,12 @@ class TorchBaseNP:
 
 
 def base_model_np(system: System) -> BaseModelNP:
-    """The numpy twin of ``system.base_step`` (autograd fallback for systems without one)."""
-    if isinstance(system, Quadrotor):
-        return QuadrotorBaseNP(system)
-    if isinstance(system, FrictionDoubleIntegrator):
-        return FrictionBaseNP(system)
-    if isinstance(system, PaddleBall):
-        return PaddleBaseNP(system)
-    return TorchBaseNP(system)
+    """The numpy twin of ``system.base_step`` its registry entry names (autograd fallback for systems without
+    one, or not registered)."""
+    entry = find_entry(system.name)
+    if entry is None or entry.base_model_np is None or not isinstance(system, entry.system_class()):
+        return TorchBaseNP(system)
+    return entry.base_model_np(system)
 
 
 class NumpyDynamics:

@@ -6,20 +6,17 @@ from typing import Any
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import Controller
-from saml_ros.core.mpc.paddle import GaussNewtonPaddle, SLSQPPaddle
-from saml_ros.core.mpc.shooting import SLSQPShootingMPC, SQPShootingMPC
 from saml_ros.core.systems.base import System
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.systems.paddle_ball import PaddleBall
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.core.systems.registry import get_entry
 
+#: the MPC solvers; every system's registry entry has a controller for each
 SOLVERS = ("fast", "slsqp")
 
 
 def make_controller(
     system: System, model: DynamicsModel | None = None, solver: str = "fast", **options: Any
 ) -> Controller:
-    """The paper's MPC for ``system`` (friction, quadrotor or paddle_ball) planning with ``model``.
+    """The paper's MPC for ``system`` planning with ``model``: the controller its registry entry names.
 
     Args:
         system: the system to control (its ``base_step`` is f_hat; ``true_step`` is never used).
@@ -27,9 +24,9 @@ def make_controller(
             default 0), or None for the base model f_hat alone. Swap later with ``set_model``.
         solver: ``"fast"`` (exact-derivative SQP / Gauss-Newton, warm-started) or ``"slsqp"`` (the paper's
             reference: scipy SLSQP with finite differences).
-        options: ``horizon`` (time-stepped systems, default 10; ignored by the one-shot paddle ball),
-            ``member``, ``feas_tol``; quadrotor task options ``min_height`` (0.2 m), ``qw_tol`` (0.05); solver
-            options, see :class:`SQPShootingMPC`, :class:`SLSQPShootingMPC`, :class:`GaussNewtonPaddle`,
+        options: ``horizon`` (default 10; ignored by a one-shot MPC such as the paddle ball's), ``member``,
+            ``feas_tol``; task options (the entry's ``task_params``, e.g. the quadrotor's ``min_height`` (0.2 m)
+            and ``qw_tol`` (0.05)); solver options, see :class:`SQPShootingMPC`, :class:`SLSQPShootingMPC`, :class:`GaussNewtonPaddle`,
             :class:`SLSQPPaddle` (e.g. ``max_iter``, ``tol``, ``max_time``).
 
     Raises:
@@ -37,9 +34,7 @@ def make_controller(
     """
     if solver not in SOLVERS:
         raise ValueError(f"unknown MPC solver {solver!r}; valid: {list(SOLVERS)}")
-    if isinstance(system, PaddleBall):
+    entry = get_entry(system.name)
+    if not entry.mpc_horizon:
         options.pop("horizon", None)  # one-shot: a horizon (e.g. the MPC node's generic parameter) is ignored
-        return (GaussNewtonPaddle if solver == "fast" else SLSQPPaddle)(system, model, **options)
-    if isinstance(system, (FrictionDoubleIntegrator, Quadrotor)):
-        return (SQPShootingMPC if solver == "fast" else SLSQPShootingMPC)(system, model, **options)
-    raise ValueError(f"no MPC for system {system.name!r}")
+    return entry.controllers()[solver](system, model, **options)

@@ -281,6 +281,9 @@ class FileSystem(System):
         SystemFileError: the base model cannot be built, or the spec / pairing does not fit.
     """
 
+    #: :func:`parse_definition`, reachable from the class (the registry entry rebuilds robots with it)
+    parse = staticmethod(parse_definition)
+
     def __init__(self, definition: Mapping[str, Any], where: str = "<definition>", *,
                  resolve: Callable[[BaseModelSpec], Callable[..., Any] | None] | None = None,
                  function: Callable[..., Any] | None = None) -> None:
@@ -332,6 +335,10 @@ class FileSystem(System):
     @property
     def state_high(self) -> np.ndarray:
         return self._x_high.copy()
+
+    def safe_control(self) -> np.ndarray:
+        """The file's ``control.safe`` command (default: zeros clipped into the bounds)."""
+        return self.safe_command.copy()
 
     def true_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError(f"{self.name} is a robot described by a system file: saml_ros has no simulator "

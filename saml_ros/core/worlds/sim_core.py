@@ -36,6 +36,7 @@ import torch
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.core.systems.registry import get_entry
 
 NS_PER_S = 1_000_000_000
 MODES = ("realtime", "lockstep")
@@ -270,8 +271,8 @@ def friction_start(rng: np.random.Generator) -> np.ndarray:
 
 
 def friction_model(system: FrictionDoubleIntegrator) -> SteppedModel:
-    """Double integrator: safe default u = 0, starts from :func:`friction_start`."""
-    return SteppedModel(system, np.zeros(1), friction_start)
+    """Double integrator: safe default u = 0 (``system.safe_control()``), starts from :func:`friction_start`."""
+    return SteppedModel(system, system.safe_control(), friction_start)
 
 
 def quadrotor_start(system: Quadrotor, rng: np.random.Generator) -> np.ndarray:
@@ -307,12 +308,13 @@ def _normalize_quaternion(x: np.ndarray) -> np.ndarray:
 
 
 def quadrotor_model(system: Quadrotor, landing_height: float = 0.1) -> SteppedModel:
-    """Quadrotor: safe default = hover thrust, starts from :func:`quadrotor_start`, :func:`ground_contact`."""
+    """Quadrotor: safe default = hover thrust (``system.safe_control()``), starts from :func:`quadrotor_start`,
+    :func:`ground_contact`."""
     if not (math.isfinite(landing_height) and landing_height >= 0):
         raise ValueError(f"landing_height must be a finite number >= 0 m, got {landing_height}")
     return SteppedModel(
         system,
-        system.hover_thrust(),
+        system.safe_control(),
         lambda rng: quadrotor_start(system, rng),
         lambda x: ground_contact(x, landing_height),
         _normalize_quaternion,
@@ -566,12 +568,11 @@ class SteppedSim(SimCore):
 
 
 def build_stepped_sim(system: System, config: SimConfig, *, publish_clock: bool = True,
-                      landing_height: float = 0.1) -> SteppedSim:
-    """The :class:`SteppedSim` of a friction or quadrotor system."""
-    if isinstance(system, Quadrotor):
-        model = quadrotor_model(system, landing_height)
-    elif isinstance(system, FrictionDoubleIntegrator):
-        model = friction_model(system)
-    else:
+                      **options: Any) -> SteppedSim:
+    """The :class:`SteppedSim` of a time-stepped system: its registry entry's ``stepped_model`` with ``options``
+    (the quadrotor's ``landing_height``, m, default 0.1). ``ValueError`` for an event-based system."""
+    model = get_entry(system.name).stepped_model
+    if model is None:
         raise ValueError(f"no time-stepped simulator for system {system.name!r}")
-    return SteppedSim(model, config, publish_clock=publish_clock)
+    return SteppedSim(model(system, **options), config, publish_clock=publish_clock)
+

@@ -27,6 +27,7 @@ import numpy as np
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.core.systems.registry import get_entry
 
 
 @dataclass(frozen=True)
@@ -179,16 +180,19 @@ def quadrotor_task(
 
 
 def make_task(system: System, horizon: int = 10, **options: Any) -> ShootingTask:
-    """The paper's MPC problem for a time-stepped ``system`` (friction or quadrotor)."""
+    """The paper's MPC problem for a time-stepped ``system``: its registry entry's ``mpc_task`` with the task
+    ``options`` (the entry's ``task_params``, e.g. the quadrotor's ``min_height`` and ``qw_tol``).
+
+    Raises:
+        ValueError: ``horizon < 1``, or the system has no shooting task; TypeError: an unknown option.
+    """
     if horizon < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
-    if isinstance(system, FrictionDoubleIntegrator):
-        if options:
-            raise TypeError(f"friction MPC has no option(s) {sorted(options)}")
-        return friction_task(system, horizon)
-    if isinstance(system, Quadrotor):
-        unknown = set(options) - {"min_height", "qw_tol"}
-        if unknown:
-            raise TypeError(f"quadrotor MPC has no option(s) {sorted(unknown)}; valid: min_height, qw_tol")
-        return quadrotor_task(system, horizon, **options)
-    raise ValueError(f"no shooting MPC task for system {system.name!r}")
+    entry = get_entry(system.name)
+    if entry.mpc_task is None:
+        raise ValueError(f"no shooting MPC task for system {system.name!r}")
+    valid = [p.name for p in entry.task_params]
+    unknown = sorted(set(options) - set(valid))
+    if unknown:
+        raise TypeError(f"{system.name} MPC has no option(s) {unknown}; valid: {', '.join(valid) or 'none'}")
+    return entry.mpc_task(system, horizon, **options)
