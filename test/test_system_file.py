@@ -326,3 +326,26 @@ def test_user_base_model_reaches_a_training_process_and_a_checkpoint(user_module
     save_checkpoint(CheckpointStore(tmp_path), trainer)
     loaded = load_model(tmp_path)
     np.testing.assert_allclose(loaded.predict(x, u), model.predict_np(x, u), atol=1e-6)
+
+
+def test_a_loaded_robot_is_a_registry_entry(tmp_path: Path) -> None:
+    """load_system_file registers the robot: the schema and the system are found by name, a process that only has
+    the stored definition rebuilds it, and the MPC refuses it with a clear message (no task for a robot)."""
+    from msg_schemas import get_schema
+    from saml_ros.core.mpc.factory import make_controller
+    from saml_ros.core.systems import get_entry, get_system, unregister_system
+
+    s = load_system_file(EXAMPLE)
+    assert get_schema("diff_drive").state_topic == "odom"
+    assert get_entry("diff_drive").make_system().schema_hash() == s.schema_hash()
+    with pytest.raises(ValueError, match="no MPC task for it"):
+        make_controller(s, "fast")
+    unregister_system("diff_drive")
+    rebuilt = get_system("diff_drive", **s.params())  # the registry loader: from the stored definition alone
+    assert rebuilt.schema_hash() == s.schema_hash() and get_entry("diff_drive") is not None
+    raw = example()
+    raw["name"] = "friction"
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(SystemFileError, match="is the built-in system of that name"):
+        load_system_file(path)
