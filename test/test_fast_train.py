@@ -238,3 +238,56 @@ def test_engines_can_be_mixed_and_resumed():
     restored.load_state(mixed.state())
     for a, b in zip(restored.model.parameters(), mixed.model.parameters()):
         assert torch.equal(a, b)
+
+
+#: every dual method with parameters that make its arithmetic matter within a short run
+METHODS: dict[str, dict[str, Any]] = {
+    "nupi": {"dual_method": "nupi", "dual_lr": 0.05, "nupi_kp": 5.0, "nupi_ema": 0.3},
+    "augmented": {"dual_method": "augmented", "penalty": 0.5},
+    "augmented_sgd": {"dual_method": "augmented", "penalty": 0.5, "dual_optimizer": "sgd", "dual_lr": 1.0},
+    "resilient": {"dual_method": "resilient", "relax_cost": 0.002},
+    "resilient_sgd": {"dual_method": "resilient", "relax_cost": 0.002, "dual_optimizer": "sgd", "dual_lr": 1.0},
+}
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+@pytest.mark.parametrize("spec_name", ["paper", "mixed"])
+def test_fast_equals_plain_for_every_dual_method(method, spec_name):
+    """Every dual method in flat form: ~180 steps in float64 with the same bounds as the paper's method (lambda, the
+    dual optimizer's state, the history); the methods do move lambda differently from the paper's."""
+    cfg = TrainConfig.paper(**{"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
+                               "seed": 5, "log_every": 7, **METHODS[method]})
+    plain, fast, dp, df = _pair(SPECS[spec_name], cfg)
+    assert fast_engine.unsupported_reason(fast, df) is None
+    plain.fit(dp)
+    fast.fit(df)
+    assert plain.history.as_arrays()["lambdas"].max() > 0
+    _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
+    ref, _, dr, _ = _pair(SPECS[spec_name], replace(cfg, dual_method="paper", dual_optimizer="adam", dual_lr=5e-2))
+    ref.fit(dr)
+    assert float((ref.lam - plain.lam).abs().max()) > 1e-3  # the method changed the run
+
+
+@pytest.mark.parametrize("schedules", [("cosine", "cosine"), ("step", "step"), ("cosine", "constant"),
+                                       ("constant", "step")])
+@pytest.mark.parametrize("method", ["paper", "nupi", "augmented"])
+def test_fast_equals_plain_under_learning_rate_schedules(schedules, method):
+    """Schedules in both engines: the same rates per update (equal schedules keep the dual Adam merged into the
+    primal flat tensor, different ones do not), a horizon of the run's own length, and the optimizers' final
+    learning rates are the last update's."""
+    primal, dual = schedules
+    cfg = TrainConfig.paper(**{"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
+                               "seed": 5, "primal_schedule": primal, "dual_schedule": dual, "lr_floor": 0.1,
+                               "lr_drops": 3, **({} if method == "paper" else METHODS[method])})
+    plain, fast, dp, df = _pair(SPECS["paper"], cfg)
+    plain.fit(dp)
+    fast.fit(df)
+    run = fast_engine.FastRun(fast, df)
+    assert (run.k_dual is not None) == (method != "nupi" and primal == dual)
+    _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
+    steps = plain.steps
+    for tr in (plain, fast):
+        ps, ds = tr.schedules
+        assert ps.horizon == steps  # epochs x minibatches per epoch
+        assert tr.primal_opt.param_groups[0]["lr"] == ps.lr(steps - 1)
+        assert tr.dual.lr == ds.lr(steps - 1)

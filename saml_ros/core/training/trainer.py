@@ -30,6 +30,7 @@ from saml_ros.core.training.dual import DualVariables
 from saml_ros.core.training.engines import ENGINES, PlainEngine, minibatch_plan, primal_dual_step
 from saml_ros.core.training.evaluate import evaluate_spec
 from saml_ros.core.training.history import FeasibilityReport, History, TrainingLog, check_feasibility, progress_bar
+from saml_ros.core.training.schedule import LRSchedule, schedules_for
 
 log = logging.getLogger("saml_ros.trainer")
 
@@ -40,7 +41,11 @@ class PrimalDualTrainer:
     Attributes (what engines read and update, :class:`~saml_ros.core.training.engines.RunState`):
         model, spec, config: the model (moved to ``config``'s dtype), the problem, the hyper-parameters.
         primal_opt: the optimizer of the network parameters.
-        dual: the dual variables (lambda ``(E, K)`` and their optimizer).
+        dual: the dual variables (lambda ``(E, K)``, their method and optimizer; :mod:`~saml_ros.core.training.dual`).
+        schedules: the ``(primal, dual)`` learning-rate schedules (:mod:`~saml_ros.core.training.schedule`); their
+            horizon is ``config.schedule_steps``, or, from :meth:`fit` on, ``config.epochs`` x the data's
+            minibatches per epoch when that is 0 (online without it, ``"auto"`` schedules are constant and
+            an explicit one is None until :meth:`fit`: :meth:`step` then raises ``ValueError``).
         rng: the generator minibatches are drawn from.
         log: the history and the minibatch values since its last row.
         steps: primal-dual updates done so far; epochs_done: passes over the data of :meth:`fit` so far.
@@ -54,7 +59,13 @@ class PrimalDualTrainer:
         self.model.to(self.config.torch_dtype)
         self.primal_opt = make_optimizer(self.config.primal_optimizer, list(model.net.parameters()),
                                          self.config.primal_lr, maximize=False)
-        self.dual = DualVariables.for_config(self.config, model.n_models, spec.n_constraints)
+        self.dual = DualVariables.for_config(self.config, model.n_models, spec.n_constraints,
+                                             [t.eps for t in spec.constraints])
+        self.schedules: tuple[LRSchedule, LRSchedule] | None = None
+        try:
+            self.schedules = schedules_for(self.config, 0)
+        except ValueError:  # an explicit schedule without schedule_steps: fit() knows the horizon
+            pass
         self.steps = 0
         self.epochs_done = 0.0
         self.log = TrainingLog(spec.constraint_names)
@@ -122,6 +133,8 @@ class PrimalDualTrainer:
         infeasible are logged as warnings (:meth:`feasibility`).
         """
         epochs = self.config.epochs if epochs is None else epochs
+        self.schedules = schedules_for(self.config, self.config.epochs * minibatch_plan(self.config.batch_size,
+                                                                                         len(data))[1])
         engine = ENGINES[self.config.engine]()
         why = engine.unsupported_reason(self, data)
         if why is not None:
@@ -166,10 +179,13 @@ class PrimalDualTrainer:
         }
 
     def load_state(self, st: dict[str, Any]) -> None:
-        """Restore what :meth:`state` returned (``rng`` and ``epochs_done`` optional)."""
+        """Restore what :meth:`state` returned (``rng`` and ``epochs_done`` optional; ``dual_opt`` None: lambda only)."""
         self.model.load_state_dict(st["model"])
         self.primal_opt.load_state_dict(st["primal_opt"])
-        self.dual.load_state_dict({"lam": st["lam"], "optimizer": st["dual_opt"]})
+        if st.get("dual_opt") is None:  # keep the fresh optimizer (e.g. the checkpoint's was another method's)
+            self.dual.assign_(st["lam"])
+        else:
+            self.dual.load_state_dict({"lam": st["lam"], "optimizer": st["dual_opt"]})
         self.steps = int(st["steps"])
         self.epochs_done = float(st.get("epochs_done", 0.0))
         if "rng" in st:
