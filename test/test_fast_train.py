@@ -245,8 +245,8 @@ METHODS: dict[str, dict[str, Any]] = {
     "nupi": {"dual_method": "nupi", "dual_lr": 0.05, "nupi_kp": 5.0, "nupi_ema": 0.3},
     "augmented": {"dual_method": "augmented", "penalty": 0.5},
     "augmented_sgd": {"dual_method": "augmented", "penalty": 0.5, "dual_optimizer": "sgd", "dual_lr": 1.0},
-    "resilient": {"dual_method": "resilient", "relax_cost": 0.002},
-    "resilient_sgd": {"dual_method": "resilient", "relax_cost": 0.002, "dual_optimizer": "sgd", "dual_lr": 1.0},
+    "resilient": {"dual_method": "resilient", "relax_cost": 2.0},
+    "resilient_sgd": {"dual_method": "resilient", "relax_cost": 2.0, "dual_optimizer": "sgd", "dual_lr": 1.0},
 }
 
 

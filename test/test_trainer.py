@@ -12,6 +12,7 @@ import torch
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training import DualVariables, PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training.diagnosis import INFEASIBLE, MET
 
 
 def _two_groups(n: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -69,14 +70,15 @@ def test_uniform_baseline_ignores_constraint(toy_system):
     assert float(tr.model.predict_np(np.ones(1), np.zeros(1))[0]) == pytest.approx(0.5, abs=5e-3)
 
 
+INFEASIBLE_SPEC = {**CONVEX_SPEC, "constraints": CONVEX_SPEC["constraints"] + [
+    {"name": "zeros", "loss": "squared_l2", "eps": 0.04, "region": {"box": {"next.y": [None, 0.5]}}},
+]}
+
+
 def test_infeasible_constraint_grows_lambda_and_is_reported(toy_system, caplog):
-    spec = dict(CONVEX_SPEC)
-    spec["constraints"] = CONVEX_SPEC["constraints"] + [
-        {"name": "zeros", "loss": "squared_l2", "eps": 0.04, "region": {"box": {"next.y": [None, 0.5]}}},
-    ]
-    cfg = TrainConfig(epochs=600, batch_size=200, primal_lr=0.01, dual_lr=0.05,
-                      primal_optimizer="adam", dual_optimizer="sgd", dtype="float64")
-    tr, data, _ = _trainer(toy_system, spec, cfg)
+    cfg = TrainConfig.paper(epochs=600, batch_size=200, primal_lr=0.01, dual_lr=0.05,
+                            primal_optimizer="adam", dual_optimizer="sgd", dtype="float64")
+    tr, data, _ = _trainer(toy_system, INFEASIBLE_SPEC, cfg)
     with caplog.at_level(logging.WARNING, logger="saml_ros.trainer"):
         tr.fit(data)
     lam = tr.history.as_arrays()["lambdas"][:, 0, :]
@@ -85,7 +87,88 @@ def test_infeasible_constraint_grows_lambda_and_is_reported(toy_system, caplog):
     assert lam[-1].sum() > lam[len(lam) // 2].sum() + 1.0
     report = tr.feasibility()
     assert not report.ok
-    assert any("infeasible" in r.message for r in caplog.records)
+    assert tr.diagnosis is not None and [c.verdict for c in tr.diagnosis.constraints] == [INFEASIBLE, INFEASIBLE]
+    assert sum("LIKELY INFEASIBLE" in r.message for r in caplog.records) == 2
+
+
+#: per dual method: its parameters on the convex problem (dual SGD at 0.05 for the paper's; the same dual step for
+#: the others in their units: nuPI's error is g / eps, the augmented Lagrangian ascends on rho g with rho = c / eps)
+CONVEX_METHODS: dict[str, dict] = {
+    "paper": {"dual_method": "paper"},
+    "paper_adam": {"dual_method": "paper", "dual_optimizer": "adam", "dual_lr": 0.01},
+    "nupi": {"dual_method": "nupi", "dual_lr": 0.05 * 0.04, "nupi_kp": 2.0, "nupi_ema": 0.2},
+    "augmented": {"dual_method": "augmented", "penalty": 0.05 * 0.04, "dual_lr": 1.0},
+    "resilient": {"dual_method": "resilient", "relax_cost": 1.0, "dual_lr": 0.5},
+}
+
+
+def _resilient_optimum(alpha: float, eps: float = 0.04) -> tuple[float, float]:
+    """(c, lambda) of the resilient convex problem: f = ((c - 1)^2 + c^2) / 2, g = (c - 1)^2 - eps; stationarity
+    f' + lambda g' = 0 gives lambda = (2c - 1) / (2 (1 - c)); the relaxation's best response u = lambda eps^2 /
+    (alpha f) equals g at the saddle point. Solved by bisection on c in (0.5, 0.8)."""
+    def gap(c: float) -> float:
+        lam = (2 * c - 1) / (2 * (1 - c))
+        f = ((c - 1) ** 2 + c**2) / 2
+        return ((c - 1) ** 2 - eps) - lam * eps**2 / (alpha * f)
+
+    lo, hi = 0.5 + 1e-9, 0.8  # gap(lo) > 0 (g large, lambda ~ 0), gap(0.8) < 0 (g = 0)
+    for _ in range(200):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if gap(mid) > 0 else (lo, mid)
+    c = (lo + hi) / 2
+    return c, (2 * c - 1) / (2 * (1 - c))
+
+
+@pytest.mark.parametrize("engine", ["fast", "plain"])
+@pytest.mark.parametrize("method", sorted(CONVEX_METHODS))
+def test_every_dual_method_reaches_the_convex_optimum(toy_system, method, engine):
+    """c* = 0.8, lambda* = 1.5 (to 5e-3 / 0.05) for every method; the resilient method reaches its own saddle point
+    (relaxation at price alpha = 1: c = 0.785, lambda = 1.33), and its diagnosis says it paid for a relaxation."""
+    cfg = TrainConfig.paper(**{"epochs": 3000, "batch_size": 200, "primal_lr": 0.01, "dual_lr": 0.05,
+                               "dual_optimizer": "sgd", "dtype": "float64", "engine": engine,
+                               **CONVEX_METHODS[method]})
+    tr, data, _ = _trainer(toy_system, CONVEX_SPEC, cfg)
+    tr.fit(data)
+    assert tr.engine_used == engine
+    c = float(tr.model.predict_np(np.ones(1), np.zeros(1))[0])
+    lam = float(tr.lam[0, 0])
+    verdict = tr.diagnosis.constraints[0].verdict
+    if method == "resilient":
+        c_r, lam_r = _resilient_optimum(1.0)
+        assert c_r == pytest.approx(0.785, abs=2e-3) and lam_r == pytest.approx(1.33, abs=0.01)
+        assert c == pytest.approx(c_r, abs=2e-3)
+        assert lam == pytest.approx(lam_r, abs=0.02)
+        assert verdict == INFEASIBLE  # relaxed by (1 - c)^2 - eps = 15 % of eps: out of reach at this price
+        assert float(tr.dual.relaxation(torch.tensor([0.331]))[0, 0]) == pytest.approx((1 - c_r) ** 2 - 0.04,
+                                                                                      rel=0.05)
+    else:
+        assert c == pytest.approx(0.8, abs=5e-3)
+        assert lam == pytest.approx(1.5, abs=0.05)
+        assert float(tr.evaluate(data)["objective"][0]) == pytest.approx(0.34, abs=5e-3)
+        assert verdict == MET
+
+
+@pytest.mark.parametrize("method", sorted(CONVEX_METHODS))
+def test_every_dual_method_reports_infeasibility_and_does_not_diverge(toy_system, method):
+    """Two constraints no c meets (c >= 0.8 and c <= 0.2): every method ends at c = 0.5 (the symmetric compromise),
+    finite, with both constraints diagnosed as likely infeasible; the resilient method's multipliers settle
+    (bounded by the price of the relaxation) while the others keep growing."""
+    lams = []
+    for epochs in (3000, 6000):
+        cfg = TrainConfig.paper(**{"epochs": epochs, "batch_size": 200, "primal_lr": 0.01, "dual_lr": 0.05,
+                                   "dual_optimizer": "sgd", "dtype": "float64", **CONVEX_METHODS[method]})
+        tr, data, _ = _trainer(toy_system, INFEASIBLE_SPEC, cfg)
+        tr.fit(data)
+        c = float(tr.model.predict_np(np.ones(1), np.zeros(1))[0])
+        assert np.isfinite(c) and c == pytest.approx(0.5, abs=0.05)
+        assert torch.isfinite(tr.lam).all()
+        assert [d.verdict for d in tr.diagnosis.constraints] == [INFEASIBLE, INFEASIBLE]
+        assert all(d.lambda_rising or method == "resilient" for d in tr.diagnosis.constraints)
+        lams.append(float(tr.lam.sum()))
+    if method == "resilient":
+        assert lams[1] == pytest.approx(lams[0], rel=0.02)
+    else:
+        assert lams[1] > 1.5 * lams[0]
 
 
 def test_ensemble_members_are_independent(toy_system):

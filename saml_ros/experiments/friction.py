@@ -130,7 +130,7 @@ def run(settings: FrictionSettings, out: Path, progress: bool = True) -> dict[st
     system = get_system("friction")
     assert isinstance(system, FrictionDoubleIntegrator)
     spec = ProblemSpec.for_system(system.paper_spec(), system)
-    config = TrainConfig(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
+    config = TrainConfig.paper(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
     with timer("train"), quiet_trainer_warnings(), flush_denormals():
         cmp = compare(system, spec, config, list(s.seeds), s.n_train, s.n_test, s.hidden, progress=progress)
     models = {"uniform": cmp.uniform.model, "sufficient": cmp.sufficient.model}

@@ -178,7 +178,7 @@ def run(settings: QuadrotorSettings, out: Path, progress: bool = True) -> dict[s
     system = get_system("quadrotor")
     assert isinstance(system, Quadrotor)
     spec = ProblemSpec.for_system(system.paper_spec(), system)
-    config = TrainConfig(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
+    config = TrainConfig.paper(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
     with timer("train"), quiet_trainer_warnings(), flush_denormals():
         cmp = compare(system, spec, config, list(s.seeds), s.n_train, min(s.n_test, 10000), s.hidden,
                       progress=progress)

@@ -53,8 +53,9 @@ class TrainConfig:
         nupi_kp: nuPI's proportional gain K_P (the integral gain is 1, the step ``dual_lr``).
         nupi_ema: nuPI's smoothing nu of the error signal (0: none), in [0, 1).
         penalty: augmented Lagrangian's penalty c, in objective units: rho_k = c / eps_k.
-        relax_cost: resilient constraints' price alpha (objective units) of relaxing eps_k by u_k:
-            h(u) = alpha / 2 * sum_k (u_k / eps_k)^2.
+        relax_cost: resilient constraints' price alpha (dimensionless) of relaxing eps_k by u_k:
+            h(u) = alpha f / 2 * sum_k (u_k / eps_k)^2 with f the objective (relaxing eps by a fraction r costs
+            alpha r^2 / 2 times the objective).
         primal_schedule / dual_schedule: learning-rate schedule (:data:`SCHEDULES`) over the update count:
             ``"constant"``, ``"step"`` (times ``lr_gamma`` at each of ``lr_drops`` evenly spaced drops) or
             ``"cosine"`` (cosine decay to ``lr_floor`` times the starting value); ``"auto"``: constant for the
@@ -80,7 +81,7 @@ class TrainConfig:
     nupi_kp: float = 10.0
     nupi_ema: float = 0.0
     penalty: float = 1.0
-    relax_cost: float = 1.0
+    relax_cost: float = 100.0
     primal_schedule: str = "auto"
     dual_schedule: str = "auto"
     schedule_steps: int = 0

@@ -14,12 +14,14 @@ detached minibatch constraint estimates ``g`` ``(E, K)`` and projects it onto ``
   ``relu(lambda_k + rho_k g_k)``; lambda ascends on ``rho_k g_k`` (with SGD at lr 1 that is the method of
   multipliers, lambda <- relu(lambda + rho g)); ``rho_k = penalty / eps_k``.
 * :class:`ResilientDual` (``"resilient"``, Hounie et al. 2023, "Resilient constrained learning"): each
-  constraint may be relaxed to ``g_k <= u_k`` at a cost ``h(u) = alpha / 2 sum_k (u_k / eps_k)^2`` added to the
-  objective; the relaxation takes its exact minimiser for the current lambda, ``u_k = lambda_k eps_k^2 / alpha``
-  (``h'(u) = lambda``), and lambda ascends on the relaxed violation ``g_k - u_k``. At a saddle point
-  ``lambda_k = alpha u_k / eps_k^2``: a constraint is relaxed only as far as its multiplier, the objective's
-  price of the constraint, exceeds what the relaxation costs, and lambda stays bounded when ``eps`` is
-  out of reach.
+  constraint may be relaxed to ``g_k <= u_k`` at a cost ``h(u) = alpha f / 2 sum_k (u_k / eps_k)^2`` added to the
+  objective, with ``f`` the objective's minibatch estimate (so the price ``alpha`` is dimensionless: relaxing
+  ``eps_k`` by a fraction ``r`` costs ``alpha r^2 / 2`` times the objective). The relaxation takes its exact
+  minimiser for the current lambda, ``u_k = lambda_k eps_k^2 / (alpha f)`` (``h'(u) = lambda``), and lambda
+  ascends on the relaxed violation ``g_k - u_k``. At a saddle point the relative relaxation is
+  ``u_k / eps_k = (lambda_k eps_k / f) / alpha``: the constraint's elasticity (the relative objective gain per
+  relative relaxation of eps) over the price, so a constraint is relaxed only where it is expensive, and lambda
+  stays bounded when ``eps`` is out of reach.
 
 What an engine needs from the dual variables is :meth:`~DualVariables.primal_weights` (the weights of ``g`` in
 the primal gradient), :meth:`~DualVariables.ascent` (what the optimizer ascends on), :attr:`~DualVariables.value`
@@ -87,11 +89,6 @@ class DualVariables:
         """lambda ``(E, K)``, always >= 0 (a detached view: it changes with every :meth:`step`)."""
         return self.param.detach()
 
-    @property
-    def relaxation(self) -> torch.Tensor:
-        """How far each constraint is relaxed, ``u`` ``(E, K)`` in the constraint's units (0 but for resilient)."""
-        return torch.zeros_like(self.value)
-
     def primal_weights(self, g: torch.Tensor) -> torch.Tensor:
         """Weights ``(E, K)`` of the constraint estimates ``g`` in the primal gradient (lambda here)."""
         return self.value
@@ -100,15 +97,22 @@ class DualVariables:
         """The primal loss per member ``(E,)``: ``objective + sum_k lambda_k g_k`` with lambda held fixed."""
         return vals.lagrangian(self.value)
 
-    def ascent(self, g: torch.Tensor) -> torch.Tensor:
-        """What the optimizer ascends on, from the detached minibatch estimates ``g`` ``(E, K)`` (``g`` here)."""
+    def ascent(self, g: torch.Tensor, f: torch.Tensor | None = None) -> torch.Tensor:
+        """What the optimizer ascends on, from the detached minibatch estimates of the constraints ``g`` ``(E, K)``
+        and of the objective ``f`` ``(E,)`` (``g`` here)."""
         return g.clone()
 
-    def step(self, g: torch.Tensor) -> None:
-        """Ascend on :meth:`ascent` of the detached minibatch constraint estimates ``g`` ``(E, K)``, then project."""
+    def relaxation(self, f: torch.Tensor | None = None) -> torch.Tensor:
+        """How far each constraint is relaxed at objective ``f`` ``(E,)``: ``u`` ``(E, K)`` in the constraint's
+        units (0 but for resilient constraints)."""
+        return torch.zeros_like(self.value)
+
+    def step(self, g: torch.Tensor, f: torch.Tensor | None = None) -> None:
+        """Ascend on :meth:`ascent` of the detached minibatch estimates ``g`` ``(E, K)`` and ``f`` ``(E,)``, then
+        project."""
         if not self.n_constraints:
             return
-        self.param.grad = self.ascent(g)
+        self.param.grad = self.ascent(g, f)
         self.optimizer.step()
         self.project_()
 
@@ -155,7 +159,7 @@ class NuPIDual(DualVariables):
     def _make_optimizer(self, kind: str, lr: float) -> torch.optim.Optimizer:
         return NuPI([self.param], lr=lr, kp=self._kp, nu=self._nu, maximize=True)
 
-    def ascent(self, g: torch.Tensor) -> torch.Tensor:
+    def ascent(self, g: torch.Tensor, f: torch.Tensor | None = None) -> torch.Tensor:
         return torch.div(g, self.eps)
 
 
@@ -179,28 +183,37 @@ class AugmentedDual(DualVariables):
         w = self.primal_weights(vals.constraints.detach())
         return vals.objective + (w * vals.constraints).sum(-1)
 
-    def ascent(self, g: torch.Tensor) -> torch.Tensor:
+    def ascent(self, g: torch.Tensor, f: torch.Tensor | None = None) -> torch.Tensor:
         return torch.mul(g, self.rho)
 
 
 class ResilientDual(DualVariables):
-    """Resilient constraints (see the module docstring): relaxation ``u = lambda eps^2 / alpha``, ascent on
-    ``g - u``; ``relax_cost`` is alpha."""
+    """Resilient constraints (see the module docstring): relaxation ``u = lambda eps^2 / (alpha f)``, ascent on
+    ``g - u``; ``relax_cost`` is alpha (dimensionless)."""
 
     method: ClassVar[str] = "resilient"
+    #: the objective estimate is clamped to at least this (a perfect minibatch must not make the relaxation infinite)
+    F_MIN = 1e-12
 
     def __init__(self, n_models: int, n_constraints: int, dtype: torch.dtype, optimizer: str = "adam",
-                 lr: float = 1e-4, eps: Sequence[float] | None = None, relax_cost: float = 1.0) -> None:
+                 lr: float = 1e-4, eps: Sequence[float] | None = None, relax_cost: float = 100.0) -> None:
         super().__init__(n_models, n_constraints, dtype, optimizer, lr, eps)
         self.relax_cost = float(relax_cost)
-        self.decay = torch.div(torch.mul(self.eps, self.eps), self.relax_cost)
+        self.eps2 = torch.div(torch.mul(self.eps, self.eps), self.relax_cost)  # eps^2 / alpha
 
-    @property
-    def relaxation(self) -> torch.Tensor:
-        return torch.mul(self.value, self.decay)
+    def decay(self, f: torch.Tensor) -> torch.Tensor:
+        """``eps^2 / (alpha f)`` ``(E, K)``: the relaxation per unit of lambda at objective ``f`` ``(E,)``."""
+        return torch.div(self.eps2, f.clamp_min(self.F_MIN).unsqueeze(-1))
 
-    def ascent(self, g: torch.Tensor) -> torch.Tensor:
-        return torch.sub(g, torch.mul(self.value, self.decay))
+    def relaxation(self, f: torch.Tensor | None = None) -> torch.Tensor:
+        if f is None:
+            raise ValueError("the resilient relaxation depends on the objective f")
+        return torch.mul(self.value, self.decay(f.to(self.value.dtype)))
+
+    def ascent(self, g: torch.Tensor, f: torch.Tensor | None = None) -> torch.Tensor:
+        if f is None:
+            raise ValueError("resilient constraints need the objective's minibatch estimate f")
+        return torch.sub(g, torch.mul(self.value, self.decay(f)))
 
 
 #: ``TrainConfig.dual_method`` -> class

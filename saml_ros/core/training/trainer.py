@@ -26,6 +26,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
 from saml_ros.core.training.config import TrainConfig, make_optimizer
 from saml_ros.core.training.dataset import Transitions
+from saml_ros.core.training.diagnosis import MET, FeasibilityDiagnosis, diagnose
 from saml_ros.core.training.dual import DualVariables
 from saml_ros.core.training.engines import ENGINES, PlainEngine, minibatch_plan, primal_dual_step
 from saml_ros.core.training.evaluate import evaluate_spec
@@ -50,6 +51,7 @@ class PrimalDualTrainer:
         log: the history and the minibatch values since its last row.
         steps: primal-dual updates done so far; epochs_done: passes over the data of :meth:`fit` so far.
         engine_used: engine of the last :meth:`fit` (``"fast"`` or ``"plain"``), None before.
+        diagnosis: the feasibility diagnosis at the end of the last :meth:`fit` (None before).
     """
 
     def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None) -> None:
@@ -71,6 +73,7 @@ class PrimalDualTrainer:
         self.log = TrainingLog(spec.constraint_names)
         self.rng = torch.Generator().manual_seed(int(self.config.seed))
         self.engine_used: str | None = None
+        self.diagnosis: FeasibilityDiagnosis | None = None
 
     @property
     def lam(self) -> torch.Tensor:
@@ -129,8 +132,8 @@ class PrimalDualTrainer:
         ``callback(self)`` runs after each epoch.
 
         Runs on the engine named by ``config.engine`` (see :class:`TrainConfig`), or on the plain one where that
-        engine does not apply; :attr:`engine_used` says which one ran. At the end, constraints that look
-        infeasible are logged as warnings (:meth:`feasibility`).
+        engine does not apply; :attr:`engine_used` says which one ran. At the end the feasibility diagnosis on
+        ``data`` is kept in :attr:`diagnosis` and every constraint not met is logged as a warning (:meth:`diagnose`).
         """
         epochs = self.config.epochs if epochs is None else epochs
         self.schedules = schedules_for(self.config, self.config.epochs * minibatch_plan(self.config.batch_size,
@@ -148,8 +151,10 @@ class PrimalDualTrainer:
         finally:
             if bar is not None:
                 bar.close()
-        for msg in self.feasibility().messages():
-            log.warning(msg)
+        self.diagnosis = self.diagnose(data)
+        for c in self.diagnosis.constraints:
+            if c.verdict != MET:
+                log.warning(c.message)
         return self.history
 
     # ----------------------------------------------------------------------------------- evaluation
@@ -158,6 +163,21 @@ class PrimalDualTrainer:
         """Dataset-level objective ``(E,)``, constraints ``(E, K)`` and Lagrangian ``(E,)`` at the current
         theta and lambda (the quantity the convergence experiment reports)."""
         return evaluate_spec(self.model, self.spec, data, self.lam, chunk)
+
+    def diagnose(self, data: Transitions | None = None) -> FeasibilityDiagnosis:
+        """Per constraint: met, smallest left-hand side, lambda rising, verdict
+        (:mod:`~saml_ros.core.training.diagnosis`); with ``data`` the final constraint values are dataset-level,
+        without it the means of the history's tail."""
+        eps = [t.eps for t in self.spec.constraints]
+        if data is not None:
+            ev = self.evaluate(data)
+            final, f = ev["constraints"], torch.as_tensor(ev["objective"])
+        else:
+            final = None
+            h = self.history
+            f = torch.as_tensor(h.objective[-1]) if h.objective else torch.ones(self.model.n_models)
+        relax = self.dual.relaxation(f).double().numpy()
+        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax)
 
     def feasibility(self, tail: float = 0.25, rel_tol: float = 0.02) -> FeasibilityReport:
         """Flag constraints whose mean g over the last ``tail`` of the history exceeds ``rel_tol * eps``

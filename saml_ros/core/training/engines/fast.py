@@ -371,7 +371,7 @@ class FastRun:
         # the dual method's arithmetic (the same operations as its class in saml_ros.core.training.dual)
         dual = self.dual
         rho = dual.rho if isinstance(dual, AugmentedDual) else None
-        decay = dual.decay if isinstance(dual, ResilientDual) else None
+        decay = dual.decay if isinstance(dual, ResilientDual) else None  # eps^2 / (alpha f) of the objective f
         eps = dual.eps
         w_con = coef[:, 1:]
         one = torch.ones((), dtype=self.dtype)
@@ -411,7 +411,7 @@ class FastRun:
                 if rho is not None:
                     mul(row[:, 1:], rho, out=gu)
                 elif decay is not None:
-                    torch.sub(row[:, 1:], mul(lam, decay), out=gu)
+                    torch.sub(row[:, 1:], mul(lam, decay(row[:, 0])), out=gu)
                 else:
                     gu.copy_(row[:, 1:])
                 popt.step(grad)
@@ -426,7 +426,7 @@ class FastRun:
                     if rho is not None:
                         dopt.step(mul(row[:, 1:], rho))
                     elif decay is not None:
-                        dopt.step(torch.sub(row[:, 1:], mul(lam, decay)))
+                        dopt.step(torch.sub(row[:, 1:], mul(lam, decay(row[:, 0]))))
                     else:
                         dopt.step(row[:, 1:])
                     lam.clamp_(min=0.0)

@@ -40,7 +40,7 @@ def primal_dual_step(
     run.primal_opt.zero_grad(set_to_none=True)
     loss.backward()
     run.primal_opt.step()
-    run.dual.step(vals.constraints.detach())
+    run.dual.step(vals.constraints.detach(), vals.objective.detach())
     run.steps += 1
     out = SpecValues(vals.objective.detach(), vals.constraints.detach(), vals.region_fraction.detach())
     run.log.add(out)
