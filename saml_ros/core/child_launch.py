@@ -41,3 +41,13 @@ def launch_child_process(code: str, package_root: Path) -> LaunchedChild:
     proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno())], pass_fds=[theirs.fileno()], env=env)
     theirs.close()
     return proc, Connection(ours.detach())
+
+
+def discard_child(launched: LaunchedChild) -> None:
+    """Let an unused training interpreter exit (it sees the connection close); kill it after 10 s."""
+    proc, conn = launched
+    conn.close()
+    try:
+        proc.wait(10)
+    except Exception:  # noqa: BLE001
+        proc.kill()

@@ -21,7 +21,7 @@ import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.spec import ProblemSpec, SpecError
-from saml_ros.core.systems import SYSTEM_NAMES, get_system
+from saml_ros.core.systems import get_entry, get_system, system_names
 from saml_ros.core.training import TrainConfig, save_checkpoint
 from saml_ros.core.training.config import DUAL_METHODS
 from saml_ros.offline.pipelines import evaluate_models, generate_datasets, mean_std, train_models
@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train a residual (or full) dynamics model with the primal-dual method (Algorithm 1).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--system", required=True, choices=SYSTEM_NAMES)
+    p.add_argument("--system", required=True, choices=system_names())
     p.add_argument("--spec", type=Path, help="problem spec YAML (default: the paper's spec for the system)")
     p.add_argument("--uniform", action="store_true", help="drop the constraints: the Uniformly Accurate baseline")
     p.add_argument("--kind", choices=("residual", "full"), default="residual")
@@ -64,14 +64,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="output run directory (default: runs/train-<system>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
-
-
-#: the paper's dataset sizes and epochs per system
-PAPER_DEFAULTS: dict[str, dict[str, int]] = {
-    "friction": {"samples": 15000, "epochs": 200},
-    "quadrotor": {"samples": 10000, "epochs": 3000},
-    "paddle_ball": {"samples": 20000, "epochs": 200},
-}
 
 
 def _parse_noise(items: list[str]) -> dict[str, float]:
@@ -125,9 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     except (SpecError, KeyError, OSError) as exc:
         print(f"train: {exc}", file=sys.stderr)
         return 2
-    defaults = PAPER_DEFAULTS[system.name]
-    epochs = args.epochs if args.epochs is not None else defaults["epochs"]
-    n_train = args.samples or defaults["samples"]
+    entry = get_entry(system.name)  # the paper's dataset size and epochs
+    epochs = args.epochs if args.epochs is not None else entry.paper_epochs
+    n_train = args.samples or entry.paper_samples
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
     try:
         config = train_config(args, epochs)
