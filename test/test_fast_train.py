@@ -97,8 +97,8 @@ def _assert_same(plain: PrimalDualTrainer, fast: PrimalDualTrainer, rtol: float,
 @pytest.mark.parametrize("name", sorted(SPECS))
 def test_fast_equals_plain_for_every_loss_and_mean(name):
     """~250 steps of Adam (the paper's optimizer) in float64: same weights, lambdas, optimizer state, history."""
-    cfg = TrainConfig(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
-                      log_every=7)
+    cfg = TrainConfig.paper(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
+                            log_every=7)
     plain, fast, dp, df = _pair(SPECS[name], cfg)
     assert fast_engine.unsupported_reason(fast, df) is None
     plain.fit(dp)
@@ -118,7 +118,7 @@ def test_fast_equals_plain_for_models_and_optimizers(variant):
     """Ensembles, full models, no hidden layer, and every optimizer pairing: the dual Adam merged into the
     primal flat tensor (the default), a separate dual Adam (other betas), SGD."""
     kw: dict[str, Any] = {}
-    cfg = TrainConfig(epochs=6, batch_size=16, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=2)
+    cfg = TrainConfig.paper(epochs=6, batch_size=16, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=2)
     if variant == "ensemble_shared":
         kw = {"e": 3}
     elif variant == "ensemble_per_member":
@@ -149,7 +149,7 @@ def test_float32_paper_setting_matches_to_rounding():
     component by its running RMS, so differences grow over training; after 300 steps they stay below 1e-5
     on weights of size ~0.5 and 1e-6 on lambda, where any real difference in the algorithm gives > 1e-3.
     """
-    cfg = TrainConfig(epochs=10, batch_size=100, dual_lr=1e-2, seed=1)
+    cfg = TrainConfig.paper(epochs=10, batch_size=100, dual_lr=1e-2, seed=1)
     plain, fast, dp, df = _pair(SPECS["paper"], cfg, n=3000)
     plain.fit(dp)
     fast.fit(df)
@@ -168,7 +168,7 @@ def test_heldout_metrics_match_after_a_full_short_training():
     for engine in ("plain", "fast"):
         model = DynamicsModel(FRICTION, (8, 4), n_models=3, seed=3)
         model.fit_normalization(x, u, y)
-        tr = PrimalDualTrainer(model, spec, TrainConfig(epochs=25, batch_size=128, dual_lr=1e-2, engine=engine))
+        tr = PrimalDualTrainer(model, spec, TrainConfig.paper(epochs=25, batch_size=128, dual_lr=1e-2, engine=engine))
         tr.fit(Transitions(model, spec, x, u, y))
         assert tr.engine_used == engine
         evals.append(evaluate_models(model, spec, xt, ut, yt))
@@ -183,7 +183,7 @@ def test_heldout_metrics_match_after_a_full_short_training():
 
 def test_unsupported_settings_fall_back_to_the_plain_loop():
     """AMSGrad has no fast implementation: fit() must run the plain loop, with plain results."""
-    cfg = TrainConfig(epochs=3, batch_size=16, dual_lr=1e-2, dtype="float64")
+    cfg = TrainConfig.paper(epochs=3, batch_size=16, dual_lr=1e-2, dtype="float64")
     reference, fast, dr, df = _pair(SPECS["paper"], replace(cfg, engine="plain"))
     for tr in (reference, fast):
         tr.primal_opt.param_groups[0]["amsgrad"] = True
@@ -209,7 +209,7 @@ def test_unsupported_settings_fall_back_to_the_plain_loop():
 def test_engines_can_be_mixed_and_resumed():
     """Optimizer state goes through the torch optimizers: fast, then plain, then fast again (with values from
     online steps pending in between) equals plain all the way; a callback sees the current model."""
-    cfg = TrainConfig(epochs=2, batch_size=16, dual_lr=5e-2, dtype="float64", seed=4, log_every=5)
+    cfg = TrainConfig.paper(epochs=2, batch_size=16, dual_lr=5e-2, dtype="float64", seed=4, log_every=5)
     plain, mixed, dp, dm = _pair(SPECS["paper"], cfg)
     seen: dict[str, list[float]] = {"plain": [], "fast": []}
 

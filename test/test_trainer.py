@@ -45,7 +45,7 @@ def _trainer(system, spec_dict, config, seed=0):
 def test_convex_problem_converges_to_optimum_and_multiplier(toy_system, primal):
     # min E[(c - y)^2]  s.t.  E[(c - 1)^2 | y = 1] <= 0.04  ->  c* = 0.8, P* = 0.34, lambda* = 1.5
     lr = 0.05 if primal == "sgd" else 0.01
-    cfg = TrainConfig(epochs=3000, batch_size=200, primal_lr=lr, dual_lr=0.05,
+    cfg = TrainConfig.paper(epochs=3000, batch_size=200, primal_lr=lr, dual_lr=0.05,
                       primal_optimizer=primal, dual_optimizer="sgd", dtype="float64")
     tr, data, _ = _trainer(toy_system, CONVEX_SPEC, cfg)
     tr.fit(data)
@@ -59,7 +59,7 @@ def test_convex_problem_converges_to_optimum_and_multiplier(toy_system, primal):
 
 
 def test_uniform_baseline_ignores_constraint(toy_system):
-    cfg = TrainConfig(epochs=2000, batch_size=200, primal_lr=0.05, primal_optimizer="sgd", dtype="float64")
+    cfg = TrainConfig.paper(epochs=2000, batch_size=200, primal_lr=0.05, primal_optimizer="sgd", dtype="float64")
     spec = ProblemSpec.for_system(CONVEX_SPEC, toy_system).uniform()
     model = DynamicsModel(toy_system, hidden=(), kind="full")
     x, u, y = _two_groups()
@@ -173,7 +173,7 @@ def test_every_dual_method_reports_infeasibility_and_does_not_diverge(toy_system
 
 def test_ensemble_members_are_independent(toy_system):
     """Training E members together equals training each alone (same seeds, same data order)."""
-    cfg = TrainConfig(epochs=30, batch_size=32, primal_lr=1e-2, dual_lr=1e-2, dtype="float64", seed=3)
+    cfg = TrainConfig.paper(epochs=30, batch_size=32, primal_lr=1e-2, dual_lr=1e-2, dtype="float64", seed=3)
     spec = ProblemSpec.for_system(CONVEX_SPEC, toy_system)
     x, u, y = _two_groups()
     rng = np.random.default_rng(0)
@@ -202,7 +202,7 @@ def test_ensemble_members_are_independent(toy_system):
 
 
 def test_lambda_never_negative_and_dual_uses_detached_constraint(toy_system):
-    cfg = TrainConfig(epochs=50, batch_size=16, primal_lr=1e-2, dual_lr=0.5, dtype="float64")
+    cfg = TrainConfig.paper(epochs=50, batch_size=16, primal_lr=1e-2, dual_lr=0.5, dtype="float64")
     tr, data, _ = _trainer(toy_system, CONVEX_SPEC, cfg)
     tr.fit(data)
     lam = tr.history.as_arrays()["lambdas"]
@@ -230,3 +230,34 @@ def test_dual_variables_ascend_project_and_round_trip():
     none = DualVariables(3, 0, torch.float32)
     none.step(torch.zeros(3, 0))
     assert none.value.shape == (3, 0) and not none.optimizer.state
+
+
+def test_paper_method_is_algorithm_1_bit_for_bit(toy_system):
+    """``dual_method: paper`` runs exactly the paper's steps (written out here with autograd and torch.optim.Adam for
+    theta and lambda: descend on f + lambda g, ascend on the detached g, clamp at 0): identical weights and lambda
+    after 60 minibatch steps, no learning-rate schedule."""
+    cfg = TrainConfig.paper(epochs=1, batch_size=16, primal_lr=1e-2, dual_lr=5e-2, dtype="float64", engine="plain")
+    tr, data, spec = _trainer(toy_system, CONVEX_SPEC, cfg)
+    ref = deepcopy(tr.model)
+    lam = torch.zeros(1, 1, dtype=torch.float64, requires_grad=True)
+    opt_p = torch.optim.Adam(ref.net.parameters(), lr=1e-2)
+    opt_d = torch.optim.Adam([lam], lr=5e-2, maximize=True)
+    rng = np.random.default_rng(0)
+    for _ in range(60):
+        idx = torch.as_tensor(rng.integers(0, len(data), 16)).unsqueeze(0)
+        x, u, y, base = data.take(idx)
+        masks = data.take_masks(idx)
+        tr.step(x, u, y, base, masks)
+        vals = spec.evaluate_with_masks(y, ref(x, u, base), masks)
+        opt_p.zero_grad()
+        (vals.objective + (lam.detach() * vals.constraints).sum(-1)).sum().backward()
+        opt_p.step()
+        lam.grad = vals.constraints.detach().clone()
+        opt_d.step()
+        with torch.no_grad():
+            lam.clamp_(min=0.0)
+    assert float(tr.lam[0, 0]) > 0
+    assert torch.equal(tr.lam, lam.detach())
+    for a, b in zip(tr.model.parameters(), ref.parameters()):
+        assert torch.equal(a, b)
+    assert tr.primal_opt.param_groups[0]["lr"] == 1e-2 and tr.dual.lr == 5e-2

@@ -11,9 +11,11 @@ Per member and constraint, over the *tail* of the history (its last quarter, at 
 * a violated constraint is **likely infeasible** when a resilient run relaxed it (the relaxation it pays for
   says the bound is out of reach at that price), or when it is violated by more than ``MARGIN * eps``, its
   estimate is no longer falling fast enough to reach the bound within as many updates again as the run has
-  done (the tail's least-squares slope) and lambda is rising (the multiplier keeps pushing and the model does
-  not follow); otherwise it is **not converged** (still falling, nearly met, or a multiplier that does not
-  push: too small a dual step).
+  done (the tail's least-squares slope), lambda is rising (the multiplier keeps pushing and the model does not
+  follow) and lambda has grown to where the constraint weighs in the Lagrangian: ``lambda * eps >= f``, the
+  objective (below that a multiplier still too small to matter explains a flat estimate); otherwise it is
+  **not converged** (still falling, nearly met, or a multiplier that has not pushed hard enough yet: train
+  longer or raise the dual step).
 
 Over the members of an ensemble: **met** when every member meets it; a constraint that some member meets is
 feasible for this model and data, so the others are **not converged** (a poorer local optimum: restart and
@@ -127,7 +129,7 @@ def _slope(t: np.ndarray, v: np.ndarray) -> float:
 
 
 def _member(h: dict[str, np.ndarray], m: int, k: int, eps: float, g_final: float | None, relax: float,
-            updates: int) -> MemberStatus:
+            updates: int, f: float) -> MemberStatus:
     rows = len(h["step"])
     n_tail = min(rows, max(MIN_ROWS, int(round(rows * TAIL))))
     has_tail = rows >= MIN_ROWS
@@ -151,12 +153,14 @@ def _member(h: dict[str, np.ndarray], m: int, k: int, eps: float, g_final: float
         verdict = NOT_CONVERGED
     else:
         reaches = g_slope < 0 and g / -g_slope <= max(updates, 1)
-        verdict = INFEASIBLE if (g > MARGIN * eps and not reaches and rising) else NOT_CONVERGED
+        weighs = lam_end * eps >= f
+        verdict = INFEASIBLE if (g > MARGIN * eps and not reaches and rising and weighs) else NOT_CONVERGED
     return MemberStatus(met, g, min(lhs), lam_end, lam_start, bool(rising), g_slope, relax, verdict)
 
 
 def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence[int] | str = "",
-             final_g: np.ndarray | None = None, relaxation: np.ndarray | None = None) -> FeasibilityDiagnosis:
+             final_g: np.ndarray | None = None, relaxation: np.ndarray | None = None,
+             objective: np.ndarray | None = None) -> FeasibilityDiagnosis:
     """The feasibility verdict of every constraint (rules: the module docstring).
 
     Args:
@@ -166,6 +170,7 @@ def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence
         net: the network's hidden sizes (reported with the reachable bound), e.g. ``(16, 8)``.
         final_g: dataset-level constraint values ``(E, K)`` at the end (None: the tail's minibatch mean).
         relaxation: the resilient method's relaxation ``u`` ``(E, K)`` (None: zeros).
+        objective: the final objective ``(E,)`` (None: the last history row's).
     """
     k_all = len(history.constraint_names)
     out = FeasibilityDiagnosis(updates=int(updates))
@@ -175,11 +180,13 @@ def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence
     n_rows = len(h["step"])
     e = (h["lambdas"].shape[1] if n_rows else (final_g.shape[0] if final_g is not None else 0))
     net_s = net if isinstance(net, str) else "-".join(str(int(v)) for v in net) or "linear"
+    if objective is None:
+        objective = h["objective"][-1] if n_rows else np.zeros(e)
     for k, name in enumerate(history.constraint_names):
         ek = float(eps[k])
         members = [
             _member(h, m, k, ek, None if final_g is None else float(final_g[m, k]),
-                    0.0 if relaxation is None else float(relaxation[m, k]), updates)
+                    0.0 if relaxation is None else float(relaxation[m, k]), updates, float(objective[m]))
             for m in range(e)
         ]
         if not members:

@@ -177,7 +177,7 @@ class PrimalDualTrainer:
             h = self.history
             f = torch.as_tensor(h.objective[-1]) if h.objective else torch.ones(self.model.n_models)
         relax = self.dual.relaxation(f).double().numpy()
-        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax)
+        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax, f.double().numpy())
 
     def feasibility(self, tail: float = 0.25, rel_tol: float = 0.02) -> FeasibilityReport:
         """Flag constraints whose mean g over the last ``tail`` of the history exceeds ``rel_tol * eps``
