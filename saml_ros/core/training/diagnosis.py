@@ -15,7 +15,10 @@ Per member and constraint, over the *tail* of the history (its last quarter, at 
   follow) and lambda has grown to where the constraint weighs in the Lagrangian: ``lambda * eps >= f``, the
   objective (below that a multiplier still too small to matter explains a flat estimate); otherwise it is
   **not converged** (still falling, nearly met, or a multiplier that has not pushed hard enough yet: train
-  longer or raise the dual step).
+  longer or raise the dual step). A multiplier moved by Adam (at most about its learning rate per update) that
+  used at least ``RATE_LIMITED`` of the largest movement its learning rates allowed (``sum_t lr_t``) is
+  **rate-limited**: the run cannot tell how far a larger lambda would get, so such a constraint is not
+  converged, with the hint to raise the dual step (the paper's friction run: lambda 1.6 of at most 2.34).
 
 Over the members of an ensemble: **met** when every member meets it; a constraint that some member meets is
 feasible for this model and data, so the others are **not converged** (a poorer local optimum: restart and
@@ -42,6 +45,8 @@ TOL = 0.01
 RISE = 0.01
 #: a violation below MARGIN * eps is never called infeasible (a run hovering just above the bound)
 MARGIN = 0.05
+#: a multiplier that moved at least this fraction of its optimizer's largest possible movement is rate-limited
+RATE_LIMITED = 0.6
 #: the tail: the last TAIL of the history rows, at least MIN_ROWS of them
 TAIL = 0.25
 MIN_ROWS = 4
@@ -60,6 +65,7 @@ class MemberStatus:
     g_slope: float  # d g / d update over the tail (NaN without a tail)
     relaxation: float
     verdict: str
+    rate_limited: bool = False
 
 
 @dataclass
@@ -129,7 +135,7 @@ def _slope(t: np.ndarray, v: np.ndarray) -> float:
 
 
 def _member(h: dict[str, np.ndarray], m: int, k: int, eps: float, g_final: float | None, relax: float,
-            updates: int, f: float) -> MemberStatus:
+            updates: int, f: float, dual_limit: float | None) -> MemberStatus:
     rows = len(h["step"])
     n_tail = min(rows, max(MIN_ROWS, int(round(rows * TAIL))))
     has_tail = rows >= MIN_ROWS
@@ -145,6 +151,7 @@ def _member(h: dict[str, np.ndarray], m: int, k: int, eps: float, g_final: float
     rise = _slope(t_tail, lam_tail) * float(np.ptp(t_tail)) if has_tail else 0.0
     rising = has_tail and lam_end > 0 and rise > RISE * lam_end
     met = bool(g <= TOL * eps)
+    limited = bool(dual_limit is not None and dual_limit > 0 and lam_end >= RATE_LIMITED * dual_limit)
     if met:
         verdict = MET
     elif relax > TOL * eps:
@@ -154,13 +161,14 @@ def _member(h: dict[str, np.ndarray], m: int, k: int, eps: float, g_final: float
     else:
         reaches = g_slope < 0 and g / -g_slope <= max(updates, 1)
         weighs = lam_end * eps >= f
-        verdict = INFEASIBLE if (g > MARGIN * eps and not reaches and rising and weighs) else NOT_CONVERGED
-    return MemberStatus(met, g, min(lhs), lam_end, lam_start, bool(rising), g_slope, relax, verdict)
+        infeasible = g > MARGIN * eps and not reaches and rising and weighs and not limited
+        verdict = INFEASIBLE if infeasible else NOT_CONVERGED
+    return MemberStatus(met, g, min(lhs), lam_end, lam_start, bool(rising), g_slope, relax, verdict, limited)
 
 
 def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence[int] | str = "",
              final_g: np.ndarray | None = None, relaxation: np.ndarray | None = None,
-             objective: np.ndarray | None = None) -> FeasibilityDiagnosis:
+             objective: np.ndarray | None = None, dual_limit: float | None = None) -> FeasibilityDiagnosis:
     """The feasibility verdict of every constraint (rules: the module docstring).
 
     Args:
@@ -171,6 +179,8 @@ def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence
         final_g: dataset-level constraint values ``(E, K)`` at the end (None: the tail's minibatch mean).
         relaxation: the resilient method's relaxation ``u`` ``(E, K)`` (None: zeros).
         objective: the final objective ``(E,)`` (None: the last history row's).
+        dual_limit: the largest movement of lambda its optimizer allowed, ``sum_t lr_t`` (Adam); None: no such
+            bound (SGD, nuPI).
     """
     k_all = len(history.constraint_names)
     out = FeasibilityDiagnosis(updates=int(updates))
@@ -186,7 +196,8 @@ def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence
         ek = float(eps[k])
         members = [
             _member(h, m, k, ek, None if final_g is None else float(final_g[m, k]),
-                    0.0 if relaxation is None else float(relaxation[m, k]), updates, float(objective[m]))
+                    0.0 if relaxation is None else float(relaxation[m, k]), updates, float(objective[m]),
+                    dual_limit)
             for m in range(e)
         ]
         if not members:
@@ -220,9 +231,11 @@ def _message(c: ConstraintDiagnosis) -> str:
         return (f"{head}: met by {'all ' if n > 1 else ''}{who} (largest g = {worst * 100:+.1f}% of eps); smallest "
                 f"left-hand side {c.lhs_min:.4g}; {lam}")
     if c.verdict == NOT_CONVERGED:
+        limited = [m for m in ms if m.rate_limited]
         why = (f"met by {c.n_met}/{n} members, so it is feasible for this model and data: the others ended in "
                "poorer optima (restart and select the best feasible member)" if c.n_met else
-               "the estimate is still falling or lambda is not pushing")
+               f"lambda is limited by the dual step for {len(limited)}/{n} (it moved nearly as far as its learning "
+               "rate allows)" if limited else "the estimate is still falling or lambda is not pushing")
         return (f"{head}: NOT CONVERGED: violated by up to {worst * 100:+.1f}% of eps; {why}; {lam}: train longer "
                 f"or raise the dual step (dual_lr); smallest left-hand side {c.lhs_min:.4g} (member "
                 f"{c.lhs_min_member})")

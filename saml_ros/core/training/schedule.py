@@ -18,6 +18,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from saml_ros.core.training.config import TrainConfig
 
 
@@ -62,6 +64,20 @@ class LRSchedule:
     def lr(self, t: int) -> float:
         """The learning rate of update ``t``."""
         return self.lr0 if self.kind == "constant" else self.lr0 * self.factor(t)
+
+    def total(self, n: int) -> float:
+        """``sum_{t < n} lr(t)``: how far an optimizer that moves at most ``lr`` per update (Adam) can move in ``n``
+        updates."""
+        if n <= 0:
+            return 0.0
+        if self.kind == "constant":
+            return self.lr0 * n
+        t = np.arange(n, dtype=np.float64)
+        if self.kind == "step":
+            f = self.gamma ** np.minimum(self.drops, (t * (self.drops + 1)) // self.horizon)
+        else:
+            f = self.floor + (1.0 - self.floor) * (1.0 + np.cos(np.pi * np.minimum(t, self.horizon) / self.horizon)) / 2
+        return float(self.lr0 * f.sum())
 
     def same_factors(self, other: LRSchedule) -> bool:
         """True when both schedules scale their rates by the same factor at every update."""

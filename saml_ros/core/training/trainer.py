@@ -177,7 +177,10 @@ class PrimalDualTrainer:
             h = self.history
             f = torch.as_tensor(h.objective[-1]) if h.objective else torch.ones(self.model.n_models)
         relax = self.dual.relaxation(f).double().numpy()
-        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax, f.double().numpy())
+        limit = None
+        if type(self.dual.optimizer) is torch.optim.Adam and self.schedules is not None:
+            limit = self.schedules[1].total(self.steps)  # Adam moves lambda by at most about lr per update
+        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax, f.double().numpy(), limit)
 
     def feasibility(self, tail: float = 0.25, rel_tol: float = 0.02) -> FeasibilityReport:
         """Flag constraints whose mean g over the last ``tail`` of the history exceeds ``rel_tol * eps``
