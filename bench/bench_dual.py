@@ -105,7 +105,8 @@ class Row:
 
 
 def run_recipe(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarray, ...], test: tuple[np.ndarray, ...],
-               seeds: list[int], recipe: str, cfg: TrainConfig | None, restarts: int, epochs: int) -> Row:
+               seeds: list[int], recipe: str, cfg: TrainConfig | None, restarts: int, epochs: int,
+               hidden: tuple[int, ...] | None = None) -> Row:
     x, u, y = data
     plr, dlr = p.paper_lrs
     uniform = recipe == "UA"
@@ -114,7 +115,7 @@ def run_recipe(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarr
     else:
         cfg = replace(cfg, epochs=epochs)
     use_spec = spec.uniform() if uniform else spec
-    res: TrainedModels = train_models(sysm, use_spec, x, u, y, cfg, seeds, None, "residual", restarts=restarts)
+    res: TrainedModels = train_models(sysm, use_spec, x, u, y, cfg, seeds, hidden, "residual", restarts=restarts)
     ev = evaluate_spec(res.model, spec, Transitions(res.model, spec, x, u, y))
     eps = np.array([t.eps for t in spec.constraints])
     rel = ev["constraints"] / eps
@@ -133,7 +134,8 @@ def fmt_dist(a: np.ndarray, digits: int = 4) -> str:
     return f"{np.median(a):.{digits}g} [{a.min():.{digits}g} - {a.max():.{digits}g}]"
 
 
-def table(rows: list[Row], problems: dict[str, Problem], eps: dict[str, float], n_seeds: int) -> str:
+def table(rows: list[Row], problems: dict[str, Problem], eps: dict[str, float], n_seeds: int,
+          nets: dict[str, tuple[int, ...]]) -> str:
     lines = []
     for name, p in problems.items():
         pr = [r for r in rows if r.problem == name]
@@ -141,7 +143,8 @@ def table(rows: list[Row], problems: dict[str, Problem], eps: dict[str, float], 
             continue
         feas_obj = np.concatenate([r.objective[r.feasible] for r in pr] or [np.zeros(0)])
         best = float(feas_obj.min()) if len(feas_obj) else float("nan")
-        lines += [f"**{name}** ({p.note}; eps = {eps[name]:g}; best feasible objective {best:.4g})", "",
+        note = p.note if name not in nets else p.note.replace(p.note.split(" net")[0], "-".join(map(str, nets[name])))
+        lines += [f"**{name}** ({note}; eps = {eps[name]:g}; best feasible objective {best:.4g})", "",
                   "| recipe | feasible | near best | objective | in-region error (held-out) | verdicts met / "
                   "not conv. / infeasible | lambda | train s |",
                   "|---|---|---|---|---|---|---|---|"]
@@ -169,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recipes", nargs="+", help="only these recipes (names as printed)")
     ap.add_argument("--friction", action="append", default=[], metavar="KEY=VALUE",
                     help="parameter of the friction system, e.g. a friction profile once the system has one")
+    ap.add_argument("--hidden", action="append", default=[], metavar="PROBLEM=H1-H2",
+                    help="another net for a problem, e.g. quadrotor=64-64 (does a larger net meet the bound?)")
     ap.add_argument("--json", type=Path, help="also write every number into this file")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -184,6 +189,12 @@ def main(argv: list[str] | None = None) -> int:
         except json.JSONDecodeError:
             friction_params[k] = v
     problems = {k: PROBLEMS[k] for k in args.problems}
+    nets: dict[str, tuple[int, ...]] = {}
+    for item in args.hidden:
+        k, _, v = item.partition("=")
+        if k not in PROBLEMS:
+            ap.error(f"--hidden: unknown problem {k!r}")
+        nets[k] = tuple(int(h) for h in v.split("-"))
     print(f"bench_dual: {n_seeds} seeds per problem, problems {list(problems)}, restarts {args.restarts} on "
           f"{args.restarts_on}" + (" (--quick)" if args.quick else ""), flush=True)
     print(f"default recipe: {TrainConfig()}", flush=True)
@@ -202,13 +213,13 @@ def main(argv: list[str] | None = None) -> int:
             if args.recipes and recipe not in args.recipes:
                 continue
             t0 = time.perf_counter()
-            row = run_recipe(p, sysm, spec, data, test, seeds, recipe, cfg, restarts, epochs)
+            row = run_recipe(p, sysm, spec, data, test, seeds, recipe, cfg, restarts, epochs, nets.get(name))
             rows.append(row)
             print(f"  {name:9s} {recipe:24s} feasible {int(row.feasible.sum())}/{n_seeds}, objective "
                   f"{fmt_dist(row.objective)}, in-region {fmt_dist(row.in_region)}, verdicts "
                   f"{row.verdicts}, {time.perf_counter() - t0:.0f} s", flush=True)
     print()
-    print(table(rows, problems, eps, n_seeds))
+    print(table(rows, problems, eps, n_seeds, nets))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"total {time.perf_counter() - t_all:.0f} s (load average at the end {load:.1f} on {os.cpu_count()} CPUs)")
     if args.json:

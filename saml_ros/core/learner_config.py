@@ -175,11 +175,14 @@ class LearnerConfig:
     def train_config(self) -> TrainConfig:
         """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
         from saml_ros.core.training import TrainConfig
+        from saml_ros.core.training.schedule import schedules_for
 
         try:
-            return TrainConfig.from_dict(self.train)
+            config = TrainConfig.from_dict(self.train)
+            schedules_for(config, 0)  # online: a step / cosine schedule needs train.schedule_steps
         except (ValueError, TypeError) as exc:
             raise ValueError(f"parameters 'train.*': {exc}") from None
+        return config
 
     def make_system(self) -> System:
         """The system, with ``dt`` when it is set (> 0); ``ValueError`` naming ``system`` / ``dt``."""
