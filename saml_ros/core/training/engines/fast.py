@@ -27,8 +27,13 @@ the plain engine by float rounding only: summation order in matmuls and reductio
 ``phi + (f_hat - y)``, Adam's ``sqrt(bias correction)`` moved out of its denominator and lambda kept as
 ``k * u``. ``test/test_fast_train.py`` bounds the difference (float64: 1e-8 after 240 steps).
 
-Where it does not apply (:func:`unsupported_reason`: another network or optimizer type, AMSGrad, another dual
-method than :class:`~saml_ros.core.training.dual.DualVariables`, ...) the trainer runs the plain engine. The flat
+Every dual method (:data:`FAST_DUALS`: the paper's, nuPI, augmented Lagrangian, resilient) and learning-rate
+schedule runs here with its class's arithmetic: the augmented Lagrangian's weights ``relu(lambda + rho g)`` need
+the minibatch's g, so every group's term values come before any gradient (:func:`group_step_fn`); schedules set
+the flat optimizers' rates per update, and the dual Adam stays merged only when both rates scale alike.
+
+Where it does not apply (:func:`unsupported_reason`: another network or optimizer type, AMSGrad, a dual-variables
+class it does not know, ...) the trainer runs the plain engine. The flat
 storage and flat optimizers are in :mod:`~saml_ros.core.training.engines.flat`, the closed-form spec terms in
 :mod:`~saml_ros.core.training.engines.closed_form`; this module holds the support check and the engine.
 
