@@ -294,9 +294,16 @@ TELEMETRY_TOPICS: tuple[TopicSpec, ...] = (
 GLOBAL_TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, TELEMETRY_QOS, "every node", "rqt_runtime_monitor, Foxglove",
               "One DiagnosticStatus per node (name = node's full name) with its counters, e.g. "
-              "rejected/<reason>, as key/value strings.",
+              "rejected/<reason>, as key/value strings. The learner's also carries each constraint's "
+              "feasibility verdict, which sets its level: met OK, not converged WARN, likely infeasible ERROR.",
               fields=(FieldDoc("rejected/<reason>", "count", "status[i].values[j].value (string)",
-                               "/<node name>/rejected/<reason>"),)),
+                               "/<node name>/rejected/<reason>"),
+                      FieldDoc("feasibility/<k>", "1", "status[i].values[j].value (string)",
+                               "(not plottable: text)", "learner: met, not converged, likely infeasible or "
+                               "pending, for constraint k (docs/training.md)"),
+                      FieldDoc("reachable/<k>", "loss", "status[i].values[j].value (string)",
+                               "/<node name>/reachable/<k>", "learner: the left-hand side g_k + eps_k the "
+                               "model reaches now"))),
     TopicSpec(CLOCK_TOPIC, CLOCK, CLOCK_QOS, "the simulator running in lockstep", "every node (use_sim_time)",
               "Simulated time.", fields=(FieldDoc("clock", "s", "clock.sec + 1e-9 clock.nanosec", "/clock/sec"),)),
 )  # fmt: skip

@@ -37,6 +37,20 @@ TRAIN_PARAM_DOCS: dict[str, str] = {
     "seed": "seed of the model initialisation and the minibatch sampling",
     "dtype": "'float32' or 'float64' for the model and the minibatches",
     "engine": "offline training engine (not used by the online step loop)",
+    "dual_method": "how the multipliers move: 'paper' (Algorithm 1), 'nupi' (PI controller), 'augmented' "
+                   "(augmented Lagrangian) or 'resilient' (constraints relaxed at a price); docs/training.md",
+    "nupi_kp": "nupi: proportional gain K_P (integral gain 1, step train.dual_lr, error g / eps)",
+    "nupi_ema": "nupi: smoothing nu of the error signal, in [0, 1)",
+    "penalty": "augmented: penalty c (objective units); rho_k = c / eps_k",
+    "relax_cost": "resilient: price alpha (dimensionless): relaxing eps by a fraction r costs alpha r^2 / 2 times "
+                  "the objective",
+    "primal_schedule": "learning-rate schedule of the model: 'auto', 'constant', 'step' or 'cosine' (online, 'auto' "
+                       "is constant unless train.schedule_steps > 0)",
+    "dual_schedule": "learning-rate schedule of the multipliers (as train.primal_schedule)",
+    "schedule_steps": "horizon T of the step / cosine schedules in updates (online: needed for either; 0 = none)",
+    "lr_gamma": "step schedule: factor of each drop, in (0, 1]",
+    "lr_drops": "step schedule: number of evenly spaced drops over the horizon",
+    "lr_floor": "cosine schedule: final learning rate as a fraction of the first, in [0, 1]",
 }
 
 _HEAD: tuple[Param, ...] = (
@@ -166,11 +180,14 @@ class LearnerConfig:
     def train_config(self) -> TrainConfig:
         """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
         from saml_ros.core.training import TrainConfig
+        from saml_ros.core.training.schedule import schedules_for
 
         try:
-            return TrainConfig.from_dict(self.train)
+            config = TrainConfig.from_dict(self.train)
+            schedules_for(config, 0)  # online: a step / cosine schedule needs train.schedule_steps
         except (ValueError, TypeError) as exc:
             raise ValueError(f"parameters 'train.*': {exc}") from None
+        return config
 
     def make_system(self) -> System:
         """The system, with ``dt`` when it is set (> 0); ``ValueError`` naming ``system`` / ``dt``."""

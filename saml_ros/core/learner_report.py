@@ -2,11 +2,14 @@
 
 :func:`learner_diagnostics` turns the totals and per-source counts of the pairing, the learner's status, the
 training process's own counters and the node's per-channel reception counts into the diagnostic values, level
-(0 OK, 1 WARN, 2 ERROR as ``diagnostic_msgs``) and one-line message.
+(0 OK, 1 WARN, 2 ERROR as ``diagnostic_msgs``) and one-line message. The feasibility verdict of each constraint
+(the status' ``verdict/<k>``: met, not converged, likely infeasible; docs/training.md) sets the level too: OK,
+WARN, ERROR.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -15,6 +18,31 @@ from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
+#: the ``feasibility/<k>`` value of each ``verdict/<k>`` code (what ``diagnosis.VERDICT_CODES`` numbers)
+VERDICT_NAMES: dict[int, str] = {0: "met", 1: "not converged", 2: "likely infeasible"}
+
+
+def feasibility_report(status: Mapping[str, float], constraints: Sequence[tuple[str, float]]) -> tuple[
+        int, list[str], dict[str, Any]]:
+    """``(level, message parts, values)`` of the constraints' verdicts in ``status`` (``verdict/<k>``,
+    ``lhs_min/<k>``, ``lambda_rising/<k>``, ``reachable/<k>``); ``constraints`` are ``(name, eps)``. A constraint
+    without a verdict yet is ``"pending"`` (level OK)."""
+    level, parts = OK, []
+    values: dict[str, Any] = {}
+    for name, eps in constraints:
+        code = status.get(f"verdict/{name}", math.nan)
+        verdict = VERDICT_NAMES.get(int(code), "pending") if math.isfinite(code) else "pending"
+        values[f"feasibility/{name}"] = verdict
+        for key in ("lhs_min", "reachable"):
+            v = status.get(f"{key}/{name}", math.nan)
+            values[f"{key}/{name}"] = f"{v:.6g}" if math.isfinite(v) else "nan"
+        rising = status.get(f"lambda_rising/{name}", math.nan)
+        values[f"lambda_rising/{name}"] = int(rising) if math.isfinite(rising) else -1
+        if verdict in ("not converged", "likely infeasible"):
+            level = max(level, WARN if verdict == "not converged" else ERROR)
+            reach = status.get(f"reachable/{name}", math.nan)
+            parts.append(f"constraint '{name}' {verdict} (eps {eps:.4g}, reachable {reach:.4g})")
+    return level, parts, values
 
 
 def learner_diagnostics(
@@ -24,6 +52,7 @@ def learner_diagnostics(
     by_source: Mapping[str, Mapping[str, int]],
     namespaces: Sequence[str],
     channels: Sequence[ChannelCount],
+    constraints: Sequence[tuple[str, float]] = (),
 ) -> tuple[int, str, dict[str, Any]]:
     """``(level, message, values)`` of the learner's diagnostics.
 
@@ -35,6 +64,7 @@ def learner_diagnostics(
         by_source: pairing counts per namespace.
         namespaces: the namespaces paired, in order.
         channels: one :data:`ChannelCount` per subscription.
+        constraints: ``(name, eps)`` of the spec's constraints (their verdicts: :func:`feasibility_report`).
     """
     values: dict[str, Any] = {"paired": totals.get("paired", 0)}
     for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written", "checkpoints_skipped"):
@@ -60,4 +90,8 @@ def learner_diagnostics(
     level = ERROR if failed else (WARN if rejected else OK)
     message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                f"version {values['model_version']}, rejected {rejected}")
-    return level, message, values
+    f_level, parts, f_values = feasibility_report(status, constraints)
+    values.update(f_values)
+    if parts:
+        message += "; " + "; ".join(parts)
+    return max(level, f_level), message, values

@@ -130,7 +130,7 @@ def run(settings: ConvergenceSettings, out: Path, progress: bool = True) -> dict
     pstar = s.sigma**2
     noise = {"v": s.sigma}
     xt, ut, yt = system.make_dataset(s.n_test, np.random.default_rng(s.seed + 999_999), noise)
-    config = TrainConfig(epochs=s.epochs, batch_size=s.batch_size, primal_lr=1e-3, dual_lr=1e-4, seed=s.seed)
+    config = TrainConfig.paper(epochs=s.epochs, batch_size=s.batch_size, primal_lr=1e-3, dual_lr=1e-4, seed=s.seed)
     cells: list[dict[str, Any]] = []
     bar = progress_bar(len(s.nets) * len(s.sizes), "convergence grid (net x N)", progress)
     datasets = {}

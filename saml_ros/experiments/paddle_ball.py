@@ -274,7 +274,7 @@ def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str,
     with timer("collect"):
         x, u, y, stats = collect(s, s.n_impacts, s.data_seed)
         xv, uv, yv, _ = collect(s, s.n_val, s.data_seed + 1000)
-    config = TrainConfig(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-3)
+    config = TrainConfig.paper(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-3)
     trained: dict[tuple[str, str], TrainedModels] = {}
     with timer("train"), quiet_trainer_warnings(), flush_denormals():
         for kind in s.kinds:

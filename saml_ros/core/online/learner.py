@@ -32,12 +32,13 @@ from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.models import MODEL_KINDS, DynamicsModel
 from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.online.resume import ResumeInfo, resume_newest
-from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, model_metrics
+from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, feasibility_metrics, model_metrics
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition
 from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
+from saml_ros.core.training.schedule import schedules_for
 
 log = logging.getLogger("saml_ros.online")
 
@@ -87,6 +88,7 @@ class OnlineConfig:
             raise ValueError(f"buffer policy must be 'fifo' or 'reservoir', got {self.buffer_policy!r}")
         if self.telemetry_window < 1 or self.checkpoint_keep < 1:
             raise ValueError("telemetry_window and checkpoint_keep must be >= 1")
+        schedules_for(self.train, 0)  # online training has no epochs: a schedule needs train.schedule_steps
 
 
 class OnlineLearner:
@@ -226,12 +228,14 @@ class OnlineLearner:
 
         Heavier than :meth:`telemetry` (one forward pass over the window): call it at the telemetry rate
         from the thread that trains. Returns (and caches for :meth:`telemetry`) the model part of the metrics
-        (:func:`~saml_ros.core.online.telemetry.model_metrics`).
+        (:func:`~saml_ros.core.online.telemetry.model_metrics`) and the feasibility diagnosis of the training
+        history (:func:`~saml_ros.core.online.telemetry.feasibility_metrics`).
         """
         window = self._recent.arrays()
         with self._lock:
             out = model_metrics(self.model, self.spec, window, self._averages.take(), self.lam, self.updates,
                                 self.model_version)
+            out.update(feasibility_metrics(self.trainer, self.spec))
         self._metrics = out
         return dict(out)
 

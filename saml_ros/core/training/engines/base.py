@@ -15,6 +15,7 @@ from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import DualVariables
 from saml_ros.core.training.history import TrainingLog
+from saml_ros.core.training.schedule import LRSchedule
 
 
 class RunState(Protocol):
@@ -28,6 +29,7 @@ class RunState(Protocol):
     dual: DualVariables
     rng: torch.Generator
     log: TrainingLog
+    schedules: tuple[LRSchedule, LRSchedule] | None
     steps: int
     epochs_done: float
 
