@@ -84,6 +84,11 @@ class FrictionDoubleIntegrator(System):
     def control_high(self) -> np.ndarray:
         return np.array([self.u_max])
 
+    def plausible_state(self) -> dict[str, tuple[float, float]]:
+        """|p| <= 100 m, |v| <= 100 m/s: a 1-D cart at 10 m/s^2 for 10 s; the paper's data spans |p| <= 2 m,
+        |v| <= 2.5 m/s."""
+        return {"p": (-100.0, 100.0), "v": (-100.0, 100.0)}
+
     def friction_decel(self, p: torch.Tensor) -> torch.Tensor:
         """mu(p): friction deceleration magnitude (m/s^2) at positions ``p`` (any shape, m), > 0."""
         mu = torch.full_like(p, self.mu_base)

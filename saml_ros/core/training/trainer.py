@@ -29,6 +29,7 @@ from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import DualVariables
 from saml_ros.core.training.engines import ENGINES, PlainEngine, minibatch_plan, primal_dual_step
 from saml_ros.core.training.evaluate import evaluate_spec
+from saml_ros.core.training.health import HealthConfig, TrainingHealth
 from saml_ros.core.training.history import FeasibilityReport, History, TrainingLog, check_feasibility, progress_bar
 
 log = logging.getLogger("saml_ros.trainer")
@@ -43,11 +44,13 @@ class PrimalDualTrainer:
         dual: the dual variables (lambda ``(E, K)`` and their optimizer).
         rng: the generator minibatches are drawn from.
         log: the history and the minibatch values since its last row.
+        health: the training-health checks and counters (:mod:`~saml_ros.core.training.health`).
         steps: primal-dual updates done so far; epochs_done: passes over the data of :meth:`fit` so far.
         engine_used: engine of the last :meth:`fit` (``"fast"`` or ``"plain"``), None before.
     """
 
-    def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None) -> None:
+    def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None,
+                 health: HealthConfig | None = None) -> None:
         self.model = model
         self.spec = spec
         self.config = config or TrainConfig()
@@ -58,6 +61,7 @@ class PrimalDualTrainer:
         self.steps = 0
         self.epochs_done = 0.0
         self.log = TrainingLog(spec.constraint_names)
+        self.health = TrainingHealth(health)
         self.rng = torch.Generator().manual_seed(int(self.config.seed))
         self.engine_used: str | None = None
 

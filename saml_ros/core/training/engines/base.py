@@ -14,6 +14,7 @@ from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import DualVariables
+from saml_ros.core.training.health import TrainingHealth
 from saml_ros.core.training.history import TrainingLog
 
 
@@ -28,6 +29,7 @@ class RunState(Protocol):
     dual: DualVariables
     rng: torch.Generator
     log: TrainingLog
+    health: TrainingHealth
     steps: int
     epochs_done: float
 

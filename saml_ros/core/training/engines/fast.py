@@ -309,7 +309,38 @@ class FastRun:
         rows = self._pending[0] if len(self._pending) == 1 else torch.cat(self._pending)
         self._pending = []
         tr = self.tr
-        tr.log.record(tr.steps, tr.epochs_done, rows[:, :, 0].mean(0), rows[:, :, 1:].mean(0), self.lam)
+        # rows of skipped steps are NaN (see _check_block): the history holds the healthy steps' mean
+        tr.log.record(tr.steps, tr.epochs_done, rows[:, :, 0].nanmean(0), rows[:, :, 1:].nanmean(0), self.lam)
+
+    # ------------------------------------------------------------------------------ health (training/health.py)
+    def _state_tensors(self) -> list[Tensor]:
+        """The tensors a step changes: flat parameters (and merged dual), optimizer moments, lambda."""
+        ts: list[Tensor] = [self.net.flat, self.popt.m, self.popt.v, self.lam]
+        if self.dopt is not None:
+            ts += [self.dopt.m, self.dopt.v]
+        seen: set[int] = set()
+        return [t for t in ts if not (id(t) in seen or seen.add(id(t)))]  # type: ignore[func-returns-value]
+
+    def _snapshot(self) -> tuple[list[Tensor], tuple[int, int]]:
+        return ([t.clone() for t in self._state_tensors()],
+                (self.popt.step_count, self.dopt.step_count if self.dopt is not None else 0))
+
+    def _check_block(self, vals: Tensor, a: int, b: int, snap: tuple[list[Tensor], tuple[int, int]]) -> None:
+        """Health check of steps ``a:b`` (values ``vals[a:b]``); on a problem the state from before them is put
+        back, their values become NaN and they are counted skipped."""
+        health = self.tr.health
+        why = health.check_block(vals[a:b, :, 0], [self.net.flat, self.lam])
+        if why is None:
+            return
+        with torch.no_grad():
+            for dst, src in zip(self._state_tensors(), snap[0]):
+                dst.copy_(src)
+        self.popt.step_count = snap[1][0]
+        if self.dopt is not None:
+            self.dopt.step_count = snap[1][1]
+        vals[a:b] = float("nan")
+        health.skip(why, b - a)
+        health.restores += 1
 
     def _make_step(self, bsz: int) -> _Step:
         """``step(z, r, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member, with
@@ -393,10 +424,17 @@ class FastRun:
         next_log = tr.steps + (log_every - tr.steps % log_every)
         inc = 1.0 / per_epoch
         start = lo
+        every = tr.health.config.check_every
+        block, snap = lo, self._snapshot()
         for j in range(lo, hi):
             step(z_all[j], r_all[j], sg_all[j], rows[j])
             tr.steps += 1
             tr.epochs_done += inc
+            if j + 1 - block >= every or j + 1 == hi or tr.steps == next_log:  # a health check per block
+                self._check_block(vals, block, j + 1, snap)
+                block = j + 1
+                if block < hi:
+                    snap = self._snapshot()
             if tr.steps == next_log:
                 next_log += log_every
                 self._pending.append(vals[start : j + 1])
