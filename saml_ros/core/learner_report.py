@@ -10,7 +10,13 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, WARN
+from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, TRAINING_SKIP_REASONS, WARN
+
+#: the training-health values of the learner's status reported on /diagnostics
+HEALTH_KEYS: tuple[str, ...] = (
+    "train_health/skipped", *(f"train_health/skipped/{r}" for r in TRAINING_SKIP_REASONS), "train_health/restores",
+    "train_health/unhealthy_streak", "checkpoints_unhealthy",
+)
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
@@ -23,8 +29,14 @@ def learner_diagnostics(
     by_source: Mapping[str, Mapping[str, int]],
     namespaces: Sequence[str],
     channels: Sequence[ChannelCount],
+    error_after: int = 100,
 ) -> tuple[int, str, dict[str, Any]]:
     """``(level, message, values)`` of the learner's diagnostics.
+
+    Level: ERROR when the training process failed or dropped data, or while ``error_after`` or more consecutive
+    training steps were skipped as unhealthy (``train_health/unhealthy_streak``), or a checkpoint could not be
+    written because the model was unhealthy; WARN once any message was rejected or any training step skipped;
+    OK otherwise.
 
     Args:
         totals: pairing counts summed over the sources (``paired`` and each reject reason, ``time_resets``, ...).
@@ -34,6 +46,7 @@ def learner_diagnostics(
         by_source: pairing counts per namespace.
         namespaces: the namespaces paired, in order.
         channels: one :data:`ChannelCount` per subscription.
+        error_after: the ``health.error_after`` parameter.
     """
     values: dict[str, Any] = {"paired": totals.get("paired", 0)}
     for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written", "checkpoints_skipped"):
@@ -43,6 +56,8 @@ def learner_diagnostics(
         values[f"rejected/{reason}"] = totals.get(reason, 0)
     for key in ("time_resets", "reanchors", "expired", "overflow"):
         values[key] = totals.get(key, 0)
+    for key in HEALTH_KEYS:
+        values[key] = int(status.get(key, 0))
     for ns in namespaces:
         c = by_source.get(ns, {})
         values[f"{ns}/paired"] = c.get("paired", 0)
@@ -53,7 +68,11 @@ def learner_diagnostics(
         values[f"{ns}/publishers/{kind}"] = publishers
     rejected = sum(totals.get(r, 0) for r in REJECT_REASONS)
     failed = process.get("train_errors", 0) or process.get("dropped", 0)
-    level = ERROR if failed else (WARN if rejected else OK)
+    skipped, streak = values["train_health/skipped"], values["train_health/unhealthy_streak"]
+    sick = streak >= error_after or values["checkpoints_unhealthy"] > 0
+    level = ERROR if failed or sick else (WARN if rejected or skipped else OK)
     message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                f"version {values['model_version']}, rejected {rejected}")
+    if skipped:
+        message += f", training steps skipped {skipped}" + (f" ({streak} in a row)" if streak else "")
     return level, message, values

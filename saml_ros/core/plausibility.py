@@ -126,7 +126,10 @@ def parse_overrides(overrides: Mapping[str, Any] | str | None) -> dict[str, tupl
     """``plausible_bounds`` (YAML text or a mapping) -> ``{field: (low, high)}``; ``ValueError`` if malformed."""
     if overrides is None or (isinstance(overrides, str) and not overrides.strip()):
         return {}
-    data = yaml.safe_load(overrides) if isinstance(overrides, str) else overrides
+    try:
+        data = yaml.safe_load(overrides) if isinstance(overrides, str) else overrides
+    except yaml.YAMLError as exc:
+        raise ValueError(f"plausible_bounds is not YAML: {exc}") from None
     if not isinstance(data, Mapping):
         raise ValueError(f"plausible_bounds must be a mapping of fields to [low, high], got {overrides!r}")
     out: dict[str, tuple[float, float]] = {}

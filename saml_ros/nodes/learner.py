@@ -211,7 +211,7 @@ class LearnerNode(Node):
         channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count())
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
         level, message, values = learner_diagnostics(tr.counts(), tr.status, process, tr.source_counts,
-                                                     self.p.namespaces, channels)
+                                                     self.p.namespaces, channels, self.p.health_error_after)
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
