@@ -23,7 +23,6 @@ from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.systems.registry import find_entry
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -251,28 +250,22 @@ class TorchBaseNP:
         return self.step(x, u), ja.numpy(), jb.numpy()
 
 
-def base_model_np(system: System) -> BaseModelNP:
-    """The numpy twin of ``system.base_step`` its registry entry names (autograd fallback for systems without
-    one, or not registered)."""
-    entry = find_entry(system.name)
-    if entry is None or entry.base_model_np is None or not isinstance(system, entry.system_class()):
-        return TorchBaseNP(system)
-    return entry.base_model_np(system)
-
-
 class NumpyDynamics:
     """The model the MPC predicts with: ``f_hat + phi`` (residual), ``phi`` (full) or ``f_hat`` (no model).
 
-    The learned part is a frozen copy of ensemble member ``member`` taken when this object is built.
+    The learned part is a frozen copy of ensemble member ``member`` taken when this object is built. ``base`` is
+    the numpy twin of ``system.base_step`` (:func:`saml_ros.core.mpc.factory.base_model_np` finds the system's
+    own); without one, the exact but slower autograd :class:`TorchBaseNP` serves.
     """
 
-    def __init__(self, system: System, model: DynamicsModel | None = None, member: int = 0) -> None:
+    def __init__(self, system: System, model: DynamicsModel | None = None, member: int = 0,
+                 base: BaseModelNP | None = None) -> None:
         self.system = system
         self.base: BaseModelNP | None = None
         self.mlp: NumpyMLP | None = None
         self.kind = "base" if model is None else model.kind
         if model is None or model.kind == "residual":
-            self.base = base_model_np(system)
+            self.base = base if base is not None else TorchBaseNP(system)
         if model is not None:
             if model.system.schema_hash() != system.schema_hash():
                 raise ValueError(

@@ -16,8 +16,8 @@ import numpy as np
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
-from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.shooting.tasks import ShootingTask, make_task
+from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics
+from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
 
 
@@ -29,8 +29,9 @@ class ShootingMPC:
         model: residual/full model (member ``member`` is used) or None for f_hat alone.
         horizon: T, number of controls planned.
         feas_tol: tolerance on the state constraints for ``success`` (state units).
-        task_options: forwarded to :func:`~saml_ros.core.mpc.shooting.tasks.make_task` (quadrotor: ``min_height``,
-            ``qw_tol``).
+        task: the MPC problem (:func:`saml_ros.core.mpc.factory.make_task` builds the system's own, with its task
+            options such as the quadrotor's ``min_height``); its horizon must be ``horizon``.
+        base: numpy twin of the base model (see :class:`~saml_ros.core.mpc.dynamics_np.NumpyDynamics`).
     """
 
     def __init__(
@@ -40,15 +41,20 @@ class ShootingMPC:
         horizon: int = 10,
         member: int = 0,
         feas_tol: float = 1e-4,
-        **task_options: Any,
+        *,
+        task: ShootingTask,
+        base: BaseModelNP | None = None,
     ) -> None:
         self.system = system
         self.horizon = int(horizon)
+        if task.horizon != self.horizon:
+            raise ValueError(f"task horizon {task.horizon} != controller horizon {self.horizon}")
         self.member = member
         self.feas_tol = feas_tol
-        self.task = make_task(system, self.horizon, **task_options)
+        self.task = task
         self.n, self.m = system.state.size, system.control.size
-        self.dyn = NumpyDynamics(system, model, member)
+        self.base_np = base
+        self.dyn = NumpyDynamics(system, model, member, base)
         self._u_lo = np.tile(self.task.u_low, self.horizon)
         self._u_hi = np.tile(self.task.u_high, self.horizon)
         self._plan_u: np.ndarray | None = None
@@ -58,7 +64,7 @@ class ShootingMPC:
 
     # ------------------------------------------------------------------------------ Controller API
     def set_model(self, model: DynamicsModel | None) -> None:
-        self.dyn = NumpyDynamics(self.system, model, self.member)
+        self.dyn = NumpyDynamics(self.system, model, self.member, self.base_np)
 
     def reset(self) -> None:
         self._plan_u = None
