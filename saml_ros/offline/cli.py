@@ -143,8 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     metrics["feasibility_warnings"] = feas.messages()
 
     store = CheckpointStore(out)
-    flat = [np.asarray(a).reshape(-1, np.shape(a)[-1]) for a in (x, u, y)]  # every seed's data
-    evidence = DataEvidence.from_data(system, *flat, rng=np.random.default_rng(args.seed))
+    fx, fu, fy = (np.asarray(a).reshape(-1, np.shape(a)[-1]) for a in (x, u, y))  # every seed's data
+    evidence = DataEvidence.from_data(system, fx, fu, fy, rng=np.random.default_rng(args.seed))
     ckpt, version = save_checkpoint(store, result.trainer, metrics=metrics, evidence=evidence)
     (out / "history.json").write_text(json.dumps(result.history.to_dict()))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -183,7 +183,7 @@ class MPCService:
     def _answer(self, x: np.ndarray, stamp: int) -> tuple[np.ndarray, dict[str, float]]:
         """The command for state ``x`` and its status values: the solved one, or the safe command (see the module
         docstring's failure path)."""
-        why = self.bounds.outside("state", x)
+        why = self.bounds.outside("state", x) if np.shape(x) == (self.system.state.size,) else None
         if why is not None:
             self.reject("bounds", f"state at t={stamp * 1e-9:.3f} s outside the plausible range: {why}")
             return self._safe("bounds", f"implausible state ({why})")

@@ -120,7 +120,7 @@ class Ingest:
             self._batch_rejects["nan"] += int((~finite).sum())
             self._batch_rejects["bounds"] += int((finite & ~keep).sum())
             log.warning("dropped %d of %d paired transition(s): non-finite or outside the plausible range",
-                        int((~keep).sum()), len(keep))
+                        int((~keep).sum()), len(x))
             x, u, y = x[keep], u[keep], y[keep]
             stamp = np.asarray(stamp)[keep] if np.ndim(stamp) else stamp
             source = np.asarray(source)[keep] if np.ndim(source) else source

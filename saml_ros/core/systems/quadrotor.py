@@ -126,12 +126,13 @@ class Quadrotor(System):
         return np.full(4, self.f_max)
 
     def plausible_state(self) -> dict[str, tuple[float, float]]:
-        """Within 500 m horizontally, height -1 .. 500 m, speeds <= 50 m/s per axis, quaternion components within
-        +-1.5 (the codec checks the norm), body rates <= 50 rad/s per axis (an acrobatic quadrotor reaches ~35);
-        the paper's data spans +-10 m, 0.1 .. 5 m, +-6 m/s, +-2.5 rad/s."""
-        out = {f: (-500.0, 500.0) for f in ("px", "py")}
-        out["pz"] = (-1.0, 500.0)
-        out.update({f: (-50.0, 50.0) for f in ("vx", "vy", "vz", "wx", "wy", "wz")})
+        """Within 1000 m horizontally, height -100 .. 1000 m (a world frame need not sit on the ground), speeds and
+        body rates <= 100 (m/s, rad/s) per axis (a racing quadrotor reaches about 50 m/s and 35 rad/s), quaternion
+        components within +-1.5 (the codec checks the norm); the paper's data spans +-10 m, 0.1 .. 5 m, +-6 m/s,
+        +-2.5 rad/s."""
+        out = {f: (-1000.0, 1000.0) for f in ("px", "py")}
+        out["pz"] = (-100.0, 1000.0)
+        out.update({f: (-100.0, 100.0) for f in ("vx", "vy", "vz", "wx", "wy", "wz")})
         out.update({f: (-1.5, 1.5) for f in ("qw", "qx", "qy", "qz")})
         return out
 
