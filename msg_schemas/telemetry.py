@@ -61,9 +61,10 @@ CHECKPOINT_REFUSAL_REASONS: tuple[str, ...] = (
     "incompatible", "corrupt", "missing", "error", "non_finite", "implausible", "residual",
 )  # fmt: skip
 #: why the MPC answered a state with the system's safe command (``safe_commands/<reason>``): the solver raised,
-#: returned a non-finite result, the state was outside the plausible range, or (only with ``safe_on_infeasible``)
-#: the plan violated a constraint
-SAFE_COMMAND_REASONS: tuple[str, ...] = ("solver_error", "non_finite", "bounds", "infeasible")
+#: returned a non-finite result, planned through states outside the plausible range (``implausible``: the model
+#: predicts nonsense there), the state itself was outside the plausible range (``bounds``), or (only with
+#: ``safe_on_infeasible``) the plan violated a constraint
+SAFE_COMMAND_REASONS: tuple[str, ...] = ("solver_error", "non_finite", "implausible", "bounds", "infeasible")
 #: why a training step was skipped and the last healthy state kept (``train_health/skipped/<reason>``): a non-finite
 #: or exploding minibatch loss, gradient, or updated weights (``saml_ros.core.training.health``)
 TRAINING_SKIP_REASONS: tuple[str, ...] = ("loss", "gradient", "weights")

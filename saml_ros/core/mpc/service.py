@@ -15,7 +15,9 @@ The node decodes messages and publishes; everything in between is here and unit-
   ``mpc/status`` values; a step (swap + solve + send) longer than the deadline is counted as a miss;
 * the failure path: a state outside the system's plausible range (:mod:`~saml_ros.core.plausibility`; counted
   ``rejected/bounds``, never solved from), a solver that raises, a non-finite result (cost, plan or control: the
-  controller fell back) and, with ``safe_on_infeasible``, a plan that violates a constraint are answered with the
+  controller fell back), a plan through predicted states outside the plausible range (the model predicts nonsense
+  there, though the solver may call it a success) and, with ``safe_on_infeasible``, a plan that violates a
+  constraint are answered with the
   system's safe command (:meth:`~saml_ros.core.systems.base.System.safe_control`), counted
   ``safe_commands/<reason>`` (:data:`~msg_schemas.telemetry.SAFE_COMMAND_REASONS`) and flagged ``safe = 1`` on
   ``mpc/status``; a finite plan that violates a constraint is otherwise sent and counted ``solves_failed``;
@@ -198,6 +200,12 @@ class MPCService:
         broken = _broken(res, u, self.system.control.size)
         if broken is not None:
             return self._safe("non_finite", f"{broken} ({res.message})", values)
+        plan = np.asarray(res.plan_x, dtype=np.float64).reshape(-1, self.system.state.size)
+        outside = ~self.bounds.state.inside(plan)
+        if outside.any():
+            step = int(np.argmax(outside))
+            return self._safe("implausible", f"the plan predicts an implausible state at step {step}: "
+                              f"{self.bounds.state.outside(plan[step])}", values)
         if not res.success:
             self.counters["solves_failed"] += 1
             if self.config.safe_on_infeasible:

@@ -13,9 +13,9 @@ last healthy snapshot (taken every ``snapshot_every`` healthy steps: weights, bo
 variables). Skipped steps are counted per reason (the minibatch is used up; ``trainer.steps`` counts it), their
 values stay out of the training history, and :attr:`TrainingHealth.streak` counts consecutive skipped steps: the
 learner reports WARN on /diagnostics once a step was skipped and ERROR while the streak is ``error_after`` or
-longer (:mod:`saml_ros.core.learner_report`). A finite but exploding value that persists is a new scale, not an
-accident: after each such skip the running mean doubles, so a real change of scale is learned from after about
-``log2(explode_ratio)`` skips, while one absurd minibatch never reaches the model.
+longer (:mod:`saml_ros.core.learner_report`). A finite but exploding value in every step is a new scale, not an
+accident: after ``rebase_after`` consecutive skipped steps the running means start again (a new warm-up), so a
+real change of scale is learned from, while absurd minibatches among healthy ones never reach the model.
 
 The plain step (:func:`~saml_ros.core.training.engines.plain.primal_dual_step`, which online learning uses) checks
 every step exactly as above. The fast engine checks every ``check_every`` steps (the losses of those steps and the
@@ -57,6 +57,7 @@ class HealthConfig:
         snapshot_every: healthy steps between two snapshots of the healthy state (the plain step).
         check_every: steps per health check of the fast engine.
         error_after: consecutive skipped steps from which the learner reports ERROR.
+        rebase_after: consecutive skipped steps after which the running means start again (a new scale).
     """
 
     explode_ratio: float = 1e4
@@ -66,14 +67,16 @@ class HealthConfig:
     snapshot_every: int = 10
     check_every: int = 10
     error_after: int = 100
+    rebase_after: int = 50
 
     def __post_init__(self) -> None:
         if not (self.explode_ratio > 1 and self.max_weight > 0):
             raise ValueError(f"health: explode_ratio must be > 1 and max_weight > 0, got {self}")
         if not 0 < self.smoothing <= 1 or min(self.warmup, 0) < 0:
             raise ValueError(f"health: smoothing must be in (0, 1] and warmup >= 0, got {self}")
-        if min(self.snapshot_every, self.check_every, self.error_after) < 1:
-            raise ValueError(f"health: snapshot_every, check_every and error_after must be >= 1, got {self}")
+        if min(self.snapshot_every, self.check_every, self.error_after, self.rebase_after) < 1:
+            raise ValueError(f"health: snapshot_every, check_every, error_after and rebase_after must be >= 1, "
+                             f"got {self}")
 
 
 def max_abs(tensors: list[torch.Tensor]) -> float:
@@ -124,9 +127,8 @@ class TrainingHealth:
         if not (math.isfinite(lag) and math.isfinite(obj)):
             return self._problem("loss", f"non-finite minibatch loss (Lagrangian {lag}, objective {obj})")
         if self._loss.exploding(obj, self.config):
-            self._loss.value *= 2.0
             return self._problem("loss", f"exploding minibatch objective {obj:.4g} (running mean "
-                                         f"{self._loss.value / 2:.4g})")
+                                         f"{self._loss.value:.4g})")
         self._pending_loss = obj
         return None
 
@@ -139,9 +141,8 @@ class TrainingHealth:
         if not math.isfinite(norm):
             return self._problem("gradient", f"non-finite gradient (norm {norm})")
         if self._grad.exploding(norm, self.config):
-            self._grad.value *= 2.0
             return self._problem("gradient", f"exploding gradient norm {norm:.4g} (running mean "
-                                             f"{self._grad.value / 2:.4g})")
+                                             f"{self._grad.value:.4g})")
         self._pending_grad = norm
         return None
 
@@ -175,6 +176,8 @@ class TrainingHealth:
         self.skipped[reason] += n
         self.streak += n
         self._pending_grad = None
+        if self.streak >= self.config.rebase_after and self.streak - n < self.config.rebase_after:
+            self._loss, self._grad = _Mean(), _Mean()  # every step explodes: a new scale, warm up again
 
     def ensure_snapshot(self, run: RunState) -> None:
         """Take a snapshot of ``run`` if there is none yet (before the first update of a run or a resume)."""
@@ -210,9 +213,8 @@ class TrainingHealth:
         if not math.isfinite(worst):
             return self._problem("loss", f"non-finite minibatch objective in the last {len(obj)} steps")
         if self._loss.exploding(worst, self.config):
-            self._loss.value *= 2.0
             return self._problem("loss", f"exploding minibatch objective {worst:.4g} (running mean "
-                                         f"{self._loss.value / 2:.4g})")
+                                         f"{self._loss.value:.4g})")
         why = self._weights_problem(max_abs(weights))
         if why is not None:
             return why
