@@ -19,13 +19,13 @@ from bag_publisher import rollout
 from test_bags import T0, write_rollout
 
 from saml_ros.bags.transitions import extract_transitions
+from saml_ros.core.buffer import ReplayBuffer
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.service import MPCService
 from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.pairing import PairingConfig, StampPairer
 from saml_ros.core.plausibility import Plausibility, parse_overrides
-from saml_ros.core.buffer import ReplayBuffer
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
 from saml_ros.core.systems.registry import build_stepped_sim
 from saml_ros.core.worlds.sim_core import APPLIED, STATE, SimConfig
