@@ -28,7 +28,6 @@ non-finite weight is never written (:func:`saml_ros.core.model_io.model_payload`
 
 from __future__ import annotations
 
-import copy
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -81,8 +80,24 @@ class HealthConfig:
 
 def max_abs(tensors: list[torch.Tensor]) -> float:
     """The largest magnitude in ``tensors`` (NaN if any holds NaN, 0 if all are empty)."""
-    tensors = [t.detach() for t in tensors if t.numel()]
-    return float(torch.nn.utils.get_total_norm(tensors, math.inf)) if tensors else 0.0
+    with torch.no_grad():
+        flat = [t.detach().reshape(-1) for t in tensors if t.numel()]
+        return float(torch.cat(flat).abs().max()) if flat else 0.0
+
+
+def _clone_tree(obj: Any) -> Any:
+    """``obj`` (nested dicts / lists / tuples of tensors and plain values) with every tensor cloned."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().clone()
+    if isinstance(obj, dict):
+        return {k: _clone_tree(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return type(obj)(_clone_tree(v) for v in obj)
+    return obj
+
+
+def _opt_params(opt: torch.optim.Optimizer) -> list[torch.Tensor]:
+    return [p for g in opt.param_groups for p in g["params"]]
 
 
 class _Mean:
@@ -137,7 +152,8 @@ class TrainingHealth:
         grads = [p.grad for p in params if p.grad is not None]
         if not grads:
             return None
-        norm = float(torch.nn.utils.get_total_norm(grads, 2.0))
+        with torch.no_grad():
+            norm = float(torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))))
         if not math.isfinite(norm):
             return self._problem("gradient", f"non-finite gradient (norm {norm})")
         if self._grad.exploding(norm, self.config):
@@ -185,9 +201,15 @@ class TrainingHealth:
             self.take_snapshot(run)
 
     def take_snapshot(self, run: RunState) -> None:
-        """Remember ``run``'s state (weights, optimizer states, dual variables) as the last healthy one."""
-        self._snapshot = copy.deepcopy((run.model.net.state_dict(), run.primal_opt.state_dict(),
-                                        run.dual.state_dict()))
+        """Remember ``run``'s state (network parameters, the primal optimizer's state, the dual variables'
+        ``state_dict``) as the last healthy one."""
+        with torch.no_grad():
+            params = [p.detach().clone() for p in run.model.net.parameters()]
+            opt = run.primal_opt
+            state = {i: {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in opt.state[p].items()}
+                     for i, p in enumerate(_opt_params(opt)) if p in opt.state}
+            dual = _clone_tree(run.dual.state_dict())
+        self._snapshot = (params, state, dual)
         self._since_snapshot = 0
 
     def restore(self, run: RunState) -> bool:
@@ -195,11 +217,17 @@ class TrainingHealth:
         never called)."""
         if self._snapshot is None:
             return False
-        net, primal, dual = copy.deepcopy(self._snapshot)
+        params, state, dual = self._snapshot
         with torch.no_grad():
-            run.model.net.load_state_dict(net)
-        run.primal_opt.load_state_dict(primal)
-        run.dual.load_state_dict(dual)
+            for p, saved in zip(run.model.net.parameters(), params):
+                p.copy_(saved)
+            opt = run.primal_opt
+            for i, p in enumerate(_opt_params(opt)):
+                if i in state:
+                    opt.state[p] = {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state[i].items()}
+                else:
+                    opt.state.pop(p, None)
+        run.dual.load_state_dict(_clone_tree(dual))
         self.restores += 1
         return True
 

@@ -308,9 +308,13 @@ class FastRun:
             return
         rows = self._pending[0] if len(self._pending) == 1 else torch.cat(self._pending)
         self._pending = []
+        skipped = torch.isnan(rows).flatten(1).any(1)  # NaN rows: steps skipped as unhealthy (see _check_block)
+        if bool(skipped.any()):
+            rows = rows[~skipped]
+            if len(rows) == 0:
+                return  # as the plain loop: no row without a healthy step
         tr = self.tr
-        # rows of skipped steps are NaN (see _check_block): the history holds the healthy steps' mean
-        tr.log.record(tr.steps, tr.epochs_done, rows[:, :, 0].nanmean(0), rows[:, :, 1:].nanmean(0), self.lam)
+        tr.log.record(tr.steps, tr.epochs_done, rows[:, :, 0].mean(0), rows[:, :, 1:].mean(0), self.lam)
 
     # ------------------------------------------------------------------------------ health (training/health.py)
     def _state_tensors(self) -> list[Tensor]:
