@@ -219,8 +219,8 @@ class TrainingHealth:
             return False
         params, state, dual = self._snapshot
         with torch.no_grad():
-            for p, saved in zip(run.model.net.parameters(), params):
-                p.copy_(saved)
+            for param, saved in zip(run.model.net.parameters(), params):
+                param.copy_(saved)
             opt = run.primal_opt
             for i, p in enumerate(_opt_params(opt)):
                 if i in state:
