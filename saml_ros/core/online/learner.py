@@ -217,8 +217,10 @@ class OnlineLearner:
             bsz, dt = self.config.train.batch_size, self.config.train.torch_dtype
             for _ in range(n_steps):
                 xb, ub, yb = self.buffer.sample(bsz, self._rng)
+                healthy = tr.health.healthy_steps
                 vals = tr.step(torch.from_numpy(xb).to(dt), torch.from_numpy(ub).to(dt), torch.from_numpy(yb).to(dt))
-                self._averages.add(vals)
+                if tr.health.healthy_steps > healthy:  # a skipped step's values are not the model's
+                    self._averages.add(vals)
                 if tr.steps % (self.config.train.log_every or 100) == 0:
                     tr.log_point()
                     tr.history.keep_last(HISTORY_ROWS)
