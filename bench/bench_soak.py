@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 
 from bench.bench_learner import Child, LearnerCounts, settle
-from msg_schemas import DATA_QOS
 from bench.ros_procs import claimed_domain, interrupt
+from msg_schemas import DATA_QOS
 
 REPO = Path(__file__).resolve().parents[1]
 NS = "/friction"
