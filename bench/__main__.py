@@ -10,7 +10,7 @@ import subprocess
 import sys
 import time
 
-BENCHES = ("train", "mpc", "sim", "learner", "closed_loop", "bags", "soak")
+BENCHES = ("train", "mpc", "sim", "learner", "closed_loop", "bags", "health", "soak")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -136,24 +136,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--minutes", type=float, default=10.0, help="streaming time (default 10; 1 for a short run)")
     p.add_argument("--rate", type=float, default=1000.0, help="transitions per second (default 1000)")
     p.add_argument("--sample", type=float, default=10.0, help="seconds between memory / counter samples")
+    p.add_argument("--niceness", type=int, default=10,
+                   help="the learner's training_niceness (default 10, the learner's own default; its training "
+                        "process also decodes and pairs, so on a busy machine it is what starves first)")
     p.add_argument("--warmup", type=float, default=60.0,
                    help="seconds of streaming before the memory baseline (torch's first training steps allocate "
                         "their working memory; default 60)")
     args = p.parse_args(argv)
     if args.role == "publisher":
         return run_publisher()
-    return soak(args.minutes * 60.0, args.rate, args.sample, args.warmup)
+    return soak(args.minutes * 60.0, args.rate, args.sample, args.warmup, args.niceness)
 
 
-def soak(seconds: float, rate: float, sample_s: float, warmup: float) -> int:
+def soak(seconds: float, rate: float, sample_s: float, warmup: float, niceness: int = 10) -> int:
     """The soak run (module docstring); returns 0 when nothing was lost and memory grew less than 50 MB."""
     with claimed_domain() as domain:
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                    PYTHONUNBUFFERED="1")
         env["PYTHONPATH"] = os.pathsep.join(x for x in (str(REPO), env.get("PYTHONPATH", "")) if x)
         os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        print(f"learner soak: {rate:.0f} transitions/s for {seconds:.0f} s (ROS_DOMAIN_ID={domain}, "
-              f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f})", flush=True)
+        print(f"learner soak: {rate:.0f} transitions/s for {seconds:.0f} s, training_niceness {niceness} "
+              f"(ROS_DOMAIN_ID={domain}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}, this process's "
+              f"niceness {os.nice(0)})", flush=True)
         run_dir = Path(tempfile.mkdtemp(prefix="bench_soak_"))
         listener = LearnerCounts()
         pub = Child([sys.executable, "-m", "bench.bench_soak", "--role", "publisher"], env)
@@ -163,7 +167,8 @@ def soak(seconds: float, rate: float, sample_s: float, warmup: float) -> int:
             learner = subprocess.Popen(
                 [sys.executable, "-m", "saml_ros.executables", "learner", "--ros-args", "-r", f"__ns:={NS}",
                  "-p", "min_transitions:=1000", "-p", "updates_per_second:=0.0", "-p", f"run_dir:={run_dir / 'run'}",
-                 "-p", "checkpoint_period:=10.0", "-p", "telemetry_rate:=5.0", "-p", "diagnostics_rate:=2.0"],
+                 "-p", "checkpoint_period:=10.0", "-p", "telemetry_rate:=5.0", "-p", "diagnostics_rate:=2.0",
+                 "-p", f"training_niceness:={niceness}"],
                 env=env, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
             stop = threading.Event()
             samples: list[dict[str, Any]] = []
