@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -51,7 +51,7 @@ def _trainer(name: str, health: HealthConfig | None = None, **cfg: object) -> tu
     return tr, Transitions(model, spec, x, u, y)
 
 
-def best_of(variants: dict[str, Callable[[], float]], rounds: int) -> dict[str, float]:
+def best_of(variants: Mapping[str, Callable[[], float]], rounds: int) -> dict[str, float]:
     """Alternate the variants for ``rounds`` rounds; each one's smallest time per step (s)."""
     best = dict.fromkeys(variants, float("inf"))
     for _ in range(rounds):
@@ -75,7 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         batches = [data.take(torch.randint(0, len(data), (1, 128), generator=rng))[:3] for _ in range(16)]
 
         def plain(step: Callable[..., SpecValues], tr: PrimalDualTrainer = tr,
-                  batches: list = batches) -> float:  # type: ignore[type-arg]
+                  batches: list[tuple[torch.Tensor, ...]] = batches) -> float:
             t0 = time.perf_counter()
             for i in range(args.steps):
                 x, u, y = batches[i % len(batches)]
@@ -88,7 +88,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                        "unguarded": lambda: plain(unguarded_step)}, args.rounds)
         print(f"{name:10s} plain step: guarded {1e6 * res['guarded']:7.1f} us, unguarded "
               f"{1e6 * res['unguarded']:7.1f} us: overhead {100 * (res['guarded'] / res['unguarded'] - 1):+.1f} %")
-        fast = {}
+        fast: dict[str, Callable[[], float]] = {}
         for label, every in (("checks every 10 steps", 10), ("checks at log points only", 10**9)):
             ftr, fdata = _trainer(name, HealthConfig(check_every=every), epochs=1)
             ftr.fit(fdata, epochs=1)
