@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, TRAINING_SKIP_REASONS, WARN
+from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
 
 #: the training-health values of the learner's status reported on /diagnostics
 HEALTH_KEYS: tuple[str, ...] = (
@@ -58,6 +59,9 @@ def learner_diagnostics(
         values[key] = totals.get(key, 0)
     for key in HEALTH_KEYS:
         values[key] = int(status.get(key, 0))
+    for key in RESAMPLE_COUNTERS:  # a robot's own topics (resampled): intervals, gaps, jitter, unstamped, ...
+        if key in totals and key not in values and not key.startswith("received/"):
+            values[key] = totals[key]
     for ns in namespaces:
         c = by_source.get(ns, {})
         values[f"{ns}/paired"] = c.get("paired", 0)

@@ -31,14 +31,21 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import torch
 
 from msg_schemas.telemetry import TRAINING_SKIP_REASONS
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.training.dual import DualVariables
 
-if TYPE_CHECKING:
-    from saml_ros.core.training.engines.base import RunState
+
+class RunState(Protocol):
+    """What the checks read and restore of a run (a :class:`~saml_ros.core.training.PrimalDualTrainer`)."""
+
+    model: DynamicsModel
+    primal_opt: torch.optim.Optimizer
+    dual: DualVariables
 
 #: reasons a step is skipped, in the order the counters are reported
 SKIP_REASONS: tuple[str, ...] = TRAINING_SKIP_REASONS
