@@ -56,8 +56,9 @@ class DataEvidence:
         r = y - system.base_step_np(x, u)
         rng = rng or np.random.default_rng(0)
         pick = rng.choice(len(x), size=min(probe_rows, len(x)), replace=False)
-        return cls(n=len(x), residual_max=np.abs(r).max(0), residual_rms=np.sqrt((r * r).mean(0)),
-                   target_std=y.std(0), probe_x=x[pick].copy(), probe_u=u[pick].copy())
+        with np.errstate(over="ignore", invalid="ignore"):  # absurd data (no bounds) overflow to inf: so be it
+            return cls(n=len(x), residual_max=np.abs(r).max(0), residual_rms=np.sqrt((r * r).mean(0)),
+                       target_std=y.std(0), probe_x=x[pick].copy(), probe_u=u[pick].copy())
 
     def merged(self, older: DataEvidence | None, n: int | None = None) -> DataEvidence:
         """This evidence (of the data at hand) combined with ``older`` (of the data before): the larger residual
