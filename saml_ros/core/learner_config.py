@@ -22,9 +22,11 @@ from saml_ros.core.params import Param, check, read_params
 if TYPE_CHECKING:
     from saml_ros.core.online import LearnerSetup
     from saml_ros.core.online.process import DecoderFactory
+    from saml_ros.core.plausibility import Plausibility
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems.base import System
     from saml_ros.core.training import TrainConfig
+    from saml_ros.core.training.health import HealthConfig
 
 #: ``train.*`` parameters: TrainConfig field -> description (``epochs`` is an offline-only field)
 TRAIN_PARAM_DOCS: dict[str, str] = {
@@ -86,6 +88,15 @@ _TAIL: tuple[Param, ...] = (
                                    "and the MPC first when CPUs are short"),
     Param("train_threads", 1, "torch intra-op threads of the training process (0 = torch's default, one per "
                               "core); 1 is fastest for these small networks on a shared machine"),
+    Param("plausible_bounds", "", "overrides of the system's plausible ranges as a YAML mapping, e.g. "
+                                  "'{x.pz: [-1.0, 2000.0], u.f1: [0.0, 40.0]}' (fields x.<state>, u.<control>, "
+                                  "next.<target>; .inf = open); messages outside are rejected (rejected/bounds)"),
+    Param("health.explode_ratio", 1e4, "a minibatch objective or gradient norm this many times its running mean "
+                                       "is exploding: the training step is skipped"),
+    Param("health.max_weight", 1e6, "a network weight or multiplier larger than this after an update is exploding: "
+                                    "the last healthy state is restored"),
+    Param("health.error_after", 100, "consecutive skipped training steps from which /diagnostics reports ERROR "
+                                     "(WARN once any step was skipped)"),
 )
 
 
@@ -130,6 +141,10 @@ class LearnerConfig:
     training_niceness: int
     train_threads: int
     system_file: str = ""
+    plausible_bounds: str = ""
+    health_explode_ratio: float = 1e4
+    health_max_weight: float = 1e6
+    health_error_after: int = 100
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -170,12 +185,34 @@ class LearnerConfig:
             resume=p["resume"], telemetry_rate=p["telemetry_rate"], telemetry_window=p["telemetry_window"],
             diagnostics_rate=p["diagnostics_rate"], dt=p["dt"], pairing_window=p["pairing.window"],
             pairing_tolerance=p["pairing.tolerance"], training_niceness=p["training_niceness"],
-            train_threads=p["train_threads"], system_file=p["system_file"],
+            train_threads=p["train_threads"], system_file=p["system_file"], plausible_bounds=p["plausible_bounds"],
+            health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
+            health_error_after=p["health.error_after"],
         )
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
         config.train_config()  # validates train.*
+        config.health_config()
         return config
+
+    def health_config(self) -> HealthConfig:
+        """The :class:`~saml_ros.core.training.health.HealthConfig` of ``health.*``; ``ValueError`` naming them."""
+        from saml_ros.core.training.health import HealthConfig
+
+        check(self.health_explode_ratio > 1, "health.explode_ratio", "> 1", self.health_explode_ratio)
+        check(self.health_max_weight > 0, "health.max_weight", "> 0", self.health_max_weight)
+        check(self.health_error_after >= 1, "health.error_after", ">= 1", self.health_error_after)
+        return HealthConfig(explode_ratio=self.health_explode_ratio, max_weight=self.health_max_weight,
+                            error_after=self.health_error_after)
+
+    def plausibility(self, system: System) -> Plausibility:
+        """The system's plausible ranges with ``plausible_bounds``; ``ValueError`` naming the parameter."""
+        from saml_ros.core.plausibility import Plausibility
+
+        try:
+            return Plausibility.for_system(system, self.plausible_bounds)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"parameter 'plausible_bounds': {exc}") from None
 
     def train_config(self) -> TrainConfig:
         """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
@@ -232,17 +269,20 @@ class LearnerConfig:
         from saml_ros.core.online import LearnerSetup, LoopConfig, OnlineConfig
         from saml_ros.core.pairing import PairingConfig
 
+        bounds = self.plausibility(system)
         try:
             config = OnlineConfig(
                 kind=self.model_kind, hidden=tuple(self.model_hidden) or None, train=self.train_config(),
                 buffer_capacity=self.buffer_capacity, buffer_policy=self.buffer_policy,
                 min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
-                checkpoint_keep=self.checkpoint_keep,
+                checkpoint_keep=self.checkpoint_keep, plausible_bounds=self.plausible_bounds,
+                health=self.health_config(),
             )
             own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
             pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(
                 system, target_pairing, tolerance=self.pairing_tolerance, window=self.pairing_window,
                 max_slots=max(10_000, 10 * self.pairing_window))
+            pairing = dataclasses.replace(pairing, bounds=bounds)
             loop = LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry_rate,
                               checkpoint_period=self.checkpoint_period)
         except TypeError as exc:

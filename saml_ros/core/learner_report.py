@@ -13,8 +13,14 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, WARN
+from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, TRAINING_SKIP_REASONS, WARN
 from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
+
+#: the training-health values of the learner's status reported on /diagnostics
+HEALTH_KEYS: tuple[str, ...] = (
+    "train_health/skipped", *(f"train_health/skipped/{r}" for r in TRAINING_SKIP_REASONS), "train_health/restores",
+    "train_health/unhealthy_streak", "checkpoints_unhealthy",
+)
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
@@ -53,8 +59,14 @@ def learner_diagnostics(
     namespaces: Sequence[str],
     channels: Sequence[ChannelCount],
     constraints: Sequence[tuple[str, float]] = (),
+    error_after: int = 100,
 ) -> tuple[int, str, dict[str, Any]]:
     """``(level, message, values)`` of the learner's diagnostics.
+
+    Level: ERROR when the training process failed or dropped data, or while ``error_after`` or more consecutive
+    training steps were skipped as unhealthy (``train_health/unhealthy_streak``), or a checkpoint could not be
+    written because the model was unhealthy; WARN once any message was rejected or any training step skipped;
+    OK otherwise.
 
     Args:
         totals: pairing counts summed over the sources (``paired`` and each reject reason, ``time_resets``, ...).
@@ -65,6 +77,7 @@ def learner_diagnostics(
         namespaces: the namespaces paired, in order.
         channels: one :data:`ChannelCount` per subscription.
         constraints: ``(name, eps)`` of the spec's constraints (their verdicts: :func:`feasibility_report`).
+        error_after: the ``health.error_after`` parameter.
     """
     values: dict[str, Any] = {"paired": totals.get("paired", 0)}
     for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written", "checkpoints_skipped"):
@@ -74,6 +87,8 @@ def learner_diagnostics(
         values[f"rejected/{reason}"] = totals.get(reason, 0)
     for key in ("time_resets", "reanchors", "expired", "overflow"):
         values[key] = totals.get(key, 0)
+    for key in HEALTH_KEYS:
+        values[key] = int(status.get(key, 0))
     for key in RESAMPLE_COUNTERS:  # a robot's own topics (resampled): intervals, gaps, jitter, unstamped, ...
         if key in totals and key not in values and not key.startswith("received/"):
             values[key] = totals[key]
@@ -87,11 +102,15 @@ def learner_diagnostics(
         values[f"{ns}/publishers/{kind}"] = publishers
     rejected = sum(totals.get(r, 0) for r in REJECT_REASONS)
     failed = process.get("train_errors", 0) or process.get("dropped", 0)
-    level = ERROR if failed else (WARN if rejected else OK)
+    skipped, streak = values["train_health/skipped"], values["train_health/unhealthy_streak"]
+    sick = streak >= error_after or values["checkpoints_unhealthy"] > 0
+    level = ERROR if failed or sick else (WARN if rejected or skipped else OK)
     message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                f"version {values['model_version']}, rejected {rejected}")
     f_level, parts, f_values = feasibility_report(status, constraints)
     values.update(f_values)
+    if skipped:
+        message += f", training steps skipped {skipped}" + (f" ({streak} in a row)" if streak else "")
     if parts:
         message += "; " + "; ".join(parts)
     return max(level, f_level), message, values

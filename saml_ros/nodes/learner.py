@@ -243,7 +243,8 @@ class LearnerNode(Node):
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
         level, message, values = learner_diagnostics(tr.counts(), tr.status, process, tr.source_counts,
                                                      self.p.namespaces, channels,
-                                                     [(t.name, t.eps) for t in self.spec.constraints])
+                                                     [(t.name, t.eps) for t in self.spec.constraints],
+                                                     self.p.health_error_after)
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 

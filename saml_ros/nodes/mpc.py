@@ -9,8 +9,12 @@ Subscribes ``state`` (DATA_QOS) and ``learner/checkpoint`` (CHECKPOINT_QOS, tran
 * Models: the node starts on the base model f_hat when ``run_dir`` holds no checkpoint. A
   :class:`~saml_ros.core.model_watch.ModelWatcher` follows ``learner/checkpoint`` and polls ``run_dir``
   (``latest``) as a fallback, loads new checkpoints on a background thread and the control step swaps the
-  ready model in between two solves. Incompatible or corrupt checkpoints are refused (log + counter +
-  ``mpc/status`` ``checkpoints_refused``) and the current model is kept.
+  ready model in between two solves. Incompatible, corrupt or unacceptable checkpoints (non-finite weights,
+  implausible predictions, residuals beyond the training data's: :mod:`saml_ros.core.model_acceptance`) are refused
+  (log + counter + ``mpc/status`` ``checkpoints_refused``) and the current model is kept.
+* Failure path: a state outside the system's plausible range, a failed or non-finite solve is answered with the
+  system's safe command (``safe = 1`` and ``safe_commands`` on ``mpc/status``, ``safe_commands/<reason>`` on
+  ``/diagnostics``).
 * Deadline: a control step (swap + solve + publish, from the state's arrival in lockstep or the timer tick in
   realtime) that takes longer than ``deadline_ms`` counts as a deadline miss.
 
@@ -124,9 +128,12 @@ class MPCNode(Node):
         values = self.diagnostic_values()
         refused = values["checkpoints_refused"]
         version = self.service.model_version
-        level = WARN if refused or self.service.counters["solver_errors"] else OK
+        safe = values["safe_commands"]
+        level = WARN if refused or safe or self.service.counters["solver_errors"] else OK
         message = (f"model version {version}; {values['solves']} solves" if "solves" in values
                    else f"model version {version}; waiting for states")
+        if safe:
+            message += f"; {safe} safe command(s) sent"
         if refused:
             message += f"; {refused} checkpoint(s) refused, last: {values['last_refusal']}"
         entry = DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)

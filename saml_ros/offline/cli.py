@@ -20,6 +20,7 @@ import torch
 import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.model_evidence import DataEvidence
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import get_entry, get_system, system_names
 from saml_ros.core.training import TrainConfig, save_checkpoint
@@ -212,7 +213,9 @@ def main(argv: list[str] | None = None) -> int:
     metrics["feasibility"] = diag.to_dict()
 
     store = CheckpointStore(out)
-    ckpt, version = save_checkpoint(store, result.trainer, metrics=metrics)
+    fx, fu, fy = (np.asarray(a).reshape(-1, np.shape(a)[-1]) for a in (x, u, y))  # every seed's data
+    evidence = DataEvidence.from_data(system, fx, fu, fy, rng=np.random.default_rng(args.seed))
+    ckpt, version = save_checkpoint(store, result.trainer, metrics=metrics, evidence=evidence)
     (out / "history.json").write_text(json.dumps(result.history.to_dict()))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))

@@ -16,6 +16,7 @@ import yaml
 
 from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.params import Param, check, read_params
+from saml_ros.core.plausibility import parse_overrides
 from saml_ros.core.systems.registry import get_entry
 
 #: how the node answers states
@@ -40,6 +41,15 @@ PARAMS: tuple[Param, ...] = (
                                            "(E[l | region] - eps, learner's live window) exceed this; inf = take "
                                            "every valid checkpoint", finite=False),
     Param("gate.min_updates", 0, "hold back checkpoints with fewer learner updates than this"),
+    Param("plausible_bounds", "", "overrides of the system's plausible ranges as a YAML mapping, e.g. "
+                                  "'{x.pz: [-1.0, 2000.0]}' (fields x.<state>, u.<control>, next.<target>; .inf = "
+                                  "open); a state outside is answered with the safe command (rejected/bounds)"),
+    Param("accept.residual_factor", 4.0, "refuse a checkpoint whose model, on its probe set or the recent states, "
+                                         "differs from the base model by more than this multiple of the largest "
+                                         "residual its training data showed (0 = no residual check)"),
+    Param("safe_on_infeasible", False, "also answer with the safe command when the plan is finite but violates a "
+                                       "constraint (by default only failed or non-finite solves and implausible "
+                                       "states are)"),
 )
 
 
@@ -84,6 +94,9 @@ class MPCConfig:
     gate_min_updates: int
     goal: Any
     task: dict[str, Any]
+    plausible_bounds: str = ""
+    accept_residual_factor: float = 4.0
+    safe_on_infeasible: bool = False
 
     @staticmethod
     def params(system: str) -> list[Param]:
@@ -121,6 +134,11 @@ class MPCConfig:
         check(p["deadline_ms"] >= 0, "deadline_ms", ">= 0", p["deadline_ms"])
         check(p["member"] >= 0, "member", ">= 0", p["member"])
         check(p["horizon"] >= 1 or not entry.mpc_horizon, "horizon", ">= 1", p["horizon"])
+        check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
+        try:
+            parse_overrides(p["plausible_bounds"])
+        except ValueError as exc:
+            raise ValueError(f"parameter 'plausible_bounds': {exc}") from None
         return cls(
             system=system, solver=p["solver"], horizon=p["horizon"], member=p["member"],
             solver_options=parse_solver_options(p["solver_options"]), mode=p["mode"], rate_hz=p["rate_hz"],
@@ -129,6 +147,8 @@ class MPCConfig:
             gate_min_updates=p["gate.min_updates"],
             goal=entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params}),
             task={t.name: p[f"task.{t.name}"] for t in entry.task_params},
+            plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
+            safe_on_infeasible=p["safe_on_infeasible"],
         )
 
     def controller_options(self) -> dict[str, Any]:

@@ -45,7 +45,8 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
 
     ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
     (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``) and ``("stop",)``.
-    The whole inbox is handled before every chunk of updates, so ingest goes first. ``send`` reports
+    The whole inbox is handled before every chunk of updates, so ingest goes first (a backlog longer than one
+    telemetry period is handled a period at a time, with a status report in between). ``send`` reports
     ``("status", status, {source name: counters})`` at ``loop.telemetry_rate``, ``("checkpoint", path,
     version)`` after each save, ``("error", what, message)`` and, on stop, ``("stopped", path | None, version,
     updates)`` after a final checkpoint (when there are updates not yet saved). Returns after a stop.
@@ -62,7 +63,9 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
     paced_from: float | None = None
     paced_done = 0
     while True:
-        while conn.poll():
+        # the inbox first, but at most one telemetry period at a time: a backlog must not silence the reports
+        drain_until = time.monotonic() + metrics_period
+        while conn.poll() and time.monotonic() < drain_until:
             msg = conn.recv()
             if msg[0] == "raw":
                 if raw is not None:
@@ -81,6 +84,8 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             next_metrics = now + metrics_period
         if learner.checkpoint_due(loop.checkpoint_period):
             save_and_announce(learner, send)
+        if conn.poll():
+            continue  # still a backlog: ingest before training
         if not learner.training:
             paced_from = None
             conn.poll(0.05)  # an interruptible sleep: wakes up when data arrives

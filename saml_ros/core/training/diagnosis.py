@@ -12,13 +12,16 @@ Per member and constraint, over the *tail* of the history (its last quarter, at 
   says the bound is out of reach at that price), or when it is violated by more than ``MARGIN * eps``, its
   estimate is no longer falling fast enough to reach the bound within as many updates again as the run has
   done (the tail's least-squares slope), lambda is rising (the multiplier keeps pushing and the model does not
-  follow) and lambda has grown to where the constraint weighs in the Lagrangian: ``lambda * eps >= f``, the
-  objective (below that a multiplier still too small to matter explains a flat estimate); otherwise it is
+  follow) and lambda has grown to where the constraint weighs in the Lagrangian: ``lambda (g + eps) >= f``, the
+  objective (below that a multiplier still too small to matter explains a flat estimate; the augmented
+  Lagrangian's weight is ``lambda + rho g``); otherwise it is
   **not converged** (still falling, nearly met, or a multiplier that has not pushed hard enough yet: train
   longer or raise the dual step). A multiplier moved by Adam (at most about its learning rate per update) that
   used at least ``RATE_LIMITED`` of the largest movement its learning rates allowed (``sum_t lr_t``) is
   **rate-limited**: the run cannot tell how far a larger lambda would get, so such a constraint is not
-  converged, with the hint to raise the dual step (the paper's friction run: lambda 1.6 of at most 2.34).
+  converged, with the hint to raise the dual step (the paper's friction run: lambda 1.6 of at most 2.34),
+  unless lambda already dominates the Lagrangian (``lambda (g + eps) >= DOMINATES * f``) and the estimate is still
+  flat: then a faster multiplier would not change the verdict.
 
 Over the members of an ensemble: **met** when every member meets it; a constraint that some member meets is
 feasible for this model and data, so the others are **not converged** (a poorer local optimum: restart and
@@ -47,6 +50,9 @@ RISE = 0.01
 MARGIN = 0.05
 #: a multiplier that moved at least this fraction of its optimizer's largest possible movement is rate-limited
 RATE_LIMITED = 0.6
+#: a rate-limited multiplier with lambda (g + eps) >= DOMINATES * f dominates the objective: a constraint still flat
+#: then is likely infeasible however fast lambda could have moved
+DOMINATES = 4.0
 #: the tail: the last TAIL of the history rows, at least MIN_ROWS of them
 TAIL = 0.25
 MIN_ROWS = 4
@@ -135,7 +141,7 @@ def _slope(t: np.ndarray, v: np.ndarray) -> float:
 
 
 def _member(h: dict[str, np.ndarray], m: int, k: int, eps: float, g_final: float | None, relax: float,
-            updates: int, f: float, dual_limit: float | None) -> MemberStatus:
+            updates: int, f: float, dual_limit: float | None, rho: float = 0.0) -> MemberStatus:
     rows = len(h["step"])
     n_tail = min(rows, max(MIN_ROWS, int(round(rows * TAIL))))
     has_tail = rows >= MIN_ROWS
@@ -160,15 +166,19 @@ def _member(h: dict[str, np.ndarray], m: int, k: int, eps: float, g_final: float
         verdict = NOT_CONVERGED
     else:
         reaches = g_slope < 0 and g / -g_slope <= max(updates, 1)
-        weighs = lam_end * eps >= f
-        infeasible = g > MARGIN * eps and not reaches and rising and weighs and not limited
+        weight = lam_end + rho * max(g, 0.0)  # the augmented Lagrangian weighs g by relu(lambda + rho g)
+        weighs = weight * (g + eps) >= f  # the constraint's term in the Lagrangian is as large as the objective
+        # a rate-limited multiplier may just be too slow, unless it already dominates the Lagrangian
+        dominates = weight * (g + eps) >= DOMINATES * f
+        infeasible = g > MARGIN * eps and not reaches and rising and weighs and (dominates or not limited)
         verdict = INFEASIBLE if infeasible else NOT_CONVERGED
     return MemberStatus(met, g, min(lhs), lam_end, lam_start, bool(rising), g_slope, relax, verdict, limited)
 
 
 def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence[int] | str = "",
              final_g: np.ndarray | None = None, relaxation: np.ndarray | None = None,
-             objective: np.ndarray | None = None, dual_limit: float | None = None) -> FeasibilityDiagnosis:
+             objective: np.ndarray | None = None, dual_limit: float | None = None,
+             rho: Sequence[float] | None = None) -> FeasibilityDiagnosis:
     """The feasibility verdict of every constraint (rules: the module docstring).
 
     Args:
@@ -181,6 +191,8 @@ def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence
         objective: the final objective ``(E,)`` (None: the last history row's).
         dual_limit: the largest movement of lambda its optimizer allowed, ``sum_t lr_t`` (Adam); None: no such
             bound (SGD, nuPI).
+        rho: the augmented Lagrangian's penalty per constraint ``(K,)`` (None: 0, the other methods); the
+            constraint's weight in the Lagrangian is then ``lambda + rho g``.
     """
     k_all = len(history.constraint_names)
     out = FeasibilityDiagnosis(updates=int(updates))
@@ -197,7 +209,7 @@ def diagnose(history: History, eps: Sequence[float], updates: int, net: Sequence
         members = [
             _member(h, m, k, ek, None if final_g is None else float(final_g[m, k]),
                     0.0 if relaxation is None else float(relaxation[m, k]), updates, float(objective[m]),
-                    dual_limit)
+                    dual_limit, 0.0 if rho is None else float(rho[k]))
             for m in range(e)
         ]
         if not members:

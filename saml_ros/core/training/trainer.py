@@ -30,6 +30,7 @@ from saml_ros.core.training.diagnosis import MET, FeasibilityDiagnosis, diagnose
 from saml_ros.core.training.dual import DualVariables
 from saml_ros.core.training.engines import ENGINES, PlainEngine, minibatch_plan, primal_dual_step
 from saml_ros.core.training.evaluate import evaluate_spec
+from saml_ros.core.training.health import HealthConfig, TrainingHealth
 from saml_ros.core.training.history import FeasibilityReport, History, TrainingLog, check_feasibility, progress_bar
 from saml_ros.core.training.schedule import LRSchedule, schedules_for
 
@@ -49,12 +50,14 @@ class PrimalDualTrainer:
             an explicit one is None until :meth:`fit`: :meth:`step` then raises ``ValueError``).
         rng: the generator minibatches are drawn from.
         log: the history and the minibatch values since its last row.
+        health: the training-health checks and counters (:mod:`~saml_ros.core.training.health`).
         steps: primal-dual updates done so far; epochs_done: passes over the data of :meth:`fit` so far.
         engine_used: engine of the last :meth:`fit` (``"fast"`` or ``"plain"``), None before.
         diagnosis: the feasibility diagnosis at the end of the last :meth:`fit` (None before).
     """
 
-    def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None) -> None:
+    def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None,
+                 health: HealthConfig | None = None) -> None:
         self.model = model
         self.spec = spec
         self.config = config or TrainConfig()
@@ -71,6 +74,7 @@ class PrimalDualTrainer:
         self.steps = 0
         self.epochs_done = 0.0
         self.log = TrainingLog(spec.constraint_names)
+        self.health = TrainingHealth(health)
         self.rng = torch.Generator().manual_seed(int(self.config.seed))
         self.engine_used: str | None = None
         self.diagnosis: FeasibilityDiagnosis | None = None
@@ -180,7 +184,10 @@ class PrimalDualTrainer:
         limit = None
         if type(self.dual.optimizer) is torch.optim.Adam and self.schedules is not None:
             limit = self.schedules[1].total(self.steps)  # Adam moves lambda by at most about lr per update
-        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax, f.double().numpy(), limit)
+        rho = getattr(self.dual, "rho", None)  # the augmented Lagrangian's penalty (E, K), alike over members
+        rho_k = None if rho is None else rho.reshape(-1, len(eps))[0].double().numpy()
+        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax, f.double().numpy(), limit,
+                        rho_k)
 
     def feasibility(self, tail: float = 0.25, rel_tol: float = 0.02) -> FeasibilityReport:
         """Flag constraints whose mean g over the last ``tail`` of the history exceeds ``rel_tol * eps``

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.checkpoint import CheckpointStore, arrays_to_torch_state, torch_state_to_arrays
-from saml_ros.core.model_io import LoadedModel, jsonable, model_payload
+from saml_ros.core.model_evidence import DataEvidence
+from saml_ros.core.model_io import LoadedModel, UnhealthyModel, jsonable, model_payload
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.trainer import PrimalDualTrainer
 
@@ -20,10 +21,21 @@ log = logging.getLogger("saml_ros.trainer")
 
 
 def checkpoint_payload(
-    trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None, extra: dict[str, Any] | None = None
+    trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None, extra: dict[str, Any] | None = None,
+    evidence: DataEvidence | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Arrays and meta of a checkpoint holding ``trainer``'s model, lambda and optimizer states (``metrics`` and
-    ``extra`` go into the meta as they are, made JSON-safe)."""
+    ``extra`` go into the meta as they are, made JSON-safe), its health (``meta["health"]``,
+    :meth:`~saml_ros.core.training.health.TrainingHealth.summary`) and the training data's ``evidence`` (probe set
+    and residual statistics, :mod:`saml_ros.core.model_evidence`).
+
+    Raises:
+        saml_ros.core.model_io.UnhealthyModel: a weight, multiplier or optimizer value is NaN or infinite.
+    """
+    health = trainer.health.summary(trainer)
+    if not health["finite"]:
+        raise UnhealthyModel(f"non-finite weights or multipliers (last problem: {health['last_problem'] or '-'}): "
+                             "not written")
     dual = trainer.dual.state_dict()
     arrays: dict[str, np.ndarray] = {"lam": dual["lam"].double().numpy().copy()}
     model_arrays, meta, model_skeleton = model_payload(trainer.model, trainer.spec)
@@ -41,16 +53,22 @@ def checkpoint_payload(
         "epochs": trainer.epochs_done,
         "metrics": jsonable(metrics or {}),
         "skeletons": skeletons,
+        "health": jsonable(health),
     })
+    if evidence is not None:
+        ev_arrays, ev_meta = evidence.to_payload(trainer.model.system.target.names)
+        arrays.update(ev_arrays)
+        meta["evidence"] = ev_meta
     if extra:
         meta.update(jsonable(extra))
     return arrays, meta
 
 
 def save_checkpoint(store: CheckpointStore, trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None,
-                    extra: dict[str, Any] | None = None) -> tuple[Path, int]:
-    """Write the next versioned checkpoint of ``trainer`` into ``store`` and point ``latest`` at it."""
-    arrays, meta = checkpoint_payload(trainer, metrics, extra)
+                    extra: dict[str, Any] | None = None, evidence: DataEvidence | None = None) -> tuple[Path, int]:
+    """Write the next versioned checkpoint of ``trainer`` into ``store`` and point ``latest`` at it (see
+    :func:`checkpoint_payload`; nothing is written for an unhealthy model)."""
+    arrays, meta = checkpoint_payload(trainer, metrics, extra, evidence)
     return store.save(arrays, meta)
 
 

@@ -14,6 +14,7 @@ from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import DualVariables
+from saml_ros.core.training.health import TrainingHealth
 from saml_ros.core.training.history import TrainingLog
 from saml_ros.core.training.schedule import LRSchedule
 
@@ -30,6 +31,7 @@ class RunState(Protocol):
     rng: torch.Generator
     log: TrainingLog
     schedules: tuple[LRSchedule, LRSchedule] | None
+    health: TrainingHealth
     steps: int
     epochs_done: float
 

@@ -62,6 +62,7 @@ _CHUNK_FLOATS = 1_000_000
 _prelu_kernel: Callable[[Tensor, Tensor], Tensor] = getattr(
     torch, "_prelu_kernel", torch.ops.aten._prelu_kernel.default
 )
+_Snapshot = tuple[list[Tensor], tuple[int, int, int], Tensor | None]
 _Step = Callable[[Tensor, Tensor, list[StepGroup], Tensor], None]
 #: the dual methods with a flat implementation here (every one of :data:`~saml_ros.core.training.dual.DUAL_CLASSES`)
 FAST_DUALS: tuple[type[DualVariables], ...] = (DualVariables, NuPIDual, AugmentedDual, ResilientDual)
@@ -347,8 +348,49 @@ class FastRun:
             return
         rows = self._pending[0] if len(self._pending) == 1 else torch.cat(self._pending)
         self._pending = []
+        skipped = torch.isnan(rows).flatten(1).any(1)  # NaN rows: steps skipped as unhealthy (see _check_block)
+        if bool(skipped.any()):
+            rows = rows[~skipped]
+            if len(rows) == 0:
+                return  # as the plain loop: no row without a healthy step
         tr = self.tr
         tr.log.record(tr.steps, tr.epochs_done, rows[:, :, 0].mean(0), rows[:, :, 1:].mean(0), self.lam)
+
+    # ------------------------------------------------------------------------------ health (training/health.py)
+    def _state_tensors(self) -> list[Tensor]:
+        """The tensors a step changes: flat parameters (and merged dual), optimizer moments, lambda."""
+        ts: list[Tensor] = [self.net.flat, self.popt.m, self.popt.v, self.lam]
+        if self.dopt is not None:
+            ts += [self.dopt.m, self.dopt.v]
+        seen: set[int] = set()
+        return [t for t in ts if not (id(t) in seen or seen.add(id(t)))]  # type: ignore[func-returns-value]
+
+    def _snapshot(self) -> _Snapshot:
+        """The state :meth:`_check_block` puts back: the step tensors, the step counts and nuPI's last error."""
+        nupi = self.dnupi
+        xi = None if nupi is None or nupi.xi is None else nupi.xi.clone()
+        return ([t.clone() for t in self._state_tensors()],
+                (self.popt.step_count, self.dopt.step_count if self.dopt is not None else 0,
+                 nupi.step_count if nupi is not None else 0), xi)
+
+    def _check_block(self, vals: Tensor, a: int, b: int, snap: _Snapshot) -> None:
+        """Health check of steps ``a:b`` (values ``vals[a:b]``); on a problem the state from before them is put
+        back, their values become NaN and they are counted skipped."""
+        health = self.tr.health
+        why = health.check_block(vals[a:b, :, 0], [self.net.flat, self.lam])
+        if why is None:
+            return
+        with torch.no_grad():
+            for dst, src in zip(self._state_tensors(), snap[0]):
+                dst.copy_(src)
+        self.popt.step_count = snap[1][0]
+        if self.dopt is not None:
+            self.dopt.step_count = snap[1][1]
+        if self.dnupi is not None:
+            self.dnupi.step_count, self.dnupi.xi = snap[1][2], snap[2]
+        vals[a:b] = float("nan")
+        health.skip(why, b - a)
+        health.restores += 1
 
     def _make_step(self, bsz: int) -> _Step:
         """``step(z, r, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member, with
@@ -459,6 +501,8 @@ class FastRun:
         ps, ds = self.schedules
         popt = self.popt
         dual_opt = self.dopt or self.dnupi
+        every = tr.health.config.check_every
+        block, snap = lo, self._snapshot()
         for j in range(lo, hi):
             if not ps.constant:
                 popt.lr = ps.lr(tr.steps)
@@ -467,6 +511,11 @@ class FastRun:
             step(z_all[j], r_all[j], sg_all[j], rows[j])
             tr.steps += 1
             tr.epochs_done += inc
+            if j + 1 - block >= every or j + 1 == hi or tr.steps == next_log:  # a health check per block
+                self._check_block(vals, block, j + 1, snap)
+                block = j + 1
+                if block < hi:
+                    snap = self._snapshot()
             if tr.steps == next_log:
                 next_log += log_every
                 self._pending.append(vals[start : j + 1])

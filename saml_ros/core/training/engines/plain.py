@@ -26,7 +26,7 @@ def primal_dual_step(
     Descends on theta along the dual method's primal loss (members are independent: their losses are summed),
     then lets the dual variables ascend on the detached constraint estimates; the learning rates follow
     ``run.schedules`` at update ``run.steps``. Returns the detached minibatch spec values *before* the update
-    (also added to ``run.log``).
+    (also added to ``run.log``, unless ``run.health`` skipped the step: see :mod:`~saml_ros.core.training.health`).
 
     Raises:
         ValueError: ``run.schedules`` is None (a schedule whose horizon is not known yet).
@@ -37,13 +37,27 @@ def primal_dual_step(
         masks = run.spec.masks(x, u, y)
     vals = run.spec.evaluate_with_masks(y, pred, masks)
     loss = run.dual.lagrangian(vals).sum()
-    run.primal_opt.zero_grad(set_to_none=True)
-    loss.backward()
-    run.primal_opt.step()
-    run.dual.step(vals.constraints.detach(), vals.objective.detach())
+    health = run.health
+    why = health.check_loss(loss, vals.objective)
+    if why is None:
+        run.primal_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        why = health.check_gradients(list(run.model.net.parameters()))
+    if why is None:
+        health.ensure_snapshot(run)
+        run.primal_opt.step()
+        run.dual.step(vals.constraints.detach(), vals.objective.detach())
+        why = health.check_weights(run)
+        if why is not None:
+            health.restore(run)
     run.steps += 1
     out = SpecValues(vals.objective.detach(), vals.constraints.detach(), vals.region_fraction.detach())
-    run.log.add(out)
+    if why is None:
+        health.healthy(run)
+        run.log.add(out)
+    else:
+        run.primal_opt.zero_grad(set_to_none=True)
+        health.skip(why)
     return out
 
 
