@@ -36,6 +36,7 @@ import math
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections import deque
@@ -694,7 +695,7 @@ class RawIngest:
 
 
 def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable[[tuple[Any, ...]], None],
-             raw: RawIngest | None = None) -> None:
+             raw: RawIngest | None = None, stop_requested: Callable[[], bool] | None = None) -> None:
     """The training loop of a training process (or any thread owning ``learner``).
 
     ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
@@ -703,7 +704,11 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable
     ``("status", status, {source name: counters})`` at ``loop.telemetry_rate``, ``("checkpoint", path,
     version)`` after each save, ``("error", what, message)`` and, on stop, ``("stopped", path | None, version,
     updates)`` after a final checkpoint (when there are updates not yet saved). Returns after a stop.
+    ``stop_requested()`` True (the training process got :data:`STOP_SIGNAL`) stops at once, as ``("stop",)``
+    would, without handling what is still in the inbox: data not yet in the buffer cannot change the final
+    checkpoint, and a backlog of it must not hold the shutdown past a launcher's grace period.
     """
+    requested = stop_requested or (lambda: False)
 
     def report() -> None:
         learner.compute_model_metrics()
@@ -716,8 +721,10 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable
     paced_from: float | None = None
     paced_done = 0
     while True:
-        while conn.poll():
-            msg = conn.recv()
+        while True:
+            msg = ("stop",) if requested() else (conn.recv() if conn.poll() else None)
+            if msg is None:
+                break
             if msg[0] == "raw":
                 if raw is not None:
                     raw.feed(msg[1])
@@ -802,8 +809,19 @@ def child_entry(fd: int) -> None:
     try:
         setup = conn.recv()
     except (EOFError, OSError):
-        return
+        _exit_now()
     _child_main(conn, setup)
+    _exit_now()
+
+
+def _exit_now() -> None:
+    """End the training process without the interpreter's teardown: its work is saved and reported (or there was
+    none), and torch's teardown takes 1-5 s on a loaded 2-core machine, which the node's shutdown would wait for."""
+    logging.shutdown()
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(0)
 
 
 def apply_compute_settings(threads: int, flush_denormal: bool) -> dict[str, Any]:
@@ -818,11 +836,18 @@ def apply_compute_settings(threads: int, flush_denormal: bool) -> dict[str, Any]
     return {"threads": torch.get_num_threads(), "flush_denormal": flushing}
 
 
+#: what :meth:`TrainingProcess.stop` sends the training process: save now, skip the inbox (see :func:`run_loop`)
+STOP_SIGNAL = signal.SIGUSR1
+
+
 def _child_main(conn: Any, setup: LearnerSetup) -> None:
     _die_with_parent()
-    # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops
+    # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops, and tells
+    # this process with STOP_SIGNAL (then the ("stop",) message) so that it stops without working off its inbox
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    stop_flag: list[int] = []
+    signal.signal(STOP_SIGNAL, lambda signum, frame: stop_flag.append(signum))
     if setup.niceness:
         with contextlib.suppress(OSError):
             os.nice(setup.niceness)
@@ -854,7 +879,7 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
         log.info("training process: %d torch intra-op thread(s), subnormal floats %s", compute["threads"],
                  "flushed to zero" if compute["flush_denormal"] else "not flushed")
         send(("ready", info, list(learner.model.hidden), learner.status(), compute))
-        run_loop(learner, setup.loop, conn, send, raw)
+        run_loop(learner, setup.loop, conn, send, raw, stop_requested=lambda: bool(stop_flag))
     except (EOFError, OSError):
         return  # the parent is gone
 
@@ -981,12 +1006,17 @@ class TrainingProcess:
                 return self.ready
 
     def stop(self, timeout: float = 60.0) -> tuple[str | None, int, int] | None:
-        """Ship what is queued, ask the child for a final checkpoint and wait for it to exit.
+        """Ask the child for a final checkpoint now and wait for it to exit.
 
-        Returns ``(path of the final checkpoint or None if nothing was new, model version, updates)``, or None
-        if the child did not answer within ``timeout`` s (it is then killed).
+        What is still queued here or in the child's inbox is dropped (it is not in the buffer yet, so it cannot
+        change the final checkpoint): :data:`STOP_SIGNAL` makes the child save at once, however far behind its
+        ingest is. Returns ``(path of the final checkpoint or None if nothing was new, model version, updates)``,
+        or None if the child did not answer within ``timeout`` s (it is then killed).
         """
         self._stopping.set()
+        if self._proc is not None and self._proc.poll() is None:
+            with contextlib.suppress(OSError):
+                self._proc.send_signal(STOP_SIGNAL)
         for t in self._threads:
             if t.name == "learner-ship":
                 t.join(timeout)
@@ -1033,9 +1063,11 @@ class TrainingProcess:
         return total_counts(self.source_counts.values())
 
     def _ship(self) -> None:
-        """Send queued data in batches every few ms (a blocking pipe write stalls this thread only)."""
+        """Send queued data in batches every few ms (a blocking pipe write stalls this thread only); returns as
+        soon as :meth:`stop` is called (the child no longer reads data then)."""
         while True:
-            stopping = self._stopping.is_set()
+            if self._stopping.is_set():
+                return
             n = len(self._raw)
             if n:
                 items = [self._raw.popleft() for _ in range(n)]
@@ -1062,8 +1094,6 @@ class TrainingProcess:
                 except (OSError, ValueError):  # the child is being restarted: keep the batch
                     self._outbox.extendleft(reversed(trs))
                     time.sleep(0.1)
-            if stopping and not self._outbox and not self._raw:
-                return
             time.sleep(0.005)
 
     def _read(self) -> None:

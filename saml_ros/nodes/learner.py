@@ -33,7 +33,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
+from saml_ros.nodes.runtime import (
+    catch_stop_signals,
+    full_argv,
+    init_rclpy,
+    process_main,
+    shutdown,
+    spin_until_stopped,
+    wants_help,
+)
 
 #: exit status for configuration errors (the node never starts)
 CONFIG_ERROR = 2
@@ -467,6 +475,7 @@ def _discard(launched: Any) -> None:
         proc.kill()
 
 
+@process_main
 def main(argv: Sequence[str] | None = None) -> int:
     """``learner [--ros-args ...]``: run until SIGINT / SIGTERM, then write a final checkpoint and exit 0."""
     stop = catch_stop_signals()

@@ -48,7 +48,15 @@ from saml_ros.core.model_watch import REFUSAL_REASONS, ModelWatcher, ReadyModel
 from saml_ros.core.mpc.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
-from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
+from saml_ros.nodes.runtime import (
+    catch_stop_signals,
+    full_argv,
+    init_rclpy,
+    process_main,
+    shutdown,
+    spin_until_stopped,
+    wants_help,
+)
 
 MODES = ("lockstep", "realtime")
 #: exit code for invalid parameters (as argparse's usage errors)
@@ -452,6 +460,7 @@ def create_node() -> Any:
 
 
 
+@process_main
 def main(argv: Sequence[str] | None = None) -> int:
     """``mpc [--ros-args ...]``: run the node until SIGINT / SIGTERM (exit 0); bad parameters exit 2."""
     args = full_argv("mpc", argv)

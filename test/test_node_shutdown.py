@@ -1,0 +1,139 @@
+"""Every node exits cleanly on Ctrl-C under ``ros2 launch`` and on SIGTERM (real processes, private ROS domain).
+
+A terminal's Ctrl-C under ``ros2 launch`` sends SIGINT to the terminal's whole process group (every node and the
+learner's training process) and launch then sends each node SIGINT once more; 5 s later launch escalates to
+SIGTERM. So each test starts all seven node executables at once (a friction loop that trains, the other two
+simulators, a recorder and a player), signals them all together, and checks that each exits with status 0 within
+5 s, with no traceback on its output, and that the learner wrote its final checkpoint and left no training
+process behind.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from bag_publisher import rollout
+from ros_helpers import Process, RosDomain, wait_for
+
+import ros_helpers
+from msg_schemas import DATA_QOS, TypestoreFactory, get_schema
+from saml_ros.bags.io import BagWriter, jazzy_typestore
+from saml_ros.core.checkpoint import CheckpointStore
+
+ros_env = ros_helpers.ros_env
+
+#: launch's grace period between its SIGINT and its SIGTERM (s)
+GRACE_S = 5.0
+#: the learner's final-checkpoint log lines (one of them ends every shutdown after training)
+FINAL_CHECKPOINT = re.compile(r"shutdown: (final checkpoint version \d+|checkpoint version \d+ is current)")
+
+
+@dataclass
+class Started:
+    name: str
+    proc: Process
+    ready: str  #: log text that says the node is up
+
+
+def _write_slow_bag(path: Path, ns: str) -> None:
+    """A 21-state friction bag spanning 10 s of log time (played at rate 0.2 it takes 50 s)."""
+    events = rollout("friction", 21, 0, seed=3, t0_ns=10**9)
+    schema, factory = get_schema("friction"), TypestoreFactory(jazzy_typestore())
+    with BagWriter(path) as w:
+        w.add_topic(f"{ns}/state", "sensor_msgs/msg/JointState", DATA_QOS)
+        for k, ev in enumerate(events):
+            t = 10**9 + k * 500_000_000
+            w.write_msg(f"{ns}/state", schema.state_to_msg(ev["x"], t, factory=factory), t)
+
+
+def _start_all(dom: RosDomain, tmp: Path) -> tuple[list[Started], Path]:
+    run_dir = tmp / "learner_run"
+    bag = tmp / "slow_bag"
+    _write_slow_bag(bag, "/replay")
+    realtime = ["-p", "mode:=realtime", "-p", "start_delay:=0.2"]
+    nodes = [
+        Started("friction_sim", dom.launch("friction_sim", *realtime, "-p", "rate_hz:=50.0",
+                                           namespace="/friction"), "friction simulator"),
+        Started("learner", dom.launch("learner", "-p", "system:=friction", "-p", f"run_dir:={run_dir}",
+                                      "-p", "min_transitions:=50", "-p", "checkpoint_period:=1.0",
+                                      "-p", "training_niceness:=0", namespace="/friction"), "training started"),
+        Started("mpc", dom.launch("mpc", "-p", "system:=friction", "-p", "mode:=realtime", namespace="/friction"),
+                "friction MPC"),
+        Started("quadrotor_sim", dom.launch("quadrotor_sim", *realtime, namespace="/quadrotor"),
+                "quadrotor simulator"),
+        Started("paddle_ball_sim", dom.launch("paddle_ball_sim", *realtime, namespace="/paddle_ball"),
+                "paddle_ball simulator"),
+        Started("record", dom.launch("record", args=["-o", str(tmp / "rec"), "--system", "friction"]),
+                "record: writing"),
+        Started("play", dom.launch("play", args=[str(bag), "--rate", "0.2"]), "messages over"),
+    ]
+    for n in nodes:
+        wait_for(lambda n=n: n.ready in n.proc.output() or not n.proc.alive(), timeout=90,
+                 what=f"{n.name} to come up")
+        assert n.proc.alive(), f"{n.name} exited during start-up:\n{n.proc.output()}"
+    # the learner checkpoints every second once training runs: wait for one, so the final one is a real save
+    wait_for(lambda: CheckpointStore(run_dir).load_latest_valid() is not None, timeout=60,
+             what="the learner's first checkpoint")
+    return nodes, run_dir
+
+
+def _training_pid(learner: Process) -> int:
+    found = re.search(r"training process pid (\d+)", learner.output())
+    assert found, learner.output()
+    return int(found.group(1))
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped by its parent) is gone for our purpose
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _check_clean_exits(nodes: list[Started], t_signal: float, run_dir: Path, trainer_pid: int) -> None:
+    codes: dict[str, int | None] = {}
+    for n in nodes:
+        codes[n.name] = n.proc.wait(max(0.0, t_signal + GRACE_S - time.monotonic()))
+    elapsed = time.monotonic() - t_signal
+    late = [name for name, code in codes.items() if code is None]
+    assert not late, f"still running {elapsed:.1f} s after the signal: {late}\n" + "\n".join(
+        f"--- {n.name}:\n{n.proc.output()[-3000:]}" for n in nodes if n.name in late)
+    for n in nodes:
+        out = n.proc.output()
+        assert codes[n.name] == 0, f"{n.name} exited with {codes[n.name]}:\n{out[-3000:]}"
+        assert "Traceback" not in out and "KeyboardInterrupt" not in out, f"{n.name}:\n{out[-3000:]}"
+    learner_log = next(n for n in nodes if n.name == "learner").proc.output()
+    assert FINAL_CHECKPOINT.search(learner_log), learner_log[-3000:]
+    assert CheckpointStore(run_dir).load_latest_valid() is not None
+    assert not _alive(trainer_pid), "the learner's training process outlived the learner"
+
+
+def test_ctrl_c_under_launch_two_sigints_every_node_exits_cleanly(ros_env: RosDomain, tmp_path: Path) -> None:
+    nodes, run_dir = _start_all(ros_env, tmp_path)
+    trainer = _training_pid(nodes[1].proc)
+    t_signal = time.monotonic()
+    for n in nodes:  # the terminal: SIGINT to each node's process group (the learner's includes its trainer)
+        os.killpg(n.proc.pid, signal.SIGINT)
+    time.sleep(0.05)
+    for n in nodes:  # launch: SIGINT to each node process
+        if n.proc.alive():
+            n.proc.signal(signal.SIGINT)
+    _check_clean_exits(nodes, t_signal, run_dir, trainer)
+
+
+def test_sigterm_every_node_exits_cleanly(ros_env: RosDomain, tmp_path: Path) -> None:
+    nodes, run_dir = _start_all(ros_env, tmp_path)
+    trainer = _training_pid(nodes[1].proc)
+    t_signal = time.monotonic()
+    for n in nodes:
+        n.proc.signal(signal.SIGTERM)
+    _check_clean_exits(nodes, t_signal, run_dir, trainer)
