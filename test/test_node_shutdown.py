@@ -17,10 +17,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import ros_helpers
 from bag_publisher import rollout
 from ros_helpers import Process, RosDomain, wait_for
 
-import ros_helpers
 from msg_schemas import DATA_QOS, TypestoreFactory, get_schema
 from saml_ros.bags.io import BagWriter, jazzy_typestore
 from saml_ros.core.checkpoint import CheckpointStore
