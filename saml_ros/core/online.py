@@ -722,7 +722,7 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Callable
     paced_done = 0
     while True:
         while True:
-            msg = ("stop",) if requested() else (conn.recv() if conn.poll() else None)
+            msg: Any = ("stop",) if requested() else (conn.recv() if conn.poll() else None)
             if msg is None:
                 break
             if msg[0] == "raw":
