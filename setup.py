@@ -38,6 +38,7 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", sorted(str(p.relative_to(here)) for p in here.glob("config/*.yaml"))),
         ("share/" + package_name + "/launch", sorted(str(p.relative_to(here)) for p in here.glob("launch/*.launch.*"))),
+        ("share/" + package_name + "/layouts", sorted(str(p.relative_to(here)) for p in here.glob("layouts/*.*"))),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

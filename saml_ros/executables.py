@@ -29,6 +29,8 @@ EXECUTABLES: dict[str, str] = {
     "experiment": "saml_ros.experiments.cli:main",
     "bag_info": "saml_ros.bags.info:main",
     "demo": "saml_ros.demo:main",
+    "layouts": "saml_ros.viewers.cli:main",
+    "foxglove_server": "saml_ros.viewers.foxglove_server:main",
 }
 
 #: exit code for an unknown or unavailable executable (same as argparse's usage errors)

@@ -2,8 +2,8 @@
 
 A terminal's Ctrl-C under ``ros2 launch`` sends SIGINT to the terminal's whole process group (every node and the
 learner's training process) and launch then sends each node SIGINT once more; 5 s later launch escalates to
-SIGTERM. So each test starts all seven node executables at once (a friction loop that trains, the other two
-simulators, a recorder and a player), signals them all together, and checks that each exits with status 0 within
+SIGTERM. So each test starts all eight node executables at once (a friction loop that trains, the other two
+simulators, a recorder, a player and the Foxglove server), signals them all together, and checks that each exits with status 0 within
 5 s, with no traceback on its output, and that the learner wrote its final checkpoint and left no training
 process behind.
 """
@@ -71,6 +71,8 @@ def _start_all(dom: RosDomain, tmp: Path) -> tuple[list[Started], Path]:
         Started("record", dom.launch("record", args=["-o", str(tmp / "rec"), "--system", "friction"]),
                 "record: writing"),
         Started("play", dom.launch("play", args=[str(bag), "--rate", "0.2"]), "messages over"),
+        Started("foxglove_server", dom.launch("foxglove_server", "-p", "system:=friction", "-p", "port:=0"),
+                "Foxglove WebSocket on"),
     ]
     for n in nodes:
         wait_for(lambda n=n: n.ready in n.proc.output() or not n.proc.alive(), timeout=90,
