@@ -48,6 +48,8 @@ class TrainConfig:
         engine: how :meth:`PrimalDualTrainer.fit` runs: ``"fast"`` (hand-written forward/backward and flat
             Adam, :mod:`saml_ros.core.fast_train`; same results up to float rounding, falls back to the plain
             loop where it does not apply) or ``"plain"`` (autograd and ``torch.optim``).
+        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.device.resolve_device`),
+            so a device that cannot be used fails when the configuration is made, not mid-run.
     """
 
     epochs: int = 200
@@ -60,6 +62,7 @@ class TrainConfig:
     seed: int = 0
     dtype: str = "float32"
     engine: str = "fast"
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.primal_optimizer not in OPTIMIZERS or self.dual_optimizer not in OPTIMIZERS:
@@ -72,6 +75,9 @@ class TrainConfig:
             raise ValueError("dtype must be float32 or float64")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {ENGINES}")
+        from saml_ros.core.device import resolve_device
+
+        resolve_device(self.device)
 
     @property
     def torch_dtype(self) -> torch.dtype:

@@ -58,6 +58,8 @@ TRAIN_PARAM_DOCS: dict[str, str] = {
     "seed": "seed of the model initialisation and the minibatch sampling",
     "dtype": "'float32' or 'float64' for the model and the minibatches",
     "engine": "offline training engine (not used by the online step loop)",
+    "device": "training device: cpu | cuda | cuda:N (checked at start-up; a device that cannot be used is a "
+              "configuration error)",
 }
 
 

@@ -20,6 +20,7 @@ import torch
 import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.device import DeviceError, resolve_device
 from saml_ros.core.model_io import save_checkpoint
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
@@ -54,6 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=1, help="train this many seeds at once (one ensemble)")
     p.add_argument("--out", type=Path, help="output run directory (default: runs/train-<system>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--device", default="cpu", help="training device: cpu (default) | cuda | cuda:N; checked before "
+                                                   "anything runs")
     return p
 
 
@@ -86,11 +89,12 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
     system = get_system(args.system)
     try:
+        resolve_device(args.device)
         spec = load_spec(system, args.spec, args.uniform)
         noise = _parse_noise(args.noise)
         for name in noise:
             system.target.index(name)
-    except (SpecError, KeyError, OSError) as exc:
+    except (SpecError, KeyError, OSError, DeviceError) as exc:
         print(f"train: {exc}", file=sys.stderr)
         return 2
     defaults = PAPER_DEFAULTS[system.name]
@@ -99,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
     config = TrainConfig(epochs=epochs, batch_size=args.batch_size, primal_lr=args.primal_lr,
                          dual_lr=args.dual_lr, primal_optimizer=args.primal_optimizer,
-                         dual_optimizer=args.dual_optimizer, seed=args.seed)
+                         dual_optimizer=args.dual_optimizer, seed=args.seed, device=args.device)
     out = args.out or Path("runs") / f"train-{system.name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
     if args.bag:
