@@ -111,3 +111,20 @@ def test_same_table_in_process_and_on_local_ray() -> None:
     strip = [{k: v for k, v in r.items() if k != "train_seconds"} for r in here.rows]
     assert [{k: v for k, v in r.items() if k != "train_seconds"} for r in on_ray.rows] == strip  # bit for bit
     assert {r["seed"] for r in here.rows} == {0, 1} and len({r["objective"] for r in here.rows}) >= 2
+
+
+def test_convergence_experiment_cells_on_local_ray_equal_in_process(tmp_path: Path) -> None:
+    """The experiment runners' independent units (here the convergence grid's cells) on Ray: same numbers."""
+    pytest.importorskip("ray")
+    from saml_ros.experiments.convergence import ConvergenceSettings, run
+
+    s = ConvergenceSettings(nets=((2, 1), (4, 2)), sizes=(100, 200), n_datasets=2, epochs=3, n_pstar=20_000,
+                            n_test=1000)
+    here = run(s, tmp_path / "here", progress=False)
+    on_ray = run(s, tmp_path / "ray", progress=False, ray="local", ray_cpus=2)
+    assert here["backend"] == "in-process" and on_ray["backend"] == "local"
+    keys = ("net", "n", "seeds", "lagrangian", "objective", "constraint", "lambda", "test_objective", "test_constraint")
+    assert len(here["cells"]) == len(on_ray["cells"]) == 4
+    for a, b in zip(here["cells"], on_ray["cells"], strict=True):
+        for k in keys:
+            np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]), err_msg=k)
