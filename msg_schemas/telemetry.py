@@ -51,7 +51,7 @@ CLOCK_TOPIC = "/clock"
 #: reasons, then the learner's pairing reasons
 REJECT_REASONS: tuple[str, ...] = (
     "shape", "names", "nan", "quaternion", "stamp", "format",
-    "duplicate", "out_of_order", "late", "unpaired",
+    "duplicate", "out_of_order", "late", "outlier", "unpaired",
 )  # fmt: skip
 
 

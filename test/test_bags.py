@@ -253,6 +253,26 @@ def test_bad_bag_raises_bag_error_naming_bag_and_problem(bad_bags: dict, kind: s
     assert str(path) in str(err.value) and fragment in str(err.value)
 
 
+def test_every_truncation_of_a_bag_gives_an_actionable_bag_error(tmp_path: Path,
+                                                                  friction_bag: tuple[Path, list[dict]]) -> None:
+    """A bag cut at any offset (from a few bytes to one byte short) fails with a BagError that names the bag, says
+    it is truncated (or empty) and how to recover it: never another exception, never a reader's internal text."""
+    good = friction_bag[0]
+    bag = tmp_path / "cut"
+    shutil.copytree(good, bag)
+    mcap = next(bag.glob("*.mcap"))
+    data = mcap.read_bytes()
+    # every offset through the magic, the header and the first records, then 40 spread over the file, then the footer
+    offsets = sorted({*range(0, 100), *range(100, len(data), len(data) // 40), *range(len(data) - 40, len(data))})
+    for off in offsets:
+        mcap.write_bytes(data[:off])
+        with pytest.raises(BagError) as err:
+            transitions_from_bags([bag], get_system("friction"))
+        text = str(err.value)
+        assert str(bag) in text and ("truncated" in text or "empty" in text), (off, text)
+        assert "--repair" in text, (off, text)
+
+
 def test_writer_refuses_existing_path_and_unknown_type(tmp_path: Path) -> None:
     (tmp_path / "x").mkdir()
     with pytest.raises(BagError, match="already exists"):

@@ -234,16 +234,37 @@ def test_bogus_future_stamps_do_not_block_a_source() -> None:
     r = p.add("applied_cmd", st[9] + 10**15, u[0])  # bogus command far in the future
     assert r.rejected is None
     trs += feed(p, stream(x[10:20], u[10:20], st[10:20]))
-    # the next commands looked out of order against it; three increasing ones re-anchor the command order
-    # and are used after all: no transition lost
-    assert p.counts["reanchors"] == 1 and p.counts["out_of_order"] == 0
+    # the next commands looked out of order against it; three increasing ones show it to be an outlier: it is
+    # dropped and counted, and the commands are used after all: no transition lost
+    assert p.counts["outlier"] == 1 and p.counts["out_of_order"] == 0 and p.counts["reanchors"] == 0
     assert [t.stamp_ns for t in trs] == st[:19]
     p.add("state", st[19] + 10**15, x[0])  # bogus state far in the future
-    trs2 = feed(p, stream(x[20:], u[20:], st[20:]))
-    # real states re-anchor the clock (a reset): the steps around the bogus state are lost, the rest pairs
-    assert p.counts["time_resets"] == 1
-    assert [t.stamp_ns for t in trs2] == st[22:-1]
+    res = [p.add(*e) for e in stream(x[20:], u[20:], st[20:])]
+    trs2 = [t for r in res for t in r.transitions]
+    # the real states outnumber it: an outlier, not a clock restart; every good transition pairs, 19 -> 20 too
+    assert p.counts["time_resets"] == 0 and p.counts["outlier"] == 2 and p.counts["out_of_order"] == 0
+    assert any("outlier" in r.detail for r in res)
+    assert [t.stamp_ns for t in trs2] == st[19:-1]
     check_exact(trs + trs2, x, u, st)
+    assert p.counts["unpaired"] == 0
+
+
+@pytest.mark.parametrize("n_wild", [1, 2])
+def test_wild_state_stamps_lose_no_pending_transition(n_wild: int) -> None:
+    """One or two states stamped far in the future while transitions are pending: rejected as outliers, every
+    good transition still pairs (the pending ones included), and the wild ones are counted under a reason."""
+    x, u, st = trajectory(30)
+    p = StampPairer(next_cfg())
+    ev = merge(stream(x, u, st)[0::2], stream(x, u, st)[1::2], np.random.default_rng(1), ahead=3, lag=3)
+    cut = next(i for i, e in enumerate(ev) if e[:2] == ("state", st[12]))  # commands may be ahead: pending
+    trs = feed(p, ev[:cut])
+    for i in range(n_wild):
+        assert p.add("state", st[-1] + (i + 1) * 10**12, x[0]).rejected is None
+    trs += feed(p, ev[cut:])
+    assert sorted(t.stamp_ns for t in trs) == st[:-1]
+    check_exact(trs, x, u, st)
+    assert p.counts["outlier"] == n_wild and p.counts["time_resets"] == 0
+    assert p.counts["out_of_order"] == 0 and p.counts["unpaired"] == 0
 
 
 def test_simulator_restart_with_the_same_stamps_is_a_new_clock() -> None:

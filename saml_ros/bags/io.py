@@ -402,22 +402,33 @@ def _describe_open_error(path: Path, exc: Exception) -> str:
         if size == 0:
             return f"bag {path}: MCAP file {mcap.name} is empty (0 bytes); " + _UNFINISHED_HINT.format(path=path)
         if not _has_mcap_footer(mcap):
-            return (f"bag {path}: MCAP file {mcap.name} is truncated or damaged (no valid MCAP footer: "
-                    f"{text}); " + _UNFINISHED_HINT.format(path=path))
-    return f"bag {path}: cannot open it: {text}"
+            return (f"bag {path}: MCAP file {mcap.name} is truncated or damaged ({size} bytes, no valid MCAP "
+                    "footer); " + _UNFINISHED_HINT.format(path=path))
+    return f"bag {path}: cannot open it ({text}); {_hint(path)}"
 
 
 def _hint(path: Path) -> str:
     return "the file may be damaged; try `bag_info --repair " + str(path) + "`"
 
 
+#: bytes of the smallest valid MCAP file: magic, a Header record (opcode, length, two empty strings), a Footer
+#: record (opcode, length, summary start, summary offset start, summary CRC), magic
+_MCAP_MIN_SIZE = 8 + (1 + 8 + 4 + 4) + (1 + 8 + 8 + 8 + 4) + 8
+_MCAP_FOOTER_OPCODE = b"\x02"
+
+
 def _has_mcap_footer(mcap: Path) -> bool:
+    """Whether ``mcap`` starts with the MCAP magic and ends with a Footer record and the magic."""
     try:
+        if mcap.stat().st_size < _MCAP_MIN_SIZE:
+            return False
         with mcap.open("rb") as f:
             if f.read(8) != _MCAP_MAGIC:
                 return False
+            f.seek(-(8 + 29), 2)
+            footer = f.read(1)
             f.seek(-8, 2)
-            return f.read(8) == _MCAP_MAGIC
+            return footer == _MCAP_FOOTER_OPCODE and f.read(8) == _MCAP_MAGIC
     except OSError:
         return False
 

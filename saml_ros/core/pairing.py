@@ -26,17 +26,25 @@ Each event is checked in this order; a rejected event is counted under its reaso
 4. ``out_of_order``: stamped before the newest accepted event of the same kind.
 
 Re-anchoring: ``reanchor`` (default 3) consecutive rejected events of one kind (``duplicate``, ``late`` or
-``out_of_order``) whose stamps increase among themselves are not noise but a new clock: a restarted simulator,
-or one earlier bogus far-future stamp that every later event now looks "out of order" against. For ``state``
-this is a clock restart: everything pending is dropped (``time_resets``); for another kind only that kind's
-order reference is forgotten (``reanchors``). The events of the run are then fed again (and removed from the
-rejection counters if they are accepted), so a restart loses nothing but the steps spanning it.
+``out_of_order``) whose stamps increase among themselves are not noise. They mean one of two things:
+
+* **an outlier**: fewer remembered events of that kind are newer than the run's first stamp than the run is
+  long, and none of them was paired yet: those few (typically one bogus far-future stamp that every later event
+  looks "out of order" against) are removed and counted ``outlier``; nothing else is touched, so no good pending
+  transition is lost;
+* **a new clock** otherwise (a restarted simulator, a bag played again): for ``state`` everything pending is
+  dropped (``time_resets``; every transition whose messages had all arrived was already emitted); for another
+  kind only that kind's order reference is forgotten (``reanchors``).
+
+Either way the events of the run are then fed again (and removed from the rejection counters if they are
+accepted), so a restart loses nothing but the steps spanning it.
 
 Counters (:attr:`StampPairer.counts`, see :data:`COUNTERS`): ``received/<kind>`` every event of that kind,
 ``paired`` transitions emitted, one counter per rejection reason, ``unpaired`` messages dropped from memory
 without ever being part of a transition (orphans: a command whose state never came, a state with neither a
 command nor a predecessor), ``expired`` incomplete stamps dropped (informational: the last state before an
-episode reset is one), ``overflow`` stamps dropped by the ``max_slots`` cap, ``time_resets``, ``reanchors``.
+episode reset is one), ``overflow`` stamps dropped by the ``max_slots`` cap, ``outlier`` events accepted at
+first and removed when later events showed their stamp to be out of pattern, ``time_resets``, ``reanchors``.
 """
 
 from __future__ import annotations
@@ -52,8 +60,9 @@ import numpy as np
 KINDS: tuple[str, ...] = ("state", "applied_cmd", "target")
 MODES: tuple[str, ...] = ("next", "same")
 
-#: reasons a single event is dropped by :meth:`StampPairer.add` (a subset of msg_schemas' REJECT_REASONS)
-EVENT_REJECTS: tuple[str, ...] = ("stamp", "shape", "nan", "duplicate", "late", "out_of_order")
+#: reasons a single event is dropped by :meth:`StampPairer.add` (a subset of msg_schemas' REJECT_REASONS);
+#: ``outlier`` events are dropped by a later call (see "Re-anchoring")
+EVENT_REJECTS: tuple[str, ...] = ("stamp", "shape", "nan", "duplicate", "late", "out_of_order", "outlier")
 #: rejections that may reveal a new clock (see "Re-anchoring" in the module docstring)
 _ORDER_REJECTS = frozenset({"duplicate", "late", "out_of_order"})
 #: every counter a :class:`StampPairer` keeps (all start at 0)
@@ -285,10 +294,19 @@ class StampPairer:
         return out
 
     def _reanchor(self, kind: str) -> AddResult:
-        kinds = list(KINDS) if kind == "state" else [kind]
+        outliers = self._outliers(kind, self._runs[kind])
+        kinds = list(KINDS) if kind == "state" and outliers is None else [kind]
         runs = {k: self._runs[k] for k in kinds}
         self._runs.update({k: [] for k in kinds})
-        if kind == "state":
+        if outliers is not None:
+            for slot in outliers:
+                self._remove(slot, kind)
+            newest = [s.stamp for s in self._slots.values() if _get(s, kind) is not None]
+            self._last[kind] = max(newest) if newest else None
+            self.counts["outlier"] += len(outliers)
+            detail = (f"{self.name}: {kind} at {', '.join(_fmt(s.stamp) for s in outliers)} out of pattern "
+                      f"(later {kind} stamps continue at {_fmt(runs[kind][0][0])}): dropped as outlier(s)")
+        elif kind == "state":
             first = runs["state"][0][0]
             detail = (f"{self.name}: state stamps restarted at {_fmt(first)} (before {_fmt(self._last['state'] or 0)}):"
                       f" new clock, {len(self._keys)} pending stamp(s) dropped")
@@ -309,6 +327,25 @@ class StampPairer:
                 else:
                     self.counts[again] += 1
         return AddResult(out, None, detail)
+
+    def _outliers(self, kind: str, run: list[tuple[int, np.ndarray, str]]) -> list[_Slot] | None:
+        """The remembered ``kind`` events newer than the run's first stamp, if they are outliers (fewer than the
+        run and none paired yet), else ``None`` (the run is a new clock)."""
+        first = run[0][0] + self.config.tolerance_ns
+        newer = [self._slots[k] for k in self._keys[bisect.bisect_right(self._keys, first):]]
+        newer = [s for s in newer if _get(s, kind) is not None]
+        if not newer or len(newer) >= len(run) or any(s.emitted or s.x_used for s in newer):
+            return None
+        return newer
+
+    def _remove(self, slot: _Slot, kind: str) -> None:
+        """Take the ``kind`` message out of ``slot`` (and the slot out of memory once it is empty)."""
+        _set(slot, kind, None)
+        if kind == "state" and slot.stamp in self._states:
+            self._states.remove(slot.stamp)
+        if slot.x is None and slot.u is None and slot.y is None:
+            del self._slots[slot.stamp]
+            self._keys.remove(slot.stamp)
 
     # ------------------------------------------------------------------------------------------ pairing
     def _pair(self, slot: _Slot, kind: str) -> list[Transition]:
@@ -393,7 +430,7 @@ def _get(slot: _Slot, kind: str) -> np.ndarray | None:
     return slot.x if kind == "state" else slot.u if kind == "applied_cmd" else slot.y
 
 
-def _set(slot: _Slot, kind: str, vec: np.ndarray) -> None:
+def _set(slot: _Slot, kind: str, vec: np.ndarray | None) -> None:
     if kind == "state":
         slot.x = vec
     elif kind == "applied_cmd":
