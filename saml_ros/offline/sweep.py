@@ -294,7 +294,7 @@ def _cell(v: Any) -> str:
     if isinstance(v, bool):
         return "yes" if v else "no"
     if isinstance(v, float):
-        return f"{v:.6g}"
+        return f"{v + 0.0:.6g}"  # + 0.0: no "-0"
     return str(v)
 
 
@@ -316,8 +316,9 @@ def csv_text(result: SweepResult) -> str:
 
 
 def plot(result: SweepResult, out: Path) -> Path:
-    """In- vs out-of-region held-out error of the first constraint, one marker per point (filled: constraint
-    met on held-out data), coloured by eps when eps is swept, the Pareto front as a line."""
+    """In- vs out-of-region held-out error of the first constraint, one marker per point (dot: constraint met
+    on held-out data, cross: not met), coloured by eps when eps is swept (a grey line joins the eps values of one
+    setting of the other axes), the Pareto front dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -335,6 +336,13 @@ def plot(result: SweepResult, out: Path) -> Path:
         if mask.any():
             sc = ax.scatter(xs[mask], ys[mask], c=colour[mask], marker=marker, cmap="viridis", label=label,
                             vmin=colour.min(), vmax=colour.max() if colour.max() > colour.min() else colour.min() + 1)
+    if eps_axis:  # one thin line per setting of the other axes, through its eps values in order
+        groups: dict[tuple[Any, ...], list[int]] = {}
+        for i, r in enumerate(result.rows):
+            groups.setdefault(tuple(r[a] for a in result.axes if a != eps_axis), []).append(i)
+        for idx in groups.values():
+            idx = sorted(idx, key=lambda i: result.rows[i][eps_axis])
+            ax.plot(xs[idx], ys[idx], color="0.75", lw=0.8, zorder=0)
     front = result.pareto
     ax.plot(xs[front], ys[front], "k--", lw=1, label="Pareto front")
     for i in front:
