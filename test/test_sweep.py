@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from saml_ros.offline import sweep
+from saml_ros.offline import sweep, sweep_cli
 from saml_ros.offline.sweep import SweepError, SweepSetup, Task, pareto_front, parse_grid, run_sweep, table
 
 REPO = Path(__file__).resolve().parents[1]
@@ -78,53 +76,48 @@ def test_sweep_on_bags(tmp_path: Path) -> None:
                 w.write_msg("/friction/applied_cmd", schema.control_to_msg(ev["u"], ev["stamp"], factory=factory),
                             ev["stamp"])
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "saml_ros.executables", "sweep", "--system", "friction", "--bag",
-                           str(tmp_path / "bag"), "--grid", "seed=0,1", "--epochs", "2", "--out", str(out), "--quiet"],
-                          capture_output=True, text=True, timeout=300, cwd=REPO)
-    assert proc.returncode == 0, proc.stderr
+    assert sweep_cli.main(["--system", "friction", "--bag", str(tmp_path / "bag"), "--grid", "seed=0,1",
+                           "--epochs", "2", "--out", str(out), "--quiet"]) == 0
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert len(rows) == 2 and all(np.isfinite(r["err_in/near_origin"]) for r in rows)
     assert (out / "results.csv").read_text().splitlines()[0].startswith("pareto,point,seed,objective")
 
 
-def test_sweep_cli_refuses_cuda_without_cuda_before_training(tmp_path: Path) -> None:
+def test_sweep_cli_refuses_cuda_without_cuda_before_training(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
     import torch
 
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
-    proc = subprocess.run([sys.executable, "-m", "saml_ros.executables", "sweep", "--system", "friction",
-                           "--device", "cuda", "--out", str(tmp_path / "o")], capture_output=True, text=True,
-                          timeout=120, cwd=REPO)
-    assert proc.returncode == 2 and "CUDA is not available" in proc.stderr and "Traceback" not in proc.stderr
+    assert sweep_cli.main(["--system", "friction", "--device", "cuda", "--out", str(tmp_path / "o")]) == 2
+    assert "sweep: device 'cuda' asked for, but CUDA is not available" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
-def test_same_table_in_process_and_on_local_ray() -> None:
-    """Two seeds x two eps with an MPC task, in this process and on a private 2-CPU Ray instance."""
+def test_same_numbers_in_process_and_on_local_ray(tmp_path: Path) -> None:
+    """A 2 x 2 sweep with an MPC task, and the convergence experiment's grid cells (the experiment runners'
+    independent units), in this process and on one private 2-CPU Ray instance: every value bit for bit."""
     pytest.importorskip("ray")
+    from saml_ros.experiments.convergence import ConvergenceSettings, run
+    from saml_ros.offline.parallel import ray_session
+
     grid = {"eps": [0.02, 0.05], "seed": [0, 1]}
     setup = _setup(task=Task(starts=2, steps=8, horizon=5))
+    conv = ConvergenceSettings(nets=((2, 1), (4, 2)), sizes=(100, 200), n_datasets=2, epochs=3, n_pstar=20_000,
+                               n_test=1000)
     here = run_sweep(grid, setup)
-    on_ray = run_sweep(grid, setup, ray="local", num_cpus=2)
+    conv_here = run(conv, tmp_path / "here", progress=False)
+    with ray_session("local", num_cpus=2):  # one instance for both (map_units alone starts and stops one)
+        on_ray = run_sweep(grid, setup, ray="local")
+        conv_ray = run(conv, tmp_path / "ray", progress=False, ray="local")
     assert on_ray.backend == "local" and here.backend == "in-process"
     assert table(on_ray) == table(here)
     strip = [{k: v for k, v in r.items() if k != "train_seconds"} for r in here.rows]
-    assert [{k: v for k, v in r.items() if k != "train_seconds"} for r in on_ray.rows] == strip  # bit for bit
+    assert [{k: v for k, v in r.items() if k != "train_seconds"} for r in on_ray.rows] == strip
     assert {r["seed"] for r in here.rows} == {0, 1} and len({r["objective"] for r in here.rows}) >= 2
-
-
-def test_convergence_experiment_cells_on_local_ray_equal_in_process(tmp_path: Path) -> None:
-    """The experiment runners' independent units (here the convergence grid's cells) on Ray: same numbers."""
-    pytest.importorskip("ray")
-    from saml_ros.experiments.convergence import ConvergenceSettings, run
-
-    s = ConvergenceSettings(nets=((2, 1), (4, 2)), sizes=(100, 200), n_datasets=2, epochs=3, n_pstar=20_000,
-                            n_test=1000)
-    here = run(s, tmp_path / "here", progress=False)
-    on_ray = run(s, tmp_path / "ray", progress=False, ray="local", ray_cpus=2)
-    assert here["backend"] == "in-process" and on_ray["backend"] == "local"
+    assert conv_here["backend"] == "in-process" and conv_ray["backend"] == "local"
     keys = ("net", "n", "seeds", "lagrangian", "objective", "constraint", "lambda", "test_objective", "test_constraint")
-    assert len(here["cells"]) == len(on_ray["cells"]) == 4
-    for a, b in zip(here["cells"], on_ray["cells"], strict=True):
+    assert len(conv_here["cells"]) == len(conv_ray["cells"]) == 4
+    for a, b in zip(conv_here["cells"], conv_ray["cells"], strict=True):
         for k in keys:
             np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]), err_msg=k)

@@ -10,8 +10,9 @@ function; each unit runs with one torch intra-op thread everywhere, and its rand
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -59,13 +60,44 @@ def _package_paths() -> list[str]:
     return sorted({str(Path(m.__file__).resolve().parents[1]) for m in (saml_ros, msg_schemas)})  # type: ignore[arg-type]
 
 
+@contextlib.contextmanager
+def ray_session(ray: str | None, num_cpus: int | None = None) -> Iterator[None]:
+    """Keep one Ray connection (``local``: a private instance) open for every :func:`map_units` call inside the
+    block; a no-op for in-process runs or when Ray is already initialized (then whoever started it stops it)."""
+    backend = check_ray(ray)
+    if backend is None:
+        yield
+        return
+    import ray as ray_mod
+
+    if ray_mod.is_initialized():
+        yield
+        return
+    paths = _package_paths()
+    env = {"PYTHONPATH": os.pathsep.join([*paths, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+    try:
+        if backend == "local":
+            ray_mod.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                         object_store_memory=LOCAL_OBJECT_STORE, runtime_env={"env_vars": env})
+        else:
+            import msg_schemas
+            import saml_ros
+
+            ray_mod.init(address=backend, log_to_driver=False, runtime_env={"py_modules": [saml_ros, msg_schemas]})
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise RayUnavailable(f"--ray {backend}: cannot start or reach Ray: {exc}") from None
+    try:
+        yield
+    finally:
+        ray_mod.shutdown()
+
+
 def map_units(fn: Callable[[T], R], items: Iterable[T], ray: str | None = None, num_cpus: int | None = None,
               on_result: Callable[[int, R], None] | None = None) -> list[R]:
     """``[fn(item) for item in items]`` on the backend ``ray`` (module docstring); ``on_result(index, result)``
     is called as each unit finishes (for progress)."""
     todo: Sequence[T] = list(items)
-    backend = check_ray(ray)
-    if backend is None:
+    if check_ray(ray) is None:
         out = []
         for i, item in enumerate(todo):
             out.append(run_unit(fn, item))
@@ -74,24 +106,7 @@ def map_units(fn: Callable[[T], R], items: Iterable[T], ray: str | None = None, 
         return out
     import ray as ray_mod
 
-    started = False
-    if not ray_mod.is_initialized():
-        paths = _package_paths()
-        env = {"PYTHONPATH": os.pathsep.join([*paths, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
-        try:
-            if backend == "local":
-                ray_mod.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
-                             object_store_memory=LOCAL_OBJECT_STORE, runtime_env={"env_vars": env})
-            else:
-                import msg_schemas
-                import saml_ros
-
-                ray_mod.init(address=backend, log_to_driver=False,
-                             runtime_env={"py_modules": [saml_ros, msg_schemas]})
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            raise RayUnavailable(f"--ray {backend}: cannot start or reach Ray: {exc}") from None
-        started = True
-    try:
+    with ray_session(ray, num_cpus):
         remote: Any = ray_mod.remote(num_cpus=1)(run_unit)
         refs = [remote.remote(fn, item) for item in todo]
         index = {ref: i for i, ref in enumerate(refs)}
@@ -105,6 +120,3 @@ def map_units(fn: Callable[[T], R], items: Iterable[T], ray: str | None = None, 
                 if on_result is not None:
                     on_result(i, results[i])
         return results
-    finally:
-        if started:
-            ray_mod.shutdown()
