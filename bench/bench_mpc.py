@@ -37,13 +37,13 @@ import numpy as np
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import MPCResult, closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc import LoopStep, MPCResult, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
 
 def train_quick(system: System, n: int, epochs: int, seed: int = 0) -> tuple[DynamicsModel, float]:
@@ -90,30 +90,17 @@ def shooting_problems(system: System, model: DynamicsModel, starts: list[np.ndar
     ctrl = make_controller(system, model, "fast")
     assert isinstance(ctrl, ShootingMPC)
     problems: list[tuple[np.ndarray, Any]] = []
-    times: list[float] = []
-    cpus: list[float] = []
-    stage: list[float] = []
-    for x0 in starts:
-        ctrl.reset()
-        x = x0.copy()
-        for _ in range(steps):
-            warm = ctrl.warm_start_plan()
-            problems.append((x.copy(), warm))
-            res, cpu = timed(lambda x=x: ctrl.solve(x, goal))  # type: ignore[misc]
-            times.append(res.solve_time)
-            cpus.append(cpu)
-            x = system.true_step_np(x, res.u)
-            stage.append(float(np.linalg.norm(_stage_residual(system, x, goal))))
-    t = np.array(times)
+    warm: list[Any] = [None]  # the plan the next solve starts from (the runner resets the controller first)
+
+    def record(step: LoopStep) -> None:
+        problems.append((step.x.copy(), None if step.index == 0 else warm[0]))
+        warm[0] = ctrl.warm_start_plan()
+
+    runs = [closed_loop(system, ctrl, x0, steps, goal, on_step=record) for x0 in starts]
+    t = np.concatenate([r.solve_times for r in runs])
     return problems, {"mean": t.mean(), "p95": np.percentile(t, 95), "max": t.max(), "n": t.size,
-                      "cpu": float(np.mean(cpus)),
-                      "stage": float(np.sum(stage) / len(starts))}
-
-
-def _stage_residual(system: System, x: np.ndarray, goal: Any) -> np.ndarray:
-    if system.name == "friction":
-        return x[:1] - (0.0 if goal is None else np.asarray(goal))
-    return x[:3] - (np.zeros(3) if goal is None else np.asarray(goal))
+                      "cpu": float(np.mean(np.concatenate([r.cpu_times for r in runs]))),
+                      "stage": float(np.sum(np.concatenate([r.stage_costs for r in runs])) / len(starts))}
 
 
 #: the fast solver with a tight tolerance: stops only when the undamped QP predicts less than 1e-5 (1 + merit)
@@ -142,7 +129,7 @@ def compare_shooting(system: System, model: DynamicsModel, problems: list[tuple[
     return out
 
 
-def compare_paddle(system: System, model: DynamicsModel, n: int, seed: int = 1) -> dict[str, Stats]:
+def paddle_problems(n: int, seed: int) -> list[tuple[np.ndarray, Any]]:
     """The paper's evaluation distribution: targets in [-1, 1]^2, v_min ~ U[3, 4), v_max = v_min + U[1, 2]."""
     rng = np.random.default_rng(seed)
     problems = []
@@ -151,6 +138,11 @@ def compare_paddle(system: System, model: DynamicsModel, n: int, seed: int = 1) 
                       rng.uniform(-6, -2)])
         vmin = rng.uniform(3.0, 4.0)
         problems.append((x, paddle_goal(target_xy=rng.uniform(-1, 1, 2), v_rel=(vmin, vmin + rng.uniform(1, 2)))))
+    return problems
+
+
+def compare_one_shot(system: System, model: DynamicsModel, problems: list[tuple[np.ndarray, Any]]) -> dict[str, Stats]:
+    """Every (state, goal) problem solved cold by each solver."""
     out = {"fast": Stats(), "slsqp": Stats()}
     for name in out:
         ctrl = make_controller(system, model, name)
@@ -179,7 +171,86 @@ def row(system: str, solver: str, s: Stats) -> str:
             f"{np.mean(s.cost):>10.4f} {s.infeasible:>6}")
 
 
-SYSTEMS = ("friction", "quadrotor", "paddle_ball")
+def friction_starts(system: System, scale: float) -> list[np.ndarray]:
+    """Carts at rest at positions ~ U[-2, 2] m (seed 0)."""
+    rng = np.random.default_rng(0)
+    return [np.array([p0, 0.0]) for p0 in rng.uniform(-2, 2, max(2, int(8 * scale)))]
+
+
+def quadrotor_starts(system: System, scale: float) -> list[np.ndarray]:
+    """Level hovering quadrotors at three fixed positions (m)."""
+    assert isinstance(system, Quadrotor)
+    starts = [system.hover_state(p0) for p0 in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
+    return starts[: max(1, int(3 * scale))]
+
+
+@dataclass(frozen=True)
+class Case:
+    """How the bench measures one system: the quick model's training budget and the problems."""
+
+    samples: int  #: training transitions of the quick model
+    epochs: int  #: its epochs
+    #: shooting MPC: (system, scale) -> closed-loop start states, steps per start, every how many-th visited state
+    #: both solvers solve (full run, --quick), whether ``fast-precise`` joins, the rate target (Hz)
+    starts: Callable[[System, float], list[np.ndarray]] | None = None
+    steps: int = 0
+    ref_every: tuple[int, int] = (1, 1)
+    precise: bool = False
+    target_hz: float | None = None
+    #: one-shot MPC: (n, seed) -> (state, goal) problems
+    problems: Callable[[int, int], list[tuple[np.ndarray, Any]]] | None = None
+
+
+#: the bench's cases (a data table: the training budgets and start states of the measurements in docs/mpc.md)
+CASES: dict[str, Case] = {
+    "friction": Case(15000, 20, starts=friction_starts, steps=30),
+    "quadrotor": Case(10000, 150, starts=quadrotor_starts, steps=50, ref_every=(3, 5), precise=True, target_hz=100.0),
+    "paddle_ball": Case(10000, 10, problems=paddle_problems),
+}
+SYSTEMS = tuple(CASES)
+
+
+def report(system: System, model: DynamicsModel, case: Case, results: dict[str, dict[str, Stats]],
+           loops: dict[str, dict[str, Any]], starts: list[np.ndarray]) -> None:
+    """Print the tables of one system's run (see the module docstring)."""
+    name = system.name
+    print("\n1. identical problems (same model, horizon, states and warm starts), one core")
+    print(f"{'system':<12} {'solver':<12} {'n':>5} {'wall ms':>9} {'rate Hz':>9} {'cpu ms':>9} {'mean cost':>10} "
+          f"{'infeas':>6}")
+    for label, res in results.items():
+        for solver in res:
+            print(row(label, solver, res[solver]))
+    print(f"\n{'system / solver':<25} {'rate fast/slsqp: wall':>22} {'cpu':>7} {'mean cost fast/slsqp: all':>26} "
+          f"{'both feasible':>14}  target (cpu rate >= 20x, cost <= 1)")
+    for label, res in results.items():
+        for fast in (solver for solver in res if solver != "slsqp"):
+            print(ratio_row(f"{label} / {fast}", res[fast], res["slsqp"]))
+
+    if case.problems is not None:
+        f, r = results[name]["fast"], results[name]["slsqp"]
+        reach = np.array(r.cost) < 1e-3
+        for label, sel in (("reachable", reach), ("unreachable", ~reach)):
+            if sel.any():
+                tf, tr = np.mean(np.array(f.wall)[sel]), np.mean(np.array(r.wall)[sel])
+                print(f"{name} {label:<11} targets ({int(sel.sum())}): fast {1e3 * tf:.2f} ms, "
+                      f"slsqp {1e3 * tr:.2f} ms, {tr / tf:.1f}x; mean cost fast {np.mean(np.array(f.cost)[sel]):.4f}, "
+                      f"slsqp {np.mean(np.array(r.cost)[sel]):.4f}")
+
+    if loops:
+        print("\n2. fast controller in closed loop on the true system (warm-started), one core")
+        print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'cpu ms':>8} "
+              f"{'stage cost':>11}")
+    for label, loop in loops.items():
+        print(f"{label:<12} {loop['n']:>6} {1e3 * loop['mean']:>8.2f} {1e3 * loop['p95']:>8.2f} "
+              f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {1e3 * loop['cpu']:>8.2f} {loop['stage']:>11.3f}")
+    if case.target_hz is not None:
+        loop_hz = 1 / loops[name]["mean"]
+        print(f"{name} target >= {case.target_hz:.0f} Hz (mean solve <= {1e3 / case.target_hz:.0f} ms wall): "
+              f"{'yes' if loop_hz >= case.target_hz else 'NO'} ({loop_hz:.0f} Hz wall, "
+              f"{1 / loops[name]['cpu']:.0f} Hz by CPU time)")
+        out = closed_loop(system, make_controller(system, model), starts[0], case.steps)
+        print(f"{name} landing from {starts[0][:3].tolist()}: final position "
+              f"{np.round(out.xs[-1, :3], 3).tolist()}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -204,77 +275,29 @@ def main(argv: list[str] | None = None) -> int:
                  for name in args.systems]
         print(f"\nall systems: total {time.perf_counter() - t0:.0f} s (one process each)")
         return max(codes)
-    wanted = set(args.systems)
+    name = args.systems[0]
+    case = CASES[name]
     torch.set_num_threads(1)
     t_start = time.perf_counter()
     scale = 0.4 if args.quick else 1.0
 
-    fr = get_system("friction")
-    quad = get_system("quadrotor")
-    pad = get_system("paddle_ball")
-    models = {}
-    for sys_, n, epochs in ((fr, 15000, 20), (quad, 10000, 150), (pad, 10000, 10)):
-        if sys_.name not in wanted:
-            continue
-        models[sys_.name], secs = train_quick(sys_, n, epochs, seed=args.model_seed)
-        print(f"trained {sys_.name} residual {list(models[sys_.name].hidden)} for {epochs} epochs in {secs:.1f} s")
-
-    rng = np.random.default_rng(0)
-    fr_starts = [np.array([p0, 0.0]) for p0 in rng.uniform(-2, 2, max(2, int(8 * scale)))]
-    assert isinstance(quad, Quadrotor)
-    quad_starts = [quad.hover_state(p0) for p0 in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
-    quad_starts = quad_starts[: max(1, int(3 * scale))]
+    system = get_system(name)
+    model, secs = train_quick(system, case.samples, case.epochs, seed=args.model_seed)
+    print(f"trained {name} residual {list(model.hidden)} for {case.epochs} epochs in {secs:.1f} s")
 
     results: dict[str, dict[str, Stats]] = {}
     loops: dict[str, dict[str, Any]] = {}
-    if "friction" in wanted:
-        fr_probs, loops["friction"] = shooting_problems(fr, models["friction"], fr_starts, 30)
-        results["friction"] = compare_shooting(fr, models["friction"], fr_probs, ref_every=1)
-    if "quadrotor" in wanted:
-        quad_probs, loops["quadrotor"] = shooting_problems(quad, models["quadrotor"], quad_starts, 50)
-        results["quadrotor"] = compare_shooting(quad, models["quadrotor"], quad_probs,
-                                                ref_every=5 if args.quick else 3, precise=True)
-    if "paddle_ball" in wanted:
-        n_paddle = args.paddle_problems or (40 if args.quick else 200)
-        results["paddle_ball"] = compare_paddle(pad, models["paddle_ball"], n_paddle, seed=args.paddle_seed)
+    starts: list[np.ndarray] = []
+    if case.starts is not None:
+        starts = case.starts(system, scale)
+        problems, loops[name] = shooting_problems(system, model, starts, case.steps)
+        results[name] = compare_shooting(system, model, problems, ref_every=case.ref_every[args.quick],
+                                         precise=case.precise)
+    if case.problems is not None:
+        n_problems = args.paddle_problems or (40 if args.quick else 200)
+        results[name] = compare_one_shot(system, model, case.problems(n_problems, args.paddle_seed))
 
-    print("\n1. identical problems (same model, horizon, states and warm starts), one core")
-    print(f"{'system':<12} {'solver':<12} {'n':>5} {'wall ms':>9} {'rate Hz':>9} {'cpu ms':>9} {'mean cost':>10} "
-          f"{'infeas':>6}")
-    for name, res in results.items():
-        for solver in res:
-            print(row(name, solver, res[solver]))
-    print(f"\n{'system / solver':<25} {'rate fast/slsqp: wall':>22} {'cpu':>7} {'mean cost fast/slsqp: all':>26} "
-          f"{'both feasible':>14}  target (cpu rate >= 20x, cost <= 1)")
-    for name, res in results.items():
-        for fast in (solver for solver in res if solver != "slsqp"):
-            print(ratio_row(f"{name} / {fast}", res[fast], res["slsqp"]))
-
-    if "paddle_ball" in results:
-        f, r = results["paddle_ball"]["fast"], results["paddle_ball"]["slsqp"]
-        reach = np.array(r.cost) < 1e-3
-        for label, sel in (("reachable", reach), ("unreachable", ~reach)):
-            if sel.any():
-                tf, tr = np.mean(np.array(f.wall)[sel]), np.mean(np.array(r.wall)[sel])
-                print(f"paddle_ball {label:<11} targets ({int(sel.sum())}): fast {1e3 * tf:.2f} ms, "
-                      f"slsqp {1e3 * tr:.2f} ms, {tr / tf:.1f}x; mean cost fast {np.mean(np.array(f.cost)[sel]):.4f}, "
-                      f"slsqp {np.mean(np.array(r.cost)[sel]):.4f}")
-
-    if loops:
-        print("\n2. fast controller in closed loop on the true system (warm-started), one core")
-        print(f"{'system':<12} {'solves':>6} {'mean ms':>8} {'p95 ms':>8} {'max ms':>8} {'rate Hz':>8} {'cpu ms':>8} "
-              f"{'stage cost':>11}")
-    for name, loop in loops.items():
-        print(f"{name:<12} {loop['n']:>6} {1e3 * loop['mean']:>8.2f} {1e3 * loop['p95']:>8.2f} "
-              f"{1e3 * loop['max']:>8.2f} {1 / loop['mean']:>8.1f} {1e3 * loop['cpu']:>8.2f} {loop['stage']:>11.3f}")
-    if "quadrotor" in loops:
-        quad_loop = loops["quadrotor"]
-        quad_hz = 1 / quad_loop["mean"]
-        print(f"quadrotor target >= 100 Hz (mean solve <= 10 ms wall): {'yes' if quad_hz >= 100 else 'NO'} "
-              f"({quad_hz:.0f} Hz wall, {1 / quad_loop['cpu']:.0f} Hz by CPU time)")
-        out = closed_loop(quad, make_controller(quad, models["quadrotor"]), quad_starts[0], 50)
-        print(f"quadrotor landing from {quad_starts[0][:3].tolist()}: final position "
-              f"{np.round(out['xs'][-1, :3], 3).tolist()}")
+    report(system, model, case, results, loops, starts)
     print(f"\ntotal {time.perf_counter() - t_start:.0f} s")
     return 0
 

@@ -26,6 +26,11 @@ from pathlib import Path
 from bench.ros_procs import interrupt
 
 REPO = Path(__file__).resolve().parents[1]
+#: the measured runs' start state per system (a data table: hover at 2 m; the cart at rest at p = 1 m)
+STARTS: dict[str, tuple[float, ...]] = {
+    "quadrotor": (0.0, 0.0, 2.0) + (0.0,) * 3 + (1.0, 0.0, 0.0, 0.0) + (0.0,) * 3,
+    "friction": (1.0, 0.0),
+}
 
 
 def bench_core(system_name: str, steps: int, with_messages: bool) -> float:
@@ -33,13 +38,13 @@ def bench_core(system_name: str, steps: int, with_messages: bool) -> float:
     from msg_schemas import get_schema
     from msg_schemas.telemetry import clock_to_msg
     from saml_ros.core.systems import get_system
-    from saml_ros.core.worlds.sim_core import APPLIED, CLOCK, STATE, SimConfig, build_stepped_sim
+    from saml_ros.core.systems.registry import build_stepped_sim
+    from saml_ros.core.worlds.sim_core import APPLIED, CLOCK, STATE, SimConfig
 
     system = get_system(system_name)
     schema = get_schema(system_name)
-    start = (0.0, 0.0, 2.0) + (0.0,) * 3 + (1.0, 0.0, 0.0, 0.0) + (0.0,) * 3 if system_name == "quadrotor" else (1.0, 0.0)
-    sim = build_stepped_sim(system, SimConfig(mode="lockstep", initial_state=start))
-    answer = sim.holder.safe_default.copy()
+    sim = build_stepped_sim(system, SimConfig(mode="lockstep", initial_state=STARTS[system_name]))
+    answer = system.safe_control()
     encode = {
         STATE: lambda v, t: schema.state_to_msg(v, t),
         APPLIED: lambda v, t: schema.control_to_msg(v, t),
@@ -68,15 +73,13 @@ def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
 
     from msg_schemas import DATA_QOS, RCLPY, get_schema
     from msg_schemas.telemetry import DIAGNOSTICS_TOPIC, TELEMETRY_QOS, diagnostics_from_msg
-    from saml_ros.core.systems import get_system
-    from saml_ros.core.worlds.sim_core import SimConfig, build_stepped_sim
+    from saml_ros.core.systems import get_entry, get_system
 
     system = get_system(system_name)
     schema = get_schema(system_name)
-    answer = build_stepped_sim(system, SimConfig()).holder.safe_default.copy()
-    start = "[0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]" if system_name == "quadrotor" \
-        else "[1.0, 0.0]"
-    cmd = [sys.executable, "-m", "saml_ros.executables", f"{system_name}_sim", "--ros-args",
+    answer = system.safe_control()
+    start = "[" + ", ".join(str(float(v)) for v in STARTS[system_name]) + "]"
+    cmd = [sys.executable, "-m", "saml_ros.executables", get_entry(system_name).sim_node, "--ros-args",
            "-p", "mode:=lockstep", "-p", f"initial_state:={start}", "-p", "start_delay:=0.2",
            "-p", "lockstep_timeout:=2.0", "-p", "diagnostics_period:=0.5",
            "-p", f"publish_clock:={str(publish_clock).lower()}"]
@@ -100,7 +103,7 @@ def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
     def on_diag(msg: object) -> None:
         entries, _ = diagnostics_from_msg(msg)
         for e in entries:
-            if e.name.endswith(f"{system_name}_sim"):
+            if e.name.endswith(get_entry(system_name).sim_node):
                 diag.update(e.values)
 
     node.create_subscription(RCLPY.cls(schema.state.msg_type), schema.state_topic, on_state, qos,
@@ -129,7 +132,7 @@ def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--system", default="quadrotor", choices=["quadrotor", "friction"])
+    parser.add_argument("--system", default="quadrotor", choices=list(STARTS))
     parser.add_argument("--steps", type=int, default=3000, help="measured lockstep steps through ROS")
     parser.add_argument("--warmup", type=int, default=200)
     parser.add_argument("--timeout", type=float, default=120.0, help="s before giving up on the node")

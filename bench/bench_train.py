@@ -38,7 +38,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
 GRID_NETS: tuple[tuple[int, int], ...] = ((2, 1), (4, 2), (8, 4), (16, 8))
 GRID_N: tuple[int, ...] = (100, 1000, 5000, 10000, 15000)

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from saml_ros.core.systems import SYSTEM_NAMES
+
 #: ``(label, threads, flush_denormal)``: the first is the training process before subnormal flushing was
 #: added (it always ran one thread), the second today's default, the third torch's own thread default
 SETTINGS: tuple[tuple[str, int, bool], ...] = (
@@ -23,7 +25,7 @@ SETTINGS: tuple[tuple[str, int, bool], ...] = (
     ("1 thread, subnormals flushed (default)", 1, True),
     ("torch default threads, flushed", 0, True),
 )
-SYSTEMS = ("friction", "quadrotor", "paddle_ball")
+SYSTEMS = SYSTEM_NAMES
 N_DATA = 2000
 MIN_TRANSITIONS = 1000
 

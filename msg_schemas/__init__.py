@@ -1,6 +1,6 @@
 """Stock ROS 2 messages for saml_ros vectors: the single place that maps vectors to messages and back.
 
-Per system (``friction``, ``quadrotor``, ``paddle_ball``) a :class:`SystemSchema` names the topics
+Per system (``friction``, ``quadrotor``, ``paddle_ball``: one module each) a :class:`SystemSchema` names the topics
 (relative to the system namespace), their message types and QoS, and converts the state / control / target
 vectors (layouts of ``saml_ros.core.systems``) to messages and back::
 
@@ -11,7 +11,8 @@ vectors (layouts of ``saml_ros.core.systems``) to messages and back::
 
 Telemetry (``learner/model_error``, ``learner/checkpoint``, ``mpc/status``, ``/diagnostics``, ``/clock``) is in
 :mod:`msg_schemas.telemetry`. ``python -m msg_schemas.docs`` prints the topic reference (docs/topics.md).
-Importing this package imports neither rclpy nor rosbags nor torch.
+Importing this package imports neither rclpy nor rosbags nor torch. Which system has which schema is its
+registry entry's (``saml_ros.core.systems.registry``, ``SystemEntry.schema``): :func:`get_schema` asks it.
 """
 
 from __future__ import annotations
@@ -32,21 +33,20 @@ from msg_schemas.base import (
     TypestoreFactory,
     VectorCodec,
 )
-from msg_schemas.friction import SCHEMA as FRICTION
-from msg_schemas.paddle_ball import SCHEMA as PADDLE_BALL
-from msg_schemas.quadrotor import SCHEMA as QUADROTOR
-
-_SCHEMAS: dict[str, SystemSchema] = {s.system: s for s in (FRICTION, QUADROTOR, PADDLE_BALL)}
-#: systems with a schema, in a stable order
-SYSTEM_NAMES: tuple[str, ...] = tuple(_SCHEMAS)
 
 
 def get_schema(system: str) -> SystemSchema:
-    """The :class:`SystemSchema` of ``system``; ``ValueError`` listing the valid names otherwise."""
-    try:
-        return _SCHEMAS[system]
-    except (KeyError, TypeError):
-        raise ValueError(f"no message schema for system {system!r}; valid names are {list(SYSTEM_NAMES)}") from None
+    """The :class:`SystemSchema` of registered system ``system``; ``ValueError`` listing the valid names otherwise.
+
+    The registry (torch-free) is imported here, not at the top, so that this package stays the lower layer:
+    its modules import nothing of ``saml_ros``.
+    """
+    from saml_ros.core.systems.registry import get_entry
+
+    schema = get_entry(system).schema()
+    if schema.system != system:
+        raise ValueError(f"the registry's schema for {system!r} is the schema of {schema.system!r}")
+    return schema
 
 
 __all__ = [
@@ -54,7 +54,6 @@ __all__ = [
     "CLOCK_QOS",
     "DATA_QOS",
     "RCLPY",
-    "SYSTEM_NAMES",
     "TELEMETRY_QOS",
     "FieldDoc",
     "MessageFactory",

@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 import sys
 
-from msg_schemas import SYSTEM_NAMES, get_schema
+from msg_schemas import get_schema
 from msg_schemas.base import CHECKPOINT_QOS, CLOCK_QOS, DATA_QOS, TELEMETRY_QOS, QosSpec, SystemSchema, TopicSpec
 from msg_schemas.telemetry import GLOBAL_TOPICS, REJECT_REASONS, TELEMETRY_TOPICS
 
@@ -103,11 +103,13 @@ def _pairing(schema: SystemSchema) -> str:
 
 
 def render() -> str:
-    """The whole topic reference as Markdown."""
+    """The whole topic reference as Markdown (every registered system)."""
+    from saml_ros.core.systems.registry import system_names
+
     lines = [_INTRO.format(reasons=", ".join(f"`{r}`" for r in REJECT_REASONS)), "## QoS profiles", ""]
     lines += _qos_rows()
     lines.append("")
-    for name in SYSTEM_NAMES:
+    for name in system_names():
         schema = get_schema(name)
         ns = f"/{name}"
         lines += [

@@ -2,7 +2,8 @@
 
 ``demo`` starts, as separate processes, the quadrotor simulator (lockstep), the learner (the paper's Sufficiently
 Accurate problem: squared one-step error <= 0.001 where pz <= 1.5 m) and the landing MPC, for a fixed simulated
-time (:func:`saml_ros.bringup.run` with the embedded configuration ``saml_ros.bringup.DEFAULTS["quadrotor"]``).
+time (:func:`saml_ros.bringup.run` with ``saml_ros.bringup.default_config("quadrotor")``, the quadrotor registry
+entry's ``bringup`` defaults).
 The MPC starts on the base model f_hat (no ground effect) and hot-swaps each checkpoint the learner writes.
 
 Then it prints a before/after summary:
@@ -31,7 +32,7 @@ import numpy as np
 
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 from saml_ros.offline.pipelines import compare
 from saml_ros.offline.plots import plot_comparison, plot_error_map, plot_training_curves
 
@@ -113,8 +114,8 @@ def evaluate(run_dir: Path, config: dict[str, Any], n_starts: int, steps: int) -
     """
     from saml_ros.core.checkpoint import CheckpointStore
     from saml_ros.core.model_io import model_from_payload
+    from saml_ros.core.mpc import closed_loop, make_controller
     from saml_ros.experiments.common import paired
-    from saml_ros.experiments.control import closed_loop, make_mpc
     from saml_ros.experiments.quadrotor import landing_starts, plant, rollout_metrics
 
     store = CheckpointStore(run_dir)
@@ -132,8 +133,8 @@ def evaluate(run_dir: Path, config: dict[str, Any], n_starts: int, steps: int) -
     starts = landing_starts(system, n_starts, EVAL_SEED)  # type: ignore[arg-type]
     out: dict[str, Any] = {"version": loaded.version, "path": str(found.path), "starts": starts.tolist()}
     for label, model in (("base", None), ("learned", loaded.model)):
-        ctrl = make_mpc(system, model, str(mpc.get("solver", "fast")), **options)
-        rows = [rollout_metrics(closed_loop(ctrl, x0, steps, f, goal=goal)) for x0 in starts]
+        ctrl = make_controller(system, model, str(mpc.get("solver", "fast")), **options)
+        rows = [rollout_metrics(closed_loop(system, ctrl, x0, steps, goal=goal, true_step=f)) for x0 in starts]
         out[label] = {k: [r[k] for r in rows] for k in rows[0]}
     out["paired"] = {k: paired(out["base"][k], out["learned"][k]).to_dict()
                      for k in ("final_dist", "final_xy", "final_z", "cost")}

@@ -1,18 +1,17 @@
-"""How a simulator node is described: its parameters and the ROS-free core it runs (:class:`SimBinding`).
+"""How a simulator node is described: its parameters (:class:`SimBinding`).
 
 Each simulator module (``friction_sim``, ``quadrotor_sim``, ``paddle_ball_sim``) defines one ``BINDING``; the
-generic rclpy node in :mod:`sim_nodes.sim_node` runs it.
+generic rclpy node in :mod:`sim_nodes.sim_node` runs it, with the ROS-free simulator core that the system's
+registry entry builds (``SystemEntry.simulator``) from the parameter values.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from saml_ros.core.params import Param
-from saml_ros.core.systems.base import System
-from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS, SimConfig, SimCore
+from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS, SimConfig
 
 #: parameters of every simulator node (a binding may override a default by listing the same name)
 COMMON_PARAMS: tuple[Param, ...] = (
@@ -46,21 +45,19 @@ COMMON_PARAMS: tuple[Param, ...] = (
 
 @dataclass(frozen=True)
 class SimBinding:
-    """Everything the generic node needs to run one system's simulator.
+    """The parameters of one system's simulator node.
 
     Attributes:
         system: registry name (also the default namespace ``/<system>``).
         node_name: node (and executable) name, e.g. ``"quadrotor_sim"``.
         params: system-specific parameters, and overridden defaults of :data:`COMMON_PARAMS`.
         system_params: constructor parameters of the system exposed as ``system.<name>``, with descriptions.
-        build: ``(system, config, params) -> SimCore``; ``params`` maps every parameter name to its value.
     """
 
     system: str
     node_name: str
     params: tuple[Param, ...]
     system_params: tuple[tuple[str, str], ...]
-    build: Callable[[System, SimConfig, dict[str, Any]], SimCore]
 
     def all_params(self) -> list[Param]:
         """Common parameters (with this binding's defaults) followed by the system-specific ones."""

@@ -6,21 +6,9 @@ starts, p ~ U[-2, 2] m, v = 0. Safe default u = 0. See docs/simulators.md for pa
 
 from __future__ import annotations
 
-from typing import Any
-
 from saml_ros.core.params import Param
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.worlds.sim_core import SimConfig, SimCore, SteppedSim, friction_model
 from sim_nodes.binding import SimBinding
 from sim_nodes.sim_node import run
-
-
-def build(system: System, config: SimConfig, params: dict[str, Any]) -> SimCore:
-    """The friction simulator core for the node parameters ``params``."""
-    assert isinstance(system, FrictionDoubleIntegrator)
-    return SteppedSim(friction_model(system), config, publish_clock=params["publish_clock"])
-
 
 BINDING = SimBinding(
     system="friction",
@@ -32,7 +20,6 @@ BINDING = SimBinding(
         ("mu_base", "friction deceleration everywhere (m/s^2)"),
         ("bumps", "friction bumps, flat [amplitude (m/s^2), centre (m), width (m), ...]"),
     ),
-    build=build,
 )
 
 

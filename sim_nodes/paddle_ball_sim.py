@@ -1,37 +1,15 @@
 """``paddle_ball_sim``: the MuJoCo paddle-ball world as a ROS 2 node (namespace ``/paddle_ball``).
 
 Node wiring only: the simulator core is :class:`saml_ros.core.worlds.paddle_sim.PaddleBallSim` (its docstring
-has the protocol: one step per impact, lockstep and realtime modes, episodes, the safe default).
+has the protocol: one step per impact, lockstep and realtime modes, episodes, the safe default), built from
+these parameters by :func:`saml_ros.core.worlds.paddle_sim.paddle_ball_simulator`.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 from saml_ros.core.params import Param
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.paddle_ball import PaddleBall
-from saml_ros.core.worlds.paddle_sim import PaddleBallSim
-from saml_ros.core.worlds.sim_core import SimConfig, SimCore
 from sim_nodes.binding import SimBinding
 from sim_nodes.sim_node import run
-
-
-# ----------------------------------------------------------------------------------------------- node
-def build(system: System, config: SimConfig, params: dict[str, Any]) -> SimCore:
-    """The paddle-ball simulator core for the node parameters ``params`` (imports MuJoCo)."""
-    from saml_ros.core.worlds.paddle_world import PaddleBallWorld
-
-    assert isinstance(system, PaddleBall)
-    if not params["flight_rate_hz"] >= 0:
-        raise ValueError(f"parameter 'flight_rate_hz' must be >= 0, got {params['flight_rate_hz']}")
-    if not params["impact_time_tolerance"] > 0:
-        raise ValueError(f"parameter 'impact_time_tolerance' must be > 0, got {params['impact_time_tolerance']}")
-    world = PaddleBallWorld(system, timestep=params["timestep"], seed=max(config.seed, 0))
-    return PaddleBallSim(world, config, publish_clock=params["publish_clock"],
-                         flight_rate_hz=params["flight_rate_hz"], tick_seconds=1.0 / params["rate_hz"],
-                         impact_time_tolerance=params["impact_time_tolerance"])
-
 
 BINDING = SimBinding(
     system="paddle_ball",
@@ -52,7 +30,6 @@ BINDING = SimBinding(
         ("g", "gravity (m/s^2)"),
         ("slow_fraction", "fraction of random episode starts that are slow (cushioned) balls"),
     ),
-    build=build,
 )
 
 

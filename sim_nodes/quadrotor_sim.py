@@ -9,22 +9,9 @@ See docs/simulators.md.
 
 from __future__ import annotations
 
-from typing import Any
-
 from saml_ros.core.params import Param
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.worlds.sim_core import SimConfig, SimCore, SteppedSim, quadrotor_model
 from sim_nodes.binding import SimBinding
 from sim_nodes.sim_node import run
-
-
-def build(system: System, config: SimConfig, params: dict[str, Any]) -> SimCore:
-    """The quadrotor simulator core for the node parameters ``params``."""
-    assert isinstance(system, Quadrotor)
-    model = quadrotor_model(system, params["landing_height"])
-    return SteppedSim(model, config, publish_clock=params["publish_clock"])
-
 
 BINDING = SimBinding(
     system="quadrotor",
@@ -44,7 +31,6 @@ BINDING = SimBinding(
         ("h_max", "ground-effect ceiling (m): no ground effect above it"),
         ("alpha", "maximum ground-effect fraction in [0, 1] (level, at the ground)"),
     ),
-    build=build,
 )
 
 

@@ -1,7 +1,8 @@
 """The generic simulator node: a thin rclpy wrapper around a :class:`~saml_ros.core.worlds.sim_core.SimCore`.
 
-One class runs all three simulators; a :class:`~saml_ros.core.worlds.sim_core.SimBinding` (in ``friction_sim.py``,
-``quadrotor_sim.py``, ``paddle_ball_sim.py``) names the system, its extra parameters and how to build its core.
+One class runs all three simulators; a :class:`~sim_nodes.binding.SimBinding` (in ``friction_sim.py``,
+``quadrotor_sim.py``, ``paddle_ball_sim.py``) names the system and its extra parameters; the system's registry
+entry builds the core (``SystemEntry.simulator``).
 
 * Topics (``msg_schemas``, relative to the namespace, default ``/<system>``): publishes ``state``,
   ``applied_cmd`` (and ``post_impact`` / ``flight`` for the paddle ball), subscribes ``cmd``; ``/clock``
@@ -33,7 +34,7 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_srvs.srv import Trigger
 
-from msg_schemas import CLOCK_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError, get_schema
+from msg_schemas import CLOCK_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError
 from msg_schemas.telemetry import (
     CLOCK_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -44,7 +45,7 @@ from msg_schemas.telemetry import (
     diagnostics_to_msg,
 )
 from saml_ros.core.params import Param, coerce_param
-from saml_ros.core.systems import default_params, get_system
+from saml_ros.core.systems import default_params, get_entry
 from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
@@ -87,10 +88,10 @@ class SimNode(Node):
             self.set_parameters([rclpy.parameter.Parameter("use_sim_time", value=False)])
         p = self._declare_parameters()
         self.params = p
-        self.system = get_system(binding.system, **{k[len("system."):]: v for k, v in p.items()
-                                                    if k.startswith("system.")})
-        self.schema = get_schema(binding.system)
-        self.core = binding.build(self.system, config_from_params(p), p)
+        entry = get_entry(binding.system)
+        self.system = entry.make_system(**{k[len("system."):]: v for k, v in p.items() if k.startswith("system.")})
+        self.schema = entry.schema()
+        self.core = entry.simulator(self.system, config_from_params(p), p)
         self.lockstep = self.core.config.lockstep
         self.done_future = Future()
         self._finish_at: float | None = None
@@ -159,7 +160,7 @@ class SimNode(Node):
         for spec in params:
             descriptor = descriptor_cls(description=spec.description, dynamic_typing=True)
             value = self.declare_parameter(spec.name, spec.default, descriptor).value
-            out[spec.name] = coerce_param(spec.name, value, spec.default)
+            out[spec.name] = coerce_param(spec.name, value, spec.default, spec.item_type)
         for name in ("rate_hz", "diagnostics_period", "lockstep_timeout"):
             if not out[name] > 0:
                 raise ValueError(f"parameter {name!r} must be > 0, got {out[name]}")

@@ -28,8 +28,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from msg_schemas import get_schema  # noqa: E402
+from msg_schemas.names import join_topic  # noqa: E402
 from msg_schemas.telemetry import clock_to_msg, model_error_to_msg  # noqa: E402
-from saml_ros.bags.io import join_topic  # noqa: E402
 
 
 def rollout(system_name: str, steps: int, episode_steps: int, seed: int, t0_ns: int) -> list[dict]:

@@ -21,13 +21,13 @@ import yaml
 from ros_helpers import Process, RosDomain, ros_env, wait_for  # noqa: F401  (fixture by import)
 
 from saml_ros.bringup import (
-    DEFAULTS,
     BringupResult,
     Episode,
     EpisodeTracker,
     ProcessGroup,
     apply_sets,
     child_env,
+    default_config,
     format_summary,
     load_config,
     ros_params_file,
@@ -40,14 +40,14 @@ DT_NS = 100_000_000
 # ------------------------------------------------------------------------------------------ ROS-free
 def test_config_file_matches_the_embedded_defaults() -> None:
     path = REPO / "config" / "bringup_quadrotor.yaml"
-    assert load_config(path, None) == DEFAULTS["quadrotor"]
+    assert load_config(path, None) == default_config("quadrotor")
     assert yaml.safe_load(path.read_text())["system"] == "quadrotor"
 
 
 def test_config_overrides_and_errors(tmp_path: Path) -> None:
     cfg = apply_sets(load_config(None, "friction"), ["mpc.solver=slsqp", "sim.episode_steps=7", "sim_time=12"])
     assert cfg["mpc"]["solver"] == "slsqp" and cfg["sim"]["episode_steps"] == 7 and cfg["sim_time"] == 12
-    assert cfg["mpc"]["horizon"] == DEFAULTS["friction"]["mpc"]["horizon"]  # the rest is kept
+    assert cfg["mpc"]["horizon"] == default_config("friction")["mpc"]["horizon"]  # the rest is kept
     with pytest.raises(ValueError, match="section.param=value"):
         apply_sets(cfg, ["nonsense"])
     with pytest.raises(ValueError, match="must be sim_time or one of"):

@@ -12,7 +12,7 @@ import torch
 from ros_helpers import RosDomain
 
 from saml_ros.core.device import DeviceError, resolve_device
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 ros_env = ros_helpers.ros_env

@@ -120,11 +120,12 @@ def test_friction_experiment_tiny(tmp_path: Path) -> None:
 
 
 def test_closed_loop_runs_the_true_system() -> None:
+    from saml_ros.core.mpc import closed_loop, make_controller
     from saml_ros.core.systems import get_system
-    from saml_ros.experiments.control import closed_loop, make_mpc
 
     system = get_system("friction")
-    ro = closed_loop(make_mpc(system, None, "fast", horizon=10), np.array([1.2, 0.0]), 6, system.true_step_np)
+    ro = closed_loop(system, make_controller(system, None, "fast", horizon=10), np.array([1.2, 0.0]), 6,
+                     true_step=system.true_step_np)
     for k in range(6):
         np.testing.assert_allclose(ro.xs[k + 1], system.true_step_np(ro.xs[k], ro.us[k]))
     assert np.all(np.abs(ro.us) <= 10.0)
@@ -179,14 +180,14 @@ def test_paddle_experiment_tiny(paddle_run: tuple[Path, dict[str, Any], Any]) ->
 
 
 def test_paddle_trial_measures_landing_against_target() -> None:
+    from saml_ros.core.mpc import make_controller
     from saml_ros.core.systems.paddle_ball import PaddleBall
     from saml_ros.core.worlds.paddle_world import PaddleBallWorld
-    from saml_ros.experiments.control import make_mpc
     from saml_ros.experiments.paddle_ball import PaddleSettings, make_trials, run_trial
 
     s = PaddleSettings()
     world = PaddleBallWorld(seed=0)
-    ctrl = make_mpc(world.system, None, s.solver)
+    ctrl = make_controller(world.system, None, s.solver)
     trials = make_trials(3, 11)
     for t in trials:
         assert -1 <= t.target_xy.min() and t.target_xy.max() <= 1 and 1 <= t.v_max - t.v_min <= 2

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import torch
 
-from saml_ros.core import fast_train
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training.engines import fast as fast_engine
 from saml_ros.offline.pipelines import evaluate_models
 
 FRICTION = get_system("friction")
@@ -82,7 +82,7 @@ def _assert_same(plain: PrimalDualTrainer, fast: PrimalDualTrainer, rtol: float,
     for (name, a), b in zip(plain.model.named_parameters(), fast.model.parameters()):
         torch.testing.assert_close(b, a, rtol=rtol, atol=atol, msg=lambda m, n=name: f"{n}: {m}")
     torch.testing.assert_close(fast.lam, plain.lam, rtol=rtol, atol=atol)
-    for opt_p, opt_f in ((plain.primal_opt, fast.primal_opt), (plain.dual_opt, fast.dual_opt)):
+    for opt_p, opt_f in ((plain.primal_opt, fast.primal_opt), (plain.dual.optimizer, fast.dual.optimizer)):
         sp, sf = opt_p.state_dict()["state"], opt_f.state_dict()["state"]
         assert sp.keys() == sf.keys()
         for k in sp:
@@ -100,7 +100,7 @@ def test_fast_equals_plain_for_every_loss_and_mean(name):
     cfg = TrainConfig(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
                       log_every=7)
     plain, fast, dp, df = _pair(SPECS[name], cfg)
-    assert fast_train.unsupported_reason(fast, df) is None
+    assert fast_engine.unsupported_reason(fast, df) is None
     plain.fit(dp)
     fast.fit(df)
     assert plain.steps == 8 * 30
@@ -134,8 +134,8 @@ def test_fast_equals_plain_for_models_and_optimizers(variant):
     plain, fast, dp, df = _pair(SPECS["paper"], cfg, **kw)
     if variant == "dual_adam_own_betas":
         for tr in (plain, fast):
-            tr.dual_opt.param_groups[0]["betas"] = (0.8, 0.99)
-    merged = fast_train.FastEngine(fast, df).k_dual is not None
+            tr.dual.optimizer.param_groups[0]["betas"] = (0.8, 0.99)
+    merged = fast_engine.FastRun(fast, df).k_dual is not None
     assert merged == (variant not in ("sgd", "adam_primal_sgd_dual", "dual_adam_own_betas"))
     plain.fit(dp)
     fast.fit(df)
@@ -188,10 +188,10 @@ def test_unsupported_settings_fall_back_to_the_plain_loop():
     for tr in (reference, fast):
         tr.primal_opt.param_groups[0]["amsgrad"] = True
     fast.config = replace(cfg, engine="fast")
-    reason = fast_train.unsupported_reason(fast, df)
+    reason = fast_engine.unsupported_reason(fast, df)
     assert reason is not None and "amsgrad" in reason
     with pytest.raises(ValueError, match="amsgrad"):
-        fast_train.FastEngine(fast, df)
+        fast_engine.FastRun(fast, df)
     reference.fit(dr)
     fast.fit(df)
     assert fast.engine_used == "plain"

@@ -2,7 +2,8 @@
 
 * every node they start is a saml_ros executable, every parameter file exists, every ``$(var)`` is declared;
 * every parameter they set, in a file or inline, is one the node declares (asked from the running node);
-* the closed loops give each node exactly bringup's parameters for the system (bringup.DEFAULTS, node_params),
+* the closed loops give each node exactly bringup's parameters for the system (the registry entry's
+  ``bringup`` defaults through bringup.default_config and bringup.node_params),
   so ``ros2 launch saml_ros <system>.launch.xml`` and ``bringup --system <system>`` cannot drift apart.
 """
 
@@ -16,10 +17,11 @@ from launch_parse import REPO, VAR_RE, LaunchParseError, LaunchResult, evaluate,
 from node_params import declared_parameters
 
 from saml_ros import bringup
+from saml_ros.core.systems.registry import SYSTEM_NAMES
 from saml_ros.executables import EXECUTABLES
 
 LAUNCH = REPO / "launch"
-SYSTEMS = bringup.SYSTEMS
+SYSTEMS = SYSTEM_NAMES
 LOOPS = [LAUNCH / f"{s}.launch.xml" for s in SYSTEMS]
 STANDALONE = [LAUNCH / "learner.launch.xml", LAUNCH / "mpc.launch.xml"]
 
@@ -135,7 +137,7 @@ def test_closed_loop_launch_gives_bringups_parameters(system: str, recording: bo
         assert node.namespace == f"/{system}", node
         assert node.parameters() == expected[role], f"{system} {role}: launch vs bringup"
     assert by_role["sim"].executable == f"{system}_sim" and by_role["sim"].on_exit == "shutdown"
-    assert result.arguments["sim_time"] == str(bringup.DEFAULTS[system]["sim_time"])
+    assert result.arguments["sim_time"] == str(bringup.default_config(system)["sim_time"])
     if recording:
         assert by_role["record"].args == ["--system", system, "-o", str(tmp_path / "bag")]
 
@@ -154,8 +156,8 @@ def test_standalone_learner_and_mpc_launch_files(system: str) -> None:
 
 
 def test_loop_parameter_files_hold_bringups_defaults() -> None:
-    assert {p.name for p in (REPO / "config").glob("loop_*.yaml")} == {f"loop_{s}.yaml" for s in bringup.DEFAULTS}
-    for system in bringup.DEFAULTS:
+    assert {p.name for p in (REPO / "config").glob("loop_*.yaml")} == {f"loop_{s}.yaml" for s in SYSTEMS}
+    for system in SYSTEMS:
         sections = file_sections(REPO / "config" / f"loop_{system}.yaml")
         config = bringup.default_config(system)
         assert sections == {f"/**/{system}_sim": config["sim"],

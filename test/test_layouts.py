@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from msg_schemas import SYSTEM_NAMES, get_schema
+from msg_schemas import get_schema
 from msg_schemas.telemetry import MODEL_ERROR_TOPIC, MPC_STATUS_NAMES, TELEMETRY_TOPICS, model_error_names
+from saml_ros.core.systems.registry import SYSTEM_NAMES
 from saml_ros.viewers import layouts
 
 REPO = Path(__file__).resolve().parents[1]

@@ -484,7 +484,7 @@ def _make_run_dir(run_dir: Path, steps: tuple[int, ...]) -> list[tuple[Path, int
     from saml_ros.core.pairing import PairingConfig
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems import get_system
-    from saml_ros.core.trainer import TrainConfig
+    from saml_ros.core.training import TrainConfig
 
     system = get_system(SYSTEM)
     spec = ProblemSpec.for_system(system.paper_spec(), system)

@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from saml_ros.core.checkpoint import CheckpointError, CheckpointStore, read_checkpoint, write_checkpoint
-from saml_ros.core.model_io import IncompatibleCheckpoint, load_model, save_checkpoint
+from saml_ros.core.model_io import IncompatibleCheckpoint, load_model
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions, resume_trainer, save_checkpoint
 
 
 def _trained(tmp_path, steps_epochs=2):
@@ -45,7 +45,7 @@ def test_resume_continues_exactly(tmp_path):
     system, spec, tr, data = _trained(tmp_path)
     store = CheckpointStore(tmp_path / "run")
     path, _ = save_checkpoint(store, tr)
-    resumed = load_model(path).trainer()
+    resumed = resume_trainer(load_model(path))
     idx = torch.arange(64).unsqueeze(0)
     for t in (tr, resumed):
         for _ in range(5):

@@ -10,10 +10,10 @@ import scipy.optimize
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting import ShootingMPC
+from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import landing_point
 
@@ -42,7 +42,7 @@ def test_numpy_model_and_jacobians_match_torch(name: str, kind: str) -> None:
     system = get_system(name)
     model = None if kind == "base" else perturbed(name, kind=kind)
     x, u = system.sample_inputs(6, np.random.default_rng(1))
-    dyn = NumpyDynamics(system, model)
+    dyn = NumpyDynamics(system, model, base=base_model_np(system))  # the numpy twin against torch autograd
     y, a, b = dyn.step_jac(x, u)
 
     def torch_fn(xi: torch.Tensor, ui: torch.Tensor) -> torch.Tensor:
@@ -63,7 +63,7 @@ def test_ensemble_uses_member_zero_and_rejects_other_systems() -> None:
     system = get_system("friction")
     ens = perturbed("friction", n_models=3)
     x, u = system.sample_inputs(5, np.random.default_rng(0))
-    np.testing.assert_allclose(NumpyDynamics(system, ens).step(x, u), ens.predict_np(x, u, member=0), atol=1e-12)
+    np.testing.assert_allclose(NumpyDynamics(system, ens, base=base_model_np(system)).step(x, u), ens.predict_np(x, u, member=0), atol=1e-12)
     assert not np.allclose(ens.predict_np(x, u, member=0), ens.predict_np(x, u, member=1))
     with pytest.raises(ValueError, match="model is for system"):
         make_controller(get_system("quadrotor"), ens)
@@ -171,10 +171,45 @@ def test_plans_respect_control_bounds(name: str, solver: str) -> None:
 def test_friction_mpc_drives_true_system_to_origin() -> None:
     system = get_system("friction")
     out = closed_loop(system, make_controller(system), np.array([1.5, 0.0]), 30)
-    assert out["xs"].shape == (31, 2) and out["us"].shape == (30, 1)
-    assert abs(out["xs"][-1, 0]) < 0.05 and abs(out["xs"][-1, 1]) < 0.2
-    assert np.all(np.abs(out["us"]) <= 10.0)
-    np.testing.assert_allclose(out["stage_costs"], np.abs(out["xs"][1:, 0]))
+    assert out.xs.shape == (31, 2) and out.us.shape == (30, 1)
+    assert abs(out.xs[-1, 0]) < 0.05 and abs(out.xs[-1, 1]) < 0.2
+    assert np.all(np.abs(out.us) <= 10.0)
+    np.testing.assert_allclose(out.stage_costs, np.abs(out.xs[1:, 0]))
+
+
+def test_closed_loop_hook_sees_every_step() -> None:
+    """The runner's on_step hook gets each step's state, result and true next state, in order; a controller
+    warm-starts from the plan the previous step left (what bench_mpc records through the hook)."""
+    system = get_system("friction")
+    ctrl = make_controller(system)
+    assert isinstance(ctrl, ShootingMPC)
+    seen: list[LoopStep] = []
+    warm: list[object] = []
+
+    def record(st: LoopStep) -> None:
+        seen.append(st)
+        warm.append(ctrl.warm_start_plan())
+
+    out = closed_loop(system, ctrl, np.array([1.2, 0.0]), 5, on_step=record)
+    assert [st.index for st in seen] == list(range(5))
+    for k, st in enumerate(seen):
+        np.testing.assert_array_equal(st.x, out.xs[k])
+        np.testing.assert_array_equal(st.x_next, out.xs[k + 1])
+        np.testing.assert_array_equal(st.x_next, system.true_step_np(st.x, st.result.u))
+        np.testing.assert_array_equal(st.result.u, out.us[k])
+        assert st.result.cost == out.costs[k] and st.cpu_time == out.cpu_times[k] >= 0.0
+        plan = warm[k]
+        assert isinstance(plan, tuple)
+        np.testing.assert_array_equal(plan[0], st.result.plan_u)
+    # paddle ball: x_next is the next pre-impact state, where the ball lands
+    system = get_system("paddle_ball")
+    steps: list[LoopStep] = []
+    run = closed_loop(system, make_controller(system), np.array([0.1, -0.1, 0.0, 0.2, 0.1, -4.0]), 2,
+                      on_step=steps.append)
+    assert run.landing is not None and len(steps) == len(run.landing) == 2
+    for k, st in enumerate(steps):
+        np.testing.assert_array_equal(st.x_next[:2], run.landing[k])
+        assert st.x_next[2] == st.x[2] and st.x_next[5] < 0.0
 
 
 def test_friction_learned_model_escapes_stiction() -> None:
@@ -285,9 +320,10 @@ def test_paddle_goal_validation_and_closed_loop() -> None:
     system = get_system("paddle_ball")
     x0 = np.array([0.1, -0.1, 0.0, 0.2, 0.1, -4.0])
     out = closed_loop(system, make_controller(system), x0, 3, goal={"target_xy": (0.0, 0.0)})
-    assert out["xs"].shape[1] == 6 and out["landing"].shape[1] == 2 and not out["dropped"]
+    assert out.landing is not None
+    assert out.xs.shape[1] == 6 and out.landing.shape[1] == 2 and not out.dropped
     # the base model's restitution is wrong (0.6 vs 0.8) and the paddle has a hidden tilt: the true ball misses
-    assert out["stage_costs"].max() > 0.05
+    assert out.stage_costs.max() > 0.05
 
 
 # ------------------------------------------------------------------------------------------ hot swap, warm start

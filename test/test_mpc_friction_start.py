@@ -1,4 +1,4 @@
-"""The friction MPC's initial guess (ShootingMPC._warm_start, tasks.push_brake_sequences): a model with a dead
+"""The friction MPC's initial guess (ShootingMPC._warm_start, shooting.tasks.push_brake_sequences): a model with a dead
 zone (friction holds the cart at rest for small |u|, so the predicted cost is flat around u = 0) must not trap
 either solver at rest, neither on a cold start nor when the previous plan rests."""
 
@@ -10,8 +10,9 @@ import torch
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
+from saml_ros.core.mpc.factory import make_task
 from saml_ros.core.mpc.shooting import ShootingMPC
-from saml_ros.core.mpc.tasks import make_task, push_brake_sequences
+from saml_ros.core.mpc.shooting.tasks import push_brake_sequences
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 
@@ -82,8 +83,8 @@ def test_resting_previous_plan_does_not_trap(solver: str) -> None:
 @pytest.mark.parametrize("solver", ["fast", "slsqp"])
 def test_closed_loop_from_dead_zone_reaches_goal(solver: str) -> None:
     out = closed_loop(SYSTEM, make_controller(SYSTEM, dead_zone_model(), solver), np.array([0.15, 0.0]), 30)
-    assert abs(out["xs"][-1, 0]) < 0.05
-    assert np.all(np.abs(out["us"]) <= SYSTEM.u_max)
+    assert abs(out.xs[-1, 0]) < 0.05
+    assert np.all(np.abs(out.us) <= SYSTEM.u_max)
 
 
 def test_converged_plan_wins_the_start_of_a_re_solve() -> None:

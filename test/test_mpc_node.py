@@ -22,13 +22,12 @@ import torch
 from ros_helpers import RosDomain, ros_env  # noqa: F401  (fixture by import)
 
 from saml_ros.core.checkpoint import CheckpointStore, atomic_write
-from saml_ros.core.model_io import save_checkpoint
-from saml_ros.core.model_watch import ModelWatcher
+from saml_ros.core.model_watch import ModelWatcher, checkpoint_gate
 from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.config import make_goal, parse_solver_options
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
-from saml_ros.nodes.mpc import make_gate, make_goal, parse_solver_options
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 rclpy = pytest.importorskip("rclpy")
@@ -134,8 +133,8 @@ def test_watcher_background_thread_hands_over_without_blocking(tmp_path: Path) -
 def test_gate_holds_back_checkpoints_the_learner_reports_as_infeasible(tmp_path: Path) -> None:
     system = get_system("quadrotor")
     store = CheckpointStore(tmp_path / "run")
-    assert make_gate(float("inf"), 0) is None
-    watcher = ModelWatcher(system, store.run_dir, accept=make_gate(0.002, 0))
+    assert checkpoint_gate(float("inf"), 0) is None
+    watcher = ModelWatcher(system, store.run_dir, accept=checkpoint_gate(0.002, 0))
     save_model(store, "quadrotor", metrics={"constraint/near_ground": 0.05})  # far from eps: held back
     assert watcher.poll_once() is None and watcher.poll_once() is None
     stats = watcher.stats()
@@ -145,7 +144,7 @@ def test_gate_holds_back_checkpoints_the_learner_reports_as_infeasible(tmp_path:
     save_model(store, "quadrotor", metrics={"constraint/near_ground": 0.001})
     ready = watcher.poll_once()
     assert ready is not None and ready.version == 3
-    strict = ModelWatcher(system, store.run_dir, accept=make_gate(float("inf"), 10))  # 0 updates in the file
+    strict = ModelWatcher(system, store.run_dir, accept=checkpoint_gate(float("inf"), 10))  # 0 updates in the file
     assert strict.poll_once() is None and "gate.min_updates" in strict.stats()["last_gated"]
 
 

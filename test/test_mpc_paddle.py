@@ -1,5 +1,6 @@
 """The fast paddle-ball solver's internals: exact derivatives, the feasible-set projection, the search, and its
-agreement with the SLSQP reference (saml_ros.core.mpc.paddle_eval / paddle_row / paddle_search)."""
+agreement with the SLSQP reference (saml_ros.core.mpc.paddle: landing_error, feasible_set, projected_newton,
+multistart)."""
 
 from __future__ import annotations
 
@@ -11,11 +12,11 @@ import pytest
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import make_controller, paddle_goal
+from saml_ros.core.mpc import base_model_np, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleProblem
-from saml_ros.core.mpc.paddle_eval import PaddleEval
-from saml_ros.core.mpc.paddle_row import PaddleRowSolver
+from saml_ros.core.mpc.paddle.landing_error import LandingError
+from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point
 
@@ -42,11 +43,11 @@ def problem(rng: np.random.Generator, model: DynamicsModel | None, spread: float
                   rng.uniform(-6, -2)])
     vmin = rng.uniform(3.0, 4.0)
     goal = paddle_goal(target_xy=spread * rng.uniform(-1, 1, 2), v_rel=(vmin, vmin + rng.uniform(1, 2)))
-    return PaddleProblem(SYSTEM, NumpyDynamics(SYSTEM, model), x, goal)
+    return PaddleProblem(SYSTEM, NumpyDynamics(SYSTEM, model, base=base_model_np(SYSTEM)), x, goal)
 
 
-def evaluator(prob: PaddleProblem) -> PaddleEval:
-    return PaddleEval(prob.dyn, prob.x, prob.goal.target_xy, SYSTEM.g)
+def evaluator(prob: PaddleProblem) -> LandingError:
+    return LandingError(prob.dyn, prob.x, prob.goal.target_xy, SYSTEM.g)
 
 
 @pytest.mark.parametrize("kind", ["base", "residual", "full"])
@@ -100,11 +101,11 @@ def test_projection_is_feasible_and_exact_on_the_speed_ball() -> None:
     rng = np.random.default_rng(3)
     for _ in range(20):
         prob = problem(rng, None)
-        row = PaddleRowSolver(evaluator(prob), prob.lo.tolist(), prob.hi.tolist(), prob.goal.v_rel)
+        feasible = prob.feasible_set()
         vmin, vmax = prob.goal.v_rel
         for _ in range(20):
             q = (prob.lo + (prob.hi - prob.lo) * rng.uniform(-0.5, 1.5, 5)).tolist()
-            p = np.array(row.project(q))
+            p = np.array(feasible.project(q))
             assert np.all(p >= prob.lo - 1e-12) and np.all(p <= prob.hi + 1e-12)
             s = float(np.linalg.norm(prob.x[3:6] - p[:3]))
             assert vmin - 1e-9 <= s <= vmax + 1e-9
@@ -164,8 +165,8 @@ def test_runs_reuse_known_points_and_cached_derivatives_exactly() -> None:
     for _ in range(6):
         prob = problem(rng, model, spread=3.0)
         ev = evaluator(prob)
-        row = PaddleRowSolver(ev, prob.lo.tolist(), prob.hi.tolist(), prob.goal.v_rel)
-        theta = row.project(rng.uniform(prob.lo, prob.hi).tolist())
+        row = ProjectedNewton(ev, prob.feasible_set())
+        theta = row.feasible.project(rng.uniform(prob.lo, prob.hi).tolist())
         pt = ev.value(theta)
         jac_only, _ = ev.derivatives(pt, False)
         jac, hess = ev.derivatives(pt, True)  # H added to a point that had J cached

@@ -12,7 +12,7 @@ import numpy as np
 from saml_ros.core.model_io import load_model
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 from saml_ros.offline.pipelines import compare
 
 ROOT = Path(__file__).resolve().parents[1]

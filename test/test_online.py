@@ -28,7 +28,7 @@ from saml_ros.core.online import (
 from saml_ros.core.pairing import PairingConfig, Transition
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 
 SYSTEM = get_system("friction")
 SPEC = ProblemSpec.for_system(SYSTEM.paper_spec(), SYSTEM)
@@ -271,7 +271,7 @@ def test_configured_learning_rates_win_over_the_checkpoints(tmp_path: Path) -> N
     again = new_learner(tmp_path, train=TrainConfig(batch_size=64, primal_lr=1e-4, dual_lr=5e-3))
     assert again.trainer is not None
     assert again.trainer.primal_opt.param_groups[0]["lr"] == 1e-4
-    assert again.trainer.dual_opt.param_groups[0]["lr"] == 5e-3
+    assert again.trainer.dual.optimizer.param_groups[0]["lr"] == 5e-3
 
 
 def test_checkpoint_period_and_pruning(tmp_path: Path) -> None:

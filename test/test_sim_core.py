@@ -10,7 +10,10 @@ import numpy as np
 import pytest
 
 from saml_ros.core.params import coerce_param
-from saml_ros.core.systems import FrictionDoubleIntegrator, Quadrotor, get_system
+from saml_ros.core.systems import get_system
+from saml_ros.core.systems.friction import FrictionDoubleIntegrator
+from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.core.systems.registry import build_stepped_sim
 from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
@@ -22,7 +25,6 @@ from saml_ros.core.worlds.sim_core import (
     FastStep,
     SimConfig,
     SteppedSim,
-    build_stepped_sim,
     friction_model,
     friction_start,
     ground_contact,
@@ -331,7 +333,7 @@ def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world) ->
 
 
 def test_paddle_ball_realtime_bounces_on_the_safe_default_and_restarts_lost_balls(ball_world) -> None:  # type: ignore[no-untyped-def]
-    from saml_ros.core.worlds.paddle_sim import SAFE_DEFAULT, PaddleBallSim
+    from saml_ros.core.worlds.paddle_sim import PaddleBallSim
     from saml_ros.core.worlds.sim_core import TARGET
 
     sim = PaddleBallSim(ball_world, SimConfig(mode="realtime", seed=2, cmd_timeout=0.1), publish_clock=False,
@@ -346,7 +348,7 @@ def test_paddle_ball_realtime_bounces_on_the_safe_default_and_restarts_lost_ball
             sink[kind][t] = vec
     assert len(targets) >= 3 and set(applied) == set(targets) and set(targets) <= set(states)
     for t in targets:
-        np.testing.assert_array_equal(applied[t], SAFE_DEFAULT)
+        np.testing.assert_array_equal(applied[t], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # level paddle at rest
     stamps = sorted(states)
     assert stamps[0] > 10**18 and all(np.diff(stamps) > 0)
     assert sim.counters["cmd_timeouts"] >= 3 and sim.counters["episodes"] >= 1

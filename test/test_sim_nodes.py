@@ -24,7 +24,7 @@ from std_srvs.srv import Trigger
 
 from msg_schemas import DATA_QOS, get_schema
 from msg_schemas.telemetry import clock_from_msg, diagnostics_from_msg
-from saml_ros.core.systems import Quadrotor
+from saml_ros.core.systems.quadrotor import Quadrotor
 
 ros_env = ros_helpers.ros_env  # fixtures, used by name
 ros_node = ros_helpers.ros_node

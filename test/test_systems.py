@@ -10,22 +10,18 @@ import pytest
 import torch
 
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems import (
-    SYSTEM_NAMES,
-    FrictionDoubleIntegrator,
-    PaddleBall,
-    Quadrotor,
-    System,
-    default_params,
-    get_system,
-)
+from saml_ros.core.systems import SYSTEM_NAMES, default_params, get_system
+from saml_ros.core.systems.base import System
+from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.paddle_ball import (
+    PaddleBall,
     landing_point,
     normal_from_roll_pitch,
     roll_pitch_from_normal,
     rotate_y,
 )
 from saml_ros.core.systems.plots import write_figures
+from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.core.systems.quaternion import (
     quat_from_axis_angle,
     quat_mul,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from copy import deepcopy
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import torch
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import DualVariables, PrimalDualTrainer, TrainConfig, Transitions
 
 
 def _two_groups(n: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -124,3 +125,25 @@ def test_lambda_never_negative_and_dual_uses_detached_constraint(toy_system):
     lam = tr.history.as_arrays()["lambdas"]
     assert (lam >= 0).all()
     assert all(p.grad is None or torch.isfinite(p.grad).all() for p in tr.model.parameters())
+
+
+def test_dual_variables_ascend_project_and_round_trip():
+    """The multipliers on their own: SGD ascent is lambda + lr * g, projected onto lambda >= 0 per entry; a state
+    round trip (value and optimizer state) continues identically; with K = 0 a step does nothing."""
+    dual = DualVariables(2, 2, torch.float64, optimizer="sgd", lr=0.5)
+    dual.step(torch.tensor([[1.0, -1.0], [0.2, 0.4]], dtype=torch.float64))
+    torch.testing.assert_close(dual.value, torch.tensor([[0.5, 0.0], [0.1, 0.2]], dtype=torch.float64))
+    dual.step(torch.tensor([[-0.4, 2.0], [-1.0, 0.0]], dtype=torch.float64))
+    torch.testing.assert_close(dual.value, torch.tensor([[0.3, 1.0], [0.0, 0.2]], dtype=torch.float64))
+    adam = DualVariables(1, 3, torch.float64, optimizer="adam", lr=0.1)
+    g = torch.tensor([[0.3, -0.2, 0.1]], dtype=torch.float64)
+    adam.step(g)
+    copy = DualVariables(1, 3, torch.float64, optimizer="adam", lr=0.1)
+    copy.load_state_dict(deepcopy(adam.state_dict()))  # torch optimizers' state_dicts hold references
+    for d in (adam, copy):
+        d.step(g)
+    torch.testing.assert_close(copy.value, adam.value, rtol=0, atol=0)
+    assert (adam.value >= 0).all() and adam.value[0, 1] == 0 and adam.value[0, 0] > 0
+    none = DualVariables(3, 0, torch.float32)
+    none.step(torch.zeros(3, 0))
+    assert none.value.shape == (3, 0) and not none.optimizer.state

@@ -20,7 +20,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from saml_ros.bags.io import Bag, BagError, join_topic, repair_bag
+from msg_schemas.names import join_topic
+from saml_ros.bags.io import Bag, BagError, repair_bag
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -29,6 +29,7 @@ from types import TracebackType
 from typing import Any, Literal
 
 from msg_schemas import QosSpec, TopicSpec, get_schema
+from msg_schemas.names import join_topic, normalize_namespace
 from msg_schemas.telemetry import GLOBAL_TOPICS, TELEMETRY_TOPICS
 
 #: rosbag2 metadata format version Jazzy writes
@@ -62,19 +63,6 @@ def jazzy_typestore() -> Any:
 
 
 # ------------------------------------------------------------------------------------------ topics
-def join_topic(namespace: str, name: str) -> str:
-    """Absolute topic name: ``join_topic("/friction", "state") == "/friction/state"``; absolute names pass."""
-    if name.startswith("/"):
-        return name
-    return f"{normalize_namespace(namespace).rstrip('/')}/{name}"
-
-
-def normalize_namespace(namespace: str) -> str:
-    """``"friction"``, ``"/friction/"`` -> ``"/friction"``; ``""`` / ``"/"`` -> ``"/"``."""
-    ns = "/" + namespace.strip("/")
-    return ns
-
-
 def saml_topics(system: str, namespace: str | None = None) -> dict[str, TopicSpec]:
     """Every topic a closed loop of ``system`` uses in ``namespace`` (default ``/<system>``), by absolute name.
 

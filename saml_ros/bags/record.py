@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from msg_schemas.names import normalize_namespace
 from saml_ros.bags.io import (
     CUSTOM_NAMESPACES,
     CUSTOM_SCHEMA_HASH,
@@ -38,7 +39,6 @@ from saml_ros.bags.io import (
     BagWriter,
     jazzy_typestore,
     message_class,
-    normalize_namespace,
     qos_from_rclpy,
     saml_topics,
 )

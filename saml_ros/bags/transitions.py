@@ -21,10 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from msg_schemas import SYSTEM_NAMES, SchemaError, SystemSchema, get_schema
-from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError, join_topic, normalize_namespace
+from msg_schemas import SchemaError, SystemSchema, get_schema
+from msg_schemas.names import join_topic, normalize_namespace
+from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError
 from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
-from saml_ros.core.systems import get_system
+from saml_ros.core.systems import get_system, system_names
 
 
 @dataclass
@@ -110,18 +111,19 @@ def infer_system(bag: Bag) -> str:
     (names and message types) are in the bag, preferring the default namespace ``/<system>`` and then
     the one whose first state and applied_cmd messages decode. :class:`BagError` if none fits.
     """
+    names = system_names()
     stored = bag.custom_data.get(CUSTOM_SYSTEM)
-    if stored in SYSTEM_NAMES:
+    if stored in names:
         return stored
     candidates: list[tuple[int, str]] = []
-    for name in SYSTEM_NAMES:
+    for name in names:
         schema = get_schema(name)
         for ns in find_namespaces(bag, name):
             topics = pairing_topics(schema, ns)
             if all(bag.topics[t].msg_type == m for t, m in topics.items()) and _first_messages_decode(bag, schema, ns):
                 candidates.append((0 if ns == f"/{name}" else 1, name))
     if not candidates:
-        raise BagError(f"bag {bag.path}: no system's topics found (for each of {list(SYSTEM_NAMES)} expected "
+        raise BagError(f"bag {bag.path}: no system's topics found (for each of {list(names)} expected "
                        f"<ns>/state and <ns>/applied_cmd with the schema's message types); the bag has: "
                        + (", ".join(f"{t} ({i.msg_type})" for t, i in bag.topics.items()) or "no topics"))
     return sorted(candidates)[0][1]

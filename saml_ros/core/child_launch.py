@@ -1,8 +1,8 @@
 """Starting the learner's training interpreter, standard library only (no torch), so that the learner node can
 start it first thing and let it import torch while the node itself starts (see ``saml_ros.nodes.learner``).
 
-The child runs :func:`saml_ros.core.online.child_entry` on its end of a socket pair; :class:`~saml_ros.core.online.
-TrainingProcess` then sends it its setup.
+The child runs :func:`saml_ros.core.online.child.child_entry` on its end of a socket pair;
+:class:`~saml_ros.core.online.process.TrainingProcess` then sends it its setup.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-#: a started training interpreter waiting for its :class:`~saml_ros.core.online.LearnerSetup`:
+#: a started training interpreter waiting for its :class:`~saml_ros.core.online.process.LearnerSetup`:
 #: ``(process, connection)``
 LaunchedChild = tuple["subprocess.Popen[bytes]", Any]
 #: what the training interpreter runs (``argv[1]`` = its socket's file descriptor); it ignores SIGINT and SIGTERM
@@ -22,7 +22,7 @@ LaunchedChild = tuple["subprocess.Popen[bytes]", Any]
 #: decides when training stops
 CHILD_CODE = ("import signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
               "signal.signal(signal.SIGTERM, signal.SIG_IGN); "
-              "from saml_ros.core.online import child_entry; child_entry(int(sys.argv[1]))")
+              "from saml_ros.core.online.child import child_entry; child_entry(int(sys.argv[1]))")
 
 
 def launch_child() -> LaunchedChild:
@@ -45,3 +45,13 @@ def launch_child_process(code: str, package_root: Path) -> LaunchedChild:
     proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno())], pass_fds=[theirs.fileno()], env=env)
     theirs.close()
     return proc, Connection(ours.detach())
+
+
+def discard_child(launched: LaunchedChild) -> None:
+    """Let an unused training interpreter exit (it sees the connection close); kill it after 10 s."""
+    proc, conn = launched
+    conn.close()
+    try:
+        proc.wait(10)
+    except Exception:  # noqa: BLE001
+        proc.kill()

@@ -1,10 +1,12 @@
-"""Saving and loading trained dynamics models (and the trainer state to resume them) as checkpoints.
+"""The model part of a checkpoint: writing a dynamics model's part (:func:`model_payload`) and loading a model
+(:func:`load_model`, :func:`model_from_payload`) without the trainer.
 
 A model checkpoint's meta holds: ``kind = "saml_ros.model"``, the system name and physical parameters,
 the schema hash and field names of the state/control/target layouts, the architecture, the problem spec,
 the training config, lambda, the update count, metrics and the time. Arrays hold the weights and
 normalisation (``model/...``), lambda (``lam``) and the optimizer states (``primal_opt/...``,
-``dual_opt/...``). See ``docs/checkpoints.md``.
+``dual_opt/...``). The trainer's part (lambda, optimizer states, counters) is written and read back into a
+trainer by :mod:`saml_ros.core.training.trainer_io`. See ``docs/checkpoints.md``.
 """
 
 from __future__ import annotations
@@ -18,7 +20,6 @@ import torch
 
 from saml_ros.core.checkpoint import (
     CheckpointError,
-    CheckpointStore,
     arrays_to_torch_state,
     read_checkpoint,
     torch_state_to_arrays,
@@ -27,7 +28,6 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
-from saml_ros.core.trainer import PrimalDualTrainer, TrainConfig
 
 MODEL_KIND = "saml_ros.model"
 
@@ -41,22 +41,16 @@ def system_params(system: System) -> dict[str, Any]:
     return dict(params()) if callable(params) else {}
 
 
-def checkpoint_payload(
-    trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None, extra: dict[str, Any] | None = None
-) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """Arrays and meta of a checkpoint holding ``trainer``'s model, lambda and optimizer states."""
-    model, system = trainer.model, trainer.model.system
-    arrays: dict[str, np.ndarray] = {"lam": trainer.lam.double().numpy().copy()}
-    skeletons = {}
-    for prefix, state in (("model", model.state_dict()), ("primal_opt", trainer.primal_opt.state_dict()),
-                          ("dual_opt", trainer.dual_opt.state_dict())):
-        a, sk = torch_state_to_arrays(prefix, state)
-        arrays.update(a)
-        skeletons[prefix] = sk
+def model_payload(model: DynamicsModel, spec: ProblemSpec) -> tuple[dict[str, np.ndarray], dict[str, Any], Any]:
+    """The model's part of a checkpoint: arrays ``model/...`` (weights and normalisation), meta (``kind``,
+    system, its parameters, schema hash, layouts, architecture, spec) and the model state's skeleton (for
+    ``meta["skeletons"]["model"]``)."""
+    system = model.system
+    arrays, skeleton = torch_state_to_arrays("model", model.state_dict())
     meta = {
         "kind": MODEL_KIND,
         "system": system.name,
-        "system_params": _jsonable(system_params(system)),
+        "system_params": jsonable(system_params(system)),
         "schema_hash": system.schema_hash(),
         "layouts": {
             "state": list(system.state.names),
@@ -64,25 +58,9 @@ def checkpoint_payload(
             "target": list(system.target.names),
         },
         "architecture": model.architecture(),
-        "spec": trainer.spec.to_dict(),
-        "train_config": dict(trainer.config.__dict__),
-        "lambda": trainer.lam.double().tolist(),
-        "constraint_names": trainer.spec.constraint_names,
-        "updates": trainer.steps,
-        "epochs": trainer.epochs_done,
-        "metrics": _jsonable(metrics or {}),
-        "skeletons": skeletons,
+        "spec": spec.to_dict(),
     }
-    if extra:
-        meta.update(_jsonable(extra))
-    return arrays, meta
-
-
-def save_checkpoint(store: CheckpointStore, trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None,
-                    extra: dict[str, Any] | None = None) -> tuple[Path, int]:
-    """Write the next versioned checkpoint of ``trainer`` into ``store`` and point ``latest`` at it."""
-    arrays, meta = checkpoint_payload(trainer, metrics, extra)
-    return store.save(arrays, meta)
+    return arrays, meta, skeleton
 
 
 @dataclass
@@ -100,21 +78,6 @@ class LoadedModel:
     @property
     def version(self) -> int:
         return int(self.meta.get("version", 0))
-
-    def trainer(self, config: TrainConfig | None = None) -> PrimalDualTrainer:
-        """A trainer that resumes exactly where the checkpoint left off (weights, lambda, optimizer state)."""
-        cfg = config or TrainConfig.from_dict(self.meta.get("train_config", {}))
-        tr = PrimalDualTrainer(self.model, self.spec, cfg)
-        sk = self.meta["skeletons"]
-        tr.load_state({
-            "model": self.model.state_dict(),
-            "lam": self.lam,
-            "primal_opt": arrays_to_torch_state(self.arrays, sk["primal_opt"]),
-            "dual_opt": arrays_to_torch_state(self.arrays, sk["dual_opt"]),
-            "steps": int(self.meta.get("updates", 0)),
-            "epochs_done": float(self.meta.get("epochs", 0.0)),
-        })
-        return tr
 
 
 def model_from_payload(
@@ -164,11 +127,12 @@ def load_model(path: str | Path, expect: System | None = None) -> LoadedModel:
     return model_from_payload(arrays, meta, expect, Path(path))
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
+    """``obj`` with numpy / torch values turned into JSON types (dict keys into strings), for a checkpoint's meta."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, (np.floating, np.integer)):

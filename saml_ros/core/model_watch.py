@@ -28,6 +28,8 @@ An optional ``accept(loaded) -> reason | None`` hook can hold back checkpoints t
 enough yet* (e.g. the learner's own estimate says the accuracy constraints are not met): they are counted as
 ``gated`` (not refused) and the current model is kept; newer checkpoints are still considered.
 
+:func:`checkpoint_gate` is the MPC node's hook (parameters ``gate.max_constraint`` and ``gate.min_updates``).
+
 Only checkpoints *newer* than the newest one loaded are considered: a higher version in the same directory,
 or any version in a directory other than the current model's (a new learner run starts again at 1).
 """
@@ -35,6 +37,7 @@ or any version in a directory other than the current model's (a new learner run 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import threading
 import time
@@ -369,3 +372,29 @@ def _file_id(path: Path) -> _FileId | None:
         st = os.stat(path)
         return (str(path.resolve()), st.st_size, st.st_mtime_ns)
     return None
+
+
+def checkpoint_gate(max_constraint: float, min_updates: int) -> Callable[[LoadedModel], str | None] | None:
+    """The ``accept`` hook holding back checkpoints with fewer than ``min_updates`` learner updates, or whose
+    recorded constraint estimates (``metrics["constraint/<k>"]``, the learner's E[l | region] - eps on its live
+    window) exceed ``max_constraint``; it returns why, or ``None`` to accept. ``None`` when both are disabled
+    (``inf`` and 0)."""
+    if math.isinf(max_constraint) and max_constraint > 0 and min_updates <= 0:
+        return None
+
+    def accept(loaded: LoadedModel) -> str | None:
+        updates = int(loaded.meta.get("updates", 0))
+        if updates < min_updates:
+            return f"{updates} learner updates < gate.min_updates = {min_updates}"
+        if not math.isinf(max_constraint):
+            metrics = loaded.meta.get("metrics") or {}
+            cons = {k: v for k, v in metrics.items() if k.startswith("constraint/")}
+            if not cons:
+                return "its metrics hold no constraint estimate (constraint/<k>)"
+            bad = {k: round(float(v), 6) for k, v in cons.items()
+                   if not (isinstance(v, int | float) and math.isfinite(v) and v <= max_constraint)}
+            if bad:
+                return f"constraint estimate {bad} > gate.max_constraint = {max_constraint:g}"
+        return None
+
+    return accept

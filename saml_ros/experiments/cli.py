@@ -38,31 +38,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: experiment -> (its settings class in ``saml_ros.experiments.<name>``, the field ``--seeds`` sets: ``seeds`` takes
+#: them all, ``seed`` the first)
+SETTINGS: dict[str, tuple[str, str]] = {
+    "convergence": ("ConvergenceSettings", "seed"),
+    "friction": ("FrictionSettings", "seeds"),
+    "quadrotor": ("QuadrotorSettings", "seeds"),
+    "paddle_ball": ("PaddleSettings", "seeds"),
+}
+
+
 def settings_for(name: str, quick: bool, seeds: list[int] | None) -> Any:
     """The settings object of experiment ``name`` (paper defaults, or ``quick()``), with ``seeds`` applied."""
+    import importlib
     from dataclasses import replace
 
-    if name == "convergence":
-        from saml_ros.experiments.convergence import ConvergenceSettings
-
-        s = ConvergenceSettings.quick() if quick else ConvergenceSettings()
-        return replace(s, seed=seeds[0]) if seeds else s
-    if name == "friction":
-        from saml_ros.experiments.friction import FrictionSettings
-
-        s2 = FrictionSettings.quick() if quick else FrictionSettings()
-        return replace(s2, seeds=tuple(seeds)) if seeds else s2
-    if name == "quadrotor":
-        from saml_ros.experiments.quadrotor import QuadrotorSettings
-
-        s3 = QuadrotorSettings.quick() if quick else QuadrotorSettings()
-        return replace(s3, seeds=tuple(seeds)) if seeds else s3
-    if name == "paddle_ball":
-        from saml_ros.experiments.paddle_ball import PaddleSettings
-
-        s4 = PaddleSettings.quick() if quick else PaddleSettings()
-        return replace(s4, seeds=tuple(seeds)) if seeds else s4
-    raise ValueError(f"unknown experiment {name!r}; valid: {', '.join(EXPERIMENT_NAMES)}")
+    if name not in SETTINGS:
+        raise ValueError(f"unknown experiment {name!r}; valid: {', '.join(EXPERIMENT_NAMES)}")
+    cls_name, seed_field = SETTINGS[name]
+    cls = getattr(importlib.import_module(f"saml_ros.experiments.{name}"), cls_name)
+    settings = cls.quick() if quick else cls()
+    if not seeds:
+        return settings
+    return replace(settings, **{seed_field: seeds[0] if seed_field == "seed" else tuple(seeds)})
 
 
 #: experiments whose independent units run on Ray with ``--ray``

@@ -17,10 +17,15 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.systems.base import System
+    from saml_ros.offline.pipelines import Comparison
 
 
 # --------------------------------------------------------------------------------------------- statistics
@@ -286,12 +291,38 @@ def single_threaded(run: Callable[P, R]) -> Callable[P, R]:
     return wrapper
 
 
+# --------------------------------------------------------------------------------------------- training
+def train_paper_comparison(system: System, seeds: Sequence[int], n_train: int, n_test: int, hidden: Sequence[int],
+                           epochs: int, timer: Timer, progress: bool) -> tuple[ProblemSpec, Comparison]:
+    """Sufficiently vs Uniformly Accurate models of ``system`` on its paper spec, one dataset and initialisation per
+    seed, all seeds as one ensemble (:func:`saml_ros.offline.pipelines.compare`; Adam 1e-3 / 1e-4, batch 128),
+    timed as ``timer("train")``; returns the spec and the comparison."""
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.training import TrainConfig
+    from saml_ros.offline.pipelines import compare
+
+    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    config = TrainConfig(epochs=epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
+    with timer("train"), quiet_trainer_warnings(), flush_denormals():
+        cmp = compare(system, spec, config, list(seeds), n_train, n_test, hidden, progress=progress)
+    return spec, cmp
+
+
+def training_summary(cmp: Comparison) -> dict[str, Any]:
+    """The ``training`` entry of ``results.json``: seconds per model, the engine, the final multipliers and the
+    feasibility warnings of the Sufficiently Accurate training."""
+    trainer = cmp.sufficient.trainer
+    return {"train_seconds": {"sufficient": cmp.sufficient.train_seconds, "uniform": cmp.uniform.train_seconds},
+            "engine": trainer.engine_used, "lambda_final": trainer.lam[:, 0],
+            "feasibility_warnings": trainer.feasibility().messages()}
+
+
 def save_models(out: Path, trained: dict[str, Any]) -> dict[str, str]:
     """Save each trained ensemble (``name -> TrainedModels``) as a checkpoint run directory ``out/models/<name>``
     (load with ``saml_ros.core.model_io.load_model``; member i was trained with seed ``seeds[i]``).
     Returns ``name -> checkpoint path``."""
     from saml_ros.core.checkpoint import CheckpointStore
-    from saml_ros.core.model_io import save_checkpoint
+    from saml_ros.core.training import save_checkpoint
 
     paths = {}
     for name, tm in trained.items():

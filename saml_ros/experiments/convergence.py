@@ -30,7 +30,7 @@ import numpy as np
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
-from saml_ros.core.trainer import TrainConfig, Transitions, evaluate_spec
+from saml_ros.core.training import TrainConfig, Transitions, evaluate_spec
 from saml_ros.experiments.common import (
     Timer,
     flush_denormals,
@@ -43,6 +43,7 @@ from saml_ros.experiments.common import (
     write_results,
 )
 from saml_ros.offline.pipelines import generate_datasets, train_models
+from saml_ros.offline.plots import save_figure
 
 NETS: tuple[tuple[int, ...], ...] = ((2, 1), (4, 2), (8, 4), (16, 8))
 SIZES: tuple[int, ...] = (100, 1000, 5000, 10000, 15000)
@@ -253,7 +254,4 @@ def plot_boxes(cells: list[dict[str, Any]], s: ConvergenceSettings, pstar: float
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(f"Convergence of L_N to P* ({s.n_datasets} datasets per box, {s.epochs} epochs)")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

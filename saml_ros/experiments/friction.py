@@ -22,14 +22,11 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems import get_system
+from saml_ros.core.mpc import closed_loop, make_controller
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
-    flush_denormals,
     fmt,
     fmt_ms,
     fmt_p,
@@ -38,14 +35,15 @@ from saml_ros.experiments.common import (
     paired,
     paired_rate,
     progress_bar,
-    quiet_trainer_warnings,
     save_models,
     single_threaded,
+    train_paper_comparison,
+    training_summary,
     write_results,
 )
-from saml_ros.experiments.control import PlanChecks, closed_loop, make_mpc
-from saml_ros.offline.pipelines import Comparison, compare
-from saml_ros.offline.plots import plot_error_map, plot_training_curves
+from saml_ros.experiments.plan_checks import PlanChecks
+from saml_ros.offline.pipelines import Comparison
+from saml_ros.offline.plots import plot_error_map, plot_training_curves, save_figure
 
 #: the paper's controller-performance table (200 trials, mean ± std)
 PAPER_COST = {"uniform": ("5.51 ± 3.46", "5.66 ± 0.89"), "sufficient": ("4.73 ± 3.38", "4.57 ± 0.73")}
@@ -100,17 +98,16 @@ def trajectory_cost(xs: np.ndarray) -> tuple[float, float]:
 def evaluate_controller(system: FrictionDoubleIntegrator, model: DynamicsModel | None, solver: str,
                         x0s: np.ndarray, steps: int, horizon: int, bar: Any = None) -> dict[str, Any]:
     """Closed loops from every start: raw and normalised costs ``(S,)``, final states, plan checks."""
-    ctrl = make_mpc(system, model, solver, horizon=horizon)
+    ctrl = make_controller(system, model, solver, horizon=horizon)
     raw, norm, final, times = [], [], [], []
     checks = PlanChecks()
     for x0 in x0s:
-        ro = closed_loop(ctrl, x0, steps, system.true_step_np)
-        r, nn = trajectory_cost(ro.xs)
+        run = closed_loop(system, ctrl, x0, steps, on_step=checks.hook(system))
+        r, nn = trajectory_cost(run.xs)
         raw.append(r)
         norm.append(nn)
-        final.append(ro.xs[-1])
-        times.append(ro.solve_times)
-        checks.merge(ro.plans)
+        final.append(run.xs[-1])
+        times.append(run.solve_times)
         if bar is not None:
             bar.update(1)
     t = np.concatenate(times)
@@ -127,12 +124,8 @@ def run(settings: FrictionSettings, out: Path, progress: bool = True) -> dict[st
     s = settings
     timer = Timer()
     info = machine_info()
-    system = get_system("friction")
-    assert isinstance(system, FrictionDoubleIntegrator)
-    spec = ProblemSpec.for_system(system.paper_spec(), system)
-    config = TrainConfig(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
-    with timer("train"), quiet_trainer_warnings(), flush_denormals():
-        cmp = compare(system, spec, config, list(s.seeds), s.n_train, s.n_test, s.hidden, progress=progress)
+    system = FrictionDoubleIntegrator()
+    spec, cmp = train_paper_comparison(system, s.seeds, s.n_train, s.n_test, s.hidden, s.epochs, timer, progress)
     models = {"uniform": cmp.uniform.model, "sufficient": cmp.sufficient.model}
     x0s = starts(s.n_starts, s.start_seed)
     seed_count = {sol: min(len(s.seeds), s.slsqp_seeds) if sol == "slsqp" else len(s.seeds) for sol in s.solvers}
@@ -162,11 +155,7 @@ def run(settings: FrictionSettings, out: Path, progress: bool = True) -> dict[st
         "models": save_models(out, {"sufficient": cmp.sufficient, "uniform": cmp.uniform}),
         "model_errors": model_error_data(cmp),
         "control": control, "paired": paired_results(control),
-        "training": {"train_seconds": {"sufficient": cmp.sufficient.train_seconds,
-                                       "uniform": cmp.uniform.train_seconds},
-                     "engine": cmp.sufficient.trainer.engine_used,
-                     "lambda_final": cmp.sufficient.trainer.lam[:, 0],
-                     "feasibility_warnings": cmp.sufficient.trainer.feasibility().messages()},
+        "training": training_summary(cmp),
         "figures": [f.name for f in figs], "timing": timer.to_dict(), "machine": info,
     }
     write_results(out, markdown(data, cmp, s, timer), data)
@@ -312,8 +301,8 @@ def plot_trajectories(system: FrictionDoubleIntegrator, cmp: Comparison, s: Fric
     t = np.arange(s.steps + 1) * system.dt
     for j, p0 in enumerate(p0s):
         for label, model in models.items():
-            ro = closed_loop(make_mpc(system, model, solver, horizon=s.horizon), np.array([p0, 0.0]), s.steps,
-                             system.true_step_np)
+            ro = closed_loop(system, make_controller(system, model, solver, horizon=s.horizon), np.array([p0, 0.0]),
+                             s.steps)
             raw, norm = trajectory_cost(ro.xs)
             axes[0, j].plot(t, ro.xs[:, 0], color=colors[label], label=f"{LABELS[label]} (cost {raw:.2f})",
                             ls="--" if label == "base" else "-")
@@ -327,7 +316,4 @@ def plot_trajectories(system: FrictionDoubleIntegrator, cmp: Comparison, s: Fric
         axes[1, j].set_ylabel("control u (m/s²)")
         axes[1, j].set_xlabel("time (s)")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

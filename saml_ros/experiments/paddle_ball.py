@@ -29,11 +29,10 @@ import numpy as np
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc.types import Controller, MPCResult
+from saml_ros.core.mpc import Controller, MPCResult, make_controller
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point, roll_pitch_from_normal
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 from saml_ros.core.worlds.paddle_world import CollectStats, PaddleBallWorld, collect_impacts, impacts_to_arrays
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
@@ -51,8 +50,9 @@ from saml_ros.experiments.common import (
     single_threaded,
     write_results,
 )
-from saml_ros.experiments.control import bound_violation, make_mpc
+from saml_ros.experiments.plan_checks import bound_violation
 from saml_ros.offline.pipelines import TrainedModels, train_models
+from saml_ros.offline.plots import save_figure
 
 PAPER = {("full", "uniform"): ("20.8%", "0.3136"), ("full", "sufficient"): ("0.8%", "0.2124"),
          ("residual", "uniform"): ("0%", "0.164"), ("residual", "sufficient"): ("0%", "0.156")}
@@ -268,8 +268,7 @@ def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str,
     s = settings
     timer = Timer()
     info = machine_info()
-    system = get_system("paddle_ball")
-    assert isinstance(system, PaddleBall)
+    system = PaddleBall()
     specs = {"sufficient": ProblemSpec.for_system(system.paper_spec(), system),
              "uniform": ProblemSpec.for_system(uniform_spec(), system)}
     with timer("collect"):
@@ -297,7 +296,7 @@ def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str,
         for name, members in models.items():
             rows = []
             for model in members:
-                ctrl = make_mpc(system, model, s.solver)
+                ctrl = make_controller(system, model, s.solver)
                 for j, trial in enumerate(trials):
                     r = run_trial(world, ctrl, trial, s, record=(j == 0 and model is members[0]))
                     if "track" in r:
@@ -432,10 +431,7 @@ def plot_error_scatter(val: dict[str, Any], s: PaddleSettings, path: Path) -> Pa
         ax.set_title(f"{kind} model (validation impacts)")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_tracks(tracks: dict[str, np.ndarray], trial: Trial, path: Path) -> Path:
@@ -462,8 +458,5 @@ def plot_tracks(tracks: dict[str, np.ndarray], trial: Trial, path: Path) -> Path
     fig.suptitle(f"trial 0: target ({trial.target_xy[0]:.2f}, {trial.target_xy[1]:.2f}) m, "
                  f"|v_rel| in [{trial.v_min:.2f}, {trial.v_max:.2f}] m/s")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 

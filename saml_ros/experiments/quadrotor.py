@@ -22,29 +22,26 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc.types import MPCResult
-from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems import get_system
+from saml_ros.core.mpc import ClosedLoopRun, MPCResult, closed_loop, make_controller
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.trainer import TrainConfig
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
-    flush_denormals,
     fmt,
     fmt_ms,
     machine_info,
     md_table,
     paired,
     progress_bar,
-    quiet_trainer_warnings,
     save_models,
     single_threaded,
+    train_paper_comparison,
+    training_summary,
     write_results,
 )
-from saml_ros.experiments.control import PlanChecks, Rollout, closed_loop, make_mpc
-from saml_ros.offline.pipelines import Comparison, compare
-from saml_ros.offline.plots import plot_training_curves
+from saml_ros.experiments.plan_checks import PlanChecks
+from saml_ros.offline.pipelines import Comparison
+from saml_ros.offline.plots import plot_training_curves, save_figure
 
 PAPER = {"mpc_cost": {"sufficient": "4.21 ± 1.88", "uniform": "4.55 ± 1.90"},
          "loss": {"sufficient": "6.52e-4", "uniform": "6.16e-4"},
@@ -112,7 +109,7 @@ def height_violation(res: MPCResult) -> float:
     return float(max(0.0, np.max(MIN_HEIGHT - pz)))
 
 
-def rollout_metrics(ro: Rollout) -> dict[str, float]:
+def rollout_metrics(ro: ClosedLoopRun) -> dict[str, float]:
     """Cost sum_{t>=1} ||p_t||, final distance to the target, final xy error, final height, time below 0.3 m."""
     p = ro.xs[:, 0:3]
     dist = np.linalg.norm(p[1:], axis=1)
@@ -125,15 +122,15 @@ def rollout_metrics(ro: Rollout) -> dict[str, float]:
 def evaluate_controller(system: Quadrotor, model: DynamicsModel | None, s: QuadrotorSettings, x0s: np.ndarray,
                         bar: Any = None) -> dict[str, Any]:
     """Closed loops from every start with one model: metrics per start and merged plan checks."""
-    ctrl = make_mpc(system, model, s.solver, horizon=s.horizon)
+    ctrl = make_controller(system, model, s.solver, horizon=s.horizon)
     f = plant(system, s.landing_height)
     metrics: list[dict[str, float]] = []
     checks = PlanChecks()
     xs, times = [], []
     for x0 in x0s:
-        ro = closed_loop(ctrl, x0, s.steps, f, goal=np.zeros(3), state_violation=height_violation)
+        ro = closed_loop(system, ctrl, x0, s.steps, goal=np.zeros(3), true_step=f,
+                         on_step=checks.hook(system, height_violation))
         metrics.append(rollout_metrics(ro))
-        checks.merge(ro.plans)
         xs.append(ro.xs)
         times.append(ro.solve_times)
         if bar is not None:
@@ -175,13 +172,9 @@ def run(settings: QuadrotorSettings, out: Path, progress: bool = True) -> dict[s
     s = settings
     timer = Timer()
     info = machine_info()
-    system = get_system("quadrotor")
-    assert isinstance(system, Quadrotor)
-    spec = ProblemSpec.for_system(system.paper_spec(), system)
-    config = TrainConfig(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
-    with timer("train"), quiet_trainer_warnings(), flush_denormals():
-        cmp = compare(system, spec, config, list(s.seeds), s.n_train, min(s.n_test, 10000), s.hidden,
-                      progress=progress)
+    system = Quadrotor()
+    spec, cmp = train_paper_comparison(system, s.seeds, s.n_train, min(s.n_test, 10000), s.hidden, s.epochs, timer,
+                                       progress)
     with timer("test errors"):
         errors = model_errors(cmp, system, s.n_test)
     x0s = landing_starts(system, s.n_starts, s.start_seed)
@@ -205,11 +198,7 @@ def run(settings: QuadrotorSettings, out: Path, progress: bool = True) -> dict[s
             "models": save_models(out, {"sufficient": cmp.sufficient, "uniform": cmp.uniform}),
             "control": {k2: {m: v for m, v in c.items() if m != "xs"} for k2, c in control.items()},
             "paired_control": pairs,
-            "training": {"train_seconds": {"sufficient": cmp.sufficient.train_seconds,
-                                           "uniform": cmp.uniform.train_seconds},
-                         "engine": cmp.sufficient.trainer.engine_used,
-                         "lambda_final": cmp.sufficient.trainer.lam[:, 0],
-                         "feasibility_warnings": cmp.sufficient.trainer.feasibility().messages()},
+            "training": training_summary(cmp),
             "figures": [f.name for f in figs], "timing": timer.to_dict(), "machine": info}
     write_results(out, markdown(data, s, timer), data)
     return data
@@ -309,7 +298,4 @@ def plot_landing(control: dict[str, Any], x0s: np.ndarray, path: Path) -> Path:
     fig.suptitle(f"Landing from ({x0[0]:.2f}, {x0[1]:.2f}, {x0[2]:.2f}) m: closed loop on the true system "
                  "(dots = steps, circle = last state; shaded: ground-effect zone, dotted: MPC height bound)")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

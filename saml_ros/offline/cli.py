@@ -21,10 +21,9 @@ import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.device import DeviceError, resolve_device
-from saml_ros.core.model_io import save_checkpoint
 from saml_ros.core.spec import ProblemSpec, SpecError
-from saml_ros.core.systems import SYSTEM_NAMES, get_system
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.systems import get_entry, get_system, system_names
+from saml_ros.core.training import TrainConfig, save_checkpoint
 from saml_ros.offline.pipelines import evaluate_models, generate_datasets, mean_std, train_models
 from saml_ros.offline.plots import plot_training_curves
 
@@ -35,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train a residual (or full) dynamics model with the primal-dual method (Algorithm 1).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--system", required=True, choices=SYSTEM_NAMES)
+    p.add_argument("--system", required=True, choices=system_names())
     p.add_argument("--spec", type=Path, help="problem spec YAML (default: the paper's spec for the system)")
     p.add_argument("--uniform", action="store_true", help="drop the constraints: the Uniformly Accurate baseline")
     p.add_argument("--kind", choices=("residual", "full"), default="residual")
@@ -58,14 +57,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="training device: cpu (default) | cuda | cuda:N; checked before "
                                                    "anything runs")
     return p
-
-
-#: the paper's dataset sizes and epochs per system
-PAPER_DEFAULTS: dict[str, dict[str, int]] = {
-    "friction": {"samples": 15000, "epochs": 200},
-    "quadrotor": {"samples": 10000, "epochs": 3000},
-    "paddle_ball": {"samples": 20000, "epochs": 200},
-}
 
 
 def _parse_noise(items: list[str]) -> dict[str, float]:
@@ -97,9 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     except (SpecError, KeyError, OSError, DeviceError) as exc:
         print(f"train: {exc}", file=sys.stderr)
         return 2
-    defaults = PAPER_DEFAULTS[system.name]
-    epochs = args.epochs if args.epochs is not None else defaults["epochs"]
-    n_train = args.samples or defaults["samples"]
+    entry = get_entry(system.name)  # the paper's dataset size and epochs
+    epochs = args.epochs if args.epochs is not None else entry.paper_epochs
+    n_train = args.samples or entry.paper_samples
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
     config = TrainConfig(epochs=epochs, batch_size=args.batch_size, primal_lr=args.primal_lr,
                          dual_lr=args.dual_lr, primal_optimizer=args.primal_optimizer,

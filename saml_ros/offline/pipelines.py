@@ -18,7 +18,7 @@ import torch
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
-from saml_ros.core.trainer import History, PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training import History, PrimalDualTrainer, TrainConfig, Transitions
 
 
 def generate_datasets(
@@ -100,7 +100,7 @@ def evaluate_models(model: DynamicsModel, spec: ProblemSpec, x: Any, u: Any, y: 
     dt = model.in_mean.dtype
     xt, ut, yt = (torch.as_tensor(np.asarray(a), dtype=dt) for a in (x, u, y))
     data = Transitions(model, spec, x, u, y)
-    from saml_ros.core.trainer import evaluate_spec
+    from saml_ros.core.training import evaluate_spec
 
     vals = evaluate_spec(model, spec, data)
     pred = model(xt, ut, data.base)

@@ -9,9 +9,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from saml_ros.core.trainer import History
+from saml_ros.core.training import History
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
     from saml_ros.core.models import DynamicsModel
     from saml_ros.core.systems.base import System
     from saml_ros.offline.pipelines import Comparison
@@ -61,7 +63,7 @@ def plot_training_curves(histories: Mapping[str, History], path: str | Path, tit
     axes[-1, 0].set_xlabel("epoch")
     fig.suptitle(title or "primal-dual training (mean over seeds, band = min..max)")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_comparison(cmp: Comparison, path: str | Path) -> Path:
@@ -83,7 +85,7 @@ def plot_comparison(cmp: Comparison, path: str | Path) -> Path:
         ax.set_title(f"{cmp.system}: constraint '{ru.name}' ({100 * ru.frac_inside:.1f}% of test data inside)")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_error_map(
@@ -112,10 +114,11 @@ def plot_error_map(
         ax.set_xlabel("p (m)")
         ax.set_ylabel("v (m/s)")
     fig.colorbar(im, ax=axes[0].tolist(), label=f"|v error| (m/s) at u = {u:g} m/s²")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
-def _save(fig, path: str | Path) -> Path:  # type: ignore[no-untyped-def]
+def save_figure(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` as a PNG (110 dpi) to ``path`` (parent directories created), close it; returns the path."""
     import matplotlib.pyplot as plt
 
     path = Path(path)

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 
 TRAIN_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name != "seed")
 SPECIAL_AXES = ("eps", "hidden", "seed", "samples", "kind", "uniform")
@@ -230,7 +230,7 @@ def task_cost(system: Any, model: Any, task: Task) -> float:
 
     goal = np.zeros(1 if system.name == "friction" else 3)
     controller = make_controller(system, model, solver=task.solver, horizon=task.horizon)
-    costs = [float(np.sum(closed_loop(system, controller, x0, task.steps, goal)["stage_costs"]))
+    costs = [float(np.sum(closed_loop(system, controller, x0, task.steps, goal).stage_costs))
              for x0 in task_starts(system, task)]
     return float(np.mean(costs))
 

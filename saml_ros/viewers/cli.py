@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from msg_schemas import SYSTEM_NAMES
+from saml_ros.core.systems.registry import SYSTEM_NAMES
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -20,9 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from msg_schemas import SYSTEM_NAMES, get_schema
+from msg_schemas import get_schema
 from msg_schemas.base import FieldDoc
 from msg_schemas.telemetry import MODEL_ERROR_TOPIC, MPC_STATUS_NAMES, MPC_STATUS_TOPIC, model_error_names
+from saml_ros.core.systems.registry import SYSTEM_NAMES
 
 #: the constraint names of each system's paper spec (config/specs/<system>.yaml); model_error names depend on them
 PAPER_CONSTRAINTS: dict[str, tuple[str, ...]] = {

@@ -2,27 +2,37 @@
 
 ``make_controller(system, model=None, solver="fast" | "slsqp", **options) -> Controller`` builds the
 controller; ``controller.solve(x0, goal) -> MPCResult``; ``controller.set_model(model)`` hot-swaps the
-learned model between solves; ``closed_loop(system, controller, x0, steps)`` runs it on the true system.
+learned model between solves; ``closed_loop(system, controller, x0, steps, on_step=hook) -> ClosedLoopRun``
+runs it on the true system.
+
+Modules: :mod:`.contract` (``MPCResult``, the ``Controller`` protocol), :mod:`.factory` (``make_controller``),
+:mod:`.loop` (the closed-loop runner), :mod:`.dynamics_np` / :mod:`.mlp_np` (the numpy prediction model
+``f_hat + phi`` with exact Jacobians), :mod:`.shooting` (time-stepped systems) and :mod:`.paddle` (the one-shot
+ball bouncing problem).
 """
 
-from saml_ros.core.mpc.factory import SOLVERS, make_controller
-from saml_ros.core.mpc.loop import closed_loop
+from saml_ros.core.mpc.contract import Controller, MPCResult
+from saml_ros.core.mpc.factory import SOLVERS, base_model_np, make_controller, make_task
+from saml_ros.core.mpc.loop import ClosedLoopRun, LoopStep, StepHook, closed_loop
 from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleGoal, SLSQPPaddle, paddle_goal
-from saml_ros.core.mpc.shooting import SLSQPShootingMPC, SQPShootingMPC
-from saml_ros.core.mpc.tasks import ShootingTask, make_task
-from saml_ros.core.mpc.types import Controller, MPCResult
+from saml_ros.core.mpc.shooting import ShootingMPC, ShootingTask, SLSQPShootingMPC, SQPShootingMPC
 
 __all__ = [
     "SOLVERS",
+    "ClosedLoopRun",
     "Controller",
     "GaussNewtonPaddle",
+    "LoopStep",
     "MPCResult",
     "PaddleGoal",
     "SLSQPPaddle",
     "SLSQPShootingMPC",
     "SQPShootingMPC",
+    "ShootingMPC",
     "ShootingTask",
+    "StepHook",
     "closed_loop",
+    "base_model_np",
     "make_controller",
     "make_task",
     "paddle_goal",

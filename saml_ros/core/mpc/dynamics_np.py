@@ -250,30 +250,22 @@ class TorchBaseNP:
         return self.step(x, u), ja.numpy(), jb.numpy()
 
 
-def base_model_np(system: System) -> BaseModelNP:
-    """The numpy twin of ``system.base_step`` (autograd fallback for systems without one)."""
-    if isinstance(system, Quadrotor):
-        return QuadrotorBaseNP(system)
-    if isinstance(system, FrictionDoubleIntegrator):
-        return FrictionBaseNP(system)
-    if isinstance(system, PaddleBall):
-        return PaddleBaseNP(system)
-    return TorchBaseNP(system)
-
-
 class NumpyDynamics:
     """The model the MPC predicts with: ``f_hat + phi`` (residual), ``phi`` (full) or ``f_hat`` (no model).
 
-    The learned part is a frozen copy of ensemble member ``member`` taken when this object is built.
+    The learned part is a frozen copy of ensemble member ``member`` taken when this object is built. ``base`` is
+    the numpy twin of ``system.base_step`` (:func:`saml_ros.core.mpc.factory.base_model_np` finds the system's
+    own); without one, the exact but slower autograd :class:`TorchBaseNP` serves.
     """
 
-    def __init__(self, system: System, model: DynamicsModel | None = None, member: int = 0) -> None:
+    def __init__(self, system: System, model: DynamicsModel | None = None, member: int = 0,
+                 base: BaseModelNP | None = None) -> None:
         self.system = system
         self.base: BaseModelNP | None = None
         self.mlp: NumpyMLP | None = None
         self.kind = "base" if model is None else model.kind
         if model is None or model.kind == "residual":
-            self.base = base_model_np(system)
+            self.base = base if base is not None else TorchBaseNP(system)
         if model is not None:
             if model.system.schema_hash() != system.schema_hash():
                 raise ValueError(
@@ -284,22 +276,19 @@ class NumpyDynamics:
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Predicted target ``(B, n_y)``."""
-        if self.base is None:
-            assert self.mlp is not None
-            return self.mlp.forward(x, u)
-        y = self.base.step(x, u)
-        if self.mlp is not None:
-            y = y + self.mlp.forward(x, u)
-        return y
+        return self._plus_phi(None if self.base is None else self.base.step(x, u), x, u)
 
     def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Prediction for one sample ``(n_x,), (n_u,) -> (n_y,)`` (the rollout's hot path)."""
-        if self.base is None:
+        return self._plus_phi(None if self.base is None else self.base.step1(x, u), x, u)
+
+    def _plus_phi(self, y: np.ndarray | None, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The base prediction ``y`` plus phi (in place), phi alone for a full model (``y`` None), or ``y``."""
+        if y is None:
             assert self.mlp is not None
-            return self.mlp.forward1(x, u)
-        y = self.base.step1(x, u)
+            return self.mlp.forward(x, u)
         if self.mlp is not None:
-            y += self.mlp.forward1(x, u)
+            y += self.mlp.forward(x, u)
         return y
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
@@ -325,15 +314,3 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         1,
     )
 
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` for each row of ``(B, 3)``: ``(B, 3, 3)`` with ``[v]x w = v x w``."""
-    z = np.zeros_like(v[:, 0])
-    return np.stack(
-        (
-            np.stack((z, -v[:, 2], v[:, 1]), 1),
-            np.stack((v[:, 2], z, -v[:, 0]), 1),
-            np.stack((-v[:, 1], v[:, 0], z), 1),
-        ),
-        1,
-    )

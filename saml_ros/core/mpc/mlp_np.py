@@ -55,15 +55,7 @@ class NumpyMLP:
         return np.where(h >= 0.0, h, a * h)
 
     def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """phi(x, u): ``(B, n_x), (B, n_u) -> (B, n_y)``."""
-        n = len(self.weights)
-        h = x @ self.w_x + u @ self.w_u + self.biases[0]
-        for i in range(1, n):
-            h = self._act(h, i - 1) @ self.weights[i] + self.biases[i]
-        return h
-
-    def forward1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """phi for one sample: ``(n_x,), (n_u,) -> (n_y,)``."""
+        """phi(x, u): ``(B, n_x), (B, n_u) -> (B, n_y)``, or one sample ``(n_x,), (n_u,) -> (n_y,)``."""
         n = len(self.weights)
         h = x @ self.w_x + u @ self.w_u + self.biases[0]
         for i in range(1, n):

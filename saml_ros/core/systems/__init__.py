@@ -1,64 +1,36 @@
-"""The paper's three systems and their registry.
+"""The systems and their registry.
 
 ``get_system(name, **overrides)`` builds a system by its registry name with physical parameters overridden,
-e.g. ``get_system("quadrotor", alpha=0.3)``. See ``docs/systems.md`` for the models and their parameters.
+e.g. ``get_system("quadrotor", alpha=0.3)``; ``get_entry(name)`` is the system's
+:class:`~saml_ros.core.systems.entry.SystemEntry` (dynamics, numpy twin, MPC, goals, schema, simulator, bringup
+defaults, experiment). The dynamics live in :mod:`.friction`, :mod:`.quadrotor` and :mod:`.paddle_ball`
+(import the classes from there); the contract they implement is :mod:`.base`. See ``docs/systems.md``.
+
+This face imports no torch (the registry imports a system's module only when it is asked for it).
 """
 
 from __future__ import annotations
 
-import inspect
-from typing import Any
-
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.systems.paddle_ball import PaddleBall
-from saml_ros.core.systems.quadrotor import Quadrotor
-
-_REGISTRY: dict[str, type[System]] = {
-    FrictionDoubleIntegrator.name: FrictionDoubleIntegrator,
-    Quadrotor.name: Quadrotor,
-    PaddleBall.name: PaddleBall,
-}
-
-#: valid registry names, in a stable order
-SYSTEM_NAMES: tuple[str, ...] = tuple(_REGISTRY)
-
-
-def system_class(name: str) -> type[System]:
-    """The class registered as ``name``; ``ValueError`` listing the valid names otherwise."""
-    try:
-        return _REGISTRY[name]
-    except (KeyError, TypeError):
-        raise ValueError(f"unknown system {name!r}; valid names are {list(SYSTEM_NAMES)}") from None
-
-
-def default_params(name: str) -> dict[str, Any]:
-    """The constructor parameters of system ``name`` with their (paper) defaults."""
-    sig = inspect.signature(system_class(name).__init__)
-    return {k: p.default for k, p in sig.parameters.items() if p.kind is inspect.Parameter.KEYWORD_ONLY}
-
-
-def get_system(name: str, **overrides: Any) -> System:
-    """Build system ``name`` (one of :data:`SYSTEM_NAMES`) with parameters ``overrides``.
-
-    Raises ``ValueError`` for an unknown name, an unknown parameter (listing the valid ones) or an invalid
-    parameter value.
-    """
-    cls = system_class(name)
-    valid = default_params(name)
-    unknown = sorted(set(overrides) - set(valid))
-    if unknown:
-        raise ValueError(f"system {name!r} has no parameter(s) {unknown}; valid parameters are {sorted(valid)}")
-    return cls(**overrides)
-
+from saml_ros.core.systems.entry import SystemEntry
+from saml_ros.core.systems.registry import (
+    SYSTEM_NAMES,
+    default_params,
+    find_entry,
+    get_entry,
+    get_system,
+    register_system,
+    system_class,
+    system_names,
+)
 
 __all__ = [
     "SYSTEM_NAMES",
-    "FrictionDoubleIntegrator",
-    "PaddleBall",
-    "Quadrotor",
-    "System",
+    "SystemEntry",
     "default_params",
+    "find_entry",
+    "get_entry",
     "get_system",
+    "register_system",
     "system_class",
+    "system_names",
 ]

@@ -63,6 +63,12 @@ class System(abc.ABC):
     def paper_spec(self) -> dict[str, Any]:
         """The paper's Sufficiently Accurate problem for this system, as a spec dict (see ``core.spec``)."""
 
+    def safe_control(self) -> np.ndarray:
+        """The command applied when no valid one is at hand, float64 ``(control.size,)``: what a simulator holds
+        once the last command timed out and what the MPC sends when its solve fails. Zero, clipped into the
+        control bounds, unless the system overrides it (quadrotor: hover thrust; paddle: level, at rest)."""
+        return np.clip(np.zeros(self.control.size), self.control_low, self.control_high)
+
     # ----------------------------------------------------------------- conveniences (not overridden)
     def schema_hash(self) -> str:
         """Hash of the state, control and target layouts; checkpoints store it, the MPC compares it."""

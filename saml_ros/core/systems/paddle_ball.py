@@ -138,6 +138,10 @@ class PaddleBall(System):
     def control_high(self) -> np.ndarray:
         return np.array([1.0, 1.0, 4.0, 1.0, 1.0, 1.0])
 
+    def safe_control(self) -> np.ndarray:
+        """Level paddle at rest: ``[pvx, pvy, pvz] = 0``, normal ``[0, 0, 1]``."""
+        return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+
     def base_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return impact(x[:, 3:6], u[:, 0:3], u[:, 3:6], self.restitution_base)
 

@@ -129,6 +129,10 @@ class Quadrotor(System):
         """Motor forces (N), shape ``(4,)``, that hold a level quadrotor still without ground effect."""
         return np.full(4, self.mass * self.g / 4.0)
 
+    def safe_control(self) -> np.ndarray:
+        """Hover thrust (:meth:`hover_thrust`): holds a level quadrotor, slows a falling one."""
+        return self.hover_thrust()
+
     def hover_state(self, position: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
         """Level, motionless state at ``position`` (m); float64 ``(13,)``."""
         x = np.zeros(13)

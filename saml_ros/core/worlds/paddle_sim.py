@@ -17,16 +17,19 @@ viewers, at ``flight_rate_hz`` of simulated time.
   after it: the world counts it as late).
 
 A lost ball (fell, out of reach, no impact for ``impact_timeout``) starts a new episode (counted
-``failures/<reason>``); so do ``episode_steps`` impacts and ``~/reset``. Safe default: level paddle at rest,
-``u = [0, 0, 0, 0, 0, 1]``. See docs/simulators.md.
+``failures/<reason>``); so do ``episode_steps`` impacts and ``~/reset``. Safe default: the system's
+``safe_control()``, level paddle at rest ``u = [0, 0, 0, 0, 0, 1]``. See docs/simulators.md.
+:func:`paddle_ball_simulator` builds the core from the simulator node's parameters (it imports MuJoCo).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
+from saml_ros.core.systems.base import System
 from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
@@ -40,8 +43,6 @@ from saml_ros.core.worlds.sim_core import (
     seconds_to_ns,
 )
 
-#: level paddle at rest
-SAFE_DEFAULT = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 #: simulated time (ns) skipped at an episode restart, so stamps stay strictly increasing and visibly jump
 RESTART_GAP_NS = 100_000_000
 
@@ -62,7 +63,7 @@ class PaddleBallSim(SimCore):
 
     def __init__(self, world: Any, config: SimConfig, *, publish_clock: bool = True, flight_rate_hz: float = 30.0,
                  tick_seconds: float = 0.01, impact_time_tolerance: float = 0.005) -> None:
-        super().__init__(world.system, config, SAFE_DEFAULT, publish_clock=publish_clock)
+        super().__init__(world.system, config, world.system.safe_control(), publish_clock=publish_clock)
         self.world = world
         self.flight_period_ns = seconds_to_ns(1.0 / flight_rate_hz) if flight_rate_hz > 0 else 0
         self.tick_steps = max(1, int(round(tick_seconds / world.timestep)))
@@ -222,3 +223,22 @@ class PaddleBallSim(SimCore):
         values = super().diagnostics()
         values["world_late_commands"] = self.world.n_late_commands
         return values
+
+
+def paddle_ball_simulator(system: System, config: SimConfig, params: Mapping[str, Any]) -> PaddleBallSim:
+    """The paddle-ball simulator core from the ``paddle_ball_sim`` node's parameter values ``params``
+    (``timestep``, ``publish_clock``, ``flight_rate_hz``, ``rate_hz``, ``impact_time_tolerance``); imports MuJoCo.
+    ``ValueError`` naming a bad parameter."""
+    from saml_ros.core.systems.paddle_ball import PaddleBall
+    from saml_ros.core.worlds.paddle_world import PaddleBallWorld
+
+    if not isinstance(system, PaddleBall):
+        raise ValueError(f"the paddle-ball simulator needs a PaddleBall system, got {system.name!r}")
+    if not params["flight_rate_hz"] >= 0:
+        raise ValueError(f"parameter 'flight_rate_hz' must be >= 0, got {params['flight_rate_hz']}")
+    if not params["impact_time_tolerance"] > 0:
+        raise ValueError(f"parameter 'impact_time_tolerance' must be > 0, got {params['impact_time_tolerance']}")
+    world = PaddleBallWorld(system, timestep=params["timestep"], seed=max(config.seed, 0))
+    return PaddleBallSim(world, config, publish_clock=params["publish_clock"],
+                         flight_rate_hz=params["flight_rate_hz"], tick_seconds=1.0 / params["rate_hz"],
+                         impact_time_tolerance=params["impact_time_tolerance"])

@@ -270,8 +270,8 @@ def friction_start(rng: np.random.Generator) -> np.ndarray:
 
 
 def friction_model(system: FrictionDoubleIntegrator) -> SteppedModel:
-    """Double integrator: safe default u = 0, starts from :func:`friction_start`."""
-    return SteppedModel(system, np.zeros(1), friction_start)
+    """Double integrator: safe default u = 0 (``system.safe_control()``), starts from :func:`friction_start`."""
+    return SteppedModel(system, system.safe_control(), friction_start)
 
 
 def quadrotor_start(system: Quadrotor, rng: np.random.Generator) -> np.ndarray:
@@ -307,12 +307,13 @@ def _normalize_quaternion(x: np.ndarray) -> np.ndarray:
 
 
 def quadrotor_model(system: Quadrotor, landing_height: float = 0.1) -> SteppedModel:
-    """Quadrotor: safe default = hover thrust, starts from :func:`quadrotor_start`, :func:`ground_contact`."""
+    """Quadrotor: safe default = hover thrust (``system.safe_control()``), starts from :func:`quadrotor_start`,
+    :func:`ground_contact`."""
     if not (math.isfinite(landing_height) and landing_height >= 0):
         raise ValueError(f"landing_height must be a finite number >= 0 m, got {landing_height}")
     return SteppedModel(
         system,
-        system.hover_thrust(),
+        system.safe_control(),
         lambda rng: quadrotor_start(system, rng),
         lambda x: ground_contact(x, landing_height),
         _normalize_quaternion,
@@ -563,15 +564,3 @@ class SteppedSim(SimCore):
         self.episode_step = 0
         self.counters["episodes"] += 1
         return self._emit_state(self.x, self.sim_now_ns(), now_ns)
-
-
-def build_stepped_sim(system: System, config: SimConfig, *, publish_clock: bool = True,
-                      landing_height: float = 0.1) -> SteppedSim:
-    """The :class:`SteppedSim` of a friction or quadrotor system."""
-    if isinstance(system, Quadrotor):
-        model = quadrotor_model(system, landing_height)
-    elif isinstance(system, FrictionDoubleIntegrator):
-        model = friction_model(system)
-    else:
-        raise ValueError(f"no time-stepped simulator for system {system.name!r}")
-    return SteppedSim(model, config, publish_clock=publish_clock)

@@ -1,4 +1,4 @@
-"""Exact derivatives of the paddle-ball landing error (eq. ball_paddle_opt) at one point, in plain Python floats.
+"""The paddle-ball landing error (eq. ball_paddle_opt) and its exact derivatives at one point, in plain Python floats.
 
 For one pre-impact state ``x`` (6,) and a decision vector ``theta`` = ``[pvx, pvy, pvz (m/s), roll, pitch (rad)]``
 with ``u = [pv, n(roll, pitch)]``, ``n = (cos(roll) sin(pitch), -sin(roll), cos(roll) cos(pitch))``:
@@ -6,7 +6,7 @@ with ``u = [pv, n(roll, pitch)]``, ``n = (cos(roll) sin(pitch), -sin(roll), cos(
     v = v_post(x, u)                                  (3,) m/s: f_hat + phi, phi, or f_hat
     r = p_xy + v_xy * 2 max(v_z, 0) / g - target_xy   (2,) m: the landing error
 
-:meth:`PaddleEval.value` gives ``r`` and ``v``; :meth:`PaddleEval.derivatives` the Jacobians ``dv/dtheta`` (3 x 5),
+:meth:`LandingError.value` gives ``r`` and ``v``; :meth:`LandingError.derivatives` the Jacobians ``dv/dtheta`` (3 x 5),
 ``J = dr/dtheta`` (2 x 5) and, on request, the Hessian ``H = J^T J + C`` of ``1/2 ||r||^2`` with the residual
 curvature ``C = sum_i r_i d^2 r_i / dtheta^2`` (the term Gauss-Newton drops), all in closed form: the base impact
 map ``a (w - 2 n (n . w)) + pv`` (``w = v_ball - pv``) is differentiated by hand, and phi is a PReLU network,
@@ -28,7 +28,7 @@ from saml_ros.core.mpc.dynamics_np import NumpyDynamics, PaddleBaseNP
 
 @dataclass(slots=True)
 class Point:
-    """:meth:`PaddleEval.value` at one ``theta``, with what :meth:`PaddleEval.derivatives` reuses."""
+    """:meth:`LandingError.value` at one ``theta``, with what :meth:`LandingError.derivatives` reuses."""
 
     theta: list[float]  #: [pv (m/s), roll, pitch (rad)]
     r: tuple[float, float]  #: landing error (m)
@@ -40,17 +40,17 @@ class Point:
     w: tuple[float, float, float]  #: relative velocity v_ball - pv (m/s)
     nw: float  #: n . w
     pre: list[np.ndarray] | None  #: the network's hidden pre-activations at this input
-    dv: list[list[float]] | None = None  #: d v / d theta (3 x 5), set by :meth:`PaddleEval.derivatives`
-    jac: list[list[float]] | None = None  #: J (2 x 5), cached by :meth:`PaddleEval.derivatives`
-    hess: list[list[float]] | None = None  #: H (5 x 5), cached by :meth:`PaddleEval.derivatives`
+    dv: list[list[float]] | None = None  #: d v / d theta (3 x 5), set by :meth:`LandingError.derivatives`
+    jac: list[list[float]] | None = None  #: J (2 x 5), cached by :meth:`LandingError.derivatives`
+    hess: list[list[float]] | None = None  #: H (5 x 5), cached by :meth:`LandingError.derivatives`
 
 
-class PaddleEval:
+class LandingError:
     """The landing residual at one state ``x`` (6,) and target ``target_xy`` (2,) m under the model ``dyn``."""
 
     def __init__(self, dyn: NumpyDynamics, x: np.ndarray, target_xy: np.ndarray, g: float) -> None:
         if dyn.base is not None and not isinstance(dyn.base, PaddleBaseNP):
-            raise TypeError(f"PaddleEval needs the paddle-ball base model, got {type(dyn.base).__name__}")
+            raise TypeError(f"LandingError needs the paddle-ball base model, got {type(dyn.base).__name__}")
         self.mlp = dyn.mlp
         self.a = dyn.base.a if dyn.base is not None else None  # base restitution, None for a full model
         self.x = np.asarray(x, dtype=np.float64)
@@ -94,17 +94,21 @@ class PaddleEval:
             return pt.jac, (pt.hess if curvature else None)
         if not pt.up:
             return [[0.0] * 5, [0.0] * 5], ([[0.0] * 5 for _ in range(5)] if curvature else None)
-        cr, sr, cp, sp = pt.trig
-        n, w, nw = pt.n, pt.w, pt.nw
-        v0, v1, v2 = pt.v
-        r0, r1 = pt.r
-        a, k = self.a, self.k
         jp = None if pt.pre is None or self.mlp is None else self.mlp.jac_u1(pt.pre).tolist()
-        # dv / dtheta (3 x 5): base impact map by hand, the network through u = [pv, n(roll, pitch)]
-        nr = (-sr * sp, -cr, -sr * cp)
-        npi = (cr * cp, 0.0, -cr * sp)
-        nrw = nr[0] * w[0] + nr[1] * w[1] + nr[2] * w[2]
-        npw = npi[0] * w[0] + npi[2] * w[2]
+        dn = _normal_derivatives(pt)
+        jac = self._jacobians(pt, jp, dn)
+        if not curvature:
+            return jac, None
+        pt.hess = self._hessian(pt, jp, dn, jac)
+        return jac, pt.hess
+
+    def _jacobians(self, pt: Point, jp: list[list[float]] | None, dn: _NormalDerivatives) -> list[list[float]]:
+        """``dv/dtheta`` (3 x 5, set as ``pt.dv``) and ``J = dr/dtheta`` (2 x 5, set as ``pt.jac`` and returned):
+        the base impact map by hand, the network (``jp = d phi / du``, 3 x 6) through ``u = [pv, n(roll, pitch)]``."""
+        n, nw = pt.n, pt.nw
+        v0, v1, v2 = pt.v
+        a, k = self.a, self.k
+        nr, npi, nrw, npw = dn
         n0, n1, n2 = n
         if a is not None:
             a2, b = 2.0 * a, 1.0 - a
@@ -129,10 +133,22 @@ class PaddleEval:
                [kz * d1[0] + ky * dz[0], kz * d1[1] + ky * dz[1], kz * d1[2] + ky * dz[2], kz * d1[3] + ky * dz[3],
                 kz * d1[4] + ky * dz[4]]]
         pt.jac = jac
-        if not curvature:
-            return jac, None
-        # H = J^T J + C, C = sum_i r_i d2 r_i, r_i = p_i + k v_i v_z - target_i (i = x, y):
+        return jac
+
+    def _hessian(self, pt: Point, jp: list[list[float]] | None, dn: _NormalDerivatives,
+                 jac: list[list[float]]) -> list[list[float]]:
+        """``H = J^T J + C`` (5 x 5) at ``pt``, with ``pt.dv`` and ``jac`` from :meth:`_jacobians`."""
+        # C = sum_i r_i d2 r_i, r_i = p_i + k v_i v_z - target_i (i = x, y):
         # d2 r_i = k (dv_i dv_z^T + dv_z dv_i^T + v_z d2 v_i + v_i d2 v_z), d2 v from n(roll, pitch) only
+        cr, sr, cp, sp = pt.trig
+        n, w, nw = pt.n, pt.w, pt.nw
+        v0, v1, v2 = pt.v
+        r0, r1 = pt.r
+        a, k = self.a, self.k
+        nr, npi, nrw, npw = dn
+        dv = pt.dv
+        assert dv is not None
+        dz = dv[2]
         s = [r0 * dv[0][j] + r1 * dv[1][j] for j in range(5)]
         j0, j1 = jac
         ks = [k * c for c in s]
@@ -174,5 +190,17 @@ class PaddleEval:
         curv[3][4] += ang_rp
         curv[4][3] += ang_rp
         curv[4][4] += ang_pp
-        pt.hess = curv
-        return jac, curv
+        return curv
+
+
+#: ``dn/droll`` (3,), ``dn/dpitch`` (3,), and their products with ``w``
+_NormalDerivatives = tuple[tuple[float, float, float], tuple[float, float, float], float, float]
+
+
+def _normal_derivatives(pt: Point) -> _NormalDerivatives:
+    """``(dn/droll, dn/dpitch, dn/droll . w, dn/dpitch . w)`` at ``pt``."""
+    cr, sr, cp, sp = pt.trig
+    w = pt.w
+    nr = (-sr * sp, -cr, -sr * cp)
+    npi = (cr * cp, 0.0, -cr * sp)
+    return nr, npi, nr[0] * w[0] + nr[1] * w[1] + nr[2] * w[2], npi[0] * w[0] + npi[2] * w[2]

@@ -1,6 +1,6 @@
-"""One start of the fast paddle-ball search, in plain Python floats: projected Gauss-Newton / Newton iterations on
-``F = 1/2 ||r(theta)||^2`` (``r`` the landing error, m) within the feasible set of
-:class:`~saml_ros.core.mpc.paddle_bounds.PaddleBounds`. Per iteration:
+"""The per-start iterations of the fast paddle-ball solver, in plain Python floats: projected Gauss-Newton / Newton
+on ``F = 1/2 ||r(theta)||^2`` (``r`` the landing error, m, :mod:`~saml_ros.core.mpc.paddle.landing_error`) within
+the feasible set (:mod:`~saml_ros.core.mpc.paddle.feasible_set`). Per iteration:
 
 1. **active set** (Bertsekas' projected Newton): the bounds touched by ``theta`` (within ``eps``) are held:
    coordinates moved exactly onto their box bound, the step kept tangent to an active speed bound (``P``: the
@@ -25,8 +25,8 @@
    ball still leaves upwards; the Levenberg-Marquardt damping ``lam`` (relative to the model's scale) and the trust
    radius follow the ratio of actual to predicted decrease.
 
-One iteration costs one model evaluation (:meth:`PaddleEval.value`) plus, when the step is accepted, its
-derivatives (:meth:`PaddleEval.derivatives`, computed when the next iteration needs them, so a run's last step
+One iteration costs one model evaluation (:meth:`LandingError.value`) plus, when the step is accepted, its
+derivatives (:meth:`LandingError.derivatives`, computed when the next iteration needs them, so a run's last step
 costs none, and cached on the point for a run starting there; skipped while a Gauss-Newton run converges fast:
 the previous Jacobian is kept); the rest is a few hundred float operations.
 """
@@ -39,16 +39,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from saml_ros.core.mpc.paddle_bounds import PaddleBounds
-from saml_ros.core.mpc.paddle_eval import PaddleEval, Point
+from saml_ros.core.mpc.paddle.feasible_set import FeasibleSet
+from saml_ros.core.mpc.paddle.landing_error import LandingError, Point
 
 MODES = ("velocity", "gauss-newton", "newton")
 _ZERO = [0.0] * 5
 
 
 @dataclass
-class RowResult:
-    """End point of one start."""
+class RunResult:
+    """End point of one run (from one start)."""
 
     theta: list[float]  #: feasible end point
     cost: float  #: ||r|| (m), inf when the ball would not leave upwards
@@ -59,20 +59,15 @@ class RowResult:
     point: Point | None = None  #: the model's evaluation at ``theta``
 
 
-class PaddleRowSolver(PaddleBounds):
-    """Projected Gauss-Newton / Newton for one problem: ``ev`` (model, state, target) and the feasible set.
+class ProjectedNewton:
+    """Projected Gauss-Newton / Newton runs for one problem: the landing error ``error`` (model, state, target)
+    within ``feasible`` (box and speed bounds around the ball's velocity ``error.x[3:6]``)."""
 
-    Args:
-        ev: the residual and its derivatives.
-        lo, hi: box of ``theta`` (5 floats each).
-        v_rel: ``(v_min, v_max)`` m/s, bounds of ``|v_ball - pv|``; ``v_ball`` is ``ev.x[3:6]``.
-    """
-
-    def __init__(self, ev: PaddleEval, lo: list[float], hi: list[float], v_rel: tuple[float, float]) -> None:
-        super().__init__(lo, hi, ev.x[3:6].tolist(), v_rel)
-        self.ev = ev
+    def __init__(self, error: LandingError, feasible: FeasibleSet) -> None:
+        self.error = error
+        self.feasible = feasible
         # landing on the target means v_xy v_z = c (m^2/s^2)
-        self.c = (-float(ev.offset[0]) / ev.k, -float(ev.offset[1]) / ev.k)
+        self.c = (-float(error.offset[0]) / error.k, -float(error.offset[1]) / error.k)
         self.mu0 = 1e-2  # initial damping, relative to the model's scale
         self.radius0 = 1.0  # initial trust radius of the Newton steps (m/s, rad)
         self.shrink = 0.25  # trust radius after a rejected Newton step, relative to that step's length
@@ -80,7 +75,7 @@ class PaddleRowSolver(PaddleBounds):
     # ------------------------------------------------------------------------------------------ iterations
     def run(self, theta0: list[float], mode: str, max_iter: int, tol_zero: float = 1e-7, rtol: float = 1e-6,
             slow: float = 1.0, slow_after: int = 8, abandon: Callable[[Point, int], bool] | None = None,
-            start: Point | None = None) -> RowResult:
+            start: Point | None = None) -> RunResult:
         """Iterate from ``theta0`` (projected first) with the step model ``mode`` (module docstring).
 
         Stops at ``||r|| <= tol_zero`` (m); when ``F`` has not improved by a relative ``2 rtol`` in 3 iterations (in
@@ -94,13 +89,13 @@ class PaddleRowSolver(PaddleBounds):
         """
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}; valid: {MODES}")
-        ev = self.ev
+        ev, project = self.error, self.feasible.project
         newton = mode == "newton"
-        th0 = self.project(theta0)
+        th0 = project(theta0)
         pt = start if start is not None and start.theta == th0 else ev.value(th0)
         if not pt.up:  # the ball would not leave upwards: no gradient to follow
-            return RowResult(pt.theta, math.inf, 0, False, point=pt)
-        jac, hess = self._derivatives(pt, newton)
+            return RunResult(pt.theta, math.inf, 0, False, point=pt)
+        jac, hess = ev.derivatives(pt, newton)
         dv_old = pt.dv
         stale = False  # derivatives at pt still to compute (lazily: a run often ends right after a step)
         f = pt.f
@@ -111,46 +106,18 @@ class PaddleRowSolver(PaddleBounds):
         while it < max_iter:
             it += 1
             if stale:
-                jac, hess = self._derivatives(pt, newton)
+                jac, hess = ev.derivatives(pt, newton)
                 dv_old, stale = pt.dv, False
             th = pt.theta
             j0, j1 = jac
             r0, r1 = pt.r
             g = [j0[0] * r0 + j1[0] * r1, j0[1] * r0 + j1[1] * r1, j0[2] * r0 + j1[2] * r1, j0[3] * r0 + j1[3] * r1,
                  j0[4] * r0 + j1[4] * r1]
-            free, unit, close = self.active_set(th, g, by_gradient=not newton)
-            if newton:
-                assert hess is not None
-                drop: set[int] = set()
-                for _ in range(4):  # release the bounds the Newton step would leave (negative multiplier)
-                    cl = _ZERO if close is None else close
-                    step = self._newton_step(hess, g, free, unit, cl, mu)
-                    if len(free) == 5 and unit is None:
-                        break
-                    worst = self.most_negative(th, g, hess, step, free, unit)
-                    if worst is None:
-                        break
-                    drop.add(worst)
-                    free, unit, close = self.active_set(th, g, drop, by_gradient=False)
-                size = math.sqrt(sum([(step[i] - cl[i]) ** 2 for i in range(5)]))
-                if size > radius:  # (the move onto the active bounds is not capped)
-                    step = [cl[i] + (step[i] - cl[i]) * (radius / size) for i in range(5)]
-            elif mode == "velocity":
-                step = self._velocity_step(pt, free, unit, close, mu)
-            else:
-                step = self._gauss_newton_step(jac, pt.r, free, unit, _ZERO if close is None else close, mu)
+            step, free = self._step(mode, pt, jac, hess, g, mu, radius)
             keep = None if len(free) == 5 else [i not in free for i in range(5)]
-            cand = self.project([th[0] + step[0], th[1] + step[1], th[2] + step[2], th[3] + step[3], th[4] + step[4]],
-                                keep)
+            cand = project([th[0] + step[0], th[1] + step[1], th[2] + step[2], th[3] + step[3], th[4] + step[4]], keep)
             dd = [cand[0] - th[0], cand[1] - th[1], cand[2] - th[2], cand[3] - th[3], cand[4] - th[4]]
-            if hess is None:
-                ja = j0[0] * dd[0] + j0[1] * dd[1] + j0[2] * dd[2] + j0[3] * dd[3] + j0[4] * dd[4]
-                jb = j1[0] * dd[0] + j1[1] * dd[1] + j1[2] * dd[2] + j1[3] * dd[3] + j1[4] * dd[4]
-                quad = ja * ja + jb * jb
-            else:
-                d0, d1, d2, d3, d4 = dd
-                quad = sum([d * (h[0] * d0 + h[1] * d1 + h[2] * d2 + h[3] * d3 + h[4] * d4) for d, h in zip(dd, hess)])
-            pred = -(g[0] * dd[0] + g[1] * dd[1] + g[2] * dd[2] + g[3] * dd[3] + g[4] * dd[4] + 0.5 * quad)
+            pred = _predicted_decrease(g, dd, jac, hess)
             moved = math.sqrt(dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2] + dd[3] * dd[3] + dd[4] * dd[4])
             cpt = ev.value(cand)
             ok = cpt.up and cpt.f < f - 1e-4 * max(pred, 0.0)  # (a non-finite value is rejected too)
@@ -162,11 +129,11 @@ class PaddleRowSolver(PaddleBounds):
                 f_old = f
                 pt, f = cpt, cpt.f
                 if f <= 0.5 * tol_zero * tol_zero:
-                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, True, point=pt)
+                    return RunResult(pt.theta, math.sqrt(2.0 * f), it, True, point=pt)
                 if slow < 1.0 and it > slow_after and f > slow * slow * f_old:
-                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, False, slow=True, point=pt)
+                    return RunResult(pt.theta, math.sqrt(2.0 * f), it, False, slow=True, point=pt)
                 if abandon is not None and abandon(pt, it):
-                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, False, abandoned=True, point=pt)
+                    return RunResult(pt.theta, math.sqrt(2.0 * f), it, False, abandoned=True, point=pt)
                 if not newton and f < 1e-4 * f_old and f_old < 1e-4:  # converging fast: keep the Jacobian (chord)
                     cpt.dv = dv_old
                 else:
@@ -176,18 +143,43 @@ class PaddleRowSolver(PaddleBounds):
                 if newton:
                     radius = self.shrink * moved
                 if mu > 1e8 or radius < 1e-12:
-                    return RowResult(th, math.sqrt(2.0 * f), it, False, point=pt)
+                    return RunResult(th, math.sqrt(2.0 * f), it, False, point=pt)
             if f < (1.0 - 2.0 * rtol) * f_ref:
                 f_ref, stall = f, 0
             elif ok or newton or moved <= 1e-12 or 0.0 <= pred <= 2.0 * rtol * f:
                 stall += 1
                 if stall >= 3:
-                    return RowResult(pt.theta, math.sqrt(2.0 * f), it, True, point=pt)
-        return RowResult(pt.theta, math.sqrt(2.0 * f), it, False, point=pt)
+                    return RunResult(pt.theta, math.sqrt(2.0 * f), it, True, point=pt)
+        return RunResult(pt.theta, math.sqrt(2.0 * f), it, False, point=pt)
 
-    def _derivatives(self, pt: Point, newton: bool) -> tuple[list[list[float]], list[list[float]] | None]:
-        """``J`` and, for Newton, ``H = J^T J + C`` (5 x 5) at ``pt``."""
-        return self.ev.derivatives(pt, newton)
+    def _step(self, mode: str, pt: Point, jac: list[list[float]], hess: list[list[float]] | None, g: list[float],
+              mu: float, radius: float) -> tuple[list[float], list[int]]:
+        """The step (5 floats) of ``mode`` from ``pt`` (gradient ``g``, damping ``mu``, Newton's trust radius) and the
+        free coordinates after the active set (steps 1 and 2 of the module docstring)."""
+        th = pt.theta
+        feasible = self.feasible
+        free, unit, close = feasible.active_set(th, g, by_gradient=mode != "newton")
+        if mode == "newton":
+            assert hess is not None
+            drop: set[int] = set()
+            for _ in range(4):  # release the bounds the Newton step would leave (negative multiplier)
+                cl = _ZERO if close is None else close
+                step = self._newton_step(hess, g, free, unit, cl, mu)
+                if len(free) == 5 and unit is None:
+                    break
+                worst = feasible.most_negative(th, g, hess, step, free, unit)
+                if worst is None:
+                    break
+                drop.add(worst)
+                free, unit, close = feasible.active_set(th, g, drop, by_gradient=False)
+            size = math.sqrt(sum([(step[i] - cl[i]) ** 2 for i in range(5)]))
+            if size > radius:  # (the move onto the active bounds is not capped)
+                step = [cl[i] + (step[i] - cl[i]) * (radius / size) for i in range(5)]
+        elif mode == "velocity":
+            step = self._velocity_step(pt, free, unit, close, mu)
+        else:
+            step = self._gauss_newton_step(jac, pt.r, free, unit, _ZERO if close is None else close, mu)
+        return step, free
 
     @staticmethod
     def _project_rows(rows: list[list[float]], free: list[int], unit: list[float] | None) -> list[list[float]]:
@@ -318,13 +310,13 @@ class PaddleRowSolver(PaddleBounds):
         the eigenvector of ``P H P`` with the smallest ``|eigenvalue|`` outside ``P``'s null space (the valley
         along which distinct local minima of the piecewise-smooth landing error lie). None if nothing is free.
         ``start``: the model's evaluation at ``theta``, if known."""
-        pt = start if start is not None and start.theta == theta else self.ev.value(theta)
+        pt = start if start is not None and start.theta == theta else self.error.value(theta)
         if not pt.up:
             return None
-        jac, hess = self._derivatives(pt, True)
+        jac, hess = self.error.derivatives(pt, True)
         assert hess is not None
         g = [jac[0][j] * pt.r[0] + jac[1][j] * pt.r[1] for j in range(5)]
-        free, unit, _ = self.active_set(theta, g)
+        free, unit, _ = self.feasible.active_set(theta, g)
         m = len(free) - (unit is not None)
         if m <= 0:
             return None
@@ -343,6 +335,21 @@ class PaddleRowSolver(PaddleBounds):
         return out
 
 
+def _predicted_decrease(g: list[float], dd: list[float], jac: list[list[float]],
+                        hess: list[list[float]] | None) -> float:
+    """``-(g . dd + 1/2 dd' M dd)`` of the step ``dd`` (5 floats) under the model ``M = J^T J`` (``hess`` None) or
+    ``M = hess``."""
+    if hess is None:
+        j0, j1 = jac
+        ja = j0[0] * dd[0] + j0[1] * dd[1] + j0[2] * dd[2] + j0[3] * dd[3] + j0[4] * dd[4]
+        jb = j1[0] * dd[0] + j1[1] * dd[1] + j1[2] * dd[2] + j1[3] * dd[3] + j1[4] * dd[4]
+        quad = ja * ja + jb * jb
+    else:
+        d0, d1, d2, d3, d4 = dd
+        quad = sum([d * (h[0] * d0 + h[1] * d1 + h[2] * d2 + h[3] * d3 + h[4] * d4) for d, h in zip(dd, hess)])
+    return -(g[0] * dd[0] + g[1] * dd[1] + g[2] * dd[2] + g[3] * dd[3] + g[4] * dd[4] + 0.5 * quad)
+
+
 def _cholesky_solve(a: list[list[float]], b: list[float], shift: float) -> list[float] | None:
     """``(a + shift I)^-1 b`` for a small symmetric ``a`` (lists) by Cholesky; None if not positive definite.
     (Plain loops: about twice as fast as ``sum`` over list comprehensions at m <= 5, same rounding.)"""
@@ -351,12 +358,7 @@ def _cholesky_solve(a: list[list[float]], b: list[float], shift: float) -> list[
     for i in range(m):
         row = a[i]
         li = [0.0] * m
-        for j in range(i):
-            lj = low[j]
-            acc = 0.0
-            for k in range(j):
-                acc += li[k] * lj[k]
-            li[j] = (row[j] - acc) / lj[j]
+        _forward(low, row, li, i)  # row i of L from L[:i, :i] li[:i] = a[i][:i]
         acc = 0.0
         for k in range(i):
             acc += li[k] * li[k]
@@ -366,12 +368,7 @@ def _cholesky_solve(a: list[list[float]], b: list[float], shift: float) -> list[
         li[i] = math.sqrt(acc)
         low.append(li)
     y = [0.0] * m
-    for i in range(m):
-        li = low[i]
-        acc = 0.0
-        for k in range(i):
-            acc += li[k] * y[k]
-        y[i] = (b[i] - acc) / li[i]
+    _forward(low, b, y, m)
     x = [0.0] * m
     for i in range(m - 1, -1, -1):
         acc = 0.0
@@ -380,3 +377,13 @@ def _cholesky_solve(a: list[list[float]], b: list[float], shift: float) -> list[
         x[i] = (y[i] - acc) / low[i][i]
     return x
 
+
+def _forward(low: list[list[float]], rhs: list[float], out: list[float], n: int) -> None:
+    """Forward substitution: ``out[:n]`` solving ``L[:n, :n] out[:n] = rhs[:n]`` for the lower-triangular rows
+    ``low``."""
+    for j in range(n):
+        lj = low[j]
+        acc = 0.0
+        for k in range(j):
+            acc += out[k] * lj[k]
+        out[j] = (rhs[j] - acc) / lj[j]

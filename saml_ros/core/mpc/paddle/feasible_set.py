@@ -1,9 +1,9 @@
-"""The paddle-ball controller's feasible set and active constraints, in plain Python floats (for
-:mod:`~saml_ros.core.mpc.paddle_row`).
+"""The paddle-ball controller's feasible set and its active constraints, in plain Python floats (used by
+:mod:`~saml_ros.core.mpc.paddle.projected_newton`).
 
 ``theta = [pv (3) m/s, roll, pitch (rad)]`` lies in a box, and the relative speed ``s = |v_ball - pv|`` in
-``[v_min, v_max]``: a spherical shell around ``v_ball`` in the paddle-velocity space. :meth:`PaddleBounds.project`
-maps a trial point back onto that set; :meth:`PaddleBounds.active_set` says which bounds a step must respect
+``[v_min, v_max]``: a spherical shell around ``v_ball`` in the paddle-velocity space. :meth:`FeasibleSet.project`
+maps a trial point back onto that set; :meth:`FeasibleSet.active_set` says which bounds a step must respect
 (Bertsekas' projected Newton: the bounds within ``eps`` that the gradient, or the Newton step, pushes against),
 with the move that puts ``theta`` exactly on them.
 """
@@ -15,7 +15,7 @@ import math
 _ALL = [0, 1, 2, 3, 4]  # every coordinate free (shared, never modified)
 
 
-class PaddleBounds:
+class FeasibleSet:
     """Box ``lo <= theta <= hi`` (5 floats each) and speed bounds ``v_rel = (v_min, v_max)`` m/s around the
     ball's pre-impact velocity ``v_ball`` (3 floats)."""
 

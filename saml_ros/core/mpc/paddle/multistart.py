@@ -1,5 +1,5 @@
 """The fast paddle-ball solver's multi-start strategy, on top of the per-start iterations of
-:class:`~saml_ros.core.mpc.paddle_row.PaddleRowSolver`.
+:class:`~saml_ros.core.mpc.paddle.projected_newton.ProjectedNewton`.
 
 1. **Probe** (a reachable target, most problems): from the first start, Gauss-Newton towards the nearest
    post-impact velocity that lands on the target (``"velocity"``, a few iterations), then on the landing error
@@ -25,8 +25,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from saml_ros.core.mpc.paddle_eval import Point
-from saml_ros.core.mpc.paddle_row import PaddleRowSolver, RowResult
+from saml_ros.core.mpc.paddle.landing_error import Point
+from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton, RunResult
 
 
 @dataclass(frozen=True)
@@ -51,36 +51,37 @@ class SearchSettings:
     relax_iter: int = 2  #: Gauss-Newton iterations from a displaced point
 
 
-def search(row: PaddleRowSolver, starts: list[list[float]], tilt: Callable[[list[float]], float], s: SearchSettings,
-           deadline: float = math.inf) -> tuple[RowResult, int, str]:
+def search(solver: ProjectedNewton, starts: list[list[float]], tilt: Callable[[list[float]], float], s: SearchSettings,
+           deadline: float = math.inf) -> tuple[RunResult, int, str]:
     """Best end point over ``starts`` (``tilt(theta)``: how much that start's paddle leans towards the target, the
     larger the earlier it is tried), the iterations spent and a message (``converged``, ``max_iter``,
     ``time budget``)."""
-    best = row.run(starts[0], "velocity", max_iter=s.velocity_iter, tol_zero=s.tol_zero)
+    best = solver.run(starts[0], "velocity", max_iter=s.velocity_iter, tol_zero=s.tol_zero)
     total = best.iterations
     if best.cost > s.tol_zero:
-        more = row.run(best.theta, "gauss-newton", max_iter=s.probe_iter - total, tol_zero=s.tol_zero, slow=0.5,
-                       slow_after=s.probe_slow_after, start=best.point)
+        more = solver.run(best.theta, "gauss-newton", max_iter=s.probe_iter - total, tol_zero=s.tol_zero, slow=0.5,
+                          slow_after=s.probe_slow_after, start=best.point)
         total += more.iterations
         best = more if more.cost <= best.cost else best
     if best.cost > s.tol and time.perf_counter() < deadline:
-        lead, used = _multistart(row, best, starts, tilt, s, deadline)
+        lead, used = _multistart(solver, best, starts, tilt, s, deadline)
         total += used
         if math.isfinite(lead.cost) and lead.cost > s.tol and time.perf_counter() < deadline:
-            lead, used = _valley_hop(row, lead, s)
+            lead, used = _valley_hop(solver, lead, s)
             total += used
         best = lead if lead.cost < best.cost else best
     late = time.perf_counter() > deadline
     return best, total, "converged" if best.converged else ("time budget" if late else "max_iter")
 
 
-def _multistart(row: PaddleRowSolver, probe: RowResult, starts: list[list[float]],
-                tilt: Callable[[list[float]], float], s: SearchSettings, deadline: float) -> tuple[RowResult, int]:
+def _multistart(solver: ProjectedNewton, probe: RunResult, starts: list[list[float]],
+                tilt: Callable[[list[float]], float], s: SearchSettings, deadline: float) -> tuple[RunResult, int]:
     """Newton from the probe's end point, then from the starts (step 2 of the module docstring)."""
-    drop = math.hypot(float(row.ev.offset[0]), float(row.ev.offset[1]))  # ||r|| when the ball barely bounces
-    scale = [max(h - lo, 1e-9) for lo, h in zip(row.lo, row.hi)]
-    found: list[RowResult] = []
-    lead = RowResult(probe.theta, math.inf, 0, False)
+    offset, box = solver.error.offset, solver.feasible
+    drop = math.hypot(float(offset[0]), float(offset[1]))  # ||r|| when the ball barely bounces
+    scale = [max(h - lo, 1e-9) for lo, h in zip(box.lo, box.hi)]
+    found: list[RunResult] = []
+    lead = RunResult(probe.theta, math.inf, 0, False)
 
     def abandon(pt: Point, it: int) -> bool:
         cost = math.sqrt(2.0 * pt.f)
@@ -98,15 +99,15 @@ def _multistart(row: PaddleRowSolver, probe: RowResult, starts: list[list[float]
         if lead.cost <= s.tol or misses >= s.patience or time.perf_counter() > deadline:
             break
         if math.isfinite(lead.cost) and s.screen_iter > 0:  # a few cheaper Gauss-Newton steps first
-            res = row.run(guess, "gauss-newton", max_iter=s.screen_iter, tol_zero=s.tol_zero, abandon=abandon)
+            res = solver.run(guess, "gauss-newton", max_iter=s.screen_iter, tol_zero=s.tol_zero, abandon=abandon)
             total += res.iterations
             guess, known = res.theta, res.point
             if res.abandoned or res.cost <= s.tol or not math.isfinite(res.cost):
                 misses += 1
                 lead = res if res.cost < lead.cost else lead
                 continue
-        res = row.run(guess, "newton", max_iter=s.max_iter, tol_zero=s.tol_zero, rtol=s.rtol, abandon=abandon,
-                      start=known)
+        res = solver.run(guess, "newton", max_iter=s.max_iter, tol_zero=s.tol_zero, rtol=s.rtol, abandon=abandon,
+                         start=known)
         total += res.iterations
         if not res.abandoned:
             found.append(res)
@@ -115,22 +116,23 @@ def _multistart(row: PaddleRowSolver, probe: RowResult, starts: list[list[float]
     return lead, total
 
 
-def _valley_hop(row: PaddleRowSolver, lead: RowResult, s: SearchSettings) -> tuple[RowResult, int]:
+def _valley_hop(solver: ProjectedNewton, lead: RunResult, s: SearchSettings) -> tuple[RunResult, int]:
     """Step 3 of the module docstring, once."""
-    direction = row.flat_direction(lead.theta, lead.point)
+    direction = solver.flat_direction(lead.theta, lead.point)
     if direction is None:
         return lead, 0
     total = 0
-    hop: RowResult | None = None
-    points = [row.ev.value(row.project([c + t * d for c, d in zip(lead.theta, direction)])) for t in s.valley]
+    hop: RunResult | None = None
+    value, project = solver.error.value, solver.feasible.project
+    points = [value(project([c + t * d for c, d in zip(lead.theta, direction)])) for t in s.valley]
     if s.valley_pick and points:
         points = [min(points, key=lambda p: p.f if p.up else math.inf)]
     for pt in points:
-        trial = row.run(pt.theta, "gauss-newton", max_iter=s.relax_iter, tol_zero=s.tol_zero, start=pt)
+        trial = solver.run(pt.theta, "gauss-newton", max_iter=s.relax_iter, tol_zero=s.tol_zero, start=pt)
         total += trial.iterations
         if trial.cost < (1.0 - 1e-4) * lead.cost and (hop is None or trial.cost < hop.cost):
             hop = trial
     if hop is None:
         return lead, total
-    res = row.run(hop.theta, "newton", max_iter=s.max_iter, tol_zero=s.tol_zero, rtol=s.rtol, start=hop.point)
+    res = solver.run(hop.theta, "newton", max_iter=s.max_iter, tol_zero=s.tol_zero, rtol=s.rtol, start=hop.point)
     return (res if res.cost < hop.cost else hop), total + res.iterations

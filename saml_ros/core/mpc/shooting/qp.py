@@ -183,18 +183,9 @@ def _solve_qp_ipm(
     nz = n + k
     pen = np.broadcast_to(np.asarray(penalty, dtype=np.float64), (k,))
     q = np.concatenate((grad, pen))
-    # variables z = [d, s]; rows of C z <= c: d <= hi (n), -d <= -lo (n), G d - s <= h (k), -s <= 0 (k)
-    c_mat = np.zeros((2 * n + 2 * k, nz))
-    ar_n = np.arange(n)
-    ar_k = np.arange(k)
-    c_mat[ar_n, ar_n] = 1.0
-    c_mat[n + ar_n, ar_n] = -1.0
-    c_mat[2 * n : 2 * n + k, :n] = g_mat
-    c_mat[2 * n + ar_k, n + ar_k] = -1.0
-    c_mat[2 * n + k + ar_k, n + ar_k] = -1.0
+    c_mat, c_vec = _elastic_rows(lo, hi, g_mat, h_vec)
     c_t = np.ascontiguousarray(c_mat.T)
     g_rows = c_mat[2 * n : 2 * n + k]
-    c_vec = np.concatenate((hi, -lo, h_vec, np.zeros(k)))
     m = c_vec.size
     z = np.zeros(nz)
     z[:n] = np.clip(0.0, lo, hi)
@@ -252,6 +243,23 @@ def _solve_qp_ipm(
         sl += alpha * dsl
     d = np.clip(z[:n], lo, hi)
     return QPResult(d, np.maximum(z[n:], 0.0), lam[2 * n : 2 * n + k].copy(), it, converged)
+
+
+def _elastic_rows(
+    lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray, h_vec: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The interior point method's rows ``C z <= c`` over ``z = [d (n), s (k)]``: ``d <= hi``, ``-d <= -lo``,
+    ``G d - s <= h``, ``-s <= 0``; ``C (2n + 2k, n + k)``, ``c (2n + 2k,)``."""
+    n, k = lo.size, h_vec.size
+    c_mat = np.zeros((2 * n + 2 * k, n + k))
+    ar_n = np.arange(n)
+    ar_k = np.arange(k)
+    c_mat[ar_n, ar_n] = 1.0
+    c_mat[n + ar_n, ar_n] = -1.0
+    c_mat[2 * n : 2 * n + k, :n] = g_mat
+    c_mat[2 * n + ar_k, n + ar_k] = -1.0
+    c_mat[2 * n + k + ar_k, n + ar_k] = -1.0
+    return c_mat, np.concatenate((hi, -lo, h_vec, np.zeros(k)))
 
 
 def _max_step(v: np.ndarray, dv: np.ndarray) -> float:

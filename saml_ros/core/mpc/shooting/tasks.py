@@ -20,11 +20,9 @@ linearly with the tilt. Plans are always *checked* with the paper's form (:meth:
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.quadrotor import Quadrotor
 
@@ -176,19 +174,3 @@ def quadrotor_task(
         att_qw=iqw,
         att_qv=(iqw + 1, iqw + 2, iqw + 3),
     )
-
-
-def make_task(system: System, horizon: int = 10, **options: Any) -> ShootingTask:
-    """The paper's MPC problem for a time-stepped ``system`` (friction or quadrotor)."""
-    if horizon < 1:
-        raise ValueError(f"horizon must be >= 1, got {horizon}")
-    if isinstance(system, FrictionDoubleIntegrator):
-        if options:
-            raise TypeError(f"friction MPC has no option(s) {sorted(options)}")
-        return friction_task(system, horizon)
-    if isinstance(system, Quadrotor):
-        unknown = set(options) - {"min_height", "qw_tol"}
-        if unknown:
-            raise TypeError(f"quadrotor MPC has no option(s) {sorted(unknown)}; valid: min_height, qw_tol")
-        return quadrotor_task(system, horizon, **options)
-    raise ValueError(f"no shooting MPC task for system {system.name!r}")

@@ -1,0 +1,94 @@
+"""bringup's configuration (ROS-free): the defaults of a system, a YAML file, ``--set`` overrides, and the ROS
+parameter file of each node.
+
+A configuration is a mapping with ``system``, ``sim_time`` (s of simulated time, 0 = until stopped), optionally
+``record`` (a bag directory), and the node sections ``sim``, ``learner``, ``mpc`` of ROS parameters. A system's
+defaults are its registry entry's ``bringup``; ``config/bringup_quadrotor.yaml`` holds the quadrotor's.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from saml_ros.core.systems import get_entry
+
+#: the node sections of a configuration
+NODE_SECTIONS = ("sim", "learner", "mpc")
+#: the system a configuration without one runs
+DEFAULT_SYSTEM = "quadrotor"
+
+
+def default_config(system: str) -> dict[str, Any]:
+    """A deep copy of ``system``'s default bringup configuration (its registry entry's ``bringup``)."""
+    return copy.deepcopy(dict(get_entry(system).bringup))
+
+
+def merge_config(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` updated by ``override`` (node sections are merged key by key); unknown keys are refused."""
+    out = copy.deepcopy(base)
+    for key, value in override.items():
+        if key in NODE_SECTIONS:
+            if not isinstance(value, Mapping):
+                raise ValueError(f"config section {key!r} must be a mapping of parameters, got {value!r}")
+            out.setdefault(key, {}).update(copy.deepcopy(dict(value)))
+        elif key in ("system", "sim_time", "record"):
+            out[key] = value
+        else:
+            raise ValueError(f"unknown config key {key!r}; valid: system, sim_time, record, {', '.join(NODE_SECTIONS)}")
+    return out
+
+
+def load_config(path: Path | None, system: str | None) -> dict[str, Any]:
+    """The defaults of the system (from ``--system`` or the file's ``system``), updated by the YAML file."""
+    override: dict[str, Any] = {}
+    if path is not None:
+        data = yaml.safe_load(Path(path).read_text())
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: a bringup config must be a YAML mapping")
+        override = data
+    name = system or override.get("system") or DEFAULT_SYSTEM
+    if system and override.get("system") not in (None, system):
+        raise ValueError(f"--system {system} contradicts the config's system {override['system']!r}")
+    return merge_config(default_config(name), {k: v for k, v in override.items() if k != "system"})
+
+
+def apply_sets(config: dict[str, Any], sets: Sequence[str]) -> dict[str, Any]:
+    """Apply ``--set section.param=value`` overrides (``value`` parsed as YAML); ``sim_time=60`` also works."""
+    out = copy.deepcopy(config)
+    for item in sets:
+        key, sep, raw = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set wants section.param=value, got {item!r}")
+        value = yaml.safe_load(raw)
+        section, _, param = key.partition(".")
+        if section in NODE_SECTIONS and param:
+            out.setdefault(section, {})[param] = value
+        elif key in ("sim_time", "record"):
+            out[key] = value
+        else:
+            raise ValueError(f"--set {item!r}: the key must be sim_time or one of {NODE_SECTIONS} followed by .param")
+    return out
+
+
+def ros_params_file(params: Mapping[str, Any]) -> str:
+    """A ROS 2 parameter file (YAML) applying ``params`` to every node of the process (``/**``)."""
+    clean = {k: (list(v) if isinstance(v, tuple) else v) for k, v in params.items()}
+    return yaml.safe_dump({"/**": {"ros__parameters": clean}}, sort_keys=True)
+
+
+def node_params(config: Mapping[str, Any], run_dir: Path) -> dict[str, dict[str, Any]]:
+    """The ROS parameters of each node section, with the ones bringup owns (system, run_dir, use_sim_time)."""
+    system = config["system"]
+    lockstep = config["sim"].get("mode", "lockstep") == "lockstep"
+    sim = dict(config["sim"])
+    learner = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["learner"]}
+    mpc = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["mpc"]}
+    if lockstep:
+        learner.setdefault("use_sim_time", True)
+        mpc.setdefault("use_sim_time", True)
+    return {"sim": sim, "learner": learner, "mpc": mpc}

@@ -1,0 +1,234 @@
+"""The learner node's configuration without ROS: its parameter table and the validated :class:`LearnerConfig`.
+
+The node declares :func:`learner_params` (names, defaults, descriptions; ``train.*`` are the fields of
+:class:`~saml_ros.core.training.TrainConfig`) and builds the configuration with :meth:`LearnerConfig.from_params`,
+which raises ``ValueError`` naming the bad parameter; :meth:`LearnerConfig.training_setup` turns it into what
+the training process is started with. See docs/learner.md.
+
+Importing this module imports no torch: the learner node imports it before its training interpreter has started
+(the functions that need the trainer or a system import them when called).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from msg_schemas.names import normalize_namespace
+from saml_ros.core.params import Param, check, read_params
+
+if TYPE_CHECKING:
+    from saml_ros.core.online import LearnerSetup
+    from saml_ros.core.online.process import DecoderFactory
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.systems.base import System
+    from saml_ros.core.training import TrainConfig
+
+#: ``train.*`` parameters: TrainConfig field -> description (``epochs`` is an offline-only field)
+TRAIN_PARAM_DOCS: dict[str, str] = {
+    "batch_size": "minibatch size M sampled from the replay buffer per update",
+    "primal_lr": "learning rate alpha_theta of the model parameters",
+    "dual_lr": "learning rate alpha_lambda of the dual variables (ascent on the constraint estimates)",
+    "primal_optimizer": "'adam' (the paper) or 'sgd'",
+    "dual_optimizer": "'adam' (the paper) or 'sgd'",
+    "log_every": "updates between training-history rows kept in memory (0 = 100)",
+    "seed": "seed of the model initialisation and the minibatch sampling",
+    "dtype": "'float32' or 'float64' for the model and the minibatches",
+    "engine": "offline training engine (not used by the online step loop)",
+    "device": "training device: cpu | cuda | cuda:N (checked at start-up; a device that cannot be used is a "
+              "configuration error)",
+}
+
+_HEAD: tuple[Param, ...] = (
+    Param("system", "friction", "system name: friction | quadrotor | paddle_ball"),
+    Param("namespaces", [], "namespaces whose state/applied_cmd are paired (each separately, one shared buffer); "
+                            "empty = this node's namespace", item_type=str),
+    Param("spec_file", "", "problem spec YAML (docs/spec.md); empty = the paper's spec"),
+    Param("model.kind", "residual", "'residual' (f_hat + network) or 'full' (network only)"),
+    Param("model.hidden", [], "hidden layer sizes; empty = the paper's sizes for the system", item_type=int),
+)
+_TAIL: tuple[Param, ...] = (
+    Param("buffer.capacity", 100_000, "replay buffer capacity (transitions)"),
+    Param("buffer.policy", "fifo", "eviction when full: 'fifo' (keep the newest) or 'reservoir'"),
+    Param("min_transitions", 1000, "transitions before training starts; the input/output normalisation is "
+                                   "fitted on them once and frozen"),
+    Param("updates_per_second", 0.0, "primal-dual updates per wall-clock second (0 = as fast as possible)"),
+    Param("checkpoint_period", 10.0, "wall-clock seconds between checkpoints (only when there are new updates)"),
+    Param("checkpoint_keep", 5, "checkpoint files kept in run_dir (older ones are pruned)"),
+    Param("run_dir", "", "checkpoint directory; empty = runs/<system> in the working directory"),
+    Param("resume", True, "load the newest valid checkpoint of run_dir (weights, normalisation, lambda, optimizer "
+                          "state, update count)"),
+    Param("telemetry_rate", 5.0, "learner/model_error messages per second (Hz)"),
+    Param("telemetry_window", 1000, "most recent transitions the live model error is computed on"),
+    Param("diagnostics_rate", 1.0, "/diagnostics messages per second (Hz)"),
+    Param("dt", 0.0, "sampling period of the simulator / robot in s (0 = the system's default); pairs x_t with "
+                     "x_{t+dt} and sets the base model's step"),
+    Param("pairing.window", 1000, "newest states (per namespace) whose stamps are remembered for pairing; older "
+                                  "incomplete entries are dropped (counted)"),
+    Param("pairing.tolerance", 1e-6, "s: stamps closer than this are the same stamp"),
+    Param("training_niceness", 10, "nice increment of the training process (0-19): the OS runs ingest, simulators "
+                                   "and the MPC first when CPUs are short"),
+    Param("train_threads", 1, "torch intra-op threads of the training process (0 = torch's default, one per "
+                              "core); 1 is fastest for these small networks on a shared machine"),
+)
+
+
+def learner_params() -> list[Param]:
+    """The learner node's parameter table, in declaration order (imports the trainer for ``train.*``)."""
+    from saml_ros.core.training import TrainConfig
+
+    defaults = TrainConfig()
+    train = [Param(f"train.{f.name}", getattr(defaults, f.name), TRAIN_PARAM_DOCS.get(f.name, f"TrainConfig.{f.name}"))
+             for f in dataclasses.fields(TrainConfig) if f.name != "epochs"]
+    return [*_HEAD, *train, *_TAIL]
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """The learner node's parameters after validation (units in :func:`learner_params`' descriptions).
+
+    ``namespaces`` are normalised (``/name``) and never empty; ``train`` holds the ``train.*`` values by
+    TrainConfig field name.
+    """
+
+    system: str
+    namespaces: list[str]
+    spec_file: str
+    model_kind: str
+    model_hidden: list[int]
+    train: dict[str, Any]
+    buffer_capacity: int
+    buffer_policy: str
+    min_transitions: int
+    updates_per_second: float
+    checkpoint_period: float
+    checkpoint_keep: int
+    run_dir: str
+    resume: bool
+    telemetry_rate: float
+    telemetry_window: int
+    diagnostics_rate: float
+    dt: float
+    pairing_window: int
+    pairing_tolerance: float
+    training_niceness: int
+    train_threads: int
+
+    @classmethod
+    def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
+        """The configuration from parameter values by name (missing ones take their defaults); an empty
+        ``namespaces`` means the node's own namespace ``node_namespace``.
+
+        Raises:
+            ValueError: an unknown system or parameter, or a value of the wrong type or out of range; the
+                message names the parameter.
+        """
+        from saml_ros.core.systems.registry import get_entry
+
+        table = learner_params()
+        unknown = sorted(set(values) - {p.name for p in table})
+        if unknown:
+            raise ValueError(f"unknown learner parameter(s) {unknown}")
+        p = read_params(table, values)
+        try:
+            get_entry(p["system"])
+        except ValueError as exc:
+            raise ValueError(f"parameter 'system': {exc}") from None
+        for name in ("telemetry_rate", "diagnostics_rate", "checkpoint_period"):
+            check(p[name] > 0, name, "> 0", p[name])
+        for name in ("updates_per_second", "dt", "pairing.tolerance", "train_threads"):
+            check(p[name] >= 0, name, ">= 0", p[name])
+        check(p["checkpoint_keep"] >= 1, "checkpoint_keep", ">= 1", p["checkpoint_keep"])
+        check(p["pairing.window"] >= 2, "pairing.window", ">= 2", p["pairing.window"])
+        check(0 <= p["training_niceness"] <= 19, "training_niceness", "in 0..19", p["training_niceness"])
+        nss = [normalize_namespace(n) for n in p["namespaces"]] or [normalize_namespace(node_namespace)]
+        check(len(set(nss)) == len(nss), "namespaces", "a list without repetitions", nss)
+        config = cls(
+            system=p["system"], namespaces=nss, spec_file=p["spec_file"], model_kind=p["model.kind"],
+            model_hidden=list(p["model.hidden"]),
+            train={k[len("train."):]: v for k, v in p.items() if k.startswith("train.")},
+            buffer_capacity=p["buffer.capacity"], buffer_policy=p["buffer.policy"],
+            min_transitions=p["min_transitions"], updates_per_second=p["updates_per_second"],
+            checkpoint_period=p["checkpoint_period"], checkpoint_keep=p["checkpoint_keep"], run_dir=p["run_dir"],
+            resume=p["resume"], telemetry_rate=p["telemetry_rate"], telemetry_window=p["telemetry_window"],
+            diagnostics_rate=p["diagnostics_rate"], dt=p["dt"], pairing_window=p["pairing.window"],
+            pairing_tolerance=p["pairing.tolerance"], training_niceness=p["training_niceness"],
+            train_threads=p["train_threads"],
+        )
+        config.train_config()  # validates train.*
+        return config
+
+    def train_config(self) -> TrainConfig:
+        """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
+        from saml_ros.core.training import TrainConfig
+
+        try:
+            return TrainConfig.from_dict(self.train)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"parameters 'train.*': {exc}") from None
+
+    def make_system(self) -> System:
+        """The system, with ``dt`` when it is set (> 0); ``ValueError`` naming ``system`` / ``dt``."""
+        from saml_ros.core.systems.registry import get_entry
+
+        try:
+            return get_entry(self.system).make_system(**({"dt": self.dt} if self.dt > 0 else {}))
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"parameter 'system' / 'dt': {exc}") from None
+
+    def load_spec(self, system: System) -> ProblemSpec:
+        """``spec_file``'s problem, or the system's paper spec when it is empty; ``ValueError`` naming
+        ``spec_file``."""
+        from saml_ros.core.spec import ProblemSpec, SpecError
+
+        try:
+            if self.spec_file:
+                return ProblemSpec.from_yaml(self.spec_file, system)
+            return ProblemSpec.for_system(system.paper_spec(), system)
+        except FileNotFoundError:
+            raise ValueError(f"parameter 'spec_file': no such file {self.spec_file!r}") from None
+        except (SpecError, OSError) as exc:
+            raise ValueError(f"parameter 'spec_file': {exc}") from None
+
+    def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
+                       channels: list[tuple[int, str, str]], decoder: DecoderFactory) -> LearnerSetup:
+        """The :class:`~saml_ros.core.online.LearnerSetup` of the training process (imports torch).
+
+        Args:
+            system, spec: from :meth:`make_system` and :meth:`load_spec`.
+            target_pairing: the schema's ``"next"`` or ``"same"``.
+            run_dir: checkpoint directory.
+            channels: ``(namespace index, kind, topic)`` of each raw-message channel.
+            decoder: the factory of the channels' message decoder, called in the training process with
+                ``(system, [(kind, topic), ...])`` (a module-level function, e.g.
+                :func:`msg_schemas.decode.make_decoder`).
+
+        Raises:
+            ValueError: an invalid learner, buffer, pairing or loop setting.
+        """
+        from saml_ros.core.model_io import system_params
+        from saml_ros.core.online import LearnerSetup, LoopConfig, OnlineConfig
+        from saml_ros.core.pairing import PairingConfig
+
+        try:
+            config = OnlineConfig(
+                kind=self.model_kind, hidden=tuple(self.model_hidden) or None, train=self.train_config(),
+                buffer_capacity=self.buffer_capacity, buffer_policy=self.buffer_policy,
+                min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
+                checkpoint_keep=self.checkpoint_keep,
+            )
+            pairing = PairingConfig.for_system(system, target_pairing, tolerance=self.pairing_tolerance,
+                                               window=self.pairing_window, max_slots=max(10_000, 10 * self.pairing_window))
+            loop = LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry_rate,
+                              checkpoint_period=self.checkpoint_period)
+        except TypeError as exc:
+            raise ValueError(str(exc)) from None
+        return LearnerSetup(
+            system=self.system, system_params=system_params(system), spec=spec.to_dict(), config=config,
+            run_dir=run_dir, resume=self.resume, loop=loop, niceness=self.training_niceness,
+            threads=self.train_threads, sources=tuple((ns, pairing) for ns in self.namespaces),
+            channels=tuple((index, kind) for index, kind, _ in channels), decoder=decoder,
+            decoder_args=(self.system, [(kind, topic) for _, kind, topic in channels]),
+        )

@@ -1,0 +1,149 @@
+"""The MPC node's configuration without ROS: its parameter table and the validated :class:`MPCConfig`.
+
+The node declares :meth:`MPCConfig.params` (names, defaults, descriptions; ``goal.*`` and ``task.*`` come from
+the system's registry entry) and builds the configuration from the declared values with
+:meth:`MPCConfig.from_params`, which raises ``ValueError`` naming the bad parameter. See docs/nodes.md.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import yaml
+
+from saml_ros.core.mpc.factory import SOLVERS
+from saml_ros.core.params import Param, check, read_params
+from saml_ros.core.systems.registry import get_entry
+
+#: how the node answers states
+MODES = ("lockstep", "realtime")
+
+#: the parameters of every MPC node (``system``'s default is the node's own system)
+PARAMS: tuple[Param, ...] = (
+    Param("system", "friction", "system name: friction | quadrotor | paddle_ball (read before the node starts)"),
+    Param("solver", "fast", "MPC solver: fast (SQP, warm-started) | slsqp (scipy reference, slow)"),
+    Param("horizon", 10, "planning horizon T (steps; ignored by the one-shot paddle problem)"),
+    Param("member", 0, "ensemble member of the checkpoint's model used for planning"),
+    Param("solver_options", "", "extra solver options as a YAML mapping, e.g. '{max_iter: 20}'"),
+    Param("mode", "lockstep", "lockstep: answer every state at once | realtime: answer the newest state at rate_hz"),
+    Param("rate_hz", 10.0, "control rate in realtime mode (Hz)"),
+    Param("deadline_ms", 0.0, "a control step longer than this is a deadline miss (ms); 0 = the period: "
+                              "1000 / rate_hz in realtime, the system's dt in lockstep (100 ms for the event-based "
+                              "paddle ball)"),
+    Param("run_dir", "", "run directory whose `latest` checkpoint is polled ('' = follow learner/checkpoint only)"),
+    Param("poll_period", 0.5, "seconds between polls of run_dir"),
+    Param("diagnostics_rate", 1.0, "/diagnostics publication rate (Hz, wall clock)"),
+    Param("gate.max_constraint", math.inf, "hold back checkpoints whose recorded constraint estimates "
+                                           "(E[l | region] - eps, learner's live window) exceed this; inf = take "
+                                           "every valid checkpoint", finite=False),
+    Param("gate.min_updates", 0, "hold back checkpoints with fewer learner updates than this"),
+)
+
+
+def parse_solver_options(text: str) -> dict[str, Any]:
+    """``solver_options`` (a YAML / JSON mapping of scalars, e.g. ``"{max_iter: 20}"``) -> dict."""
+    if not text.strip():
+        return {}
+    data = yaml.safe_load(text)
+    if not isinstance(data, dict) or not all(
+        isinstance(k, str) and isinstance(v, (int, float, str, bool)) for k, v in data.items()
+    ):
+        raise ValueError(f"solver_options must be a mapping of names to scalars, got {text!r}")
+    return data
+
+
+def make_goal(system: str, values: Mapping[str, Any]) -> Any:
+    """The ``goal`` argument of ``Controller.solve`` from the ``goal.*`` values of ``system`` (without the
+    prefix; defaults filled in). ``ValueError``: wrong size, not finite, or a bound pair inverted."""
+    return get_entry(system).make_goal(values)
+
+
+@dataclass(frozen=True)
+class MPCConfig:
+    """The MPC node's parameters after validation (units in :data:`PARAMS`' descriptions).
+
+    ``goal`` is the built goal object (``Controller.solve``'s argument), ``task`` the ``task.*`` values without
+    the prefix, ``solver_options`` the parsed mapping.
+    """
+
+    system: str
+    solver: str
+    horizon: int
+    member: int
+    solver_options: dict[str, Any]
+    mode: str
+    rate_hz: float
+    deadline_ms: float
+    run_dir: str
+    poll_period: float
+    diagnostics_rate: float
+    gate_max_constraint: float
+    gate_min_updates: int
+    goal: Any
+    task: dict[str, Any]
+
+    @staticmethod
+    def params(system: str) -> list[Param]:
+        """The parameter table of an MPC node for ``system``: :data:`PARAMS`, then ``goal.*`` and ``task.*``."""
+        entry = get_entry(system)
+        table = [replace(PARAMS[0], default=system), *PARAMS[1:]]
+        table += [replace(g, name=f"goal.{g.name}") for g in entry.goal_params]
+        table += [replace(t, name=f"task.{t.name}") for t in entry.task_params]
+        return table
+
+    @classmethod
+    def from_params(cls, values: Mapping[str, Any]) -> MPCConfig:
+        """The configuration from parameter values by name (missing ones take their defaults).
+
+        Raises:
+            ValueError: an unknown system or parameter, or a value of the wrong type or out of range; the
+                message names the parameter.
+        """
+        system = values.get("system", PARAMS[0].default)
+        if not isinstance(system, str):
+            raise ValueError(f"parameter 'system' must be a string, got {system!r}")
+        try:
+            entry = get_entry(system)
+        except ValueError as exc:
+            raise ValueError(f"parameter 'system': {exc}") from None
+        table = cls.params(system)
+        unknown = sorted(set(values) - {p.name for p in table})
+        if unknown:
+            raise ValueError(f"unknown MPC parameter(s) {unknown} for system {system!r}")
+        p = read_params(table, values)
+        check(p["mode"] in MODES, "mode", f"one of {MODES}", p["mode"])
+        check(p["solver"] in SOLVERS, "solver", f"one of {SOLVERS}", p["solver"])
+        for name in ("rate_hz", "poll_period"):
+            check(p[name] > 0, name, "> 0", p[name])
+        check(p["deadline_ms"] >= 0, "deadline_ms", ">= 0", p["deadline_ms"])
+        check(p["member"] >= 0, "member", ">= 0", p["member"])
+        check(p["horizon"] >= 1 or not entry.mpc_horizon, "horizon", ">= 1", p["horizon"])
+        return cls(
+            system=system, solver=p["solver"], horizon=p["horizon"], member=p["member"],
+            solver_options=parse_solver_options(p["solver_options"]), mode=p["mode"], rate_hz=p["rate_hz"],
+            deadline_ms=p["deadline_ms"], run_dir=p["run_dir"], poll_period=p["poll_period"],
+            diagnostics_rate=p["diagnostics_rate"], gate_max_constraint=p["gate.max_constraint"],
+            gate_min_updates=p["gate.min_updates"],
+            goal=entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params}),
+            task={t.name: p[f"task.{t.name}"] for t in entry.task_params},
+        )
+
+    def controller_options(self) -> dict[str, Any]:
+        """Options of ``make_controller``: the solver options, the task options and (if the system's MPC has
+        one) the horizon."""
+        options = {**self.solver_options, **self.task}
+        if get_entry(self.system).mpc_horizon:
+            options["horizon"] = self.horizon
+        return options
+
+    def deadline_s(self, dt: float) -> float:
+        """The deadline of a control step (s): ``deadline_ms``, else the period (``1 / rate_hz`` in realtime,
+        the system's ``dt`` in lockstep, 0.1 s for an event-based system)."""
+        if self.deadline_ms > 0:
+            return self.deadline_ms / 1e3
+        if self.mode == "realtime":
+            return 1.0 / self.rate_hz
+        return dt if dt > 0 else 0.1

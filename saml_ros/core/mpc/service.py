@@ -1,0 +1,195 @@
+"""What the MPC node does, without ROS: answer states with commands on the newest model (:class:`MPCService`).
+
+The node decodes messages and publishes; everything in between is here and unit-testable:
+
+* a :class:`~saml_ros.core.model_watch.ModelWatcher` follows the learner's checkpoints (with the
+  ``gate.*`` hook, :func:`~saml_ros.core.model_watch.checkpoint_gate`); the model it loaded is swapped in
+  right before the next solve;
+* :meth:`MPCService.receive` takes a decoded state: in lockstep it is answered at once; in realtime it is kept
+  until :meth:`MPCService.tick` (an older unanswered one is skipped and counted);
+* a control step resets the warm start after a stamp jump (reset, new episode, restarted simulator), solves,
+  takes the system's safe command when the solver raises or returns an invalid control, clips to the control
+  bounds, sends the command (the node's ``send`` publishes ``cmd``) and returns the ``mpc/status`` values; a
+  step (swap + solve + send) longer than the deadline is counted as a miss;
+* counters (``solves``, ``solves_failed``, ``solver_errors``, ``deadline_misses``, ``swaps``,
+  ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, checkpoint_gate
+from saml_ros.core.mpc.config import MPCConfig
+from saml_ros.core.mpc.factory import make_controller
+from saml_ros.core.systems.registry import get_entry
+
+#: one answer: the stamp of the state it answered (ns) and the ``mpc/status`` values
+Answer = tuple[int, dict[str, float]]
+
+
+class MPCService:
+    """The MPC node's logic for configuration ``config``; ``send(u, stamp_ns)`` delivers each command (the node
+    publishes it on ``cmd``); logs through ``logger`` (info / warning)."""
+
+    def __init__(self, config: MPCConfig, send: Callable[[np.ndarray, int], None], logger: Logger) -> None:
+        self.config = config
+        self.send = send
+        self.logger = logger
+        self.system = get_entry(config.system).make_system()
+        self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
+                                          **config.controller_options())
+        self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
+        self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
+        self.u_safe = np.clip(self.system.safe_control(), self.u_low, self.u_high)
+        self.deadline_s = config.deadline_s(self.system.dt)
+        self.model_version = 0
+        self.model_path = ""
+        self.counters: Counter[str] = Counter()
+        self.last_stamp: int | None = None
+        self.pending: tuple[np.ndarray, int, float] | None = None  # realtime: newest unanswered state
+        self.step_ms_max_swap = 0.0
+        self._last_warn: dict[str, float] = {}
+        run_dir = Path(config.run_dir) if config.run_dir else None
+        self.watcher = ModelWatcher(self.system, run_dir, poll_period=config.poll_period, logger=logger,
+                                    accept=checkpoint_gate(config.gate_max_constraint, config.gate_min_updates))
+
+    def start(self) -> None:
+        """Load the newest valid checkpoint of ``run_dir`` if there is one (before the first solve), then start
+        following checkpoints on the background thread."""
+        if self.config.run_dir:
+            ready = self.watcher.poll_once(source="initial")
+            if ready is not None:
+                self.watcher.take()
+                self.swap(ready)
+        self.watcher.start()
+        if self.model_version == 0:
+            self.logger.info("no checkpoint yet: running on the base model f_hat")
+
+    def stop(self) -> None:
+        """Stop the watcher's background thread."""
+        self.watcher.stop()
+
+    # ------------------------------------------------------------------------------------------ input
+    def notify(self, path: str, version: int, schema_hash: str) -> None:
+        """A ``learner/checkpoint`` announcement."""
+        self.watcher.notify(path, version, schema_hash)
+
+    def reject(self, reason: str, text: str) -> None:
+        """Count (``rejected/<reason>``) and log (throttled) a message that could not be used."""
+        self.counters[f"rejected/{reason}"] += 1
+        self.warn_throttled(f"rejected/{reason}", f"dropped a message ({reason}): {text}")
+
+    def receive(self, x: np.ndarray, stamp: int, t_arrival: float) -> Answer | None:
+        """A decoded state (``t_arrival``: ``time.perf_counter()`` at its arrival): the answer in lockstep,
+        ``None`` in realtime (answered by the next :meth:`tick`) or for a duplicate stamp (rejected)."""
+        if self.last_stamp is not None and stamp == self.last_stamp:
+            self.reject("duplicate", f"state stamped {stamp} ns was already answered")
+            return None
+        if self.config.mode == "lockstep":
+            return self.control_step(x, stamp, t_arrival)
+        if self.pending is not None:
+            self.counters["skipped_states"] += 1
+        self.pending = (x, stamp, t_arrival)
+        return None
+
+    def tick(self) -> Answer | None:
+        """Realtime timer: answer the newest state received since the last tick, if any."""
+        if self.pending is None:
+            return None
+        (x, stamp, _), self.pending = self.pending, None
+        return self.control_step(x, stamp, time.perf_counter())
+
+    # ------------------------------------------------------------------------------------------ control
+    def control_step(self, x: np.ndarray, stamp: int, t_start: float) -> Answer:
+        """Swap in a ready model, solve for state ``x`` (stamp ns), send the clipped command, return the status
+        values (``t_start``: ``time.perf_counter()`` when the step's clock started)."""
+        if self.last_stamp is not None:
+            dt_ns = stamp - self.last_stamp
+            # a reset, a new episode or a restarted simulator: the warm start is meaningless
+            if dt_ns < 0 or (self.system.dt > 0 and dt_ns > 1.5e9 * self.system.dt):
+                self.controller.reset()
+                self.counters["warm_start_resets"] += 1
+        self.last_stamp = stamp
+        swap_ms = 0.0
+        ready = self.watcher.take()
+        if ready is not None:
+            t0 = time.perf_counter()
+            self.swap(ready)
+            swap_ms = 1e3 * (time.perf_counter() - t0)
+        u, values = self._solve(x, stamp)
+        self.send(np.clip(u, self.u_low, self.u_high), stamp)
+        step_ms = 1e3 * (time.perf_counter() - t_start)
+        self.counters["solves"] += 1
+        if step_ms > 1e3 * self.deadline_s:
+            self.counters["deadline_misses"] += 1
+        if swap_ms > 0.0:
+            self.step_ms_max_swap = max(self.step_ms_max_swap, step_ms)
+        stats = self.watcher.stats()
+        values |= {
+            "model_version": float(self.model_version),
+            "deadline_misses": float(self.counters["deadline_misses"]),
+            "step_ms": step_ms,
+            "swap_ms": swap_ms,
+            "swaps": float(self.counters["swaps"]),
+            "checkpoints_refused": float(stats["refused"]),
+            "checkpoints_gated": float(stats["gated"]),
+            "solves": float(self.counters["solves"]),
+        }
+        return stamp, values
+
+    def _solve(self, x: np.ndarray, stamp: int) -> tuple[np.ndarray, dict[str, float]]:
+        try:
+            res = self.controller.solve(x, self.config.goal)
+            u = np.asarray(res.u, dtype=np.float64)
+            if u.shape != (self.system.control.size,) or not np.all(np.isfinite(u)):
+                raise ValueError(f"solver returned an invalid control {u!r}")
+            values = {"solve_time_ms": 1e3 * res.solve_time, "cost": float(res.cost),
+                      "iterations": float(res.iterations), "success": float(bool(res.success))}
+            if not res.success:
+                self.counters["solves_failed"] += 1
+                self.warn_throttled("fail", f"solve at t={stamp * 1e-9:.3f} s not successful: {res.message}")
+            return u, values
+        except Exception as exc:  # noqa: BLE001 - never leave the simulator without an answer
+            self.counters["solver_errors"] += 1
+            self.warn_throttled("error", f"solver raised {type(exc).__name__}: {exc}; sent the safe control")
+            return self.u_safe, {"solve_time_ms": math.nan, "cost": math.nan, "iterations": 0.0, "success": 0.0}
+
+    def swap(self, ready: ReadyModel) -> None:
+        """Plan with the model ``ready`` from now on."""
+        self.controller.set_model(ready.loaded.model)
+        old, self.model_version, self.model_path = self.model_version, ready.version, str(ready.path)
+        self.counters["swaps"] += 1
+        self.logger.info(f"model version {old} -> {ready.version} ({ready.path.name})")
+
+    # ------------------------------------------------------------------------------------------ telemetry
+    def warn_throttled(self, key: str, text: str, period: float = 5.0) -> None:
+        """Log ``text`` as a warning at most once per ``period`` s per ``key`` (with the count so far)."""
+        now = time.monotonic()
+        if now - self._last_warn.get(key, -math.inf) >= period:
+            self._last_warn[key] = now
+            n = self.counters.get(key, 0)
+            self.logger.warning(text + (f" (x{n} so far)" if n > 1 else ""))
+
+    def diagnostic_values(self) -> dict[str, Any]:
+        """Counters, the model in use and the watcher's statistics, for ``/diagnostics``."""
+        stats = self.watcher.stats()
+        values: dict[str, Any] = {k: v for k, v in sorted(self.counters.items())}
+        values["model_version"] = self.model_version
+        values["model_path"] = self.model_path
+        values["checkpoints_loaded"] = stats["loaded"]
+        values["checkpoints_refused"] = stats["refused"]
+        for r in REFUSAL_REASONS:
+            values[f"checkpoints_refused/{r}"] = stats[f"refused/{r}"]
+        values["last_refusal"] = stats["last_refusal"]
+        values["checkpoints_gated"] = stats["gated"]
+        values["last_gated"] = stats["last_gated"]
+        values["max_step_ms_during_swap"] = round(self.step_ms_max_swap, 3)
+        return values

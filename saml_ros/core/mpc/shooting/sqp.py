@@ -1,0 +1,274 @@
+"""The fast single-shooting solver (:class:`SQPShootingMPC`), per iteration:
+
+1. exact Jacobians ``A_t, B_t`` of ``f_hat + phi`` at the current trajectory, batched over t;
+2. condensed sensitivities ``S_t = dx_t/dU`` by the recursion ``S_{t+1} = A_t S_t + [0 .. B_t .. 0]``;
+3. a model of the cost: for a scalar residual (friction, ``|p_t|``) the exact l1 model as elastic LP rows; for
+   Euclidean norms (quadrotor) each ``||r_t||`` smoothed to ``sqrt(||r_t||^2 + eps^2)`` with its exact Hessian
+   through the linearisation (generalised Gauss-Newton), plus a Levenberg-Marquardt term;
+4. one QP over the step d (:mod:`~saml_ros.core.mpc.shooting.qp`): box ``u_low - U <= d <= u_high - U`` and the
+   linearised state constraints in elastic mode (always feasible), solved by DAQP when installed, else by
+   projected Newton when the box alone satisfies the state rows and a small interior point method otherwise;
+5. a backtracking line search on the l1 merit ``cost + penalty * sum max(c_i, 0)``; the Levenberg-Marquardt
+   weight follows the ratio of actual to predicted decrease; the penalty grows if the solver converges to a
+   plan that still violates a constraint some control can move.
+
+It stops when the QP predicts a merit decrease below ``tol * (1 + merit)``, at ``max_iter`` or ``max_time``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.shooting.controller import ShootingMPC
+from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
+from saml_ros.core.mpc.shooting.tasks import ShootingTask
+from saml_ros.core.systems.base import System
+
+#: one trial point of the line search: controls (T, m), predicted states (T+1, n), merit, residuals, constraints
+_Trial = tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]
+
+
+class SQPShootingMPC(ShootingMPC):
+    """The fast solver (see the module docstring).
+
+    Args (beyond :class:`ShootingMPC`'s):
+        max_iter: SQP iteration cap per solve.
+        tol: stop when the QP predicts a merit decrease below ``tol * (1 + merit)``.
+        max_time: optional wall-clock budget per solve (s); the best plan so far is returned when it runs out.
+        eps: smoothing of the Euclidean norms (cost units); the reported cost is always the exact one.
+        penalty: initial price of one unit of state-constraint violation (elastic QP and merit); multiplied by
+            10 (up to ``penalty_max``) when the solver converges to a plan that still violates a constraint.
+        rho0: initial Levenberg-Marquardt weight relative to the mean diagonal of the Gauss-Newton Hessian;
+            adapted by the ratio of actual to predicted decrease and carried over between solves.
+        lm_floor: absolute Levenberg-Marquardt term (cost units per control unit squared): keeps controls that
+            barely affect the cost (the last ones of the horizon) from drifting.
+        radial: weight of the radial curvature term of the Euclidean norm (1 = the exact Hessian of the
+            smoothed norm, 0 = iteratively reweighted least squares).
+        qp_backend: "daqp" (a C active-set solver, default when installed) or "ipm" (numpy interior point
+            method, the fallback); both solve the same subproblem (:func:`~saml_ros.core.mpc.shooting.qp.solve_qp`).
+        undamped_check: before declaring convergence with a damped step (Levenberg-Marquardt weight above
+            ``rho0``), re-solve the QP once with ``rho0``: avoids stopping early in flat valleys where damping
+            makes every step predict little, at the price of more iterations (use with a small ``tol``).
+    """
+
+    def __init__(
+        self,
+        system: System,
+        model: DynamicsModel | None = None,
+        horizon: int = 10,
+        max_iter: int = 20,
+        tol: float = 3e-4,
+        max_time: float | None = None,
+        eps: float = 1e-3,
+        penalty: float = 10.0,
+        penalty_max: float = 1e4,
+        rho0: float = 1e-3,
+        lm_floor: float = 1e-3,
+        radial: float = 1.0,
+        qp_backend: str | None = None,
+        undamped_check: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(system, model, horizon, **kwargs)
+        self.qp_backend = qp_backend or DEFAULT_BACKEND
+        if self.qp_backend not in ("daqp", "ipm"):
+            raise ValueError(f"unknown qp_backend {qp_backend!r}; use 'daqp' or 'ipm'")
+        self.max_iter, self.tol, self.max_time = max_iter, tol, max_time
+        self.eps, self.penalty, self.penalty_max = eps, penalty, penalty_max
+        self.rho0, self.lm_floor, self.radial = rho0, lm_floor, radial
+        self.undamped_check = undamped_check
+        self.shrink = 1.0
+        self._rho = rho0
+        self._ipm_first = False  # the last QP had active state constraints: skip the box-only attempt
+        self._fixed = np.zeros(0, dtype=bool)  # constraint rows no control can change (last linearisation)
+        nu = self.horizon * self.m
+        self._sens = np.zeros((self.horizon + 1, self.n, nu))
+        self._eye = np.eye(nu)
+        #: per-solve counters (iterations, QPs, rollouts, ...) of the last solve, for profiling
+        self.stats: dict[str, int] = {}
+        #: set to a list to record (iteration, merit, predicted, actual decrease, step, |d|, rho, penalty)
+        self.trace: list[tuple[Any, ...]] | None = None
+
+    def reset(self) -> None:
+        super().reset()
+        self._rho = self.rho0
+        self._ipm_first = False
+
+    def _fixed_rows(self, x0: np.ndarray, plan_u: np.ndarray, task: ShootingTask) -> np.ndarray:
+        # the last linearisation's (all rows, from the full sensitivities)
+        if self._fixed.size == task.n_cons:
+            return self._fixed
+        return super()._fixed_rows(x0, plan_u, task)
+
+    def _merit(self, xs: np.ndarray, task: ShootingTask, penalty: float) -> tuple[float, np.ndarray, np.ndarray]:
+        """Merit (cost, norms smoothed + penalty * violation), residuals ``(T, k)``, constraint values."""
+        r = xs[1:, task.res_idx] - task.target
+        c, _ = task.solver_violations(xs)
+        if r.shape[1] == 1:
+            merit = float(np.abs(r).sum())
+        else:
+            merit = float(np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2).sum())
+        if c.size:
+            merit += penalty * float(np.maximum(c, 0.0).sum())
+        if not np.isfinite(merit):
+            merit = float("inf")
+        return merit, r, c
+
+    def _sensitivities(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``S[t] = dx_t/dU`` ``(T+1, n, T m)`` (``S[0] = 0``); columns beyond ``t m`` stay zero."""
+        s, m = self._sens, self.m
+        for t in range(self.horizon):
+            if t:
+                np.matmul(a[t], s[t, :, : t * m], out=s[t + 1, :, : t * m])
+            s[t + 1, :, t * m : (t + 1) * m] = b[t]
+        return s
+
+    def _subproblem(
+        self, sens: np.ndarray, xs: np.ndarray, r: np.ndarray, c: np.ndarray, task: ShootingTask, penalty: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Model of the step d: smooth part ``hess, grad`` and elastic rows ``G d <= h`` priced ``pen``."""
+        T, k = self.horizon, task.res_idx.size
+        jac = sens[1:, task.res_idx, :]  # (T, k, Tm)
+        g_con = task.cons_sign[:, None] * sens[task.cons_t, task.cons_idx, :]
+        if task.att_tol is not None:
+            _, dqv = task.solver_violations(xs)
+            assert dqv is not None
+            g_con = np.vstack((g_con, dqv @ sens[task.horizon, list(task.att_qv), :]))
+        # rows no control can move (e.g. pz_1 = pz_0 + dt vz_0) only add a constant: leave them out
+        reach = np.abs(g_con) @ (self._u_hi - self._u_lo)
+        self._fixed = reach < 0.01 * self.feas_tol
+        if self._fixed.any():
+            keep = ~self._fixed
+            g_con, c = g_con[keep], c[keep]
+        pen_c = np.full(c.size, penalty)
+        if k == 1:
+            # exact l1 model: |r_t + J_t d| through a pair of elastic rows per stage, no smooth part
+            j1, r1 = jac[:, 0, :], r[:, 0]
+            g_mat = np.vstack((j1, -j1, g_con))
+            h_vec = np.concatenate((-r1, r1, -c))
+            pen = np.concatenate((np.ones(2 * T), pen_c))
+            nu = j1.shape[1]
+            return np.zeros((nu, nu)), np.zeros(nu), g_mat, h_vec, pen
+        f = np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2)
+        jf = jac.reshape(T * k, -1)
+        v = np.einsum("tk,tkj->tj", r, jac)  # J_t' r_t
+        grad = (v / f[:, None]).sum(0)
+        # generalised Gauss-Newton: J' [(I - radial r r'/f^2) / f] J, the Hessian of the smoothed norm
+        hess = (jf.T * np.repeat(1.0 / f, k)) @ jf - (v.T * (self.radial / f**3)) @ v
+        return hess, grad, g_con, -c, pen_c
+
+    def _qp(
+        self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray,
+        h_vec: np.ndarray, pen: np.ndarray, stage_rows: bool,
+    ) -> np.ndarray:
+        """The QP step. DAQP (when installed): the elastic QP directly (its active-set method handles the
+        box-only case as fast as projected Newton). The numpy fallback: projected Newton on the box alone when
+        that also satisfies the elastic rows (the state constraints are inactive), the interior point method
+        otherwise."""
+        if self.qp_backend == "daqp":
+            self.stats["daqp_qp"] += 1
+            return solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="daqp", hard_first=not stage_rows).d
+        if not stage_rows and not self._ipm_first:
+            box = solve_box_qp(hess, grad, lo, hi)
+            self.stats["box_qp"] += 1
+            if box.converged and (not h_vec.size or (g_mat @ box.d - h_vec).max() <= 1e-9):
+                return box.d
+        self.stats["ipm_qp"] += 1
+        qp = solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="ipm")
+        if not stage_rows:
+            # stay on the interior point method while a state constraint is (nearly) active
+            self._ipm_first = bool((g_mat @ qp.d - h_vec).max() > -1e-6)
+        return qp.d
+
+    def _optimize(
+        self, x0: np.ndarray, u0: np.ndarray, task: ShootingTask, xs0: np.ndarray | None = None
+    ) -> tuple[np.ndarray, int, bool, str, np.ndarray | None]:
+        start = time.perf_counter()
+        self.stats = dict.fromkeys(("iterations", "box_qp", "ipm_qp", "daqp_qp", "rollouts", "jacobians"), 0)
+        stage_rows = task.res_idx.size == 1
+        penalty = self.penalty
+        u = u0.copy()
+        xs = self.rollout(x0, u) if xs0 is None else xs0
+        merit, r, c = self._merit(xs, task, penalty)
+        if not np.isfinite(merit):
+            raise FloatingPointError("the warm start's prediction is not finite")
+        rho = self._rho
+        msg, converged = "max_iter", False
+        it = 0
+        for it in range(1, self.max_iter + 1):  # noqa: B007
+            _, a, b = self.dyn.step_jac(xs[:-1], u)
+            self.stats["jacobians"] += 1
+            sens = self._sensitivities(a, b)
+            hess, grad, g_mat, h_vec, pen = self._subproblem(sens, xs, r, c, task, penalty)
+            lo, hi = self._u_lo - u.reshape(-1), self._u_hi - u.reshape(-1)
+            scale = max(float(np.trace(hess)) / hess.shape[0], 1e-6)
+            rows0 = float(pen @ np.maximum(-h_vec, 0.0))
+            accepted = False
+            undamped_tried = False
+            while True:
+                d = self._qp(hess + (rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec, pen,
+                             stage_rows)
+                pred = -(grad @ d + 0.5 * d @ hess @ d) + rows0 - float(pen @ np.maximum(g_mat @ d - h_vec, 0.0))
+                if pred <= self.tol * (1.0 + abs(merit)):
+                    if self.undamped_check and rho > self.rho0 and not undamped_tried:
+                        undamped_tried = True
+                        # a heavily damped step predicts little even far from a stationary point (flat
+                        # valleys): only the (nearly) undamped model may declare convergence
+                        rho = self.rho0
+                        continue
+                    converged = True
+                    break
+                alpha, accepted, trial = self._line_search(x0, u, d, merit, pred, task, penalty)
+                merit_new = trial[2]
+                if self.trace is not None:
+                    self.trace.append((it, round(merit, 5), round(pred, 6), round(merit - merit_new, 6),
+                                       alpha if accepted else 0.0, round(float(np.abs(d).max()), 3), rho, penalty))
+                if accepted:
+                    ratio = (merit - merit_new) / pred
+                    if alpha == 1.0 and ratio > 0.75:
+                        rho = max(rho / 4.0, 1e-9)
+                    elif alpha < 1.0 or ratio < 0.25:
+                        rho *= max(2.0, self.shrink / alpha)
+                    break
+                rho = max(rho, 1e-3) * 10.0
+                if rho > 1e3:
+                    msg = "line search failed"
+                    break
+            if converged:
+                movable = c[~self._fixed] if c.size else c
+                viol = float(np.maximum(movable, 0.0).max()) if movable.size else 0.0
+                if viol > self.feas_tol and penalty < self.penalty_max:
+                    # converged to a point that still violates a constraint: make violations dearer, go on
+                    penalty *= 10.0
+                    merit, r, c = self._merit(xs, task, penalty)
+                    converged = False
+                    continue
+                msg = "converged"
+                break
+            if not accepted:
+                break
+            u, xs, merit, r, c = trial
+            if self.max_time is not None and time.perf_counter() - start > self.max_time:
+                msg = "time budget"
+                break
+        self._rho = rho
+        self.stats["iterations"] = it
+        return u, it, converged, msg, xs
+
+    def _line_search(self, x0: np.ndarray, u: np.ndarray, d: np.ndarray, merit: float, pred: float,
+                     task: ShootingTask, penalty: float) -> tuple[float, bool, _Trial]:
+        """Backtracking along the QP step ``d`` (T m,) from ``u`` (T, m) on the l1 merit (Armijo on the predicted
+        decrease ``pred``): the last step length tried, whether it was accepted, and its trial point."""
+        T, m = self.horizon, self.m
+        for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):
+            u_new = u + alpha * d.reshape(T, m)
+            xs_new = self.rollout(x0, u_new)
+            self.stats["rollouts"] += 1
+            merit_new, r_new, c_new = self._merit(xs_new, task, penalty)
+            if merit_new <= merit - 1e-4 * alpha * pred:
+                return alpha, True, (u_new, xs_new, merit_new, r_new, c_new)
+        return alpha, False, (u_new, xs_new, merit_new, r_new, c_new)

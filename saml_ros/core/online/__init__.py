@@ -1,0 +1,29 @@
+"""Online Sufficiently Accurate model learning, ROS-free: ingest -> replay buffer -> primal-dual updates.
+
+``learner`` (:class:`OnlineLearner`, the learner's state: buffer, model, trainer, counters), ``ingest`` (the
+ingest path: decode -> pairing -> buffer and recent window), ``telemetry`` (what ``learner/model_error``
+reports), ``resume`` (the newest valid checkpoint of a run directory), ``loop`` (:func:`run_loop`: update pacing,
+telemetry and checkpoint periods), ``process`` (:class:`TrainingProcess`, the parent's handle on the training
+interpreter, and the socket protocol) and ``child`` (what runs in that interpreter).
+"""
+
+from saml_ros.core.online.ingest import RawIngest
+from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
+from saml_ros.core.online.loop import LoopConfig, run_loop
+from saml_ros.core.online.process import LearnerSetup, ReadyInfo, TrainingProcess
+from saml_ros.core.online.resume import ResumeError, ResumeInfo
+from saml_ros.core.online.telemetry import assemble_telemetry
+
+__all__ = [
+    "LearnerSetup",
+    "LoopConfig",
+    "OnlineConfig",
+    "OnlineLearner",
+    "RawIngest",
+    "ReadyInfo",
+    "ResumeError",
+    "ResumeInfo",
+    "TrainingProcess",
+    "assemble_telemetry",
+    "run_loop",
+]

@@ -1,0 +1,129 @@
+"""The training process of the online learner, child side: :func:`child_entry` runs in the fresh interpreter
+:func:`saml_ros.core.child_launch.launch_child` starts; it receives the
+:class:`~saml_ros.core.online.process.LearnerSetup`, builds the learner (and the raw-message decoder the setup
+carries), reports ``ready`` and runs :func:`~saml_ros.core.online.loop.run_loop` until the parent says stop
+(the socket protocol is in :mod:`saml_ros.core.online.process`)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import sys
+import threading
+from typing import Any
+
+import torch
+
+from saml_ros.core.online.ingest import RawIngest
+from saml_ros.core.online.loop import Send, run_loop
+from saml_ros.core.online.process import STOP_SIGNAL, LearnerSetup
+from saml_ros.core.online.resume import ResumeError
+
+log = logging.getLogger("saml_ros.online")
+
+
+class _PipeLogHandler(logging.Handler):
+    """Ships ``saml_ros.*`` log records of the training process to its parent as ``("log", level, text)``."""
+
+    def __init__(self, send: Send) -> None:
+        super().__init__()
+        self._send = send
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self._send(("log", record.levelno, self.format(record)))
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGKILL this process when its parent dies (a killed learner never leaves a trainer behind that
+    keeps writing checkpoints into the run directory)."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+        if os.getppid() == 1:  # the parent died before prctl took effect
+            os._exit(0)
+
+
+def child_entry(fd: int) -> None:
+    """Entry point of a training process started for a :class:`~saml_ros.core.online.process.TrainingProcess`: ``fd`` is its end of a socket
+    pair; the first message on it is the :class:`LearnerSetup`."""
+    from multiprocessing.connection import Connection
+
+    conn = Connection(fd)
+    try:
+        setup = conn.recv()
+    except (EOFError, OSError):
+        _exit_now()
+    _child_main(conn, setup)
+    _exit_now()
+
+
+def _exit_now() -> None:
+    """End the training process without the interpreter's teardown: its work is saved and reported (or there was
+    none), and torch's teardown takes 1-5 s on a loaded 2-core machine, which the node's shutdown would wait for."""
+    logging.shutdown()
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(0)
+
+
+def apply_compute_settings(threads: int, flush_denormal: bool) -> dict[str, Any]:
+    """Set this process's torch intra-op ``threads`` (0 = leave torch's default) and subnormal flushing.
+
+    Returns what torch reports afterwards: ``{"threads": torch.get_num_threads(), "flush_denormal": bool}``
+    (``flush_denormal`` is False where the CPU cannot flush, e.g. without SSE3).
+    """
+    if threads > 0:
+        torch.set_num_threads(threads)
+    flushing = bool(torch.set_flush_denormal(flush_denormal)) and flush_denormal
+    return {"threads": torch.get_num_threads(), "flush_denormal": flushing}
+
+
+def _child_main(conn: Any, setup: LearnerSetup) -> None:
+    _die_with_parent()
+    # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops, and tells
+    # this process with STOP_SIGNAL (then the ("stop",) message) so that it stops without working off its inbox
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    stop_flag: list[int] = []
+    signal.signal(STOP_SIGNAL, lambda signum, frame: stop_flag.append(signum))
+    if setup.niceness:
+        with contextlib.suppress(OSError):
+            os.nice(setup.niceness)
+    compute = apply_compute_settings(setup.threads, setup.flush_denormal)
+    lock = threading.Lock()
+
+    def send(msg: tuple[Any, ...]) -> None:
+        with lock:
+            conn.send(msg)
+
+    handler = _PipeLogHandler(send)
+    root = logging.getLogger("saml_ros")
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+    try:
+        try:
+            learner = setup.build()
+            decode = setup.make_decoder()
+        except ResumeError as exc:
+            send(("fatal", "resume", str(exc)))
+            return
+        except Exception as exc:  # noqa: BLE001 - reported to the parent, which exits with a message
+            send(("fatal", "error", f"{type(exc).__name__}: {exc}"))
+            return
+        r = learner.resumed
+        info = None if r is None else {"path": str(r.path), "version": r.version, "updates": r.updates,
+                                       "lam": r.lam, "skipped": [(str(p), why) for p, why in r.skipped]}
+        raw = None if decode is None else RawIngest(learner, setup.channels, decode)
+        log.info("training process: %d torch intra-op thread(s), subnormal floats %s", compute["threads"],
+                 "flushed to zero" if compute["flush_denormal"] else "not flushed")
+        send(("ready", info, list(learner.model.hidden), learner.status(), compute))
+        run_loop(learner, setup.loop, conn, send, raw, stop_requested=lambda: bool(stop_flag))
+    except (EOFError, OSError):
+        return  # the parent is gone

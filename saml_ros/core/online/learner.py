@@ -1,0 +1,310 @@
+"""The online learner's state, ROS-free: :class:`OnlineLearner` (and its :class:`OnlineConfig`).
+
+It owns the replay buffer and recent window (fed through its :class:`~saml_ros.core.online.ingest.Ingest`), the
+model and the :class:`~saml_ros.core.training.PrimalDualTrainer`, created once ``min_transitions`` transitions
+have arrived: the input/output normalisation is fitted on exactly those transitions and then frozen (it is part
+of the model, so it is checkpointed and restored with it). :meth:`OnlineLearner.update` takes ``n`` primal-dual
+steps on minibatches sampled from the buffer; :meth:`OnlineLearner.compute_model_metrics` and
+:meth:`OnlineLearner.telemetry` report (:mod:`~saml_ros.core.online.telemetry`); checkpoints are written by
+:meth:`OnlineLearner.save_checkpoint` and resumed from at construction (:mod:`~saml_ros.core.online.resume`).
+
+Threads: one thread may call :meth:`OnlineLearner.ingest` (per source) while another calls
+:meth:`OnlineLearner.update`, :meth:`OnlineLearner.compute_model_metrics` and
+:meth:`OnlineLearner.save_checkpoint`; :meth:`OnlineLearner.telemetry` is cheap and may be called from any
+thread. The model is guarded by one lock; the buffer and the recent window have their own.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from saml_ros.core.buffer import Policy, ReplayBuffer
+from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.models import MODEL_KINDS, DynamicsModel
+from saml_ros.core.online.ingest import Ingest, RecentWindow
+from saml_ros.core.online.resume import ResumeInfo, resume_newest
+from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, model_metrics
+from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition
+from saml_ros.core.spec import ProblemSpec
+from saml_ros.core.systems.base import System
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
+
+log = logging.getLogger("saml_ros.online")
+
+#: history rows the trainer keeps in memory (older rows are dropped; online training never ends)
+HISTORY_ROWS = 1000
+
+
+@dataclass
+class OnlineConfig:
+    """Configuration of an :class:`OnlineLearner`.
+
+    Attributes:
+        kind: ``"residual"`` (f_hat + phi) or ``"full"`` (phi only).
+        hidden: hidden layer sizes; ``None`` = the system's ``paper_hidden``.
+        train: primal-dual hyper-parameters (``epochs`` is not used online).
+        buffer_capacity: replay buffer rows (>= min_transitions).
+        buffer_policy: ``"fifo"`` or ``"reservoir"`` (see docs/buffer.md).
+        min_transitions: transitions needed before training starts (normalisation is fitted on the first
+            ``min_transitions``); training also pauses while the buffer holds fewer (e.g. right after a resume).
+        telemetry_window: most recent transitions the live model error is computed on.
+        checkpoint_keep: checkpoint files kept in the run directory (older ones are pruned).
+    """
+
+    kind: str = "residual"
+    hidden: tuple[int, ...] | None = None
+    train: TrainConfig = field(default_factory=TrainConfig)
+    buffer_capacity: int = 100_000
+    buffer_policy: str = "fifo"
+    min_transitions: int = 1000
+    telemetry_window: int = 1000
+    checkpoint_keep: int = 5
+
+    def __post_init__(self) -> None:
+        if self.kind not in MODEL_KINDS:
+            raise ValueError(f"model kind must be one of {list(MODEL_KINDS)}, got {self.kind!r}")
+        if self.hidden is not None:
+            self.hidden = tuple(int(h) for h in self.hidden)
+            if any(h < 1 for h in self.hidden):
+                raise ValueError(f"hidden layer sizes must be >= 1, got {list(self.hidden)}")
+        if self.min_transitions < 2:
+            raise ValueError(f"min_transitions must be >= 2 (normalisation needs a spread), got {self.min_transitions}")
+        if self.buffer_capacity < self.min_transitions:
+            raise ValueError(
+                f"buffer capacity ({self.buffer_capacity}) must be >= min_transitions ({self.min_transitions})"
+            )
+        if self.buffer_policy not in ("fifo", "reservoir"):
+            raise ValueError(f"buffer policy must be 'fifo' or 'reservoir', got {self.buffer_policy!r}")
+        if self.telemetry_window < 1 or self.checkpoint_keep < 1:
+            raise ValueError("telemetry_window and checkpoint_keep must be >= 1")
+
+
+class OnlineLearner:
+    """Online primal-dual learning of one system's dynamics model from paired transitions.
+
+    Args:
+        system: the system (its layouts, base model f_hat and dt).
+        spec: the Sufficiently Accurate problem.
+        config: see :class:`OnlineConfig`.
+        store: run directory for checkpoints (``None``: no checkpoints).
+        resume: load the newest valid checkpoint of ``store`` (if any) at construction.
+        clock: time source for checkpoint periods (seconds); ``time.monotonic`` by default.
+
+    Raises:
+        ResumeError: ``resume`` found a checkpoint of another system or with another architecture /
+            constraint set.
+    """
+
+    def __init__(
+        self,
+        system: System,
+        spec: ProblemSpec,
+        config: OnlineConfig | None = None,
+        *,
+        store: CheckpointStore | None = None,
+        resume: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.system, self.spec = system, spec
+        self.config = cfg = config or OnlineConfig()
+        self.store = store
+        self._clock = clock
+        n_x, n_u, n_y = system.state.size, system.control.size, system.target.size
+        policy: Policy = "reservoir" if cfg.buffer_policy == "reservoir" else "fifo"
+        self.buffer = ReplayBuffer(cfg.buffer_capacity, n_x, n_u, n_y, policy, seed=cfg.train.seed)
+        self.model = DynamicsModel(system, cfg.hidden, cfg.kind, n_models=1, seed=cfg.train.seed)
+        self.model.to(cfg.train.torch_dtype)
+        self.trainer: PrimalDualTrainer | None = None
+        self._recent = RecentWindow(cfg.telemetry_window, n_x, n_u, n_y)
+        self.ingest_path = Ingest(self.buffer, self._recent)
+        self._lock = threading.RLock()
+        self._rng = np.random.default_rng(cfg.train.seed)
+        self._averages = StepAverages(spec.n_constraints)
+        self.model_version = 0
+        self._saved_updates: int | None = None
+        self._saved_at = clock()
+        self.checkpoints_written = 0
+        self.checkpoints_skipped = 0
+        self.resumed: ResumeInfo | None = None
+        self._metrics: dict[str, float] = {}
+        if store is not None and resume:
+            self._resume(store)
+        self.compute_model_metrics()
+
+    # ------------------------------------------------------------------------------------------ ingest
+    def add_source(self, name: str, pairing: PairingConfig) -> int:
+        """Register a source (robot / namespace) with its pairing rule; returns its index."""
+        return self.ingest_path.add_source(name, pairing)
+
+    @property
+    def sources(self) -> list[StampPairer]:
+        return self.ingest_path.sources
+
+    def ingest(self, source: int, kind: str, stamp_ns: int, vector: Any) -> AddResult:
+        """Feed one event of ``source`` (see :meth:`StampPairer.add`); completed transitions are added."""
+        return self.ingest_path.ingest(source, kind, stamp_ns, vector)
+
+    def reject(self, source: int, reason: str, kind: str | None = None) -> None:
+        """Count a ``kind`` message of ``source`` dropped before pairing (``reason``: a SchemaError reason)."""
+        self.ingest_path.reject(source, reason, kind)
+
+    def add(self, tr: Transition) -> None:
+        """Add one paired transition to the buffer and the recent window."""
+        self.ingest_path.add(tr)
+
+    def add_batch(self, x: np.ndarray, u: np.ndarray, y: np.ndarray, stamp: Any = 0.0, source: Any = 0) -> None:
+        """Add ``B`` paired transitions at once (see :meth:`Ingest.add_batch`)."""
+        self.ingest_path.add_batch(x, u, y, stamp, source)
+
+    def counts(self) -> dict[str, int]:
+        """All sources' pairing and rejection counters, summed."""
+        return self.ingest_path.counts()
+
+    # ------------------------------------------------------------------------------------------ training
+    @property
+    def updates(self) -> int:
+        """Primal-dual updates so far (including those of the checkpoint resumed from)."""
+        tr = self.trainer
+        return 0 if tr is None else tr.steps
+
+    @property
+    def training(self) -> bool:
+        """True when :meth:`update` would take steps now."""
+        if self.trainer is None:
+            return self.buffer.total_added >= self.config.min_transitions
+        return len(self.buffer) >= self.config.min_transitions
+
+    @property
+    def lam(self) -> np.ndarray:
+        """Current lambda ``(K,)`` (zeros before training starts)."""
+        tr = self.trainer
+        return np.zeros(self.spec.n_constraints) if tr is None else tr.lam[0].double().numpy().copy()
+
+    def update(self, n_steps: int) -> int:
+        """Run up to ``n_steps`` primal-dual updates; returns how many ran (0 while waiting for data).
+
+        The first call after ``min_transitions`` transitions arrived fits the normalisation on them and
+        creates the trainer.
+        """
+        if n_steps <= 0 or not self.training:
+            return 0
+        with self._lock:
+            if self.trainer is None:
+                self._start_training()
+            tr = self.trainer
+            assert tr is not None
+            bsz, dt = self.config.train.batch_size, self.config.train.torch_dtype
+            for _ in range(n_steps):
+                xb, ub, yb = self.buffer.sample(bsz, self._rng)
+                vals = tr.step(torch.from_numpy(xb).to(dt), torch.from_numpy(ub).to(dt), torch.from_numpy(yb).to(dt))
+                self._averages.add(vals)
+                if tr.steps % (self.config.train.log_every or 100) == 0:
+                    tr.log_point()
+                    tr.history.keep_last(HISTORY_ROWS)
+            return n_steps
+
+    def _start_training(self) -> None:
+        m = self.config.min_transitions
+        rows = self.buffer.arrays()  # oldest first: the first min_transitions ever added (capacity >= m)
+        self.model.fit_normalization(rows.x[:m], rows.u[:m], rows.y[:m])
+        self.trainer = PrimalDualTrainer(self.model, self.spec, self.config.train)
+        log.info("training started: normalisation fitted on the first %d transitions and frozen", m)
+
+    # ------------------------------------------------------------------------------------------ telemetry
+    def compute_model_metrics(self) -> dict[str, float]:
+        """Evaluate the current model on the recent window and summarise training since the last call.
+
+        Heavier than :meth:`telemetry` (one forward pass over the window): call it at the telemetry rate
+        from the thread that trains. Returns (and caches for :meth:`telemetry`) the model part of the metrics
+        (:func:`~saml_ros.core.online.telemetry.model_metrics`).
+        """
+        window = self._recent.arrays()
+        with self._lock:
+            out = model_metrics(self.model, self.spec, window, self._averages.take(), self.lam, self.updates,
+                                self.model_version)
+        self._metrics = out
+        return dict(out)
+
+    def status(self) -> dict[str, float]:
+        """The last :meth:`compute_model_metrics` plus live buffer size, update count, model version,
+        training flag and checkpoint counters (what a training process reports to its node)."""
+        out = dict(self._metrics)
+        out.update(
+            buffer_size=float(len(self.buffer)),
+            updates=float(self.updates),
+            model_version=float(self.model_version),
+            training=1.0 if self.training else 0.0,
+            checkpoints_written=float(self.checkpoints_written),
+            checkpoints_skipped=float(self.checkpoints_skipped),
+        )
+        return out
+
+    def telemetry(self) -> dict[str, float]:
+        """The full ``learner/model_error`` values (:func:`assemble_telemetry` of :meth:`status` and
+        :meth:`counts`). Model values come from the last :meth:`compute_model_metrics`; counters, buffer size
+        and update count are live."""
+        return assemble_telemetry(self.spec.constraint_names, self.status(), self.counts())
+
+    # ------------------------------------------------------------------------------------------ checkpoints
+    @property
+    def dirty(self) -> bool:
+        """True when the trainer has updates not yet in a checkpoint."""
+        return self.trainer is not None and self.updates != self._saved_updates
+
+    def checkpoint_due(self, period_s: float) -> bool:
+        """True when ``period_s`` seconds passed since the last save (or start) and there is something new."""
+        return self.dirty and self._clock() - self._saved_at >= period_s
+
+    def save_checkpoint(self, extra: Mapping[str, Any] | None = None) -> tuple[Path, int] | None:
+        """Write the next checkpoint into the store (``None`` if no store or no trainer yet).
+
+        Raises:
+            OSError: the run directory is not writable (the caller logs and retries later).
+        """
+        if self.store is None or self.trainer is None:
+            return None
+        with self._lock:
+            counts = self.counts()
+            info = {
+                "paired": counts.get("paired", 0),
+                "sources": [p.name for p in self.sources],
+                "min_transitions": self.config.min_transitions,
+                "buffer_size": len(self.buffer),
+                **dict(extra or {}),
+            }
+            metrics = {k: v for k, v in self._metrics.items() if isinstance(v, float)}
+            path, version = save_checkpoint(self.store, self.trainer, metrics, {"learner": info})
+            self.model_version = version
+            self._saved_updates = self.trainer.steps
+            self._saved_at = self._clock()
+            self.checkpoints_written += 1
+            return path, version
+
+    def _resume(self, store: CheckpointStore) -> None:
+        """Adopt the newest valid checkpoint of ``store`` (see :func:`~saml_ros.core.online.resume.resume_newest`)."""
+        cfg = self.config.train
+        found, n_skipped = resume_newest(store, self.system, self.spec, self.model.architecture(), cfg)
+        self.checkpoints_skipped += n_skipped
+        if found is None:
+            return
+        trainer, path, version = found.trainer, found.path, found.version
+        self.model = trainer.model
+        self.model.train()
+        self.trainer = trainer
+        self.model_version = version
+        self._saved_updates = trainer.steps
+        self._rng = np.random.default_rng([cfg.seed, version])  # a fresh minibatch sequence per resume
+        self.resumed = ResumeInfo(path, version, trainer.steps, self.lam.tolist(), list(found.skipped))
+        for p, why in found.skipped:
+            log.warning("resume: skipped %s: %s", p, why)
+        log.info("resume: loaded %s (version %d, %d updates, lambda %s)", path, version, trainer.steps,
+                 self.lam.tolist())

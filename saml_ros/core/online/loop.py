@@ -1,0 +1,124 @@
+"""The training loop of an online learner (:func:`run_loop`): pacing the updates (:class:`LoopConfig`), reporting
+status at the telemetry rate, checkpointing every ``checkpoint_period`` and on stop, with the whole inbox handled
+before every chunk of updates (ingest goes first). It runs in the training process
+(:mod:`~saml_ros.core.online.process`, whose socket protocol it speaks), or in any thread owning the learner."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from saml_ros.core.online.ingest import RawIngest
+from saml_ros.core.online.learner import OnlineLearner
+
+#: ``send(message)``: one message to the parent (see :func:`run_loop` for the messages)
+Send = Callable[[tuple[Any, ...]], None]
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """How a training loop paces itself.
+
+    Attributes:
+        updates_per_second: primal-dual updates per wall-clock second; 0 = as fast as possible.
+        telemetry_rate: model metrics computed (and reported) per second, Hz.
+        checkpoint_period: wall-clock seconds between checkpoints (only when there are new updates).
+        chunk: updates between two looks at the inbox and the clocks.
+    """
+
+    updates_per_second: float = 0.0
+    telemetry_rate: float = 5.0
+    checkpoint_period: float = 10.0
+    chunk: int = 10
+
+    def __post_init__(self) -> None:
+        if self.updates_per_second < 0 or self.telemetry_rate <= 0 or self.checkpoint_period <= 0 or self.chunk < 1:
+            raise ValueError(f"invalid loop configuration {self}")
+
+
+
+def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, raw: RawIngest | None = None,
+             stop_requested: Callable[[], bool] | None = None) -> None:
+    """The training loop of a training process (or any thread owning ``learner``).
+
+    ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
+    (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``) and ``("stop",)``.
+    The whole inbox is handled before every chunk of updates, so ingest goes first. ``send`` reports
+    ``("status", status, {source name: counters})`` at ``loop.telemetry_rate``, ``("checkpoint", path,
+    version)`` after each save, ``("error", what, message)`` and, on stop, ``("stopped", path | None, version,
+    updates)`` after a final checkpoint (when there are updates not yet saved). Returns after a stop.
+    ``stop_requested()`` True (the training process got
+    :data:`~saml_ros.core.online.process.STOP_SIGNAL`) stops at once, as ``("stop",)`` would, without handling
+    what is still in the inbox: data not yet in the buffer cannot change the final checkpoint, and a backlog of
+    it must not hold the shutdown past a launcher's grace period.
+    """
+    requested = stop_requested or (lambda: False)
+
+    def report() -> None:
+        learner.compute_model_metrics()
+        if raw is not None:
+            raw.check_orphans()
+        send(("status", learner.status(), {p.name: dict(p.counts) for p in learner.sources}))
+
+    metrics_period = 1.0 / loop.telemetry_rate
+    next_metrics = 0.0
+    paced_from: float | None = None
+    paced_done = 0
+    while True:
+        while True:
+            msg: Any = ("stop",) if requested() else (conn.recv() if conn.poll() else None)
+            if msg is None:
+                break
+            if msg[0] == "raw":
+                if raw is not None:
+                    raw.feed(msg[1])
+            elif msg[0] == "batch":
+                learner.add_batch(*msg[1:])
+            elif msg[0] == "stop":
+                saved = save_and_announce(learner, send) if learner.dirty else None
+                report()
+                path = str(saved[0]) if saved else None
+                send(("stopped", path, learner.model_version, learner.updates))
+                return
+        now = time.monotonic()
+        if now >= next_metrics:
+            report()
+            next_metrics = now + metrics_period
+        if learner.checkpoint_due(loop.checkpoint_period):
+            save_and_announce(learner, send)
+        if not learner.training:
+            paced_from = None
+            conn.poll(0.05)  # an interruptible sleep: wakes up when data arrives
+            continue
+        n = loop.chunk
+        if loop.updates_per_second > 0:
+            if paced_from is None:
+                paced_from, paced_done = now, 0
+            due = int((now - paced_from) * loop.updates_per_second) - paced_done
+            if due <= 0:
+                conn.poll(min(metrics_period, (paced_done + 1) / loop.updates_per_second - (now - paced_from)))
+                continue
+            n = min(due, loop.chunk)
+            paced_done += n
+        try:
+            learner.update(n)
+        except Exception as exc:  # noqa: BLE001 - report, back off, keep going
+            send(("error", "training", f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s"))
+            time.sleep(1.0)
+
+
+def save_and_announce(learner: OnlineLearner, send: Send) -> tuple[Path, int] | None:
+    """Write a checkpoint and send ``("checkpoint", path, version)``; a write error is sent as ``("error",
+    "checkpoint", message)`` (and ``None`` returned: the loop retries at the next period)."""
+    try:
+        saved = learner.save_checkpoint()
+    except OSError as exc:
+        run_dir = learner.store.run_dir if learner.store else "?"
+        send(("error", "checkpoint", f"cannot write a checkpoint into {run_dir}: {exc}"))
+        return None
+    if saved is not None:
+        send(("checkpoint", str(saved[0]), saved[1]))
+    return saved

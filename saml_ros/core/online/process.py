@@ -1,0 +1,380 @@
+"""The training process of the online learner, parent side: a separate, niced interpreter (its side is
+:mod:`saml_ros.core.online.child`) owns an :class:`~saml_ros.core.online.learner.OnlineLearner` built from a
+picklable :class:`LearnerSetup` and runs :func:`~saml_ros.core.online.loop.run_loop`; :class:`TrainingProcess`
+is the parent's handle that starts it, feeds it and restarts it.
+
+Why: ingest in the parent never competes with training for the GIL (the learner node ships raw messages, so
+decoding and pairing run in the child too; see docs/learner.md for the measurements). The child is started by
+:func:`saml_ros.core.child_launch.launch_child` (a fresh interpreter running
+:func:`saml_ros.core.online.child.child_entry` on its end of a socket pair) and builds everything from the setup.
+
+Socket protocol (``multiprocessing.connection`` messages, tuples):
+
+* parent -> child: first the :class:`LearnerSetup`; then ``("batch", x, u, y, stamp_s, source)`` (paired
+  transitions, arrays ``(B, .)`` / ``(B,)``), ``("raw", [(channel, payload), ...])`` (messages for the setup's
+  decoder) and finally ``("stop",)``;
+* child -> parent: ``("ready", resumed, hidden, status, compute)`` once built (or ``("fatal", "resume" |
+  "error", message)`` and exit), then ``("status", status, {source: counters})``, ``("checkpoint", path,
+  version)``, ``("error", what, message)``, ``("log", level, text)`` and, after a stop, ``("stopped", path |
+  None, version, updates)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import signal
+import subprocess
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.child_launch import LaunchedChild, launch_child
+from saml_ros.core.online.ingest import Decode
+from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
+from saml_ros.core.online.loop import LoopConfig
+from saml_ros.core.online.resume import ResumeError
+from saml_ros.core.pairing import PairingConfig, Transition, total_counts
+from saml_ros.core.spec import ProblemSpec
+
+log = logging.getLogger("saml_ros.online")
+
+#: ``factory(decoder_args) -> decode``: builds a training process's raw-message decoder (a module-level function,
+#: so it pickles by reference; e.g. :func:`msg_schemas.decode.make_decoder`)
+DecoderFactory = Callable[[Any], Decode]
+#: what :meth:`TrainingProcess.stop` sends the training process: save now, skip the inbox (see
+#: :func:`~saml_ros.core.online.loop.run_loop`)
+STOP_SIGNAL = signal.SIGUSR1
+
+
+@dataclass(frozen=True)
+class LearnerSetup:
+    """Everything a training process needs to build its :class:`OnlineLearner` (picklable).
+
+    Attributes:
+        system, system_params: ``get_system(system, **system_params)``.
+        spec: the problem spec as a dict (``ProblemSpec.to_dict()``).
+        config: the learner configuration.
+        run_dir: checkpoint directory (``None``: no checkpoints).
+        resume: resume from the newest valid checkpoint of ``run_dir``.
+        loop: pacing of the training loop.
+        niceness: added to the training process's nice value, so the OS runs ingest (and simulators, MPC)
+            first when CPUs are short; 0 keeps the parent's priority.
+        threads: torch intra-op threads of the training process; 0 = torch's default (one per core). One is
+            fastest for these small networks on a shared 2-core machine (docs/performance.md).
+        flush_denormal: flush subnormal floats to zero in the training process (they can slow training by
+            an order of magnitude; docs/performance.md).
+        sources: ``(name, pairing)`` of each source, in index order (for raw messages; see below).
+        channels: ``(source index, kind)`` of each raw-message channel.
+        decoder: a :data:`DecoderFactory`: ``decoder(decoder_args)`` returns ``decode(channel, payload) ->
+            (vector, stamp_ns)`` for raw messages (it raises an exception with a ``reason`` attribute, e.g.
+            ``msg_schemas.SchemaError``, for a malformed one). The caller passes it, so message formats (and
+            rclpy) stay out of the core.
+        decoder_args: picklable argument of the decoder factory.
+    """
+
+    system: str
+    system_params: dict[str, Any]
+    spec: dict[str, Any]
+    config: OnlineConfig
+    run_dir: str | None = None
+    resume: bool = True
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    niceness: int = 10
+    threads: int = 1
+    flush_denormal: bool = True
+    sources: tuple[tuple[str, PairingConfig], ...] = ()
+    channels: tuple[tuple[int, str], ...] = ()
+    decoder: DecoderFactory | None = None
+    decoder_args: Any = None
+
+    def __post_init__(self) -> None:
+        if self.threads < 0:
+            raise ValueError(f"threads must be >= 0 (0 = torch's default), got {self.threads}")
+
+    def build(self) -> OnlineLearner:
+        """The learner (resumed from ``run_dir`` when ``resume``), with its sources registered."""
+        from saml_ros.core.systems import get_system
+
+        system = get_system(self.system, **self.system_params)
+        spec = ProblemSpec.for_system(self.spec, system)
+        store = None if self.run_dir is None else CheckpointStore(self.run_dir, keep=self.config.checkpoint_keep)
+        learner = OnlineLearner(system, spec, self.config, store=store, resume=self.resume)
+        for name, pairing in self.sources:
+            learner.add_source(name, pairing)
+        return learner
+
+    def make_decoder(self) -> Decode | None:
+        """The raw-message decoder (``decoder(decoder_args)``), or None."""
+        return None if self.decoder is None else self.decoder(self.decoder_args)
+
+
+@dataclass
+class ReadyInfo:
+    """What a training process reported when it was ready.
+
+    Attributes:
+        resumed: ``{"path", "version", "updates", "lam", "skipped"}`` of the checkpoint it resumed from, or None.
+        hidden: the model's hidden layer sizes.
+        status: its first :meth:`OnlineLearner.status`.
+        threads: torch intra-op threads the training process runs with.
+        flush_denormal: whether it flushes subnormal floats to zero.
+    """
+
+    resumed: dict[str, Any] | None
+    hidden: list[int]
+    status: dict[str, float]
+    threads: int
+    flush_denormal: bool
+
+
+class TrainingProcess:
+    """Runs the training side of an :class:`OnlineLearner` in a child process fed with transitions.
+
+    Why a process: the learner's ingest (rclpy callbacks: decode, pair) and primal-dual training are both
+    Python; in one process they share the GIL, and training would take CPU time from ingest (measured: the
+    node then loses messages at under a third of a bare subscriber's rate; docs/learner.md). In a child process training runs
+    on another CPU when there is one, and at a higher nice value (:attr:`LearnerSetup.niceness`) it yields
+    the CPU to ingest when there is not.
+
+    The child owns the buffer, model, trainer, checkpoints and resume (and, for raw messages, the decoding and
+    pairing: :class:`RawIngest`); this handle ships paired transitions (:meth:`submit`) or raw messages
+    (:meth:`submit_raw`) to it in batches every 5 ms (a shipper thread, so submitting never blocks) and receives
+    status, per-source counters, checkpoint announcements, log records and errors (a reader thread, calling the
+    callbacks). If the child dies
+    unexpectedly it is restarted (resuming from the newest checkpoint) and ``on_error`` is told.
+
+    Args:
+        setup: how to build the learner in the child.
+        on_status: called with each status dict (:meth:`OnlineLearner.status`).
+        on_checkpoint: called with ``(path, version)`` after each checkpoint.
+        on_log: called with ``(level, text)`` for the child's log records.
+        on_error: called with ``(what, message)`` for training / checkpoint errors and restarts.
+        max_queue: transitions held while the child cannot take them; beyond that they are dropped
+            (counted in :attr:`dropped`).
+    """
+
+    def __init__(
+        self,
+        setup: LearnerSetup,
+        *,
+        on_status: Callable[[dict[str, float]], None] | None = None,
+        on_checkpoint: Callable[[str, int], None] | None = None,
+        on_log: Callable[[int, str], None] | None = None,
+        on_error: Callable[[str, str], None] | None = None,
+        max_queue: int = 200_000,
+    ) -> None:
+        self.setup = setup
+        self.on_status = on_status or (lambda s: None)
+        self.on_checkpoint = on_checkpoint or (lambda p, v: None)
+        self.on_log = on_log or (lambda lvl, text: log.log(lvl, text))
+        self.on_error = on_error or (lambda what, text: log.error(text))
+        self.max_queue = max_queue
+        self.status: dict[str, float] = {}
+        #: per-source pairing counters of the child, ``{source name: {counter: value}}`` (see pairing.COUNTERS)
+        self.source_counts: dict[str, dict[str, int]] = {}
+        #: what the running training process reported when it was ready (after a restart: the new one's)
+        self.ready: ReadyInfo | None = None
+        self.dropped = 0
+        self.restarts = 0
+        self.errors = 0
+        self._outbox: deque[Transition] = deque()
+        self._raw: deque[tuple[int, Any]] = deque()
+        self._send_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._stopped = threading.Event()
+        self._final: tuple[str | None, int, int] | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._conn: Any = None
+        self._threads: list[threading.Thread] = []
+
+    # ---------------------------------------------------------------------------------------- lifecycle
+    def start(self, timeout: float = 120.0, launched: LaunchedChild | None = None) -> ReadyInfo:
+        """Start the child (or use ``launched``, from :func:`launch_child`) and wait until it has built its
+        learner (and resumed).
+
+        Raises:
+            ResumeError: the run directory contradicts the configuration.
+            RuntimeError: the child could not build its learner or did not answer within ``timeout`` s.
+        """
+        ready = self._spawn(self.setup, timeout, launched)
+        for target, name in ((self._ship, "learner-ship"), (self._read, "learner-read")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        return ready
+
+    def _spawn(self, setup: LearnerSetup, timeout: float, launched: LaunchedChild | None = None) -> ReadyInfo:
+        proc, parent = launched if launched is not None else launch_child()
+        parent.send(setup)
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0 or not parent.poll(left):
+                proc.kill()
+                proc.wait(5)
+                raise RuntimeError(f"the training process did not start within {timeout:.0f} s")
+            try:
+                msg = parent.recv()
+            except (EOFError, OSError):
+                exit_code = proc.wait(5)
+                raise RuntimeError(f"the training process exited during start-up (exit code {exit_code})") from None
+            if msg[0] == "log":
+                self.on_log(msg[1], msg[2])
+            elif msg[0] == "fatal":
+                proc.wait(10)
+                raise (ResumeError if msg[1] == "resume" else RuntimeError)(msg[2])
+            elif msg[0] == "ready":
+                self._proc, self._conn = proc, parent
+                self.status = msg[3]
+                self.ready = ReadyInfo(msg[1], msg[2], msg[3], msg[4]["threads"], msg[4]["flush_denormal"])
+                return self.ready
+
+    def stop(self, timeout: float = 60.0) -> tuple[str | None, int, int] | None:
+        """Ask the child for a final checkpoint now and wait for it to exit.
+
+        What is still queued here or in the child's inbox is dropped (it is not in the buffer yet, so it cannot
+        change the final checkpoint): :data:`STOP_SIGNAL` makes the child save at once, however far behind its
+        ingest is. Returns ``(path of the final checkpoint or None if nothing was new, model version, updates)``,
+        or None if the child did not answer within ``timeout`` s (it is then killed).
+        """
+        self._stopping.set()
+        if self._proc is not None and self._proc.poll() is None:
+            with contextlib.suppress(OSError):
+                self._proc.send_signal(STOP_SIGNAL)
+        for t in self._threads:
+            if t.name == "learner-ship":
+                t.join(timeout)
+        try:
+            with self._send_lock:
+                self._conn.send(("stop",))
+        except (OSError, ValueError):
+            pass
+        self._stopped.wait(timeout)
+        if self._proc is not None:
+            try:
+                self._proc.wait(5.0 if self._stopped.is_set() else 0.1)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait(5.0)
+        return self._final
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else int(self._proc.pid)
+
+    # ---------------------------------------------------------------------------------------- data
+    def submit(self, tr: Transition) -> None:
+        """Queue one transition for the child (never blocks; see ``max_queue``)."""
+        if len(self._outbox) >= self.max_queue:
+            self.dropped += 1
+            return
+        self._outbox.append(tr)
+
+    def submit_raw(self, channel: int, payload: Any) -> None:
+        """Queue one raw message for the child's decoder (never blocks; see ``max_queue``). Called from one
+        thread per channel set (an rclpy callback group), it only appends to a deque."""
+        if len(self._raw) >= self.max_queue:
+            self.dropped += 1
+            return
+        self._raw.append((channel, payload))
+
+    @property
+    def queued(self) -> int:
+        return len(self._outbox) + len(self._raw)
+
+    def counts(self) -> dict[str, int]:
+        """The child's pairing counters summed over sources (as of its last status)."""
+        return total_counts(self.source_counts.values())
+
+    def _ship(self) -> None:
+        """Send queued data in batches every few ms (a blocking pipe write stalls this thread only); returns as
+        soon as :meth:`stop` is called (the child no longer reads data then)."""
+        while True:
+            if self._stopping.is_set():
+                return
+            n = len(self._raw)
+            if n:
+                items = [self._raw.popleft() for _ in range(n)]
+                try:
+                    with self._send_lock:
+                        self._conn.send(("raw", items))
+                except (OSError, ValueError):  # the child is being restarted: keep them
+                    self._raw.extendleft(reversed(items))
+                    time.sleep(0.1)
+            n = len(self._outbox)
+            if n:
+                trs = [self._outbox.popleft() for _ in range(n)]
+                batch = (
+                    "batch",
+                    np.stack([t.x for t in trs]),
+                    np.stack([t.u for t in trs]),
+                    np.stack([t.y for t in trs]),
+                    np.array([t.stamp_ns for t in trs], dtype=np.float64) * 1e-9,
+                    np.array([t.source for t in trs], dtype=np.int64),
+                )
+                try:
+                    with self._send_lock:
+                        self._conn.send(batch)
+                except (OSError, ValueError):  # the child is being restarted: keep the batch
+                    self._outbox.extendleft(reversed(trs))
+                    time.sleep(0.1)
+            time.sleep(0.005)
+
+    def _read(self) -> None:
+        while True:
+            conn = self._conn
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                if self._stopping.is_set():
+                    self._stopped.set()
+                    return
+                self._restart()
+                continue
+            kind = msg[0]
+            if kind == "status":
+                self.status = msg[1]
+                self.source_counts = msg[2]
+                self.on_status(msg[1])
+            elif kind == "checkpoint":
+                self.on_checkpoint(msg[1], msg[2])
+            elif kind == "log":
+                self.on_log(msg[1], msg[2])
+            elif kind == "error":
+                self.errors += 1
+                self.on_error(msg[1], msg[2])
+            elif kind == "stopped":
+                self._final = (msg[1], msg[2], msg[3])
+                self._stopped.set()
+                return
+
+    def _restart(self) -> None:
+        code = None
+        if self._proc is not None:
+            try:
+                code = self._proc.wait(5.0)
+            except subprocess.TimeoutExpired:  # its end of the connection broke but it lives on: end it
+                self._proc.kill()
+                code = self._proc.wait(5.0)
+        self.errors += 1
+        self.restarts += 1
+        self.on_error("process", f"the training process exited unexpectedly (exit code {code}); restarting it "
+                                 "from the newest checkpoint (the replay buffer starts empty)")
+        time.sleep(0.5)
+        setup = dataclasses.replace(self.setup, resume=True)
+        while not self._stopping.is_set():
+            try:
+                with self._send_lock:
+                    self._spawn(setup, 120.0)
+                return
+            except Exception as exc:  # noqa: BLE001 - keep trying; ingest goes on meanwhile
+                self.on_error("process", f"restarting the training process failed: {exc}; retrying in 5 s")
+                time.sleep(5.0)

@@ -1,0 +1,117 @@
+"""What the online learner reports on ``learner/model_error``: the names and order of the values
+(:func:`assemble_telemetry`, :data:`EXTRA_METRICS`), the training averages since the previous report
+(:class:`StepAverages`) and the live one-step error of the current model on the recent window
+(:func:`model_metrics`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+
+from msg_schemas.telemetry import model_error_names
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.spec import ProblemSpec, SpecValues
+
+#: extra ``learner/model_error`` values appended after the canonical names
+EXTRA_METRICS: tuple[tuple[str, str, str], ...] = (
+    ("paired", "count", "transitions paired so far (all sources)"),
+    ("window", "count", "recent transitions the live errors are computed on"),
+    ("error_all", "loss", "live one-step error of the current model on the recent window (the objective's loss)"),
+    ("training", "1", "1 while primal-dual updates run, 0 while waiting for min_transitions"),
+)
+#: extra per-constraint values (``<name>/<k>``)
+EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
+    ("n_in", "count", "recent transitions inside region k (error_in is NaN when 0)"),
+)
+
+
+def assemble_telemetry(
+    constraint_names: Sequence[str], status: Mapping[str, float], counts: Mapping[str, int]
+) -> dict[str, float]:
+    """``learner/model_error`` values in order: :func:`~msg_schemas.telemetry.model_error_names` first, then
+    :data:`EXTRA_METRICS` and ``n_in/<k>``.
+
+    Args:
+        constraint_names: the spec's constraint names.
+        status: an online learner's ``status()`` (missing model values are NaN).
+        counts: pairing counters (the learner's ``counts()`` or :func:`~saml_ros.core.pairing.total_counts`).
+    """
+    out: dict[str, float] = {}
+    for n in model_error_names(constraint_names):
+        if n.startswith("rejected/"):
+            out[n] = float(counts.get(n.removeprefix("rejected/"), 0))
+        else:
+            out[n] = float(status.get(n, math.nan))
+    out["paired"] = float(counts.get("paired", 0))
+    for n, _, _ in EXTRA_METRICS:
+        if n != "paired":
+            out[n] = float(status.get(n, math.nan))
+    for c in constraint_names:
+        out[f"n_in/{c}"] = float(status.get(f"n_in/{c}", 0.0))
+    return out
+
+
+class StepAverages:
+    """Means of the minibatch objective and constraint estimates (ensemble member 0) since the last :meth:`take`."""
+
+    def __init__(self, n_constraints: int) -> None:
+        self._n = 0
+        self._obj = 0.0
+        self._con = np.zeros(n_constraints)
+        self._last_obj = math.nan
+        self._last_con = np.full(n_constraints, math.nan)
+
+    def add(self, vals: SpecValues) -> None:
+        self._n += 1
+        self._obj += float(vals.objective[0])
+        if len(self._con):
+            self._con += vals.constraints[0].double().numpy()
+
+    def take(self) -> tuple[float, np.ndarray]:
+        """``(objective, constraints (K,))`` averaged since the previous call; the previous values again when no
+        step ran in between (NaN before the first step)."""
+        if self._n:
+            self._last_obj = self._obj / self._n
+            self._last_con = self._con / self._n
+            self._n, self._obj = 0, 0.0
+            self._con = np.zeros(len(self._con))
+        return self._last_obj, self._last_con
+
+
+def model_metrics(
+    model: DynamicsModel, spec: ProblemSpec, window: tuple[np.ndarray, np.ndarray, np.ndarray],
+    averages: tuple[float, np.ndarray], lam: np.ndarray, updates: int, version: int,
+) -> dict[str, float]:
+    """The model part of the telemetry: the training averages (``objective``, ``constraint/<k>``, ``lagrangian``),
+    ``lambda/<k>`` (``lam`` ``(K,)``), the ``updates`` and ``model_version`` they belong to and, on the recent ``window`` ``(x, u, y)``, the one-step errors of the current model inside /
+    outside each constraint region (``error_in/<k>``, ``error_out/<k>``, ``n_in/<k>``, NaN / 0 when empty), over
+    the whole window (``error_all``) and the window size."""
+    x, u, y = window
+    obj, con = averages
+    errs: dict[str, dict[str, torch.Tensor]] = {}
+    err_all = math.nan
+    if len(x):
+        with torch.no_grad():
+            xt, ut, yt = (torch.from_numpy(a) for a in (x, u, y))
+            dt = model.in_mean.dtype
+            pred = model(xt.to(dt), ut.to(dt)).double()
+            errs = spec.region_errors(xt, ut, yt, pred)
+            err_all = float(spec.objective.per_sample(pred, yt).mean())
+    out: dict[str, float] = {}
+    out["objective"] = obj
+    out["lagrangian"] = obj + float(np.sum(lam * con)) if spec.n_constraints else obj
+    out["updates"] = float(updates)
+    out["model_version"] = float(version)
+    for k, name in enumerate(spec.constraint_names):
+        e = errs.get(name)
+        out[f"constraint/{name}"] = float(con[k])
+        out[f"lambda/{name}"] = float(lam[k])
+        out[f"error_in/{name}"] = float(e["in"][0]) if e else math.nan
+        out[f"error_out/{name}"] = float(e["out"][0]) if e else math.nan
+        out[f"n_in/{name}"] = float(e["n_in"][0]) if e else 0.0
+    out["window"] = float(len(x))
+    out["error_all"] = err_all
+    return out

@@ -1,0 +1,101 @@
+"""The system registry: one :class:`~saml_ros.core.systems.entry.SystemEntry` per system, from which every part
+of that system is reached.
+
+A system's dynamics (its :class:`~saml_ros.core.systems.base.System` class, which also holds the paper's spec
+and the safe command), numpy twin of the base model, MPC controllers, task and goal parameters, topic schema,
+simulator core, bringup defaults, paper training budget and experiment are fields of its entry. Code outside
+the registry never asks "which system is this?": it looks the entry up by name (:func:`get_entry`) and uses
+what the entry holds.
+
+The table is open: :func:`register_system` adds an entry at run time; the built-in three
+(:mod:`saml_ros.core.systems.builtin`) are registered when this module is first imported. Importing the
+registry imports neither torch, MuJoCo nor the MPC.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from saml_ros.core.systems import builtin
+from saml_ros.core.systems.entry import SystemEntry
+
+if TYPE_CHECKING:
+    from saml_ros.core.systems.base import System
+    from saml_ros.core.worlds.sim_core import SimConfig, SteppedSim
+
+# ---------------------------------------------------------------------------------------------- the table
+_ENTRIES: dict[str, SystemEntry] = {}
+
+
+def register_system(entry: SystemEntry, *, replace: bool = False) -> SystemEntry:
+    """Add ``entry`` to the registry and return it; ``ValueError`` if its name is taken (unless ``replace``)
+    or is not a valid ROS name token (it becomes the namespace ``/<name>``)."""
+    if not isinstance(entry, SystemEntry):
+        raise TypeError(f"register_system wants a SystemEntry, got {type(entry).__name__}")
+    name = entry.name
+    if not (isinstance(name, str) and name and (name[0].isalpha()) and name.replace("_", "").isalnum()
+            and name.isascii()):
+        raise ValueError(f"system name {name!r} must start with a letter and hold only letters, digits and '_'")
+    if entry.goal_position not in {g.name for g in entry.goal_params}:
+        raise ValueError(f"system {name!r}: goal_position {entry.goal_position!r} is not one of its goal_params")
+    if name in _ENTRIES and not replace:
+        raise ValueError(f"system {name!r} is already registered")
+    _ENTRIES[name] = entry
+    return entry
+
+
+def system_names() -> tuple[str, ...]:
+    """Names of every registered system, in registration order (the built-in three first)."""
+    return tuple(_ENTRIES)
+
+
+def find_entry(name: str) -> SystemEntry | None:
+    """The entry registered as ``name``, or ``None``."""
+    return _ENTRIES.get(name) if isinstance(name, str) else None
+
+
+def get_entry(name: str) -> SystemEntry:
+    """The entry registered as ``name``; ``ValueError`` listing the valid names otherwise."""
+    entry = find_entry(name)
+    if entry is None:
+        raise ValueError(f"unknown system {name!r}; valid names are {list(_ENTRIES)}")
+    return entry
+
+
+def system_class(name: str) -> type[System]:
+    """The :class:`System` subclass registered as ``name``; ``ValueError`` listing the valid names otherwise."""
+    return get_entry(name).system_class()
+
+
+def default_params(name: str) -> dict[str, Any]:
+    """The constructor parameters of system ``name`` with their (paper) defaults."""
+    return get_entry(name).default_params()
+
+
+def get_system(name: str, **overrides: Any) -> System:
+    """Build system ``name`` with parameters ``overrides``.
+
+    Raises ``ValueError`` for an unknown name, an unknown parameter (listing the valid ones) or an invalid
+    parameter value.
+    """
+    return get_entry(name).make_system(**overrides)
+
+
+for _entry in builtin.ENTRIES:
+    register_system(_entry)
+
+#: the built-in systems, in a stable order (:func:`system_names` also lists systems registered later)
+SYSTEM_NAMES: tuple[str, ...] = tuple(e.name for e in builtin.ENTRIES)
+
+
+def build_stepped_sim(system: System, config: SimConfig, *, publish_clock: bool = True,
+                      **options: Any) -> SteppedSim:
+    """The :class:`~saml_ros.core.worlds.sim_core.SteppedSim` of a time-stepped system: its registry entry's
+    ``stepped_model`` with ``options`` (the quadrotor's ``landing_height``, m, default 0.1). ``ValueError`` for an
+    event-based system."""
+    from saml_ros.core.worlds.sim_core import SteppedSim
+
+    model = get_entry(system.name).stepped_model
+    if model is None:
+        raise ValueError(f"no time-stepped simulator for system {system.name!r}")
+    return SteppedSim(model(system, **options), config, publish_clock=publish_clock)

@@ -1,0 +1,176 @@
+"""Stochastic primal-dual training (the paper's Algorithm 1) for ensembles of dynamics models.
+
+Per step, for every ensemble member independently:
+
+1. sample a minibatch, evaluate the objective estimate ``f`` and constraint estimates ``g_k``;
+2. descend on theta with the gradient of ``f + sum_k lambda_k g_k`` (lambda detached);
+3. ascend on lambda with the *detached* minibatch constraint estimate ``g_k``;
+4. project: ``lambda <- max(lambda, 0)``.
+
+:class:`PrimalDualTrainer` holds the run's state (model, primal optimizer, :class:`~saml_ros.core.training.dual.
+DualVariables`, generator, counters, :class:`~saml_ros.core.training.history.TrainingLog`); :meth:`~PrimalDualTrainer.
+fit` hands it to an :class:`~saml_ros.core.training.engines.Engine`, :meth:`~PrimalDualTrainer.step` takes one
+online step. The Uniformly Accurate baseline is the same trainer with a spec that has no constraints.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.spec import ProblemSpec, SpecValues
+from saml_ros.core.training.config import TrainConfig, make_optimizer
+from saml_ros.core.training.dataset import Transitions
+from saml_ros.core.training.dual import DualVariables
+from saml_ros.core.training.engines import ENGINES, PlainEngine, minibatch_plan, primal_dual_step
+from saml_ros.core.training.evaluate import evaluate_spec
+from saml_ros.core.training.history import FeasibilityReport, History, TrainingLog, check_feasibility, progress_bar
+
+log = logging.getLogger("saml_ros.trainer")
+
+
+class PrimalDualTrainer:
+    """Algorithm 1 on a :class:`DynamicsModel` (any ensemble size) and a :class:`ProblemSpec`.
+
+    Attributes (what engines read and update, :class:`~saml_ros.core.training.engines.RunState`):
+        model, spec, config: the model (moved to ``config``'s dtype), the problem, the hyper-parameters.
+        primal_opt: the optimizer of the network parameters.
+        dual: the dual variables (lambda ``(E, K)`` and their optimizer).
+        rng: the generator minibatches are drawn from.
+        log: the history and the minibatch values since its last row.
+        steps: primal-dual updates done so far; epochs_done: passes over the data of :meth:`fit` so far.
+        engine_used: engine of the last :meth:`fit` (``"fast"`` or ``"plain"``), None before.
+    """
+
+    def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None) -> None:
+        self.model = model
+        self.spec = spec
+        self.config = config or TrainConfig()
+        self.model.to(self.config.torch_dtype)
+        self.primal_opt = make_optimizer(self.config.primal_optimizer, list(model.net.parameters()),
+                                         self.config.primal_lr, maximize=False)
+        self.dual = DualVariables.for_config(self.config, model.n_models, spec.n_constraints)
+        self.steps = 0
+        self.epochs_done = 0.0
+        self.log = TrainingLog(spec.constraint_names)
+        self.rng = torch.Generator().manual_seed(int(self.config.seed))
+        self.engine_used: str | None = None
+
+    @property
+    def lam(self) -> torch.Tensor:
+        """Dual variables ``(E, K)`` (a detached view; always >= 0)."""
+        return self.dual.value
+
+    @property
+    def history(self) -> History:
+        """The training curve."""
+        return self.log.history
+
+    # ----------------------------------------------------------------------------------- online
+    def step(
+        self,
+        x: torch.Tensor,
+        u: torch.Tensor,
+        y: torch.Tensor,
+        base: torch.Tensor | None = None,
+        masks: list[torch.Tensor | None] | None = None,
+    ) -> SpecValues:
+        """One primal-dual update on a minibatch (``(B, .)`` shared or ``(E, B, .)`` per member).
+
+        Returns the detached minibatch spec values *before* the update.
+        """
+        return primal_dual_step(self, x, u, y, base, masks)
+
+    def log_point(self) -> None:
+        """Append the mean of the minibatch values since the last log point to :attr:`history`."""
+        self.log.point(self.steps, self.epochs_done, self.lam)
+
+    def train_steps(
+        self, sample: Callable[[], tuple[Any, Any, Any]], n_steps: int
+    ) -> SpecValues | None:
+        """Online mode: ``n_steps`` updates on minibatches drawn by ``sample() -> (x, u, y)`` (numpy or
+        torch ``(B, .)``), e.g. from a growing :class:`~saml_ros.core.buffer.ReplayBuffer`."""
+        last = None
+        dt = self.config.torch_dtype
+        log_every = self.config.log_every or 100
+        for _ in range(n_steps):
+            x, u, y = (torch.as_tensor(np.asarray(a), dtype=dt) for a in sample())
+            last = self.step(x, u, y)
+            if self.steps % log_every == 0:
+                self.log_point()
+        return last
+
+    # ----------------------------------------------------------------------------------- offline
+    def fit(
+        self,
+        data: Transitions,
+        epochs: int | None = None,
+        progress: bool = False,
+        desc: str = "training",
+        callback: Callable[[PrimalDualTrainer], None] | None = None,
+    ) -> History:
+        """Run ``epochs`` passes of Algorithm 1 over a fixed dataset; every member sees its own shuffle.
+        ``callback(self)`` runs after each epoch.
+
+        Runs on the engine named by ``config.engine`` (see :class:`TrainConfig`), or on the plain one where that
+        engine does not apply; :attr:`engine_used` says which one ran. At the end, constraints that look
+        infeasible are logged as warnings (:meth:`feasibility`).
+        """
+        epochs = self.config.epochs if epochs is None else epochs
+        engine = ENGINES[self.config.engine]()
+        why = engine.unsupported_reason(self, data)
+        if why is not None:
+            log.info("%s training engine not used (%s): running the plain loop", engine.name, why)
+            engine = PlainEngine()
+        self.engine_used = engine.name
+        bar = progress_bar(epochs * minibatch_plan(self.config.batch_size, len(data))[1], desc) if progress else None
+        on_epoch = None if callback is None else (lambda: callback(self))
+        try:
+            engine.fit(self, data, epochs, bar, on_epoch)
+        finally:
+            if bar is not None:
+                bar.close()
+        for msg in self.feasibility().messages():
+            log.warning(msg)
+        return self.history
+
+    # ----------------------------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def evaluate(self, data: Transitions, chunk: int = 65536) -> dict[str, np.ndarray]:
+        """Dataset-level objective ``(E,)``, constraints ``(E, K)`` and Lagrangian ``(E,)`` at the current
+        theta and lambda (the quantity the convergence experiment reports)."""
+        return evaluate_spec(self.model, self.spec, data, self.lam, chunk)
+
+    def feasibility(self, tail: float = 0.25, rel_tol: float = 0.02) -> FeasibilityReport:
+        """Flag constraints whose mean g over the last ``tail`` of the history exceeds ``rel_tol * eps``
+        while lambda kept growing over that window (a converged saddle point hovers at g ~ 0)."""
+        return check_feasibility(self.history, [t.eps for t in self.spec.constraints], tail, rel_tol)
+
+    # ----------------------------------------------------------------------------------- state
+    def state(self) -> dict[str, Any]:
+        """Everything needed to resume: model weights, normalisation, lambda, optimizer states, counters."""
+        dual = self.dual.state_dict()
+        return {
+            "model": self.model.state_dict(),
+            "lam": dual["lam"],
+            "primal_opt": self.primal_opt.state_dict(),
+            "dual_opt": dual["optimizer"],
+            "steps": self.steps,
+            "epochs_done": self.epochs_done,
+            "rng": self.rng.get_state(),
+        }
+
+    def load_state(self, st: dict[str, Any]) -> None:
+        """Restore what :meth:`state` returned (``rng`` and ``epochs_done`` optional)."""
+        self.model.load_state_dict(st["model"])
+        self.primal_opt.load_state_dict(st["primal_opt"])
+        self.dual.load_state_dict({"lam": st["lam"], "optimizer": st["dual_opt"]})
+        self.steps = int(st["steps"])
+        self.epochs_done = float(st.get("epochs_done", 0.0))
+        if "rng" in st:
+            self.rng.set_state(torch.as_tensor(st["rng"], dtype=torch.uint8))
