@@ -32,6 +32,7 @@ EXECUTABLES: dict[str, str] = {
     "demo": "saml_ros.demo:main",
     "layouts": "saml_ros.viewers.cli:main",
     "foxglove_server": "saml_ros.viewers.foxglove_server:main",
+    "lifecycle_manager": "saml_ros.nodes.lifecycle_manager:main",
 }
 
 #: exit code for an unknown or unavailable executable (same as argparse's usage errors)

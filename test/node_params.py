@@ -1,13 +1,16 @@
-"""The parameters a saml_ros node declares, listed from the running node (``rcl_interfaces/srv/ListParameters``).
+"""The parameters a saml_ros node declares: from its ROS-free table, and from the running node.
 
-:func:`declared_parameters` starts each requested node as a real process (private ROS domain, all at once) and
-asks it, as ``ros2 param list`` does, so the answer is what the node really declares, including the ones rclpy
-adds (``use_sim_time``, ``start_type_description_service``). Once the node parameters live in ROS-free config
-dataclasses, this can read those instead; the callers only need ``{(executable, system): names}``.
+:func:`table_parameters` reads the tables the nodes declare from (``learner_params``, ``MPCConfig.params``, the
+simulator bindings, the lifecycle and lifecycle_manager tables) plus what rclpy adds to every node
+(``use_sim_time``, ``start_type_description_service``): fast, no process. :func:`declared_parameters` starts
+each requested node as a real process (private ROS domain, all at once) and asks it, as ``ros2 param list``
+does (``rcl_interfaces/srv/ListParameters``); test_launch.py checks once that both agree, which is what makes
+the tables a proof of the declared set.
 """
 
 from __future__ import annotations
 
+import importlib
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
@@ -15,7 +18,31 @@ from pathlib import Path
 from ros_helpers import TestNode, ros_domain, wait_for
 
 #: node name of each executable (the simulators are ``<system>_sim``)
-NODE_NAME = {"learner": "learner", "mpc": "mpc", "record": "record"}
+NODE_NAME = {"learner": "learner", "mpc": "mpc", "record": "record", "lifecycle_manager": "lifecycle_manager"}
+#: parameters rclpy declares on every node
+RCLPY_PARAMS = {"use_sim_time", "start_type_description_service"}
+
+
+def table_parameters(executable: str, system: str) -> set[str]:
+    """The parameter names ``executable`` declares for ``system``, from the tables it declares them from."""
+    from saml_ros.core.learner_config import learner_params
+    from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, MANAGER_PARAMS
+    from saml_ros.core.mpc.config import MPCConfig
+
+    managed = {p.name for p in LIFECYCLE_PARAMS}
+    if executable == "learner":
+        return {p.name for p in learner_params()} | managed | RCLPY_PARAMS
+    if executable == "mpc":
+        return {p.name for p in MPCConfig.params(system)} | managed | RCLPY_PARAMS
+    if executable == "lifecycle_manager":
+        return {p.name for p in MANAGER_PARAMS} | RCLPY_PARAMS
+    if executable == "record":
+        return set(RCLPY_PARAMS)
+    if executable.endswith("_sim"):
+        binding = importlib.import_module(f"sim_nodes.{executable}").BINDING
+        return ({p.name for p in binding.all_params()} | {f"system.{n}" for n, _ in binding.system_params}
+                | RCLPY_PARAMS)
+    raise KeyError(f"no parameter table for executable {executable!r}")
 
 
 def node_name(executable: str) -> str:
@@ -26,7 +53,9 @@ def _launch_args(executable: str, system: str, scratch: Path) -> tuple[list[str]
     """``(arguments before --ros-args, ROS arguments)`` that start ``executable`` for ``system``, idle."""
     if executable == "record":
         return ["--system", system, "-o", str(scratch / f"bag-{system}")], []
-    ros = ["-p", f"system:={system}"] if executable in ("learner", "mpc") else []
+    ros = ["-p", f"system:={system}", "-p", "autostart:=false"] if executable in ("learner", "mpc") else []
+    if executable == "lifecycle_manager":  # waits for a node that never comes
+        ros += ["-p", "node_names:=[/nowhere/node]", "-p", "timeout:=1000.0"]
     if executable.endswith("_sim"):
         ros += ["-p", "mode:=realtime", "-p", "start_delay:=1000.0"]  # declared, never stepping
     if executable == "learner":

@@ -1,7 +1,8 @@
 """The launch files (launch/*.launch.xml), checked by evaluating them (``launch`` is not on PyPI; launch_parse.py).
 
 * every node they start is a saml_ros executable, every parameter file exists, every ``$(var)`` is declared;
-* every parameter they set, in a file or inline, is one the node declares (asked from the running node);
+* every parameter they set, in a file or inline, is one the node declares (from the tables the nodes declare
+  from, test/node_params.py; one test asks real nodes that the tables are what they declare);
 * the closed loops give each node exactly bringup's parameters for the system (the registry entry's
   ``bringup`` defaults through bringup.default_config and bringup.node_params),
   so ``ros2 launch saml_ros <system>.launch.xml`` and ``bringup --system <system>`` cannot drift apart.
@@ -14,7 +15,7 @@ from typing import Any
 
 import pytest
 from launch_parse import REPO, VAR_RE, LaunchParseError, LaunchResult, evaluate, file_sections, substitute
-from node_params import declared_parameters
+from node_params import declared_parameters, table_parameters
 
 from saml_ros import bringup
 from saml_ros.core.systems.registry import SYSTEM_NAMES
@@ -54,10 +55,19 @@ def _system_of(result: LaunchResult) -> str:
 
 @pytest.fixture(scope="module")
 def declared() -> dict[tuple[str, str], set[str]]:
-    """Parameter names declared by every (executable, system) the launch files start (real processes)."""
+    """Parameter names declared by every (executable, system) the launch files start (from the nodes' tables)."""
     targets = {(n.executable, _system_of(r)) for path, args in CASES for r in [evaluate(path, args)] for n in r.nodes}
     targets |= {(f"{s}_sim", s) for s in SYSTEMS} | {("learner", s) for s in SYSTEMS} | {("mpc", s) for s in SYSTEMS}
-    return declared_parameters(targets)
+    return {t: table_parameters(*t) for t in targets}
+
+
+def test_the_parameter_tables_are_what_the_running_nodes_declare() -> None:
+    """Real processes (ListParameters, as ``ros2 param list``): each simulator and MPC (their tables depend on
+    the system), the learner (its table does not), the recorder and the lifecycle manager."""
+    targets = ({(f"{s}_sim", s) for s in SYSTEMS} | {("mpc", s) for s in SYSTEMS}
+               | {("learner", "friction"), ("record", "friction"), ("lifecycle_manager", "friction")})
+    for target, names in declared_parameters(targets).items():
+        assert names == table_parameters(*target), target
 
 
 def test_every_launch_file_is_checked() -> None:

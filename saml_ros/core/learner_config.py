@@ -16,16 +16,19 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from msg_schemas.names import normalize_namespace
+from msg_schemas.names import join_topic, normalize_namespace
 from saml_ros.core.params import Param, check, read_params
 
 if TYPE_CHECKING:
+    from msg_schemas.base import SystemSchema
     from saml_ros.core.online import LearnerSetup
     from saml_ros.core.online.process import DecoderFactory
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems.base import System
     from saml_ros.core.training import TrainConfig
 
+#: one subscription of the learner: namespace, kind (state, applied_cmd, target), topic, message type
+Channel = tuple[str, str, str, str]
 #: ``train.*`` parameters: TrainConfig field -> description (``epochs`` is an offline-only field)
 TRAIN_PARAM_DOCS: dict[str, str] = {
     "batch_size": "minibatch size M sampled from the replay buffer per update",
@@ -191,6 +194,15 @@ class LearnerConfig:
             raise ValueError(f"parameter 'spec_file': no such file {self.spec_file!r}") from None
         except (SpecError, OSError) as exc:
             raise ValueError(f"parameter 'spec_file': {exc}") from None
+
+    def channels(self, schema: SystemSchema) -> list[Channel]:
+        """One :data:`Channel` per (namespace, kind) the learner subscribes: ``state``, ``applied_cmd`` and, where
+        the schema pairs the target with the state of the same stamp (paddle ball), ``target``."""
+        kinds = [("state", schema.state_topic, schema.state.msg_type),
+                 ("applied_cmd", schema.applied_cmd_topic, schema.control.msg_type)]
+        if schema.target_pairing == "same":
+            kinds.append(("target", schema.target_topic, schema.target.msg_type))
+        return [(ns, kind, join_topic(ns, name), msg_type) for ns in self.namespaces for kind, name, msg_type in kinds]
 
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
                        channels: list[tuple[int, str, str]], decoder: DecoderFactory) -> LearnerSetup:

@@ -1,16 +1,28 @@
-"""What the learner node reports on ``/diagnostics``, from the training process's counters (ROS-free).
+"""What the learner node reports on ``/diagnostics`` and in its log, from the training process's counters
+(ROS-free).
 
 :func:`learner_diagnostics` turns the totals and per-source counts of the pairing, the learner's status, the
 training process's own counters and the node's per-channel reception counts into the diagnostic values, level
-(0 OK, 1 WARN, 2 ERROR as ``diagnostic_msgs``) and one-line message.
+(0 OK, 1 WARN, 2 ERROR as ``diagnostic_msgs``) and one-line message; :func:`configured_message`,
+:func:`paused_message` and :func:`stopped_message` are the log lines of the lifecycle steps.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, WARN
+
+if TYPE_CHECKING:
+    from saml_ros.core.learner_config import LearnerConfig
+    from saml_ros.core.online import ReadyInfo
+    from saml_ros.core.spec import ProblemSpec
+
+#: ``(path of a checkpoint just written or None, model version, updates)``, as the training process reports a
+#: pause or a stop
+Saved = tuple["str | None", int, int]
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
@@ -57,3 +69,35 @@ def learner_diagnostics(
     message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                f"version {values['model_version']}, rejected {rejected}")
     return level, message, values
+
+
+def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, run_dir: Path, pid: int | None) -> str:
+    """The log line of a finished ``configure``: what is learned, from where, and how the training process runs."""
+    r = ready.resumed
+    return (f"learner for {p.system!r} on {p.namespaces}: spec '{spec.raw.get('name')}' ({spec.describe()}), "
+            f"model {p.model_kind} {ready.hidden}, run_dir {run_dir}, "
+            + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
+               else "fresh start")
+            + f"; training process pid {pid} ({ready.threads} torch thread(s), subnormals "
+            + ("flushed" if ready.flush_denormal else "not flushed")
+            + f"); training starts after {p.min_transitions} transitions once active")
+
+
+def paused_message(paused: Saved) -> str:
+    """The log line of a ``deactivate``."""
+    path, version, updates = paused
+    written = "written" if path is not None else "is current"
+    return f"deactivated: training paused after {updates} updates (checkpoint version {version} {written})"
+
+
+def stopped_message(final: Saved | None, updates: float, paired: int, min_transitions: int) -> tuple[bool, str]:
+    """``(is an error, log line)`` of the training process's end (``final`` None: it did not stop in time)."""
+    if final is None:
+        return True, "the training process did not stop in time; it was killed"
+    path, version, done = final
+    if path is not None:
+        return False, f"training stopped: final checkpoint version {version} ({done} updates)"
+    if updates > 0 or version > 0:
+        return False, f"training stopped: checkpoint version {version} is current ({done} updates)"
+    return False, (f"training stopped: no checkpoint written, training never started ({paired}/{min_transitions} "
+                   "transitions)")

@@ -13,8 +13,13 @@ A thin rclpy wrapper over :class:`saml_ros.core.online.OnlineLearner` (see docs/
   first when CPUs are short;
 * publishes ``learner/model_error`` (sensor_msgs/JointState, names -> values) at ``telemetry_rate``,
   ``learner/checkpoint`` (std_msgs/String JSON, transient local) after every checkpoint and ``/diagnostics``;
-* on SIGINT / SIGTERM writes a final checkpoint and exits 0. Configuration errors (unknown system, bad spec,
-  bad parameter, a run directory of another system) are logged and exit with status 2.
+* a managed node (docs/learner.md, "Lifecycle"): ``configure`` reads the parameters and the spec, checks the run
+  directory and starts the training process (paused; it resumes from the newest checkpoint), ``activate``
+  subscribes and trains, ``deactivate`` unsubscribes, writes a checkpoint (if there are unsaved updates) and
+  stops training, ``cleanup`` ends the training process. With ``autostart`` (default) it walks configure and
+  activate itself; a configuration error (unknown system, bad spec, bad parameter, a run directory of another
+  system) then exits with status 2, while a managed node stays unconfigured with the reason logged;
+* on SIGINT / SIGTERM (or a ``shutdown`` transition) writes a final checkpoint and exits 0.
 
 Wiring only: the parameters are :class:`saml_ros.core.learner_config.LearnerConfig`'s, the training is the
 training process's. torch is imported only once :func:`main` has started that process (so both import it at
@@ -28,6 +33,7 @@ Usage::
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -35,27 +41,19 @@ from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 
 import msg_schemas.telemetry as tele
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, get_schema
 from msg_schemas.decode import make_decoder
-from msg_schemas.names import join_topic
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.learner_config import LearnerConfig, learner_params
-from saml_ros.core.learner_report import learner_diagnostics
-from saml_ros.nodes.params import declare_params, probe_system
-from saml_ros.nodes.runtime import (
-    catch_stop_signals,
-    full_argv,
-    init_rclpy,
-    process_main,
-    shutdown,
-    spin_until_stopped,
-    wants_help,
-)
+from saml_ros.core.learner_report import configured_message, learner_diagnostics, paused_message, stopped_message
+from saml_ros.core.lifecycle import TransitionRefused
+from saml_ros.nodes.managed import ManagedNode, run_managed
+from saml_ros.nodes.params import current_values, declare_params, probe_system
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, log_at, process_main, shutdown, wants_help
 
 if TYPE_CHECKING:
     from saml_ros.core.online import TrainingProcess
@@ -69,48 +67,85 @@ class ConfigError(Exception):
     """An unrecoverable configuration problem; the message says which parameter and why."""
 
 
-class LearnerNode(Node):
-    """The learner; raises :class:`ConfigError` from the constructor on bad configuration."""
+class LearnerNode(ManagedNode):
+    """The learner (a managed node, see the module docstring); ``launched``: a training interpreter from
+    :func:`prelaunch_trainer`, used by the first ``configure``."""
 
     def __init__(self, namespace: str | None, launched: Any = None) -> None:
-        super().__init__(NODE_NAME, namespace=namespace)
+        super().__init__(NODE_NAME, namespace)
+        self._table = learner_params()
         try:
-            self.p = p = LearnerConfig.from_params(declare_params(self, learner_params()), self.get_namespace())
+            declare_params(self, self._table)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        self._launched = launched
+        self.trainer: TrainingProcess | None = None
+        self._subs: list[Any] = []
+        self._pubs: list[Any] = []  # made by configure, destroyed by cleanup
+        self._timers: list[Any] = []
+        self.active = False
+
+    # ---------------------------------------------------------------------------------------------- lifecycle
+    def configure_node(self) -> None:
+        try:
+            self.p = p = LearnerConfig.from_params(current_values(self, self._table), self.get_namespace())
             self.system = p.make_system()
             self.spec = p.load_spec(self.system)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise TransitionRefused(str(exc)) from None
         self.schema = get_schema(p.system)
         self.run_dir = run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
         try:
             CheckpointStore(run_dir, keep=p.checkpoint_keep)  # fail here, clearly, if it cannot be created
         except OSError as exc:
-            raise ConfigError(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
-        sc = self.schema
-        kinds = [("state", sc.state_topic, sc.state.msg_type), ("applied_cmd", sc.applied_cmd_topic,
-                                                                sc.control.msg_type)]
-        if sc.target_pairing == "same":
-            kinds.append(("target", sc.target_topic, sc.target.msg_type))
-        #: one channel per (namespace, kind): (namespace, kind, topic, message type)
-        self.channels = [(ns, kind, join_topic(ns, name), msg_type)
-                         for ns in p.namespaces for kind, name, msg_type in kinds]
+            raise TransitionRefused(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
+        self.channels = p.channels(self.schema)
         self.received = [0] * len(self.channels)
+        launched, self._launched = self._launched, None
         self.trainer = self._start_training(launched)
-        self._create_interfaces()
+        self._create_publishers()
         ready = self.trainer.ready
         assert ready is not None
-        r = ready.resumed
-        if r is not None:
-            self._announce(r["path"], r["version"])
-        self.get_logger().info(
-            f"learner for {p.system!r} on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
-            f"({self.spec.describe()}), model {p.model_kind} {ready.hidden}, run_dir {run_dir}, "
-            + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
-               else "fresh start")
-            + f"; training process pid {self.trainer.pid} ({ready.threads} torch thread(s), subnormals "
-            + ("flushed" if ready.flush_denormal else "not flushed")
-            + f"); training starts after {p.min_transitions} transitions"
-        )
+        if ready.resumed is not None:
+            self._announce(ready.resumed["path"], ready.resumed["version"])
+        self.get_logger().info(configured_message(p, self.spec, ready, run_dir, self.trainer.pid))
+
+    def activate_node(self) -> None:
+        assert self.trainer is not None
+        self._subscribe()
+        self.trainer.resume()
+        self.active = True
+
+    def deactivate_node(self) -> None:
+        self._unsubscribe()
+        self.active = False
+        if self.trainer is not None:
+            paused = self.trainer.pause()
+            if paused is None:
+                raise RuntimeError("the training process did not pause within 30 s")
+            self.get_logger().info(paused_message(paused))
+
+    def cleanup_node(self) -> None:
+        self._unsubscribe()
+        self.active = False
+        if self.trainer is not None:
+            self.stop()
+            self.trainer = None
+        for timer in self._timers:
+            self.destroy_timer(timer)
+        for pub in self._pubs:
+            self.destroy_publisher(pub)
+        self._timers, self._pubs = [], []
+
+    def shutdown_node(self, state: str) -> None:
+        self._unsubscribe()  # active: no pause first, the stop writes the final checkpoint at once
+        self.cleanup_node()
+
+    def discard_prelaunched(self) -> None:
+        """Let an unused pre-launched training interpreter exit."""
+        if self._launched is not None:
+            discard_child(self._launched)
+            self._launched = None
 
     def _start_training(self, launched: Any) -> TrainingProcess:
         from saml_ros.core.online import ResumeError, TrainingProcess  # torch: the training process is running
@@ -121,24 +156,31 @@ class LearnerNode(Node):
                                      [(p.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels],
                                      decoder=make_decoder)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
-        trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
-                                  on_error=self._child_error)
+            raise TransitionRefused(str(exc)) from None
+        trainer = TrainingProcess(dataclasses.replace(setup, paused=True), on_checkpoint=self._announce,
+                                  on_log=self._child_log, on_error=self._child_error)
         try:
             trainer.start(launched=launched)
         except ResumeError as exc:
-            raise ConfigError(str(exc)) from None
+            raise TransitionRefused(str(exc)) from None
         except RuntimeError as exc:
-            raise ConfigError(f"the training process could not start: {exc}") from None
+            raise TransitionRefused(f"the training process could not start: {exc}") from None
         return trainer
 
-    def _create_interfaces(self) -> None:
+    def _create_publishers(self) -> None:
         self.data_group = MutuallyExclusiveCallbackGroup()
         self.timer_group = MutuallyExclusiveCallbackGroup()
         telemetry_qos = TELEMETRY_QOS.to_rclpy()
         self.pub_error = self.create_publisher(RCLPY.cls(tele.JOINT_STATE), tele.MODEL_ERROR_TOPIC, telemetry_qos)
         self.pub_ckpt = self.create_publisher(RCLPY.cls(tele.STRING), tele.CHECKPOINT_TOPIC, CHECKPOINT_QOS.to_rclpy())
         self.pub_diag = self.create_publisher(RCLPY.cls(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, telemetry_qos)
+        self._pubs = [self.pub_error, self.pub_ckpt, self.pub_diag]
+        self._timers = [
+            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group),
+            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group),
+        ]
+
+    def _subscribe(self) -> None:
         # raw=True: the callback gets the serialized message, decoded in the training process; building Python
         # message objects here is most of a bare subscriber's per-message cost
         # KEEP_ALL: a burst that outruns the callbacks (e.g. while the training process imports torch) waits in
@@ -150,11 +192,15 @@ class LearnerNode(Node):
                                      callback_group=self.data_group, raw=True)
             for ch, (_, _, topic, msg_type) in enumerate(self.channels)
         ]
-        self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group)
-        self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group)
+
+    def _unsubscribe(self) -> None:
+        for sub in self._subs:
+            self.destroy_subscription(sub)
+        self._subs = []
 
     # ---------------------------------------------------------------------------------------------- ingest
     def _make_callback(self, channel: int) -> Callable[[bytes], None]:
+        assert self.trainer is not None
         submit, received = self.trainer.submit_raw, self.received
 
         def callback(data: bytes) -> None:
@@ -165,14 +211,7 @@ class LearnerNode(Node):
 
     # ---------------------------------------------------------------------------------------------- training
     def _child_log(self, level: int, text: str) -> None:
-        # one call site per severity: rclpy refuses a call site whose severity changes between calls
-        logger = self.get_logger()
-        if level >= logging.ERROR:
-            logger.error(text)
-        elif level >= logging.WARNING:
-            logger.warning(text)
-        else:
-            logger.info(text)
+        log_at(self.get_logger(), level, text)
 
     def _child_error(self, what: str, text: str) -> None:
         self.get_logger().error(f"{what}: {text}")
@@ -186,20 +225,14 @@ class LearnerNode(Node):
             self.get_logger().warning(f"could not announce checkpoint {path}: {exc}")
 
     def stop(self) -> None:
-        """Stop training: the training process writes a final checkpoint if there is anything new."""
+        """End the training process: it writes a final checkpoint if there is anything new."""
+        assert self.trainer is not None
         final = self.trainer.stop()
-        status = self.trainer.status
-        if final is None:
-            self.get_logger().error("shutdown: the training process did not stop in time; it was killed")
-        elif final[0] is not None:
+        if final is not None and final[0] is not None:
             self._announce(final[0], final[1])
-            self.get_logger().info(f"shutdown: final checkpoint version {final[1]} ({final[2]} updates)")
-        elif status.get("updates", 0) > 0 or final[1] > 0:
-            self.get_logger().info(f"shutdown: checkpoint version {final[1]} is current ({final[2]} updates)")
-        else:
-            paired = self.trainer.counts().get("paired", 0)
-            self.get_logger().info(f"shutdown: no checkpoint written, training never started ({paired}/"
-                                   f"{self.p.min_transitions} transitions)")
+        error, text = stopped_message(final, self.trainer.status.get("updates", 0),
+                                      self.trainer.counts().get("paired", 0), self.p.min_transitions)
+        log_at(self.get_logger(), logging.ERROR if error else logging.INFO, text)
 
     # ---------------------------------------------------------------------------------------------- telemetry
     def _stamp_ns(self) -> int:
@@ -208,18 +241,26 @@ class LearnerNode(Node):
     def _publish_telemetry(self) -> None:
         from saml_ros.core.online import assemble_telemetry  # imported by the training start already
 
+        if not self.active or self.trainer is None:
+            return
         values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self.trainer.counts())
         self.pub_error.publish(tele.model_error_to_msg(values, self._stamp_ns()))
 
     def _publish_diagnostics(self) -> None:
         tr = self.trainer
+        if tr is None:
+            return
         process = {"train_errors": tr.errors, "train_restarts": tr.restarts, "queued": tr.queued, "dropped": tr.dropped}
         if tr.ready is not None:
             process.update(train_threads=tr.ready.threads, train_flush_denormal=int(tr.ready.flush_denormal))
-        channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count())
+        channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count() if self._subs else 0)
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
         level, message, values = learner_diagnostics(tr.counts(), tr.status, process, tr.source_counts,
                                                      self.p.namespaces, channels)
+        values["lifecycle"] = self.state_label
+        values["invalid_transitions"] = self.invalid_transitions
+        if not self.active:
+            message = f"{self.state_label}: {message}"
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
@@ -243,7 +284,8 @@ def prelaunch_trainer() -> LaunchedChild:
 
 @process_main
 def main(argv: Sequence[str] | None = None) -> int:
-    """``learner [--ros-args ...]``: run until SIGINT / SIGTERM, then write a final checkpoint and exit 0."""
+    """``learner [--ros-args ...]``: run until SIGINT / SIGTERM (or ``shutdown``), then write a final checkpoint
+    and exit 0; exit 2 when the node cannot be created or, with ``autostart``, not configured."""
     stop = catch_stop_signals()
     args = full_argv(NODE_NAME, argv)
     if wants_help(args):
@@ -261,10 +303,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             discard_child(launched)
             return CONFIG_ERROR
         try:
-            spin_until_stopped(node, stop)
+            return run_managed(node, stop, CONFIG_ERROR)
         finally:
-            node.stop()
-        return 0
+            node.discard_prelaunched()
     finally:
         shutdown(node)
 

@@ -82,6 +82,17 @@ def shutdown(node: Any | None) -> None:
         rclpy.shutdown()
 
 
+def log_at(logger: Any, level: int, text: str) -> None:
+    """``text`` on an rclpy ``logger`` at Python logging ``level`` (error, warning, else info); one call site per
+    severity, as rclpy refuses a call site whose severity changes between calls."""
+    if level >= logging.ERROR:
+        logger.error(text)
+    elif level >= logging.WARNING:
+        logger.warning(text)
+    else:
+        logger.info(text)
+
+
 def exit_process(code: int) -> None:
     """End this process now with ``code``: flush stdout, stderr and Python logging, then ``os._exit``.
 

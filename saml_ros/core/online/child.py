@@ -124,6 +124,7 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
         log.info("training process: %d torch intra-op thread(s), subnormal floats %s", compute["threads"],
                  "flushed to zero" if compute["flush_denormal"] else "not flushed")
         send(("ready", info, list(learner.model.hidden), learner.status(), compute))
-        run_loop(learner, setup.loop, conn, send, raw, stop_requested=lambda: bool(stop_flag))
+        run_loop(learner, setup.loop, conn, send, raw, stop_requested=lambda: bool(stop_flag),
+                 paused=setup.paused)
     except (EOFError, OSError):
         return  # the parent is gone

@@ -12,11 +12,12 @@ Socket protocol (``multiprocessing.connection`` messages, tuples):
 
 * parent -> child: first the :class:`LearnerSetup`; then ``("batch", x, u, y, stamp_s, source)`` (paired
   transitions, arrays ``(B, .)`` / ``(B,)``), ``("raw", [(channel, payload), ...])`` (messages for the setup's
-  decoder) and finally ``("stop",)``;
+  decoder), ``("pause",)`` / ``("resume",)`` (a managed learner's deactivation and activation) and finally
+  ``("stop",)``;
 * child -> parent: ``("ready", resumed, hidden, status, compute)`` once built (or ``("fatal", "resume" |
   "error", message)`` and exit), then ``("status", status, {source: counters})``, ``("checkpoint", path,
-  version)``, ``("error", what, message)``, ``("log", level, text)`` and, after a stop, ``("stopped", path |
-  None, version, updates)``.
+  version)``, ``("error", what, message)``, ``("log", level, text)``, after a pause ``("paused", path | None,
+  version, updates)`` and, after a stop, ``("stopped", path | None, version, updates)``.
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ class LearnerSetup:
             ``msg_schemas.SchemaError``, for a malformed one). The caller passes it, so message formats (and
             rclpy) stay out of the core.
         decoder_args: picklable argument of the decoder factory.
+        paused: start without training (data is still buffered) until :meth:`TrainingProcess.resume`.
     """
 
     system: str
@@ -94,6 +96,7 @@ class LearnerSetup:
     channels: tuple[tuple[int, str], ...] = ()
     decoder: DecoderFactory | None = None
     decoder_args: Any = None
+    paused: bool = False
 
     def __post_init__(self) -> None:
         if self.threads < 0:
@@ -191,6 +194,9 @@ class TrainingProcess:
         self._stopping = threading.Event()
         self._stopped = threading.Event()
         self._final: tuple[str | None, int, int] | None = None
+        self._paused = setup.paused
+        self._pause_reply: tuple[str | None, int, int] | None = None
+        self._pause_done = threading.Event()
         self._proc: subprocess.Popen[bytes] | None = None
         self._conn: Any = None
         self._threads: list[threading.Thread] = []
@@ -265,6 +271,33 @@ class TrainingProcess:
                 self._proc.kill()
                 self._proc.wait(5.0)
         return self._final
+
+    def pause(self, timeout: float = 30.0) -> tuple[str | None, int, int] | None:
+        """Stop training (data is still buffered): the child first writes a checkpoint when it has unsaved
+        updates. Returns ``(path of that checkpoint or None, model version, updates)`` once the child has
+        paused (after what is already queued for it), or None if it did not answer within ``timeout`` s."""
+        self._paused = True
+        self._pause_done.clear()
+        if not self._send_control(("pause",)):
+            return None
+        return self._pause_reply if self._pause_done.wait(timeout) else None
+
+    def resume(self) -> bool:
+        """Train again after :meth:`pause` (or a start with ``setup.paused``); False if the child is gone."""
+        self._paused = False
+        return self._send_control(("resume",))
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    def _send_control(self, msg: tuple[Any, ...]) -> bool:
+        try:
+            with self._send_lock:
+                self._conn.send(msg)
+            return True
+        except (OSError, ValueError, AttributeError):  # not started, or being restarted (it restarts paused)
+            return False
 
     @property
     def pid(self) -> int | None:
@@ -351,6 +384,9 @@ class TrainingProcess:
             elif kind == "error":
                 self.errors += 1
                 self.on_error(msg[1], msg[2])
+            elif kind == "paused":
+                self._pause_reply = (msg[1], msg[2], msg[3])
+                self._pause_done.set()
             elif kind == "stopped":
                 self._final = (msg[1], msg[2], msg[3])
                 self._stopped.set()
@@ -369,7 +405,7 @@ class TrainingProcess:
         self.on_error("process", f"the training process exited unexpectedly (exit code {code}); restarting it "
                                  "from the newest checkpoint (the replay buffer starts empty)")
         time.sleep(0.5)
-        setup = dataclasses.replace(self.setup, resume=True)
+        setup = dataclasses.replace(self.setup, resume=True, paused=self._paused)
         while not self._stopping.is_set():
             try:
                 with self._send_lock:
