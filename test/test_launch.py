@@ -3,6 +3,8 @@
 * every node they start is a saml_ros executable, every parameter file exists, every ``$(var)`` is declared;
 * every parameter they set, in a file or inline, is one the node declares (from the tables the nodes declare
   from, test/node_params.py; one test asks real nodes that the tables are what they declare);
+* the managed nodes (learner, MPC) start with ``autostart: false`` and a ``lifecycle_manager`` activates exactly
+  them, as bringup does;
 * the closed loops give each node exactly bringup's parameters for the system (the registry entry's
   ``bringup`` defaults through bringup.default_config and bringup.node_params),
   so ``ros2 launch saml_ros <system>.launch.xml`` and ``bringup --system <system>`` cannot drift apart.
@@ -25,6 +27,8 @@ LAUNCH = REPO / "launch"
 SYSTEMS = SYSTEM_NAMES
 LOOPS = [LAUNCH / f"{s}.launch.xml" for s in SYSTEMS]
 STANDALONE = [LAUNCH / "learner.launch.xml", LAUNCH / "mpc.launch.xml"]
+#: the managed (lifecycle) nodes
+MANAGED = ("learner", "mpc")
 
 
 def _cases() -> list[tuple[Path, dict[str, str]]]:
@@ -35,6 +39,7 @@ def _cases() -> list[tuple[Path, dict[str, str]]]:
             cases += [(path, {"system": s}) for s in SYSTEMS]
             cases += [(path, {"system": s, "record": "bags/x", "spec": "config/specs/friction.yaml"})
                       for s in SYSTEMS if path.name == "loop.launch.xml"]
+            cases.append((path, {"system": "friction", "autostart": "false"}))
         else:
             cases += [(path, {}), (path, {"record": "bags/x"})]
     return cases
@@ -94,6 +99,17 @@ def test_launch_file_names_existing_executables_files_and_arguments(path: Path, 
     # the namespace, run directory, spec and use_sim_time are launch arguments of every file with a learner
     if any(n.executable == "learner" for n in result.nodes):
         assert {"namespace", "run_dir", "spec", "use_sim_time"} <= set(result.arguments), path.name
+    # launch drives the managed nodes: they start unconfigured and lifecycle_manager (unless autostart:=false)
+    # configures and activates exactly them
+    managed = [n for n in result.nodes if n.executable in MANAGED]
+    managers = [n for n in result.nodes if n.executable == "lifecycle_manager"]
+    assert managed and all(n.parameters()["autostart"] is False for n in managed), path.name
+    if args.get("autostart") == "false":
+        assert not managers, path.name
+    else:
+        (manager,) = managers
+        assert manager.namespace == managed[0].namespace and manager.on_exit is None
+        assert manager.parameters() == {"node_names": [n.name for n in managed]}, path.name
 
 
 @pytest.mark.parametrize(("path", "args"), CASES, ids=[f"{p.name}-{'-'.join(a.values()) or 'defaults'}" for p, a in CASES])
@@ -130,6 +146,7 @@ def _expected_loop(system: str, run_dir: Path, recording: bool) -> dict[str, dic
     expected["sim"].update(max_sim_time=float(config["sim_time"]), min_state_subscribers=2 + int(recording),
                            min_applied_cmd_subscribers=1 + int(recording))
     expected["learner"]["spec_file"] = ""
+    expected["lifecycle_manager"] = {"node_names": ["learner", "mpc"]}  # bringup's monitor does this itself
     if recording:
         expected["record"] = {"use_sim_time": True}
     return expected
@@ -155,8 +172,8 @@ def test_closed_loop_launch_gives_bringups_parameters(system: str, recording: bo
 @pytest.mark.parametrize("system", SYSTEMS)
 def test_standalone_learner_and_mpc_launch_files(system: str) -> None:
     args = {"system": system, "namespace": "/robot1", "run_dir": "runs/robot1", "spec": "my_spec.yaml"}
-    (learner,) = evaluate(LAUNCH / "learner.launch.xml", args).nodes
-    (mpc,) = evaluate(LAUNCH / "mpc.launch.xml", {k: v for k, v in args.items() if k != "spec"}).nodes
+    (learner, _) = evaluate(LAUNCH / "learner.launch.xml", args).nodes
+    (mpc, _) = evaluate(LAUNCH / "mpc.launch.xml", {k: v for k, v in args.items() if k != "spec"}).nodes
     expected = bringup.node_params(bringup.default_config(system), Path("runs/robot1"))
     lp, mp = learner.parameters(), mpc.parameters()
     assert learner.fqn == "/robot1/learner" and mpc.fqn == "/robot1/mpc"

@@ -90,14 +90,16 @@ def paused_message(paused: Saved) -> str:
     return f"deactivated: training paused after {updates} updates (checkpoint version {version} {written})"
 
 
-def stopped_message(final: Saved | None, updates: float, paired: int, min_transitions: int) -> tuple[bool, str]:
-    """``(is an error, log line)`` of the training process's end (``final`` None: it did not stop in time)."""
+def stopped_message(final: Saved | None, updates: float, paired: int, min_transitions: int,
+                    step: str = "shutdown") -> tuple[bool, str]:
+    """``(is an error, log line)`` of the training process's end in lifecycle ``step`` (``shutdown`` or
+    ``cleanup``); ``final`` None: it did not stop in time."""
     if final is None:
-        return True, "the training process did not stop in time; it was killed"
+        return True, f"{step}: the training process did not stop in time; it was killed"
     path, version, done = final
     if path is not None:
-        return False, f"training stopped: final checkpoint version {version} ({done} updates)"
+        return False, f"{step}: final checkpoint version {version} ({done} updates)"
     if updates > 0 or version > 0:
-        return False, f"training stopped: checkpoint version {version} is current ({done} updates)"
-    return False, (f"training stopped: no checkpoint written, training never started ({paired}/{min_transitions} "
+        return False, f"{step}: checkpoint version {version} is current ({done} updates)"
+    return False, (f"{step}: no checkpoint written, training never started ({paired}/{min_transitions} "
                    "transitions)")

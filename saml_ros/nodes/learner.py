@@ -125,11 +125,11 @@ class LearnerNode(ManagedNode):
                 raise RuntimeError("the training process did not pause within 30 s")
             self.get_logger().info(paused_message(paused))
 
-    def cleanup_node(self) -> None:
+    def cleanup_node(self, step: str = "cleanup") -> None:
         self._unsubscribe()
         self.active = False
         if self.trainer is not None:
-            self.stop()
+            self.stop(step)
             self.trainer = None
         for timer in self._timers:
             self.destroy_timer(timer)
@@ -138,8 +138,7 @@ class LearnerNode(ManagedNode):
         self._timers, self._pubs = [], []
 
     def shutdown_node(self, state: str) -> None:
-        self._unsubscribe()  # active: no pause first, the stop writes the final checkpoint at once
-        self.cleanup_node()
+        self.cleanup_node("shutdown")  # active: no pause first, the stop writes the final checkpoint at once
 
     def discard_prelaunched(self) -> None:
         """Let an unused pre-launched training interpreter exit."""
@@ -224,14 +223,15 @@ class LearnerNode(ManagedNode):
         except Exception as exc:  # noqa: BLE001 - e.g. the publisher is not created yet or already gone
             self.get_logger().warning(f"could not announce checkpoint {path}: {exc}")
 
-    def stop(self) -> None:
-        """End the training process: it writes a final checkpoint if there is anything new."""
+    def stop(self, step: str = "shutdown") -> None:
+        """End the training process (in lifecycle ``step``): it writes a final checkpoint if there is anything
+        new."""
         assert self.trainer is not None
         final = self.trainer.stop()
         if final is not None and final[0] is not None:
             self._announce(final[0], final[1])
         error, text = stopped_message(final, self.trainer.status.get("updates", 0),
-                                      self.trainer.counts().get("paired", 0), self.p.min_transitions)
+                                      self.trainer.counts().get("paired", 0), self.p.min_transitions, step)
         log_at(self.get_logger(), logging.ERROR if error else logging.INFO, text)
 
     # ---------------------------------------------------------------------------------------------- telemetry

@@ -44,6 +44,8 @@ class ManagedNode(LifecycleNode):
         self.autostart = bool(declare_params(self, LIFECYCLE_PARAMS)["autostart"])
         #: ``change_state`` requests refused because the current state has no such transition
         self.invalid_transitions = 0
+        #: the log line of the newest failed or raising step
+        self.last_failure = ""
         service = self._service_change_state
         service.callback = self._guarded(service.callback)
 
@@ -75,7 +77,11 @@ class ManagedNode(LifecycleNode):
 
     # ---------------------------------------------------------------------------------- rclpy's callbacks
     def _step(self, name: str, step: Any) -> TransitionCallbackReturn:
-        return _RETURN[run_transition(name, step, self.get_logger().error)]
+        def log_error(text: str) -> None:
+            self.last_failure = text
+            self.get_logger().error(text)
+
+        return _RETURN[run_transition(name, step, log_error)]
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         return self._step("configure", self.configure_node)
@@ -120,8 +126,11 @@ class ManagedNode(LifecycleNode):
         if not self.autostart:
             self.get_logger().info("autostart is false: unconfigured, waiting for lifecycle transitions")
             return True
-        return (self.trigger_configure() == TransitionCallbackReturn.SUCCESS
-                and self.trigger_activate() == TransitionCallbackReturn.SUCCESS)
+        for trigger in (self.trigger_configure, self.trigger_activate):
+            if trigger() != TransitionCallbackReturn.SUCCESS:
+                self.get_logger().fatal(f"configuration error: {self.last_failure}")
+                return False
+        return True
 
     def finish(self) -> None:
         """The shutdown transition from the current primary state (nothing once finalized)."""
