@@ -21,7 +21,7 @@ from saml_ros.core.params import Param, check, read_params
 
 if TYPE_CHECKING:
     from msg_schemas.base import SystemSchema
-    from saml_ros.core.online import LearnerSetup
+    from saml_ros.core.online import LearnerSetup, TrainingProcess
     from saml_ros.core.online.process import DecoderFactory
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems.base import System
@@ -203,6 +203,30 @@ class LearnerConfig:
         if schema.target_pairing == "same":
             kinds.append(("target", schema.target_topic, schema.target.msg_type))
         return [(ns, kind, join_topic(ns, name), msg_type) for ns in self.namespaces for kind, name, msg_type in kinds]
+
+    def start_training(self, system: System, spec: ProblemSpec, schema: SystemSchema, run_dir: str,
+                       decoder: DecoderFactory, *, paused: bool = False, launched: Any = None,
+                       **callbacks: Any) -> TrainingProcess:
+        """The training process of :meth:`training_setup` for ``schema``'s :meth:`channels`, started (``paused``:
+        not training until ``resume()``; ``launched``: a pre-started interpreter; ``callbacks``: the
+        ``on_*`` arguments of :class:`~saml_ros.core.online.TrainingProcess`).
+
+        Raises:
+            ValueError: an invalid setting, a run directory whose checkpoints contradict the configuration, or a
+                training process that could not start; the message says which.
+        """
+        from saml_ros.core.online import ResumeError, TrainingProcess
+
+        channels = [(self.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels(schema)]
+        setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
+        trainer = TrainingProcess(dataclasses.replace(setup, paused=paused), **callbacks)
+        try:
+            trainer.start(launched=launched)
+        except ResumeError as exc:
+            raise ValueError(str(exc)) from None
+        except RuntimeError as exc:
+            raise ValueError(f"the training process could not start: {exc}") from None
+        return trainer
 
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
                        channels: list[tuple[int, str, str]], decoder: DecoderFactory) -> LearnerSetup:

@@ -17,7 +17,7 @@ from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, WARN
 
 if TYPE_CHECKING:
     from saml_ros.core.learner_config import LearnerConfig
-    from saml_ros.core.online import ReadyInfo
+    from saml_ros.core.online import ReadyInfo, TrainingProcess
     from saml_ros.core.spec import ProblemSpec
 
 #: ``(path of a checkpoint just written or None, model version, updates)``, as the training process reports a
@@ -69,6 +69,15 @@ def learner_diagnostics(
     message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                f"version {values['model_version']}, rejected {rejected}")
     return level, message, values
+
+
+def process_counters(trainer: TrainingProcess) -> dict[str, int]:
+    """The training process's own counters for :func:`learner_diagnostics` (``process``)."""
+    out = {"train_errors": trainer.errors, "train_restarts": trainer.restarts, "queued": trainer.queued,
+           "dropped": trainer.dropped}
+    if trainer.ready is not None:
+        out.update(train_threads=trainer.ready.threads, train_flush_denormal=int(trainer.ready.flush_denormal))
+    return out
 
 
 def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, run_dir: Path, pid: int | None) -> str:

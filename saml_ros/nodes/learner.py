@@ -1,39 +1,29 @@
 """Online learner node (``ros2 run saml_ros learner``): pairs simulator / robot data and trains the model live.
 
-A thin rclpy wrapper over :class:`saml_ros.core.online.OnlineLearner` (see docs/learner.md):
+Wiring over :class:`saml_ros.core.online.TrainingProcess` (docs/learner.md), parameters from
+:class:`saml_ros.core.learner_config.LearnerConfig`:
 
-* subscribes, per namespace in ``namespaces``, to ``state``, ``applied_cmd`` (and ``post_impact`` for the
-  paddle ball) with ``DATA_QOS`` in one callback group, taking the *serialized* messages (``raw=True``): the
-  callbacks only count and queue them (building Python message objects is most of a subscriber's cost);
-* a niced training process (:class:`saml_ros.core.online.TrainingProcess`) gets them in batches, deserializes
-  and converts them with msg_schemas (:func:`make_decoder`), pairs them per namespace (malformed / duplicate /
-  out-of-order / late messages are counted under ``rejected/<reason>`` and logged, throttled per reason, never
-  paired) and trains: replay buffer, primal-dual steps, the live model error, a checkpoint every
-  ``checkpoint_period`` s. Training never competes with ingest for Python's GIL, and the OS runs this process
-  first when CPUs are short;
-* publishes ``learner/model_error`` (sensor_msgs/JointState, names -> values) at ``telemetry_rate``,
-  ``learner/checkpoint`` (std_msgs/String JSON, transient local) after every checkpoint and ``/diagnostics``;
-* a managed node (docs/learner.md, "Lifecycle"): ``configure`` reads the parameters and the spec, checks the run
-  directory and starts the training process (paused; it resumes from the newest checkpoint), ``activate``
-  subscribes and trains, ``deactivate`` unsubscribes, writes a checkpoint (if there are unsaved updates) and
-  stops training, ``cleanup`` ends the training process. With ``autostart`` (default) it walks configure and
-  activate itself; a configuration error (unknown system, bad spec, bad parameter, a run directory of another
-  system) then exits with status 2, while a managed node stays unconfigured with the reason logged;
-* on SIGINT / SIGTERM (or a ``shutdown`` transition) writes a final checkpoint and exits 0.
+* subscribes, per namespace in ``namespaces``, to ``state``, ``applied_cmd`` (and ``post_impact`` for the paddle
+  ball) taking the *serialized* messages (``raw=True``), which the callbacks only count and queue; a niced
+  training process decodes (:func:`make_decoder`) and pairs them (bad input counted under ``rejected/<reason>``),
+  trains (replay buffer, primal-dual steps) and checkpoints every ``checkpoint_period`` s, never competing with
+  ingest for the GIL;
+* publishes ``learner/model_error`` at ``telemetry_rate``, ``learner/checkpoint`` (transient local) after every
+  checkpoint and ``/diagnostics``;
+* a managed node (docs/learner.md, "Lifecycle"): ``configure`` reads the parameters and the spec and starts the
+  training process paused (resumed from the newest checkpoint), ``activate`` subscribes and trains,
+  ``deactivate`` unsubscribes and pauses after one checkpoint, ``cleanup`` ends the training process. With
+  ``autostart`` (default) it walks configure and activate itself and a configuration error exits 2;
+* on SIGINT / SIGTERM (or ``shutdown``) writes a final checkpoint and exits 0.
 
-Wiring only: the parameters are :class:`saml_ros.core.learner_config.LearnerConfig`'s, the training is the
-training process's. torch is imported only once :func:`main` has started that process (so both import it at
-the same time, which halves the start-up).
+torch is imported only once :func:`main` has started the training interpreter (both import it at once, which
+halves the start-up). Usage::
 
-Usage::
-
-    ros2 run saml_ros learner --ros-args -r __ns:=/friction -p system:=friction \\
-        --params-file config/learner.yaml
+    ros2 run saml_ros learner --ros-args -r __ns:=/friction -p system:=friction --params-file config/learner.yaml
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -49,7 +39,13 @@ from msg_schemas.decode import make_decoder
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.learner_config import LearnerConfig, learner_params
-from saml_ros.core.learner_report import configured_message, learner_diagnostics, paused_message, stopped_message
+from saml_ros.core.learner_report import (
+    configured_message,
+    learner_diagnostics,
+    paused_message,
+    process_counters,
+    stopped_message,
+)
 from saml_ros.core.lifecycle import TransitionRefused
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import current_values, declare_params, probe_system
@@ -102,7 +98,12 @@ class LearnerNode(ManagedNode):
         self.channels = p.channels(self.schema)
         self.received = [0] * len(self.channels)
         launched, self._launched = self._launched, None
-        self.trainer = self._start_training(launched)
+        try:  # imports torch (the training interpreter is importing it meanwhile)
+            self.trainer = p.start_training(self.system, self.spec, self.schema, str(run_dir), make_decoder,
+                                            paused=True, launched=launched, on_checkpoint=self._announce,
+                                            on_log=self._child_log, on_error=self._child_error)
+        except ValueError as exc:
+            raise TransitionRefused(str(exc)) from None
         self._create_publishers()
         ready = self.trainer.ready
         assert ready is not None
@@ -145,26 +146,6 @@ class LearnerNode(ManagedNode):
         if self._launched is not None:
             discard_child(self._launched)
             self._launched = None
-
-    def _start_training(self, launched: Any) -> TrainingProcess:
-        from saml_ros.core.online import ResumeError, TrainingProcess  # torch: the training process is running
-
-        p = self.p
-        try:
-            setup = p.training_setup(self.system, self.spec, self.schema.target_pairing, str(self.run_dir),
-                                     [(p.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels],
-                                     decoder=make_decoder)
-        except ValueError as exc:
-            raise TransitionRefused(str(exc)) from None
-        trainer = TrainingProcess(dataclasses.replace(setup, paused=True), on_checkpoint=self._announce,
-                                  on_log=self._child_log, on_error=self._child_error)
-        try:
-            trainer.start(launched=launched)
-        except ResumeError as exc:
-            raise TransitionRefused(str(exc)) from None
-        except RuntimeError as exc:
-            raise TransitionRefused(f"the training process could not start: {exc}") from None
-        return trainer
 
     def _create_publishers(self) -> None:
         self.data_group = MutuallyExclusiveCallbackGroup()
@@ -250,12 +231,9 @@ class LearnerNode(ManagedNode):
         tr = self.trainer
         if tr is None:
             return
-        process = {"train_errors": tr.errors, "train_restarts": tr.restarts, "queued": tr.queued, "dropped": tr.dropped}
-        if tr.ready is not None:
-            process.update(train_threads=tr.ready.threads, train_flush_denormal=int(tr.ready.flush_denormal))
         channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count() if self._subs else 0)
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
-        level, message, values = learner_diagnostics(tr.counts(), tr.status, process, tr.source_counts,
+        level, message, values = learner_diagnostics(tr.counts(), tr.status, process_counters(tr), tr.source_counts,
                                                      self.p.namespaces, channels)
         values["lifecycle"] = self.state_label
         values["invalid_transitions"] = self.invalid_transitions

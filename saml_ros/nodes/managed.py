@@ -112,9 +112,10 @@ class ManagedNode(LifecycleNode):
             except Exception as exc:  # noqa: BLE001 - rcl refuses a transition the current state does not have
                 self.invalid_transitions += 1
                 valid = sorted({t[1] for t in self._state_machine.available_transitions})
+                why = str(exc).split(", at ")[0]  # rcl's message without its source location
                 self.get_logger().warning(
                     f"refused transition {request.transition.label or request.transition.id!r} in state "
-                    f"{self.state_label!r} ({exc}); available: {valid}")
+                    f"{self.state_label!r} ({why}); available: {valid}")
                 response.success = False
                 return response
 
