@@ -99,6 +99,7 @@ class RosSide:
         self.diag: dict[str, str] = {}
         self.diag_level = -1
         self.diag_levels: set[int] = set()
+        self.error_messages: list[str] = []
         self.checkpoints: list[Any] = []
         jt = tele.RCLPY.cls(tele.JOINT_STATE)
         self.node.create_subscription(jt, f"{learner_ns}/{tele.MODEL_ERROR_TOPIC}", self._on_error,
@@ -134,6 +135,8 @@ class RosSide:
                     self.diag = dict(e.values)
                     self.diag_level = e.level
                     self.diag_levels.add(e.level)
+                    if e.level == 2:
+                        self.error_messages.append(e.message)
 
     def _on_ckpt(self, msg: Any) -> None:
         with self.lock:
@@ -625,7 +628,7 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
 ) -> None:
     """With the plausibility bounds opened (``plausible_bounds``), absurd but finite transitions (1e200 m/s) reach
     the replay buffer: the training steps whose minibatch holds one are skipped (``train_health/*`` on /diagnostics,
-    level WARN, never ERROR), the others keep training the model, and every checkpoint written is finite and
+    level WARN, never ERROR for health), the others keep training the model, and every checkpoint written is finite and
     records its health."""
     from saml_ros.core.checkpoint import CheckpointStore
     from saml_ros.core.model_io import load_model
@@ -658,7 +661,8 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
                     60.0, "training to go on")
         assert tester.counter("/friction/paired") == 804 and tester.counter("rejected/bounds") == 0
         assert tester.counter("train_health/unhealthy_streak") < 50 and tester.counter("checkpoints_unhealthy") == 0
-        assert 2 not in tester.diag_levels, tester.diag  # never ERROR: most steps stay healthy
+        # never ERROR for health (most steps stay healthy); the feasibility verdict may say ERROR on its own
+        assert all("likely infeasible" in m for m in tester.error_messages), tester.error_messages[:3]
         assert learner.stop() == 0
     finally:
         tester.close()

@@ -119,7 +119,7 @@ def test_learner_parameter_table() -> None:
                                             "dual_optimizer", "log_every", "seed", "dtype", "engine",
                                             "dual_method", "nupi_kp", "nupi_ema", "penalty", "relax_cost",
                                             "primal_schedule", "dual_schedule", "schedule_steps", "lr_gamma",
-                                            "lr_drops", "lr_floor")]
+                                            "lr_drops", "lr_floor", "device")]
     by_name = {p.name: p for p in table}
     assert all(not by_name[n].description.startswith("TrainConfig.") for n in train)  # each has its own text
     assert by_name["train.dual_method"].default == TrainConfig().dual_method == "augmented"

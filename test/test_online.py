@@ -340,6 +340,34 @@ def test_training_process_trains_checkpoints_and_stops_with_a_final_checkpoint(t
     assert found is not None and found.version == final[1] and found.meta["updates"] == final[2]
 
 
+def test_paused_training_process_buffers_but_neither_trains_nor_checkpoints(tmp_path: Path) -> None:
+    """What a managed learner's deactivation relies on: started paused it buffers data and reports, but makes no
+    update; pause() writes one checkpoint of the unsaved updates and then nothing more; resume() trains on."""
+    saved: list[int] = []
+    proc = TrainingProcess(_setup(tmp_path / "run", paused=True), on_checkpoint=lambda p, v: saved.append(v))
+    proc.start()
+    for tr in transitions(400, seed=23):
+        proc.submit(tr)
+    _wait(lambda: proc.status.get("buffer_size", 0) == 400)
+    time.sleep(0.5)  # 2.5 checkpoint periods
+    assert proc.status["updates"] == 0 and not saved and proc.paused
+    assert proc.resume()
+    _wait(lambda: proc.status.get("updates", 0) >= 50 and len(saved) >= 1)
+    paused = proc.pause()
+    assert paused is not None and paused[0] is not None and paused[1] == saved[-1]  # one checkpoint on pause
+    updates = paused[2]
+    assert CheckpointStore(tmp_path / "run").versions()[-1] == paused[1]
+    time.sleep(0.6)  # three checkpoint periods: no update, no checkpoint
+    assert proc.status["updates"] == updates and saved[-1] == paused[1]
+    assert CheckpointStore(tmp_path / "run").versions()[-1] == paused[1]
+    again = proc.pause()  # pausing a paused process writes nothing
+    assert again is not None and again[0] is None and again[1] == paused[1]
+    assert proc.resume()
+    _wait(lambda: proc.status.get("updates", 0) > updates and saved[-1] > paused[1])
+    final = proc.stop()
+    assert final is not None and final[2] > updates
+
+
 def test_training_process_reports_resume_errors_and_survives_being_killed(tmp_path: Path) -> None:
     run = tmp_path / "run"
     checkpointed_learner(tmp_path, seed=21, updates=30)  # a real checkpoint of a (4, 2) friction model in run

@@ -82,12 +82,13 @@ def ros_params_file(params: Mapping[str, Any]) -> str:
 
 
 def node_params(config: Mapping[str, Any], run_dir: Path) -> dict[str, dict[str, Any]]:
-    """The ROS parameters of each node section, with the ones bringup owns (system, run_dir, use_sim_time)."""
+    """The ROS parameters of each node section, with the ones bringup owns (system, run_dir, use_sim_time and
+    ``autostart: false``: bringup drives the learner's and the MPC's lifecycle transitions itself)."""
     system = config["system"]
     lockstep = config["sim"].get("mode", "lockstep") == "lockstep"
     sim = dict(config["sim"])
-    learner = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["learner"]}
-    mpc = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["mpc"]}
+    learner = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["learner"], "autostart": False}
+    mpc = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["mpc"], "autostart": False}
     if lockstep:
         learner.setdefault("use_sim_time", True)
         mpc.setdefault("use_sim_time", True)

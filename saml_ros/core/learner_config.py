@@ -16,11 +16,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from msg_schemas.names import normalize_namespace
+from msg_schemas.names import join_topic, normalize_namespace
 from saml_ros.core.params import Param, check, read_params
 
 if TYPE_CHECKING:
-    from saml_ros.core.online import LearnerSetup
+    from msg_schemas.base import SystemSchema
+    from saml_ros.core.online import LearnerSetup, TrainingProcess
     from saml_ros.core.online.process import DecoderFactory
     from saml_ros.core.plausibility import Plausibility
     from saml_ros.core.spec import ProblemSpec
@@ -28,6 +29,8 @@ if TYPE_CHECKING:
     from saml_ros.core.training import TrainConfig
     from saml_ros.core.training.health import HealthConfig
 
+#: one subscription of the learner: namespace, kind (state, applied_cmd, target), topic, message type
+Channel = tuple[str, str, str, str]
 #: ``train.*`` parameters: TrainConfig field -> description (``epochs`` is an offline-only field)
 TRAIN_PARAM_DOCS: dict[str, str] = {
     "batch_size": "minibatch size M sampled from the replay buffer per update",
@@ -53,6 +56,8 @@ TRAIN_PARAM_DOCS: dict[str, str] = {
     "lr_gamma": "step schedule: factor of each drop, in (0, 1]",
     "lr_drops": "step schedule: number of evenly spaced drops over the horizon",
     "lr_floor": "cosine schedule: final learning rate as a fraction of the first, in [0, 1]",
+    "device": "training device: cpu | cuda | cuda:N (checked at start-up; a device that cannot be used is a "
+              "configuration error)",
 }
 
 _HEAD: tuple[Param, ...] = (
@@ -248,6 +253,39 @@ class LearnerConfig:
             raise ValueError(f"parameter 'spec_file': no such file {self.spec_file!r}") from None
         except (SpecError, OSError) as exc:
             raise ValueError(f"parameter 'spec_file': {exc}") from None
+
+    def channels(self, schema: SystemSchema) -> list[Channel]:
+        """One :data:`Channel` per (namespace, kind) the learner subscribes: ``state``, ``applied_cmd`` and, where
+        the schema pairs the target with the state of the same stamp (paddle ball), ``target``."""
+        kinds = [("state", schema.state_topic, schema.state.msg_type),
+                 ("applied_cmd", schema.applied_cmd_topic, schema.control.msg_type)]
+        if schema.target_pairing == "same":
+            kinds.append(("target", schema.target_topic, schema.target.msg_type))
+        return [(ns, kind, join_topic(ns, name), msg_type) for ns in self.namespaces for kind, name, msg_type in kinds]
+
+    def start_training(self, system: System, spec: ProblemSpec, schema: SystemSchema, run_dir: str,
+                       decoder: DecoderFactory, *, paused: bool = False, launched: Any = None,
+                       **callbacks: Any) -> TrainingProcess:
+        """The training process of :meth:`training_setup` for ``schema``'s :meth:`channels`, started (``paused``:
+        not training until ``resume()``; ``launched``: a pre-started interpreter; ``callbacks``: the
+        ``on_*`` arguments of :class:`~saml_ros.core.online.TrainingProcess`).
+
+        Raises:
+            ValueError: an invalid setting, a run directory whose checkpoints contradict the configuration, or a
+                training process that could not start; the message says which.
+        """
+        from saml_ros.core.online import ResumeError, TrainingProcess
+
+        channels = [(self.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels(schema)]
+        setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
+        trainer = TrainingProcess(dataclasses.replace(setup, paused=paused), **callbacks)
+        try:
+            trainer.start(launched=launched)
+        except ResumeError as exc:
+            raise ValueError(str(exc)) from None
+        except RuntimeError as exc:
+            raise ValueError(f"the training process could not start: {exc}") from None
+        return trainer
 
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
                        channels: list[tuple[int, str, str]], decoder: DecoderFactory) -> LearnerSetup:

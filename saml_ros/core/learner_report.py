@@ -1,17 +1,20 @@
-"""What the learner node reports on ``/diagnostics``, from the training process's counters (ROS-free).
+"""What the learner node reports on ``/diagnostics`` and in its log, from the training process's counters
+(ROS-free).
 
 :func:`learner_diagnostics` turns the totals and per-source counts of the pairing, the learner's status, the
 training process's own counters and the node's per-channel reception counts into the diagnostic values, level
 (0 OK, 1 WARN, 2 ERROR as ``diagnostic_msgs``) and one-line message. The feasibility verdict of each constraint
 (the status' ``verdict/<k>``: met, not converged, likely infeasible; docs/training.md) sets the level too: OK,
-WARN, ERROR.
+WARN, ERROR. The log lines of the lifecycle steps: :func:`configured_message`,
+:func:`paused_message` and :func:`stopped_message`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, TRAINING_SKIP_REASONS, WARN
 from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
@@ -21,6 +24,15 @@ HEALTH_KEYS: tuple[str, ...] = (
     "train_health/skipped", *(f"train_health/skipped/{r}" for r in TRAINING_SKIP_REASONS), "train_health/restores",
     "train_health/unhealthy_streak", "checkpoints_unhealthy",
 )
+
+if TYPE_CHECKING:
+    from saml_ros.core.learner_config import LearnerConfig
+    from saml_ros.core.online import ReadyInfo, TrainingProcess
+    from saml_ros.core.spec import ProblemSpec
+
+#: ``(path of a checkpoint just written or None, model version, updates)``, as the training process reports a
+#: pause or a stop
+Saved = tuple["str | None", int, int]
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
@@ -114,3 +126,47 @@ def learner_diagnostics(
     if parts:
         message += "; " + "; ".join(parts)
     return max(level, f_level), message, values
+
+
+def process_counters(trainer: TrainingProcess) -> dict[str, int]:
+    """The training process's own counters for :func:`learner_diagnostics` (``process``)."""
+    out = {"train_errors": trainer.errors, "train_restarts": trainer.restarts, "queued": trainer.queued,
+           "dropped": trainer.dropped}
+    if trainer.ready is not None:
+        out.update(train_threads=trainer.ready.threads, train_flush_denormal=int(trainer.ready.flush_denormal))
+    return out
+
+
+def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, run_dir: Path, pid: int | None) -> str:
+    """The log line of a finished ``configure``: what is learned, from where, and how the training process runs."""
+    r = ready.resumed
+    return (f"learner for {p.system!r}" + (f" (system file {p.system_file})" if p.system_file else "")
+            + f" on {p.namespaces}: spec '{spec.raw.get('name')}' ({spec.describe()}), "
+            f"model {p.model_kind} {ready.hidden}, run_dir {run_dir}, "
+            + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
+               else "fresh start")
+            + f"; training process pid {pid} ({ready.threads} torch thread(s), subnormals "
+            + ("flushed" if ready.flush_denormal else "not flushed")
+            + f"); training starts after {p.min_transitions} transitions once active")
+
+
+def paused_message(paused: Saved) -> str:
+    """The log line of a ``deactivate``."""
+    path, version, updates = paused
+    written = "written" if path is not None else "is current"
+    return f"deactivated: training paused after {updates} updates (checkpoint version {version} {written})"
+
+
+def stopped_message(final: Saved | None, updates: float, paired: int, min_transitions: int,
+                    step: str = "shutdown") -> tuple[bool, str]:
+    """``(is an error, log line)`` of the training process's end in lifecycle ``step`` (``shutdown`` or
+    ``cleanup``); ``final`` None: it did not stop in time."""
+    if final is None:
+        return True, f"{step}: the training process did not stop in time; it was killed"
+    path, version, done = final
+    if path is not None:
+        return False, f"{step}: final checkpoint version {version} ({done} updates)"
+    if updates > 0 or version > 0:
+        return False, f"{step}: checkpoint version {version} is current ({done} updates)"
+    return False, (f"{step}: no checkpoint written, training never started ({paired}/{min_transitions} "
+                   "transitions)")

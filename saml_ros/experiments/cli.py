@@ -32,6 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="training seeds (friction, quadrotor, paddle_ball); for convergence the first value is "
                         "the base seed of the datasets")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--ray", help="run the independent units (convergence: the grid cells) on Ray: local, auto or "
+                                 "a cluster address (same numbers as in-process; other experiments run in-process)")
+    p.add_argument("--ray-cpus", type=int, help="CPUs of a --ray local instance (default: all)")
     return p
 
 
@@ -60,12 +63,18 @@ def settings_for(name: str, quick: bool, seeds: list[int] | None) -> Any:
     return replace(settings, **{seed_field: seeds[0] if seed_field == "seed" else tuple(seeds)})
 
 
-def run_experiment(name: str, settings: Any, out: Path, progress: bool = True) -> dict[str, Any]:
+#: experiments whose independent units run on Ray with ``--ray``
+RAY_EXPERIMENTS = ("convergence",)
+
+
+def run_experiment(name: str, settings: Any, out: Path, progress: bool = True, ray: str | None = None,
+                   ray_cpus: int | None = None) -> dict[str, Any]:
     """Run experiment ``name`` with ``settings`` into ``out``; returns its results dict."""
     import importlib
 
     module = importlib.import_module(f"saml_ros.experiments.{name}")
-    result: dict[str, Any] = module.run(settings, out, progress)
+    kwargs = {"ray": ray, "ray_cpus": ray_cpus} if name in RAY_EXPERIMENTS and ray else {}
+    result: dict[str, Any] = module.run(settings, out, progress, **kwargs)
     return result
 
 
@@ -76,6 +85,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds is not None and len(set(args.seeds)) != len(args.seeds):
         print("experiment: --seeds must be distinct", file=sys.stderr)
         return 2
+    if args.ray:
+        from saml_ros.offline.parallel import RayUnavailable, check_ray
+
+        try:
+            check_ray(args.ray)
+        except RayUnavailable as exc:
+            print(f"experiment: {exc}", file=sys.stderr)
+            return 2
+        if not set(names) & set(RAY_EXPERIMENTS):
+            print(f"experiment: --ray applies to {', '.join(RAY_EXPERIMENTS)} only", file=sys.stderr)
+            return 2
     for name in names:
         if args.name == "all":
             out = (args.out or Path("results")) / name
@@ -84,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = settings_for(name, args.quick, args.seeds)
         t0 = time.perf_counter()
         print(f"experiment {name}{' (quick)' if args.quick else ''} -> {out}", flush=True)
-        run_experiment(name, settings, out, progress=not args.no_progress)
+        run_experiment(name, settings, out, progress=not args.no_progress, ray=args.ray, ray_cpus=args.ray_cpus)
         print((out / "results.md").read_text())
         print(f"experiment {name}: done in {time.perf_counter() - t0:.1f} s; results in {out}/results.md, "
               f"{out}/results.json and the PNG figures there", flush=True)

@@ -20,6 +20,7 @@ import torch
 import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.device import DeviceError, resolve_device
 from saml_ros.core.model_evidence import DataEvidence
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import get_entry, get_system, system_names
@@ -67,6 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=1, help="train this many seeds at once (one ensemble)")
     p.add_argument("--out", type=Path, help="output run directory (default: runs/train-<system>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--device", default="cpu", help="training device: cpu (default) | cuda | cuda:N; checked before "
+                                                   "anything runs")
     return p
 
 
@@ -89,7 +92,8 @@ def train_config(args: argparse.Namespace, epochs: int) -> TrainConfig:
         ValueError: a bad ``--train FIELD=VALUE`` or value.
     """
     base = TrainConfig.paper() if args.dual_method == "paper" else TrainConfig()
-    d: dict[str, Any] = {**base.__dict__, "epochs": epochs, "seed": args.seed, "dual_method": args.dual_method}
+    d: dict[str, Any] = {**base.__dict__, "epochs": epochs, "seed": args.seed, "dual_method": args.dual_method,
+                         "device": args.device}
     for name in ("batch_size", "primal_lr", "dual_lr", "primal_optimizer", "dual_optimizer"):
         if getattr(args, name) is not None:
             d[name] = getattr(args, name)
@@ -131,11 +135,12 @@ def main(argv: list[str] | None = None) -> int:
     else:
         system = get_system(args.system)
     try:
+        resolve_device(args.device)
         spec = load_spec(system, args.spec, args.uniform)
         noise = _parse_noise(args.noise)
         for name in noise:
             system.target.index(name)
-    except (SpecError, KeyError, OSError) as exc:
+    except (SpecError, KeyError, OSError, DeviceError) as exc:
         print(f"train: {exc}", file=sys.stderr)
         return 2
     entry = get_entry(system.name)  # the paper's dataset size and epochs

@@ -12,6 +12,8 @@ from typing import Any
 
 import torch
 
+from saml_ros.core.device import resolve_device
+
 #: optimizer names of :attr:`TrainConfig.primal_optimizer` / :attr:`TrainConfig.dual_optimizer`
 OPTIMIZERS = ("adam", "sgd")
 #: engine names of :attr:`TrainConfig.engine` (the classes are in :mod:`saml_ros.core.training.engines`)
@@ -66,6 +68,8 @@ class TrainConfig:
         lr_gamma: factor of each step-schedule drop, in (0, 1].
         lr_drops: number of step-schedule drops (at T k / (drops + 1), k = 1..drops), >= 1.
         lr_floor: the cosine schedule's final learning rate as a fraction of the starting one, in [0, 1].
+        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.device.resolve_device`),
+            so a device that cannot be used fails when the configuration is made, not mid-run.
     """
 
     epochs: int = 200
@@ -89,6 +93,7 @@ class TrainConfig:
     lr_gamma: float = 0.1
     lr_drops: int = 2
     lr_floor: float = 0.0
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.primal_optimizer not in OPTIMIZERS or self.dual_optimizer not in OPTIMIZERS:
@@ -119,6 +124,7 @@ class TrainConfig:
         for ok, msg in checks:
             if not ok:
                 raise ValueError(msg)
+        resolve_device(self.device)
 
     @property
     def torch_dtype(self) -> torch.dtype:
