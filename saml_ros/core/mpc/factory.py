@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import Controller
+from saml_ros.core.mpc.dynamics_np import PredictionModel
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.registry import get_entry
 
@@ -14,14 +14,16 @@ SOLVERS = ("fast", "slsqp")
 
 
 def make_controller(
-    system: System, model: DynamicsModel | None = None, solver: str = "fast", **options: Any
+    system: System, model: PredictionModel = None, solver: str = "fast", **options: Any
 ) -> Controller:
     """The paper's MPC for ``system`` planning with ``model``: the controller its registry entry names.
 
     Args:
         system: the system to control (its ``base_step`` is f_hat; ``true_step`` is never used).
         model: a residual or full :class:`DynamicsModel` for this system (member ``member`` of an ensemble,
-            default 0), or None for the base model f_hat alone. Swap later with ``set_model``.
+            default 0), None for the base model f_hat alone, or ``"oracle"`` for the TRUE dynamics (the registry
+            entry's ``true_model_np``: what a perfect model would do in the same MPC). Swap later with
+            ``set_model``.
         solver: ``"fast"`` (exact-derivative SQP / Gauss-Newton, warm-started) or ``"slsqp"`` (the paper's
             reference: scipy SLSQP with finite differences).
         options: ``horizon`` (default 10; ignored by a one-shot MPC such as the paddle ball's), ``member``,

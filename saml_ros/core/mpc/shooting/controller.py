@@ -14,9 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
-from saml_ros.core.mpc.dynamics_np import NumpyDynamics
+from saml_ros.core.mpc.dynamics_np import NumpyDynamics, PredictionModel
 from saml_ros.core.mpc.shooting.tasks import ShootingTask, make_task
 from saml_ros.core.systems.base import System
 
@@ -36,7 +35,7 @@ class ShootingMPC:
     def __init__(
         self,
         system: System,
-        model: DynamicsModel | None = None,
+        model: PredictionModel = None,
         horizon: int = 10,
         member: int = 0,
         feas_tol: float = 1e-4,
@@ -57,7 +56,7 @@ class ShootingMPC:
         self.tail = "repeat"
 
     # ------------------------------------------------------------------------------ Controller API
-    def set_model(self, model: DynamicsModel | None) -> None:
+    def set_model(self, model: PredictionModel) -> None:
         self.dyn = NumpyDynamics(self.system, model, self.member)
 
     def reset(self) -> None:
