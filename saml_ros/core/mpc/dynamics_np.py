@@ -36,7 +36,7 @@ from saml_ros.core.systems.registry import find_entry
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 #: the model name that makes the MPC predict with the TRUE dynamics (see the module docstring)
-ORACLE = "oracle"
+ORACLE: Literal["oracle"] = "oracle"
 #: what an MPC predicts with: a learned model (residual or full), the oracle, or None (f_hat alone)
 PredictionModel = DynamicsModel | Literal["oracle"] | None
 

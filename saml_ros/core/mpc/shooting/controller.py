@@ -19,6 +19,9 @@ from saml_ros.core.mpc.dynamics_np import NumpyDynamics, PredictionModel
 from saml_ros.core.mpc.shooting.tasks import ShootingTask, make_task
 from saml_ros.core.systems.base import System
 
+#: the start rules of :class:`ShootingMPC` (option ``start``)
+START_MODES = ("robust", "plain")
+
 
 class ShootingMPC:
     """Shared machinery: model handling, warm start, rollout, result assembly and failure handling.
@@ -28,6 +31,9 @@ class ShootingMPC:
         model: residual/full model (member ``member`` is used) or None for f_hat alone.
         horizon: T, number of controls planned.
         feas_tol: tolerance on the state constraints for ``success`` (state units).
+        start: how each solve is started: ``"robust"`` (default: the cheapest of the shifted previous plan and the
+            task's candidate sequences, :meth:`_warm_start`) or ``"plain"`` (the paper's: a cold start at the
+            task's ``u_default`` (zero for the friction task), then the shifted previous plan, no candidates).
         task_options: forwarded to :func:`~saml_ros.core.mpc.shooting.tasks.make_task` (quadrotor: ``min_height``,
             ``qw_tol``).
     """
@@ -39,8 +45,12 @@ class ShootingMPC:
         horizon: int = 10,
         member: int = 0,
         feas_tol: float = 1e-4,
+        start: str = "robust",
         **task_options: Any,
     ) -> None:
+        if start not in START_MODES:
+            raise ValueError(f"unknown start {start!r}; valid: {list(START_MODES)}")
+        self.start = start
         self.system = system
         self.horizon = int(horizon)
         self.member = member
@@ -135,6 +145,8 @@ class ShootingMPC:
         ``self.tail``. It competes with the candidates only if ``task.starts_every_solve`` (otherwise it is
         used as is); ties go to the previous plan, then to the earlier candidate."""
         starts = np.clip(task.u_starts, task.u_low, task.u_high) if task.u_starts.size else task.u_starts
+        if self.start == "plain":
+            starts = starts[:0]
         if self._plan_u is None or self._plan_x is None:
             if starts.shape[0] == 0:
                 return np.tile(task.u_default, (self.horizon, 1)), None
