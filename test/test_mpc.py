@@ -10,7 +10,7 @@ import scipy.optimize
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import LoopStep, closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
@@ -42,7 +42,7 @@ def test_numpy_model_and_jacobians_match_torch(name: str, kind: str) -> None:
     system = get_system(name)
     model = None if kind == "base" else perturbed(name, kind=kind)
     x, u = system.sample_inputs(6, np.random.default_rng(1))
-    dyn = NumpyDynamics(system, model)
+    dyn = NumpyDynamics(system, model, base=base_model_np(system))  # the numpy twin against torch autograd
     y, a, b = dyn.step_jac(x, u)
 
     def torch_fn(xi: torch.Tensor, ui: torch.Tensor) -> torch.Tensor:
@@ -63,7 +63,7 @@ def test_ensemble_uses_member_zero_and_rejects_other_systems() -> None:
     system = get_system("friction")
     ens = perturbed("friction", n_models=3)
     x, u = system.sample_inputs(5, np.random.default_rng(0))
-    np.testing.assert_allclose(NumpyDynamics(system, ens).step(x, u), ens.predict_np(x, u, member=0), atol=1e-12)
+    np.testing.assert_allclose(NumpyDynamics(system, ens, base=base_model_np(system)).step(x, u), ens.predict_np(x, u, member=0), atol=1e-12)
     assert not np.allclose(ens.predict_np(x, u, member=0), ens.predict_np(x, u, member=1))
     with pytest.raises(ValueError, match="model is for system"):
         make_controller(get_system("quadrotor"), ens)

@@ -10,8 +10,9 @@ import torch
 
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
+from saml_ros.core.mpc.factory import make_task
 from saml_ros.core.mpc.shooting import ShootingMPC
-from saml_ros.core.mpc.shooting.tasks import make_task, push_brake_sequences
+from saml_ros.core.mpc.shooting.tasks import push_brake_sequences
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 

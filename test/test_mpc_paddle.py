@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import make_controller, paddle_goal
+from saml_ros.core.mpc import base_model_np, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleProblem
 from saml_ros.core.mpc.paddle.landing_error import LandingError
@@ -43,7 +43,7 @@ def problem(rng: np.random.Generator, model: DynamicsModel | None, spread: float
                   rng.uniform(-6, -2)])
     vmin = rng.uniform(3.0, 4.0)
     goal = paddle_goal(target_xy=spread * rng.uniform(-1, 1, 2), v_rel=(vmin, vmin + rng.uniform(1, 2)))
-    return PaddleProblem(SYSTEM, NumpyDynamics(SYSTEM, model), x, goal)
+    return PaddleProblem(SYSTEM, NumpyDynamics(SYSTEM, model, base=base_model_np(SYSTEM)), x, goal)
 
 
 def evaluator(prob: PaddleProblem) -> LandingError:

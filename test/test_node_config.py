@@ -16,7 +16,7 @@ from saml_ros.core.mpc.config import PARAMS, MPCConfig
 from saml_ros.core.mpc.service import MPCService
 from saml_ros.core.params import Param
 from saml_ros.core.systems import SYSTEM_NAMES, get_entry
-from saml_ros.core.trainer import TrainConfig
+from saml_ros.core.training import TrainConfig
 
 LOG = logging.getLogger("test_node_config")
 

@@ -17,8 +17,8 @@ from saml_ros.core.mpc.dynamics_np import (
     PaddleTrueNP,
     QuadrotorTrueNP,
     TorchTrueNP,
-    true_model_np,
 )
+from saml_ros.core.mpc.factory import true_model_np
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
 from saml_ros.core.systems.friction import FRICTION_PROFILES, FrictionDoubleIntegrator
 

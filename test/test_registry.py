@@ -18,10 +18,10 @@ from msg_schemas.base import DATA_QOS, SystemSchema, TopicSpec
 from msg_schemas.codecs import JOINT_STATE, JointStateCodec
 from saml_ros.core.layout import make_layout
 from saml_ros.core.mpc import make_controller
-from saml_ros.core.mpc.dynamics_np import TorchBaseNP, base_model_np
-from saml_ros.core.mpc.factory import SOLVERS
+from saml_ros.core.mpc.dynamics_np import TorchBaseNP
+from saml_ros.core.mpc.factory import SOLVERS, base_model_np, make_task
 from saml_ros.core.mpc.shooting import SLSQPShootingMPC, SQPShootingMPC
-from saml_ros.core.mpc.shooting.tasks import ShootingTask, make_task
+from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.params import Param
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import (
@@ -105,14 +105,14 @@ def test_the_simulator_core_is_built_from_the_sim_nodes_default_parameters(name:
     np.testing.assert_array_equal(core.holder.safe_default, get_system(name).safe_control())
     assert core.begin(0)  # the first state (and /clock) come out
     if entry.stepped_model is not None:
-        from saml_ros.core.worlds.sim_core import build_stepped_sim
+        from saml_ros.core.systems.registry import build_stepped_sim
 
         assert build_stepped_sim(get_system(name), SimConfig()).system.name == name
 
 
 def test_task_parameters_default_to_the_task_functions_defaults() -> None:
     """The MPC node declares ``task.*`` with these defaults: they must be what the task itself uses."""
-    from saml_ros.core.mpc import tasks
+    from saml_ros.core.mpc.shooting import tasks
 
     for name in SYSTEM_NAMES:
         entry = get_entry(name)

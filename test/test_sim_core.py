@@ -13,6 +13,7 @@ from saml_ros.core.params import coerce_param
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.core.systems.registry import build_stepped_sim
 from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
@@ -24,7 +25,6 @@ from saml_ros.core.worlds.sim_core import (
     FastStep,
     SimConfig,
     SteppedSim,
-    build_stepped_sim,
     friction_model,
     friction_start,
     ground_contact,

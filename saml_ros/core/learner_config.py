@@ -1,7 +1,7 @@
 """The learner node's configuration without ROS: its parameter table and the validated :class:`LearnerConfig`.
 
 The node declares :func:`learner_params` (names, defaults, descriptions; ``train.*`` are the fields of
-:class:`~saml_ros.core.trainer.TrainConfig`) and builds the configuration with :meth:`LearnerConfig.from_params`,
+:class:`~saml_ros.core.training.TrainConfig`) and builds the configuration with :meth:`LearnerConfig.from_params`,
 which raises ``ValueError`` naming the bad parameter; :meth:`LearnerConfig.training_setup` turns it into what
 the training process is started with. See docs/learner.md.
 
@@ -159,7 +159,7 @@ class LearnerConfig:
         return config
 
     def train_config(self) -> TrainConfig:
-        """The :class:`~saml_ros.core.trainer.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
+        """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
         from saml_ros.core.training import TrainConfig
 
         try:

@@ -12,10 +12,10 @@ ball bouncing problem).
 """
 
 from saml_ros.core.mpc.contract import Controller, MPCResult
-from saml_ros.core.mpc.factory import SOLVERS, make_controller
+from saml_ros.core.mpc.factory import SOLVERS, base_model_np, make_controller, make_task
 from saml_ros.core.mpc.loop import ClosedLoopRun, LoopStep, StepHook, closed_loop
 from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleGoal, SLSQPPaddle, paddle_goal
-from saml_ros.core.mpc.shooting import ShootingMPC, ShootingTask, SLSQPShootingMPC, SQPShootingMPC, make_task
+from saml_ros.core.mpc.shooting import ShootingMPC, ShootingTask, SLSQPShootingMPC, SQPShootingMPC
 
 __all__ = [
     "SOLVERS",
@@ -32,6 +32,7 @@ __all__ = [
     "ShootingTask",
     "StepHook",
     "closed_loop",
+    "base_model_np",
     "make_controller",
     "make_task",
     "paddle_goal",

@@ -31,7 +31,6 @@ from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.systems.registry import find_entry
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -398,15 +397,6 @@ class TorchBaseNP:
         return self.step(x, u), ja.numpy(), jb.numpy()
 
 
-def base_model_np(system: System) -> BaseModelNP:
-    """The numpy twin of ``system.base_step`` its registry entry names (autograd fallback for systems without
-    one, or not registered)."""
-    entry = find_entry(system.name)
-    if entry is None or entry.base_model_np is None or not isinstance(system, entry.system_class()):
-        return TorchBaseNP(system)
-    return entry.base_model_np(system)
-
-
 class TorchTrueNP(TorchBaseNP):
     """Any system's ``true_step`` through torch autograd (the oracle's fallback for systems without a twin)."""
 
@@ -423,23 +413,19 @@ class TorchTrueNP(TorchBaseNP):
         return self.step(x, u), ja.numpy(), jb.numpy()
 
 
-def true_model_np(system: System) -> BaseModelNP:
-    """The numpy twin of ``system.true_step`` (the oracle) its registry entry names (autograd fallback for
-    systems without one, or not registered)."""
-    entry = find_entry(system.name)
-    if entry is None or entry.true_model_np is None or not isinstance(system, entry.system_class()):
-        return TorchTrueNP(system)
-    return entry.true_model_np(system)
-
-
 class NumpyDynamics:
     """The model the MPC predicts with: ``f_hat + phi`` (residual), ``phi`` (full), ``f_hat`` (no model) or the
     true dynamics ``f`` (``model = "oracle"``, :data:`ORACLE`).
 
-    The learned part is a frozen copy of ensemble member ``member`` taken when this object is built.
+    The learned part is a frozen copy of ensemble member ``member`` taken when this object is built. ``base`` is
+    the numpy twin of ``system.base_step`` (:func:`saml_ros.core.mpc.factory.base_model_np` finds the system's
+    own); without one, the exact but slower autograd :class:`TorchBaseNP` serves. ``true`` is the twin of
+    ``system.true_step`` the oracle uses (:func:`saml_ros.core.mpc.factory.true_model_np`; fallback
+    :class:`TorchTrueNP`).
     """
 
-    def __init__(self, system: System, model: PredictionModel = None, member: int = 0) -> None:
+    def __init__(self, system: System, model: PredictionModel = None, member: int = 0,
+                 base: BaseModelNP | None = None, true: BaseModelNP | None = None) -> None:
         self.system = system
         self.base: BaseModelNP | None = None
         self.mlp: NumpyMLP | None = None
@@ -449,11 +435,11 @@ class NumpyDynamics:
             if model != ORACLE:
                 raise ValueError(f"unknown prediction model {model!r}; a DynamicsModel, None or {ORACLE!r}")
             self.kind = ORACLE
-            self.base = true_model_np(system)
+            self.base = true if true is not None else TorchTrueNP(system)
             return
         self.kind = "base" if model is None else model.kind
         if model is None or model.kind == "residual":
-            self.base = base_model_np(system)
+            self.base = base if base is not None else TorchBaseNP(system)
         if model is not None:
             if model.system.schema_hash() != system.schema_hash():
                 raise ValueError(

@@ -85,9 +85,9 @@ def _friction_model(system: System) -> SteppedModel:
 
 
 def _friction_simulator(system: System, config: SimConfig, params: Mapping[str, Any]) -> SimCore:
-    from saml_ros.core.worlds.sim_core import build_stepped_sim
+    from saml_ros.core.worlds.sim_core import SteppedSim
 
-    return build_stepped_sim(system, config, publish_clock=params["publish_clock"])
+    return SteppedSim(_friction_model(system), config, publish_clock=params["publish_clock"])
 
 
 FRICTION = SystemEntry(
@@ -161,10 +161,10 @@ def _quadrotor_model(system: System, landing_height: float = 0.1) -> SteppedMode
 
 
 def _quadrotor_simulator(system: System, config: SimConfig, params: Mapping[str, Any]) -> SimCore:
-    from saml_ros.core.worlds.sim_core import build_stepped_sim
+    from saml_ros.core.worlds.sim_core import SteppedSim
 
-    return build_stepped_sim(system, config, publish_clock=params["publish_clock"],
-                             landing_height=params["landing_height"])
+    return SteppedSim(_quadrotor_model(system, params["landing_height"]), config,
+                      publish_clock=params["publish_clock"])
 
 
 QUADROTOR = SystemEntry(

@@ -21,6 +21,7 @@ from saml_ros.core.systems.entry import SystemEntry
 
 if TYPE_CHECKING:
     from saml_ros.core.systems.base import System
+    from saml_ros.core.worlds.sim_core import SimConfig, SteppedSim
 
 # ---------------------------------------------------------------------------------------------- the table
 _ENTRIES: dict[str, SystemEntry] = {}
@@ -85,3 +86,16 @@ for _entry in builtin.ENTRIES:
 
 #: the built-in systems, in a stable order (:func:`system_names` also lists systems registered later)
 SYSTEM_NAMES: tuple[str, ...] = tuple(e.name for e in builtin.ENTRIES)
+
+
+def build_stepped_sim(system: System, config: SimConfig, *, publish_clock: bool = True,
+                      **options: Any) -> SteppedSim:
+    """The :class:`~saml_ros.core.worlds.sim_core.SteppedSim` of a time-stepped system: its registry entry's
+    ``stepped_model`` with ``options`` (the quadrotor's ``landing_height``, m, default 0.1). ``ValueError`` for an
+    event-based system."""
+    from saml_ros.core.worlds.sim_core import SteppedSim
+
+    model = get_entry(system.name).stepped_model
+    if model is None:
+        raise ValueError(f"no time-stepped simulator for system {system.name!r}")
+    return SteppedSim(model(system, **options), config, publish_clock=publish_clock)

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.optimize
 
 from saml_ros.core.mpc.contract import MPCResult
-from saml_ros.core.mpc.dynamics_np import NumpyDynamics, PredictionModel
+from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel
 from saml_ros.core.mpc.paddle.multistart import SearchSettings, search
 from saml_ros.core.mpc.paddle.problem import PaddleGoal, PaddleProblem, control_from_theta, paddle_goal
 from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton, RunResult
@@ -34,7 +34,8 @@ class PaddleController:
     horizon = 1
 
     def __init__(self, system: PaddleBall, model: PredictionModel = None, member: int = 0,
-                 feas_tol: float = 1e-6, tol: float = 1e-4) -> None:
+                 feas_tol: float = 1e-6, tol: float = 1e-4, base: BaseModelNP | None = None,
+                 true: BaseModelNP | None = None) -> None:
         if not isinstance(system, PaddleBall):
             raise ValueError(f"the paddle controller needs a PaddleBall system, got {system.name!r}")
         self.system: System = system
@@ -42,11 +43,12 @@ class PaddleController:
         self.member = member
         self.feas_tol = feas_tol  #: tolerance on |v_rel| bounds for success (m/s)
         self.tol = tol  #: landing error (m) below which a start is good enough (no further restarts)
-        self.dyn = NumpyDynamics(system, model, member)
+        self.base_np, self.true_np = base, true
+        self.dyn = NumpyDynamics(system, model, member, base, true)
         self._theta: np.ndarray | None = None
 
     def set_model(self, model: PredictionModel) -> None:
-        self.dyn = NumpyDynamics(self.system, model, self.member)
+        self.dyn = NumpyDynamics(self.system, model, self.member, self.base_np, self.true_np)
 
     def reset(self) -> None:
         self._theta = None

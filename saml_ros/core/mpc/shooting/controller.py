@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.mpc.contract import MPCResult
-from saml_ros.core.mpc.dynamics_np import NumpyDynamics, PredictionModel
-from saml_ros.core.mpc.shooting.tasks import ShootingTask, make_task
+from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel
+from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
 
 #: the start rules of :class:`ShootingMPC` (option ``start``)
@@ -34,8 +34,10 @@ class ShootingMPC:
         start: how each solve is started: ``"robust"`` (default: the cheapest of the shifted previous plan and the
             task's candidate sequences, :meth:`_warm_start`) or ``"plain"`` (the paper's: a cold start at the
             task's ``u_default`` (zero for the friction task), then the shifted previous plan, no candidates).
-        task_options: forwarded to :func:`~saml_ros.core.mpc.shooting.tasks.make_task` (quadrotor: ``min_height``,
-            ``qw_tol``).
+        task: the MPC problem (:func:`saml_ros.core.mpc.factory.make_task` builds the system's own, with its task
+            options such as the quadrotor's ``min_height``); its horizon must be ``horizon``.
+        base: numpy twin of the base model (see :class:`~saml_ros.core.mpc.dynamics_np.NumpyDynamics`).
+        true: numpy twin of the true dynamics, used when the model is ``"oracle"``.
     """
 
     def __init__(
@@ -46,18 +48,24 @@ class ShootingMPC:
         member: int = 0,
         feas_tol: float = 1e-4,
         start: str = "robust",
-        **task_options: Any,
+        *,
+        task: ShootingTask,
+        base: BaseModelNP | None = None,
+        true: BaseModelNP | None = None,
     ) -> None:
         if start not in START_MODES:
             raise ValueError(f"unknown start {start!r}; valid: {list(START_MODES)}")
         self.start = start
         self.system = system
         self.horizon = int(horizon)
+        if task.horizon != self.horizon:
+            raise ValueError(f"task horizon {task.horizon} != controller horizon {self.horizon}")
         self.member = member
         self.feas_tol = feas_tol
-        self.task = make_task(system, self.horizon, **task_options)
+        self.task = task
         self.n, self.m = system.state.size, system.control.size
-        self.dyn = NumpyDynamics(system, model, member)
+        self.base_np, self.true_np = base, true
+        self.dyn = NumpyDynamics(system, model, member, base, true)
         self._u_lo = np.tile(self.task.u_low, self.horizon)
         self._u_hi = np.tile(self.task.u_high, self.horizon)
         self._plan_u: np.ndarray | None = None
@@ -67,7 +75,7 @@ class ShootingMPC:
 
     # ------------------------------------------------------------------------------ Controller API
     def set_model(self, model: PredictionModel) -> None:
-        self.dyn = NumpyDynamics(self.system, model, self.member)
+        self.dyn = NumpyDynamics(self.system, model, self.member, self.base_np, self.true_np)
 
     def reset(self) -> None:
         self._plan_u = None

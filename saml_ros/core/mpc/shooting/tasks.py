@@ -20,14 +20,11 @@ linearly with the tilt. Plans are always *checked* with the paper's form (:meth:
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.systems.registry import get_entry
 
 
 @dataclass(frozen=True)
@@ -177,22 +174,3 @@ def quadrotor_task(
         att_qw=iqw,
         att_qv=(iqw + 1, iqw + 2, iqw + 3),
     )
-
-
-def make_task(system: System, horizon: int = 10, **options: Any) -> ShootingTask:
-    """The paper's MPC problem for a time-stepped ``system``: its registry entry's ``mpc_task`` with the task
-    ``options`` (the entry's ``task_params``, e.g. the quadrotor's ``min_height`` and ``qw_tol``).
-
-    Raises:
-        ValueError: ``horizon < 1``, or the system has no shooting task; TypeError: an unknown option.
-    """
-    if horizon < 1:
-        raise ValueError(f"horizon must be >= 1, got {horizon}")
-    entry = get_entry(system.name)
-    if entry.mpc_task is None:
-        raise ValueError(f"no shooting MPC task for system {system.name!r}")
-    valid = [p.name for p in entry.task_params]
-    unknown = sorted(set(options) - set(valid))
-    if unknown:
-        raise TypeError(f"{system.name} MPC has no option(s) {unknown}; valid: {', '.join(valid) or 'none'}")
-    return entry.mpc_task(system, horizon, **options)
