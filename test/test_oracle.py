@@ -4,6 +4,8 @@ whose residual is exactly ``f - f_hat`` gives the oracle's closed-loop cost."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
@@ -32,12 +34,13 @@ def autograd_jac(system: object, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarr
     return ja.numpy(), jb.numpy()
 
 
-SYSTEMS = [("friction", {}), ("friction", {"profile": "periodic"}), ("quadrotor", {}), ("paddle_ball", {})]
+SYSTEMS = [("friction", {}), ("friction", {"profile": "periodic"}), ("quadrotor", {}), ("quadrotor", {"drag": 0.3}),
+           ("paddle_ball", {})]
 TWINS = {"friction": FrictionTrueNP, "quadrotor": QuadrotorTrueNP, "paddle_ball": PaddleTrueNP}
 
 
 @pytest.mark.parametrize(("name", "params"), SYSTEMS)
-def test_oracle_twin_equals_true_step_and_autograd(name: str, params: dict[str, str]) -> None:
+def test_oracle_twin_equals_true_step_and_autograd(name: str, params: dict[str, Any]) -> None:
     system = get_system(name, **params)
     twin = true_model_np(system)
     assert isinstance(twin, TWINS[name])

@@ -312,16 +312,19 @@ class FrictionTrueNP:
 
 
 class QuadrotorTrueNP:
-    """The true quadrotor dynamics (oracle): ``f_hat(x, u (1 + K(x)))`` with the per-motor ground-effect gain K.
+    """The true quadrotor dynamics (oracle): ``f_hat(x, u (1 + K(x)))`` with the per-motor ground-effect gain K,
+    then ``v' -= dt drag v`` (the optional linear drag).
 
-    Jacobians: ``dy/du = B_h diag(1 + K)``, ``dy/dx = A_h + B_h diag(u) dK/dx`` with ``A_h, B_h`` the base model's
-    Jacobians at the produced forces and ``dK/dx`` in closed form (K depends on pz and the attitude only).
+    Jacobians: ``dy/du = B_h diag(1 + K)``, ``dy/dx = A_h + B_h diag(u) dK/dx - dt drag [dv'/dv]`` with
+    ``A_h, B_h`` the base model's Jacobians at the produced forces and ``dK/dx`` in closed form (K depends on pz and
+    the attitude only).
     """
 
     def __init__(self, system: Quadrotor) -> None:
         self.system = system
         self.base = QuadrotorBaseNP(system)
         self.arm, self.h_max, self.alpha = system.arm_length, system.h_max, system.alpha
+        self.damp = system.dt * system.drag  # velocity lost to drag per step, per unit of velocity
 
     def gain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """K ``(B, 4)`` and dK/dx ``(B, 4, 13)`` at states ``x`` ``(B, 13)``."""
@@ -363,15 +366,35 @@ class QuadrotorTrueNP:
         return k, dk
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return self.base.step(x, u * (1.0 + self.gain(x)[0]))
+        y = self.base.step(x, u * (1.0 + self.gain(x)[0]))
+        if self.damp:
+            y[:, 3:6] -= self.damp * x[:, 3:6]
+        return y
 
     def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return self.step(x[None], u[None])[0]
+        """One state in plain Python floats (the rollout's hot path; 4-5x faster than the batched :meth:`step`)."""
+        pz, qw, qx, qy, qz = float(x[2]), float(x[6]), float(x[7]), float(x[8]), float(x[9])
+        nn = qw * qw + qx * qx + qy * qy + qz * qz
+        rzx, rzy = 2.0 * (qx * qz - qw * qy) / nn, 2.0 * (qy * qz + qw * qx) / nn
+        theta = 2.0 * math.atan2(math.sqrt(qx * qx + qy * qy), math.sqrt(qw * qw + qz * qz))
+        slack = max(0.5 * math.pi - theta, 0.0)
+        tilt = self.alpha * (4.0 / math.pi**2) * slack * slack
+        f = u.tolist()
+        for i, off in enumerate((rzx, -rzy, -rzx, rzy)):
+            height = min(max(1.0 - (pz + self.arm * off) / self.h_max, 0.0), 1.0)
+            f[i] *= 1.0 + height * tilt
+        y = self.base.step1(x, np.array(f))
+        if self.damp:
+            y[3:6] -= self.damp * x[3:6]
+        return y
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
         k, dk = self.gain(x)
         y, a, b = self.base.step_jac(x, u * (1.0 + k))
         a = a + np.einsum("bij,bj,bjk->bik", b, u, dk)
+        if self.damp:
+            y[:, 3:6] -= self.damp * x[:, 3:6]
+            a[:, 3:6, 3:6] -= self.damp * np.eye(3)
         return y, a, b * (1.0 + k)[:, None, :]
 
 
