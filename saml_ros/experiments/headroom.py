@@ -212,6 +212,10 @@ CLAIMS_HEADER = ("| experiment | claim | paper | ours (95 % CI) | headroom | ver
 
 def claims_table(claims: list[Claim]) -> str:
     """The claims as a markdown table (:data:`CLAIMS_HEADER`), notes as footnotes below it."""
-    rows = [f"| {c.experiment} | {c.claim} | {c.paper} | {c.ours} | {c.headroom} | **{c.verdict}** |" for c in claims]
+    def cell(text: str) -> str:
+        return text.replace("|", "\\|")
+
+    rows = [f"| {cell(c.experiment)} | {cell(c.claim)} | {cell(c.paper)} | {cell(c.ours)} | {cell(c.headroom)} | "
+            f"**{c.verdict}** |" for c in claims]
     notes = [f"* {c.experiment}, {c.claim}: {c.note}" for c in claims if c.note]
     return "\n".join([CLAIMS_HEADER, *rows, *([""] + notes if notes else [])])
