@@ -97,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds is not None and len(set(args.seeds)) != len(args.seeds):
         print("experiment: --seeds must be distinct", file=sys.stderr)
         return 2
+    found: list[Any] = []
+    cpu0, t_all = time.process_time(), time.perf_counter()
     for name in names:
         if args.name == "all":
             out = (args.out or Path("results")) / name
@@ -109,10 +111,21 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         t0 = time.perf_counter()
         print(f"experiment {name}{' (quick)' if args.quick else ''} -> {out}", flush=True)
-        run_experiment(name, settings, out, progress=not args.no_progress)
+        c0 = time.process_time()
+        data = run_experiment(name, settings, out, progress=not args.no_progress)
+        found += data.get("claims", [])
         print((out / "results.md").read_text())
-        print(f"experiment {name}: done in {time.perf_counter() - t0:.1f} s; results in {out}/results.md, "
-              f"{out}/results.json and the PNG figures there", flush=True)
+        print(f"experiment {name}: done in {time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s "
+              f"CPU; results in {out}/results.md, {out}/results.json and the PNG figures there", flush=True)
+    if args.name == "all":
+        from saml_ros.experiments.headroom import claims_table
+
+        parent = args.out or Path("results")
+        text = (f"# Claims of the paper, one line each (`./dev experiment all{' --quick' if args.quick else ''}`)\n\n"
+                f"{claims_table(found)}\n\nAll experiments: {time.perf_counter() - t_all:.1f} s wall, "
+                f"{time.process_time() - cpu0:.1f} s CPU.\n")
+        (parent / "claims.md").write_text(text)
+        print(text)
     return 0
 
 
