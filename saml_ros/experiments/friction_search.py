@@ -155,7 +155,8 @@ def table(rows: list[dict[str, Any]]) -> str:
     lines = [head]
     for r in rows:
         ua = r["ua"]
-        ratio = "–" if not math.isfinite(ua["in_out"]) else f"{ua['in_out']:.2f}"
+        # a net that fits the profile exactly (constant friction: UA error ~0) has no meaningful in/out ratio
+        ratio = "–" if not math.isfinite(ua["in_out"]) or ua["outside"] < 5e-3 else f"{ua['in_out']:.2f}"
         lines.append(f"| {r['name']} | {r['mu_min']:.1f}–{r['mu_max']:.1f} | {r['base_err']['overall']:.3f} | "
                      f"{ua['overall']:.3f} | {ua['inside']:.3f} | {ua['outside']:.3f} | {ratio} | "
                      f"{ua['inside_over_eps']:.1f} | {r['base']['raw']:.2f} | {r['oracle']['raw']:.2f} | "
