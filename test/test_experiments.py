@@ -95,28 +95,76 @@ def test_friction_experiment_tiny(tmp_path: Path) -> None:
                          slsqp_starts=2, traj_starts=(1.0,))
     data = run(s, tmp_path, progress=False)
     saved = check_outputs(tmp_path, data)
+    assert set(data["profiles"]) == {"periodic", "sticky_patch"}
     p0 = starts(s.n_starts, s.start_seed)[:, 0]
-    np.testing.assert_allclose(saved["starts"], p0)
-    for solver, n_seeds, n_starts in (("slsqp", 1, 2), ("fast", 2, 4)):
-        res = data["control"][solver]
-        for label in ("uniform", "sufficient"):
-            c = res[label]
-            assert c["raw"].shape == c["norm"].shape == (n_seeds, n_starts)
-            # the cost sums |p_t| from the start on, and the normalised cost divides by |p0|
-            assert np.all(c["raw"] >= np.abs(p0[:n_starts]) - 1e-12)
-            np.testing.assert_allclose(c["norm"], c["raw"] / np.abs(p0[:n_starts]))
-            np.testing.assert_array_equal(c["stuck"], np.abs(c["final"][..., 0]) > 0.05)
-            ch = c["checks"]
-            assert ch.solves == n_seeds * n_starts * s.steps
-            assert ch.max_u_violation == 0.0  # |u| <= 10 on every returned plan
-        assert data["paired"][solver]["raw_by_start"].n == n_seeds * n_starts
+    for profile, d in data["profiles"].items():
+        np.testing.assert_allclose(saved["profiles"][profile]["starts"], p0)
+        expected = {"fast": (2, 4)} | ({"slsqp": (1, 2), "slsqp_plain": (1, 2)} if profile == "periodic" else {})
+        assert set(d["control"]) == set(expected)
+        for mode, (n_seeds, n_starts) in expected.items():
+            res = d["control"][mode]
+            for label in ("uniform", "sufficient", "base", "oracle"):
+                c = res[label]
+                k = n_seeds if label in ("uniform", "sufficient") else 1
+                assert c["raw"].shape == c["norm"].shape == (k, n_starts)
+                # the cost sums |p_t| from the start on, and the normalised cost divides by |p0|
+                assert np.all(c["raw"] >= np.abs(p0[:n_starts]) - 1e-12)
+                np.testing.assert_allclose(c["norm"], c["raw"] / np.abs(p0[:n_starts]))
+                np.testing.assert_array_equal(c["stuck"], np.abs(c["final"][..., 0]) > 0.05)
+                assert c["checks"].solves == k * n_starts * s.steps
+                assert c["checks"].max_u_violation == 0.0  # |u| <= 10 on every returned plan
+            st = d["stats"][mode]["raw"]
+            h = st["headroom"]
+            base, oracle = res["base"]["raw"][0], res["oracle"]["raw"][0]
+            assert h.base == pytest.approx(base.mean()) and h.oracle == pytest.approx(oracle.mean())
+            assert h.headroom.value == pytest.approx((base.mean() - oracle.mean()) / base.mean())
+            assert st["sa_vs_ua"].by_seed.n == n_seeds and st["sa_vs_ua"].pooled.n == n_seeds * n_starts
+        errs = saved["profiles"][profile]["model_errors"]["near_origin"]
+        assert len(errs["uniform"]["inside"]) == 2 and 0 < errs["frac_inside"] < 0.2
+        assert set(d["calibration"]) == {"overall", "in_out_ratio", "inside_over_eps", "headroom"}
     from saml_ros.core.model_io import load_model
 
-    loaded = load_model(tmp_path / saved["models"]["sufficient"])
+    loaded = load_model(tmp_path / saved["profiles"]["periodic"]["models"]["periodic/sufficient"])
     assert loaded.model.n_models == 2 and loaded.meta["seeds"] == [0, 1]
-    errs = saved["model_errors"]["near_origin"]
-    assert len(errs["uniform"]["inside"]) == 2 and 0 < errs["frac_inside"] < 0.2
-    assert "| Sufficiently Accurate |" in (tmp_path / "results.md").read_text()
+    md = (tmp_path / "results.md").read_text()
+    assert "| Sufficiently Accurate |" in md and "## Claims" in md and "oracle (true dynamics)" in md
+    assert len(data["claims"]) == 6 and {c.verdict for c in data["claims"]} <= {"holds", "does not hold",
+                                                                               "cannot show"}
+
+
+def test_calibrated_friction_profile_meets_the_paper_bounds() -> None:
+    """The "periodic" profile with the paper's training (4-2 net, 15k samples, 200 epochs; 2 seeds instead of 5)
+    reproduces the paper's UA error table (overall about 0.11, inside / outside about 0.75, inside 2-3 eps), and a
+    perfect model is worth >= 15 % of the MPC cost (60 starts instead of 200)."""
+    from saml_ros.core.systems import get_system
+    from saml_ros.experiments.common import Timer, compute_settings, train_paper_comparison
+    from saml_ros.experiments.friction import (
+        CALIBRATION,
+        FrictionSettings,
+        calibration,
+        control_stats,
+        evaluate_controller,
+        model_error_data,
+        starts,
+    )
+
+    system = get_system("friction", profile="periodic")
+    s = FrictionSettings(seeds=(0, 1))
+    with compute_settings():
+        _, cmp = train_paper_comparison(system, s.seeds, s.n_train, s.n_test, s.hidden, s.epochs, Timer(), False)
+        x0s = starts(60, s.start_seed)
+        res = {label: {k: v[None] for k, v in evaluate_controller(system, model, "fast", x0s, s.steps,
+                                                                  s.horizon).items()
+                       if isinstance(v, np.ndarray)} for label, model in (("base", None), ("oracle", "oracle"))}
+    res["uniform"] = res["sufficient"] = res["base"]  # only the headroom is checked here
+    cal = calibration(model_error_data(cmp), control_stats(res), system)  # type: ignore[arg-type]
+    for key, c in cal.items():
+        assert c["met"], f"{key} = {c['value']:.3f} outside {CALIBRATION[key]}"
+    # the profile it replaces as the experiment's default does not: its headroom is below 10 %
+    sticky = get_system("friction", profile="sticky_patch")
+    with compute_settings():
+        ends = [evaluate_controller(sticky, m, "fast", x0s, s.steps, s.horizon)["raw"] for m in (None, "oracle")]
+    assert (ends[0].mean() - ends[1].mean()) / ends[0].mean() < 0.10
 
 
 def test_closed_loop_runs_the_true_system() -> None:
@@ -136,19 +184,42 @@ def test_closed_loop_runs_the_true_system() -> None:
 def test_quadrotor_experiment_tiny(tmp_path: Path) -> None:
     from saml_ros.experiments.quadrotor import QuadrotorSettings, run
 
-    s = QuadrotorSettings(seeds=(0,), n_train=1000, epochs=3, n_test=2000, n_starts=2, steps=6, base=False)
+    s = QuadrotorSettings(seeds=(0, 1), n_train=1000, epochs=3, n_test=2000, n_starts=2, steps=6, settle_steps=3)
     data = run(s, tmp_path, progress=False)
     saved = check_outputs(tmp_path, data)
+    assert set(data["control"]) == {"ground", "above"}
+    for band, res in data["control"].items():
+        z = np.asarray(saved["starts"][band])[:, 2]
+        assert np.all((s.bands[band][0] <= z) & (z <= s.bands[band][1]))
+        for label in ("uniform", "sufficient", "base", "oracle"):
+            c = res[label]
+            k = 2 if label in ("uniform", "sufficient") else 1
+            assert c["cost"].shape == c["hover"].shape == (k, 2) and np.all(np.isfinite(c["cost"]))
+            ch = c["checks"]
+            assert ch.solves == k * 2 * s.steps
+            assert ch.max_u_violation == 0.0  # 0 <= u <= 10 on every returned plan
+            assert ch.max_state_violation_success <= 1e-4  # pz >= 0.2 m on every plan reported successful
+        h = data["stats"][band]["cost"]["headroom"]
+        assert h.headroom.value == pytest.approx(1 - res["oracle"]["cost"].mean() / res["base"]["cost"].mean())
     for label in ("uniform", "sufficient"):
-        c = data["control"][label]
-        assert c["cost"].shape == (1, 2) and np.all(np.isfinite(c["cost"]))
-        ch = c["checks"]
-        assert ch.solves == 2 * s.steps
-        assert ch.max_u_violation == 0.0  # 0 <= u <= 10 on every returned plan
-        assert ch.max_state_violation_success <= 1e-4  # pz >= 0.2 m on every plan reported successful
         e = saved["errors"][label]
         assert e["loss"][0] > 0 and e["loss_times_indicator"][0] <= e["loss"][0]
     assert 0.2 < saved["errors"]["frac_inside"] < 0.4  # pz ~ U[0.1, 5]: P(pz <= 1.5) = 0.286
+    assert saved["system"]["drag"] == s.drag and saved["spec"]["constraints"][0]["eps"] == s.eps
+
+
+def test_quadrotor_spec_takes_the_papers_l2_loss() -> None:
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.systems import get_system
+    from saml_ros.experiments.quadrotor import spec_dict
+
+    quad = get_system("quadrotor")
+    d = spec_dict(quad, "l2", 0.03)  # type: ignore[arg-type]
+    spec = ProblemSpec.for_system(d, quad)
+    assert spec.objective.loss == "l2" and spec.constraints[0].loss == "l2" and spec.constraints[0].eps == 0.03
+    assert spec_dict(quad, "squared_l2", 1e-3) == quad.paper_spec()  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="loss"):
+        spec_dict(quad, "l1", 1e-3)  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------------------------ paddle ball
@@ -157,48 +228,64 @@ def paddle_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str
     from saml_ros.experiments.paddle_ball import PaddleSettings, run
 
     out = tmp_path_factory.mktemp("paddle")
-    s = PaddleSettings(seeds=(0, 1), mpc_seeds=2, n_impacts=150, n_val=60, epochs=8, n_trials=6)
+    s = PaddleSettings(seeds=(0, 1), mpc_seeds=2, n_impacts=150, n_val=60, epochs=8, n_trials=3, n_bounces=4)
     return out, run(s, out, progress=False), s
 
 
 def test_paddle_experiment_tiny(paddle_run: tuple[Path, dict[str, Any], Any]) -> None:
     out, data, s = paddle_run
     saved = check_outputs(out, data)
-    assert set(data["control"]) == {"base", "full/uniform", "full/sufficient", "residual/uniform",
+    assert set(data["control"]) == {"base", "oracle", "full/uniform", "full/sufficient", "residual/uniform",
                                     "residual/sufficient"}
     for name, c in data["control"].items():
-        n = s.n_trials * (1 if name == "base" else 2)  # learned models: both seeds' members, trial by trial
-        assert c["failed"].shape == (n,) and c["failed"].dtype == bool
-        assert not np.any(c["lost"] & ~c["failed"])
-        assert np.all(np.isfinite(c["error"][~c["failed"]])) and np.all(np.isnan(c["error"][c["failed"]]))
-        assert c["max_box_violation"] == 0.0  # control bounds on every returned command
-        assert c["max_angle_violation"] <= 1e-6  # roll / pitch bounds
-        assert c["max_speed_violation_success"] <= 1e-3  # |v_rel| bounds when the solver reports success
+        k = 1 if name in ("base", "oracle") else 2  # learned models: both seeds' members, trial by trial
+        assert c["failed"].shape == c["bounces"].shape == (k, s.n_trials) and c["failed"].dtype == bool
+        # a trial fails exactly when it kept fewer than n_bounces bounces
+        np.testing.assert_array_equal(c["failed"], c["bounces"] < s.n_bounces)
+        assert np.all(np.isnan(c["first_error"][c["bounces"] == 0]))
+        assert np.all(np.isfinite(c["first_error"][c["bounces"] > 0]))
+        ch = c["checks"]
+        assert ch.max_box_violation == 0.0  # control bounds on every returned command
+        assert ch.max_angle_violation <= 1e-6  # roll / pitch bounds
+        assert ch.max_speed_violation_success <= 1e-3  # |v_rel| bounds when the solver reports success
+        assert sum(c["reasons"].values()) == int(c["failed"].sum())
+    assert data["control"]["oracle"]["bounces"].mean() > data["control"]["base"]["bounces"].mean()
     assert saved["data"]["n_train"] == s.n_impacts
-    assert set(data["paired"]) == {"full", "residual"}
-    assert data["paired"]["full"]["failure"].n == 2 * s.n_trials
+    assert set(data["stats"]) == {"full", "residual"}
+    assert data["stats"]["full"]["failure"]["sa_vs_ua"].by_seed.n == 2
+    for kind in ("full", "residual"):
+        own = data["own_objective"][kind]
+        assert own["sa_at_or_below_ua"] == bool(np.all(own["sufficient"]["objective"] <= own["uniform"]["objective"]))
 
 
-def test_paddle_trial_measures_landing_against_target() -> None:
+def test_paddle_trials_are_paired_and_count_failures_as_defined() -> None:
+    """The same trial gives every model the same drop and target offsets; the oracle keeps the ball bouncing where
+    f_hat alone does not; failures are trials with fewer than n_bounces bounces."""
     from saml_ros.core.mpc import make_controller
-    from saml_ros.core.systems.paddle_ball import PaddleBall
     from saml_ros.core.worlds.paddle_world import PaddleBallWorld
-    from saml_ros.experiments.paddle_ball import PaddleSettings, make_trials, run_trial
+    from saml_ros.experiments.paddle_ball import PaddleSettings, TrialChecks, make_trials, run_trial
 
-    s = PaddleSettings()
-    world = PaddleBallWorld(seed=0)
-    ctrl = make_controller(world.system, None, s.solver)
+    s = PaddleSettings(n_bounces=6)
+    world = PaddleBallWorld(seed=0, **s.scene())
     trials = make_trials(3, 11)
-    for t in trials:
-        assert -1 <= t.target_xy.min() and t.target_xy.max() <= 1 and 1 <= t.v_max - t.v_min <= 2
-        r = run_trial(world, ctrl, t, s, record=True)
-        if not r["failed"]:
-            assert r["error"] == pytest.approx(float(np.linalg.norm(r["landing"] - t.target_xy)))
-            # landing = where the ball came back down to the impact height (or met the paddle there)
-            assert abs(r["landing_z"] - r["x_pre"][2]) <= 0.05
-            assert len(r["track"]) > 0.2 / world.timestep  # it flew
-    assert isinstance(world.system, PaddleBall)
-
+    out = {}
+    for arm, model in (("oracle", "oracle"), ("base", None)):
+        ctrl = make_controller(world.system, model, s.solver)
+        checks = TrialChecks()
+        out[arm] = [run_trial(world, ctrl, t, s, checks) for t in trials]
+        assert checks.max_box_violation == 0.0 and checks.solves == sum(r.bounces + (not r.completed)
+                                                                        for r in out[arm])
+    for t, r in zip(trials, out["oracle"]):
+        assert r.completed == (r.bounces == 6) == (r.failure is None)
+        assert len(r.targets) == len(r.errors) == r.bounces
+        if r.bounces:
+            np.testing.assert_allclose(r.targets[0], t.target_xy)  # the first target is the trial's
+        for k in range(1, r.bounces):  # later targets lie within target_step of that bounce's impact point
+            pre = r.impacts[k].pre
+            assert np.all(np.abs(r.targets[k] - np.clip(pre[:2], -1, 1)) <= s.target_step + 0.05)
+    assert sum(r.completed for r in out["oracle"]) >= 2
+    # f_hat alone loses balls
+    assert sum(r.bounces for r in out["base"]) < sum(r.bounces for r in out["oracle"])
 
 
 def test_single_threaded_runner_decorator_pins_one_thread_and_restores() -> None:

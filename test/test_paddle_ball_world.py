@@ -184,3 +184,82 @@ def test_a_ball_pushed_through_the_paddle_is_flagged_and_lost() -> None:
     imp = world.run_until_impact()
     assert imp is not None and not imp.on_plan and imp.post_velocity[2] < 0
     assert world.run_until_impact() is None and world.failure_reason == "fell"
+
+
+# ------------------------------------------------------------------------------------------------ tracking error
+def test_tracking_error_perturbs_the_realised_paddle_but_not_the_learned_command() -> None:
+    u = np.r_[0.3, -0.2, 1.0, 0.1, 0.0, 1.0]
+    u_cmd = PaddleBallWorld(seed=0).validate_command(u)[0]
+    exact = PaddleBallWorld(seed=3)
+    noisy = PaddleBallWorld(seed=3, velocity_noise=0.1, normal_noise=0.03)
+    dv, dn = [], []
+    for w, out in ((exact, None), (noisy, (dv, dn))):
+        for k in range(40):
+            w.reset(np.array([0.0, 0.0, 0.8]), np.array([0.2 * math.sin(k), 0.2 * math.cos(k), 0.0]))
+            w.set_command(u)
+            imp = w.run_until_impact()
+            assert imp is not None
+            np.testing.assert_allclose(imp.u_cmd, u_cmd, atol=1e-12)  # the learner sees the command ...
+            n_cmd_real = np.array([math.sin(BIAS) * u_cmd[5] + math.cos(BIAS) * u_cmd[3], u_cmd[4],
+                                   math.cos(BIAS) * u_cmd[5] - math.sin(BIAS) * u_cmd[3]])
+            if out is None:  # exact tracking: realised = commanded
+                np.testing.assert_allclose(imp.paddle_velocity, u_cmd[:3], atol=1e-9)
+                np.testing.assert_allclose(imp.n_real, n_cmd_real, atol=1e-12)
+            else:  # ... while the paddle realises something else
+                out[0].append(imp.paddle_velocity - u_cmd[:3])
+                out[1].append(math.acos(min(1.0, float(imp.n_real @ n_cmd_real))))
+    dv_a, dn_a = np.array(dv), np.array(dn)
+    assert 0.06 < float(dv_a.std()) < 0.14 and abs(float(dv_a.mean())) < 0.05  # sigma_v = 0.1 m/s
+    assert 0.02 < float(np.median(dn_a)) < 0.06  # two 0.03 rad rotations: about 0.035 rad off
+    with pytest.raises(ValueError, match="noise"):
+        PaddleBallWorld(velocity_noise=-0.1)
+
+
+def test_tracking_error_is_reproducible_from_the_seed() -> None:
+    runs = []
+    for _ in range(2):
+        w = PaddleBallWorld(seed=5, velocity_noise=0.2, normal_noise=0.05)
+        w.reset()
+        w.set_command(np.r_[0.0, 0.0, 0.5, LEVEL])
+        runs.append([w.run_until_impact().post_velocity for _ in range(4)])  # type: ignore[union-attr]
+    np.testing.assert_array_equal(np.array(runs[0]), np.array(runs[1]))
+
+
+# ------------------------------------------------------------------------------------------------ multi-bounce
+def test_bounce_sequence_completes_with_a_keeping_command_and_counts_bounces() -> None:
+    from saml_ros.core.worlds.paddle_world import bounce_sequence
+
+    w = PaddleBallWorld(seed=0)
+    w.reset()
+    seen: list[int] = []
+
+    def level(k: int, x_pre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        seen.append(k)
+        assert x_pre.shape == (6,) and abs(x_pre[2]) < 0.02  # a predicted pre-impact state at the plane
+        return np.r_[0.0, 0.0, 0.5, LEVEL], np.zeros(2)
+
+    rec = bounce_sequence(w, level, 12)
+    assert rec.completed and rec.failure is None and rec.bounces == 12 and seen == list(range(12))
+    assert len(rec.errors) == len(rec.landings) == len(rec.impacts) == 12
+    for landing, err in zip(rec.landings, rec.errors):
+        assert err == pytest.approx(float(np.linalg.norm(landing)))
+    assert max(rec.errors) < 0.05  # a level paddle sends the ball straight back up
+
+
+def test_bounce_sequence_fails_when_the_ball_is_not_kept_bouncing() -> None:
+    from saml_ros.core.worlds.paddle_world import LANDS_OUT, bounce_sequence
+
+    w = PaddleBallWorld(seed=0)
+    w.reset()
+    n_away = np.array([math.sin(0.5), 0.0, math.cos(0.5)])  # tilted: the ball flies off sideways
+
+    def away_at_third(k: int, x_pre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (np.r_[0.0, 0.0, 1.5, n_away] if k == 2 else np.r_[0.0, 0.0, 0.5, LEVEL]), np.zeros(2)
+
+    rec = bounce_sequence(w, away_at_third, 10)
+    assert not rec.completed and rec.bounces == 2 and rec.failure == LANDS_OUT
+    assert len(rec.impacts) == 3 and len(rec.errors) == 2
+    # a command the world refuses ends the sequence as well, before any bounce
+    w.reset()
+    rec = bounce_sequence(w, lambda k, x: (np.r_[0.0, 0.0, 0.5, 0.0, 0.0, 0.1], np.zeros(2)), 5)
+    assert rec.bounces == 0 and rec.failure is not None and rec.failure.startswith("invalid command")

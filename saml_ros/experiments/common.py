@@ -293,15 +293,16 @@ def single_threaded(run: Callable[P, R]) -> Callable[P, R]:
 
 # --------------------------------------------------------------------------------------------- training
 def train_paper_comparison(system: System, seeds: Sequence[int], n_train: int, n_test: int, hidden: Sequence[int],
-                           epochs: int, timer: Timer, progress: bool) -> tuple[ProblemSpec, Comparison]:
-    """Sufficiently vs Uniformly Accurate models of ``system`` on its paper spec, one dataset and initialisation per
-    seed, all seeds as one ensemble (:func:`saml_ros.offline.pipelines.compare`; Adam 1e-3 / 1e-4, batch 128),
-    timed as ``timer("train")``; returns the spec and the comparison."""
+                           epochs: int, timer: Timer, progress: bool,
+                           spec_dict: dict[str, Any] | None = None) -> tuple[ProblemSpec, Comparison]:
+    """Sufficiently vs Uniformly Accurate models of ``system`` on its paper spec (or ``spec_dict``), one dataset and
+    initialisation per seed, all seeds as one ensemble (:func:`saml_ros.offline.pipelines.compare`; Adam 1e-3 /
+    1e-4, batch 128), timed as ``timer("train")``; returns the spec and the comparison."""
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.training import TrainConfig
     from saml_ros.offline.pipelines import compare
 
-    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    spec = ProblemSpec.for_system(system.paper_spec() if spec_dict is None else spec_dict, system)
     config = TrainConfig.paper(epochs=epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
     with timer("train"), quiet_trainer_warnings(), flush_denormals():
         cmp = compare(system, spec, config, list(seeds), n_train, n_test, hidden, progress=progress)

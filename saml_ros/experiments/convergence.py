@@ -42,6 +42,7 @@ from saml_ros.experiments.common import (
     single_threaded,
     write_results,
 )
+from saml_ros.experiments.headroom import Claim, claims_table
 from saml_ros.offline.pipelines import generate_datasets, train_models
 from saml_ros.offline.plots import save_figure
 
@@ -180,10 +181,30 @@ def run(settings: ConvergenceSettings, out: Path, progress: bool = True, ray: st
     bar.close()
     fig = out / "convergence_boxplot.png"
     plot_boxes(cells, s, pstar, fig)
+    found = claims(cells, s, pstar)
     data = {"settings": s.__dict__, "spec": spec.to_dict(), "pstar": pstar, "pstar_check": ps, "cells": cells,
-            "timing": timer.to_dict(), "machine": info, "backend": ray or "in-process"}
-    write_results(out, markdown(cells, s, ps, pstar, timer, fig.name), data)
+            "claims": found, "timing": timer.to_dict(), "machine": info, "backend": ray or "in-process"}
+    write_results(out, markdown(cells, s, ps, pstar, timer, fig.name, found), data)
     return data
+
+
+def claims(cells: list[dict[str, Any]], s: ConvergenceSettings, pstar: float) -> list[Claim]:
+    """The paper's convergence claim: with growing N (and net) the final Lagrangian concentrates at P*. Holds here
+    when, for every net, the median at the largest N is within 10 % of P* and the interquartile range shrinks from
+    the smallest to the largest N."""
+    n_lo, n_hi = min(s.sizes), max(s.sizes)
+    meds, shrink = [], []
+    for net in s.nets:
+        lo = np.asarray(next(c["lagrangian"] for c in cells if tuple(c["net"]) == tuple(net) and c["n"] == n_lo))
+        hi = np.asarray(next(c["lagrangian"] for c in cells if tuple(c["net"]) == tuple(net) and c["n"] == n_hi))
+        meds.append(float(np.median(hi)))
+        shrink.append(float(np.subtract(*np.percentile(hi, [75, 25]))) < float(np.subtract(*np.percentile(lo, [75, 25]))))
+    close = all(abs(m - pstar) <= 0.1 * pstar for m in meds)
+    return [Claim("convergence", f"the final Lagrangian concentrates at P* = {pstar:g} as N grows",
+                  "medians approach 0.04 (figure)",
+                  f"medians at N = {n_hi}: {', '.join(f'{m:.4f}' for m in meds)} (nets {', '.join(f'{a}-{b}' for a, b in s.nets)}); "
+                  f"IQR shrinks from N = {n_lo} for {sum(shrink)}/{len(shrink)} nets", "n/a (no controller)",
+                  "holds" if close and all(shrink) else "does not hold")]
 
 
 def _q(a: np.ndarray) -> tuple[float, float, float, float, float]:
@@ -191,10 +212,11 @@ def _q(a: np.ndarray) -> tuple[float, float, float, float, float]:
 
 
 def markdown(cells: list[dict[str, Any]], s: ConvergenceSettings, ps: dict[str, float], pstar: float,
-             timer: Timer, fig: str) -> str:
+             timer: Timer, fig: str, claim_list: list[Claim] | None = None) -> str:
     lines = [
         "# Convergence experiment (double integrator, noisy v, Sufficiently Accurate)",
         "",
+        *(["## Claims", "", claims_table(claim_list), ""] if claim_list else []),
         f"Grid: nets {[list(n) for n in s.nets]} x N {list(s.sizes)} x {s.n_datasets} datasets; noise sigma = "
         f"{s.sigma} m/s on v_(t+1); {s.epochs} epochs, Adam 1e-3 / 1e-4, batch {s.batch_size}. Spec: squared error "
         f"over [p, v], s.t. E[squared error * I(||[p,v]||_inf <= 0.5)] <= {s.eps} (unconditional).",

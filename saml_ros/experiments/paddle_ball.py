@@ -1,26 +1,36 @@
 """Ball bouncing (paper, "Ball Bouncing"): full and residual impact models, Uniformly vs Sufficiently Accurate,
-evaluated by an MPC that bounces a ball in the MuJoCo world towards a target.
+evaluated by an MPC that must KEEP a ball bouncing in the MuJoCo world, next to the base model and the oracle.
 
 Data: random bounces in the MuJoCo world (:func:`saml_ros.core.worlds.paddle_world.collect_impacts`; the paper's
-"42 minutes" of bounces are about 2500 impacts) and a separate validation set from another world and seed.
+"42 minutes" of bounces are about 2500 impacts) and a separate validation set from another world and seed, both
+with the paddle's **tracking error** (``tracking``: the low-level controller realises the commanded paddle velocity
+with Gaussian noise of ``velocity_noise`` m/s per component and the normal with two random rotations of
+``normal_noise`` rad; the learner sees the command, as in the paper, whose lower-level controllers "only attempt to
+match the command").
 
 Models: 128-128 PReLU, input ``[x^-, u]``, output the post-impact ball velocity; ``full`` (no base model) and
 ``residual`` (on the base model with the wrong restitution and no paddle-normal bias). Sufficiently Accurate =
 the paper's normalised objective (``PaddleBall.paper_spec``: E[||e|| / ||v+||] over ||v+|| >= 0.1 m/s, s.t.
 E[||e|| | ||v+|| < 0.1] <= 0.1 m/s); Uniformly Accurate = the paper's unconstrained problem, the plain l2 error
-over all impacts (:func:`uniform_spec`). Adam with lr 1e-3 for the primal AND the dual variables (paper).
+over all impacts (:func:`uniform_spec`). Adam with an initial learning rate of 1e-3 (the paper's) for the primal
+and the dual variables, the primal rate decayed by ``lr_schedule``.
 
-Control trials (paper eq. ball_paddle_opt): per trial a ball is dropped so that it reaches the impact plane at
-px, py ~ U[-1, 1] m with vx, vy ~ U[-1, 1], vz ~ U[-6, -2] m/s; target_xy ~ U[-1, 1]^2 m, v_min ~ U[3, 4) m/s,
-v_max = v_min + U[1, 2] m/s, roll and pitch in ``[-0.4, 0.4]`` rad. The controller gets the predicted
-pre-impact state (``world.next_impact``), its command is applied, and the world runs until the ball is back at
-the impact height: landing error = distance of that point to target_xy. Failure = the paddle does not keep
-the ball bouncing: the world reports a failure, the impact is not the planned one (``on_plan`` False), the ball
-is not sent up, or it comes down outside the paddle's reach.
+Control trials (paper eq. ball_paddle_opt, repeated): a ball is dropped so that it reaches the impact plane at
+px, py ~ U[-1, 1] m with vx, vy ~ U[-1, 1], vz ~ U[-6, -2] m/s, and the controller must bounce it ``n_bounces``
+times in a row (:func:`saml_ros.core.worlds.paddle_world.bounce_sequence`): the first target is
+target_xy ~ U[-1, 1]^2 m, every later one the impact point plus U[-target_step, target_step]^2 (clipped to
+[-1, 1]^2), and each bounce's relative speed must lie in [v_min, v_max], v_min ~ U[4, 5), v_max = v_min + U[1, 2]
+m/s (fully random targets every bounce are infeasible even for the oracle: a ball arriving with 3 m/s of horizontal
+speed cannot be sent back across the paddle's reach within roll / pitch +-0.4 rad). Failure = the ball is not kept
+bouncing for all ``n_bounces`` (the world loses it, the paddle meets it while it rises, an impact is not the
+planned one, the ball is not sent up or comes down out of reach). Landing error = distance of the ball's next
+crossing of the impact plane to the bounce's target. The trial's random draws come from its own generator, so
+every model gets the same offsets, trial by trial.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,28 +38,33 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import Controller, MPCResult, make_controller
+from saml_ros.core.mpc import Controller, make_controller, paddle_goal
+from saml_ros.core.mpc.dynamics_np import ORACLE, PredictionModel
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point, roll_pitch_from_normal
-from saml_ros.core.training import TrainConfig
-from saml_ros.core.worlds.paddle_world import CollectStats, PaddleBallWorld, collect_impacts, impacts_to_arrays
+from saml_ros.core.systems.paddle_ball import PaddleBall, roll_pitch_from_normal
+from saml_ros.core.training import TrainConfig, Transitions, evaluate_spec
+from saml_ros.core.worlds.paddle_world import (
+    BounceRecord,
+    CollectStats,
+    PaddleBallWorld,
+    bounce_sequence,
+    collect_impacts,
+    impacts_to_arrays,
+)
 from saml_ros.experiments.common import (
-    PAIRED_HEADER,
     Timer,
     flush_denormals,
+    fmt,
     fmt_ms,
-    fmt_p,
     machine_info,
     md_table,
-    paired,
-    paired_rate,
     progress_bar,
     quiet_trainer_warnings,
     save_models,
     single_threaded,
     write_results,
 )
+from saml_ros.experiments.headroom import Claim, claims_table, headroom, seed_test, verdict
 from saml_ros.experiments.plan_checks import bound_violation
 from saml_ros.offline.pipelines import TrainedModels, train_models
 from saml_ros.offline.plots import save_figure
@@ -57,10 +72,6 @@ from saml_ros.offline.plots import save_figure
 PAPER = {("full", "uniform"): ("20.8%", "0.3136"), ("full", "sufficient"): ("0.8%", "0.2124"),
          ("residual", "uniform"): ("0%", "0.164"), ("residual", "sufficient"): ("0%", "0.156")}
 SPEC_LABELS = {"uniform": "Uniform", "sufficient": "Sufficient"}
-#: failure reason of a ball the world's paddle hits again right after the impact, while the ball still rises
-REHIT = "hit again while rising"
-#: tolerance on the roll / pitch / relative-speed bounds of a returned command (rad, m/s)
-GOAL_TOL = 1e-6
 
 
 def uniform_spec() -> dict[str, Any]:
@@ -74,176 +85,134 @@ def uniform_spec() -> dict[str, Any]:
 class PaddleSettings:
     """Experiment settings (defaults: the paper's where it gives them)."""
 
-    seeds: tuple[int, ...] = (0, 1, 2)
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     n_impacts: int = 2500
     n_val: int = 1000
     #: the paper does not state the epochs; 500 passes over 2500 impacts (about 10k updates)
     epochs: int = 500
     hidden: tuple[int, ...] = (128, 128)
     kinds: tuple[str, ...] = ("full", "residual")
-    n_trials: int = 500
+    #: primal learning-rate schedule from the paper's initial 1e-3 ("constant" = the paper's as printed)
+    lr_schedule: str = "constant"
+    #: paddle tracking error in data collection and trials: std of the paddle velocity (m/s) and normal (rad)
+    velocity_noise: float = 0.1
+    normal_noise: float = 0.03
+    n_trials: int = 30
+    n_bounces: int = 10
+    target_step: float = 0.3
+    v_rel_min: tuple[float, float] = (4.0, 5.0)
+    v_rel_width: tuple[float, float] = (1.0, 2.0)
     solver: str = "fast"
     roll: tuple[float, float] = (-0.4, 0.4)
     pitch: tuple[float, float] = (-0.4, 0.4)
     #: control trials run with the models of the first ``mpc_seeds`` seeds
-    mpc_seeds: int = 3
+    mpc_seeds: int = 5
     data_seed: int = 0
     trial_seed: int = 7
     timestep: float = 0.002
     extra: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def quick(cls, seeds: tuple[int, ...] = (0,)) -> PaddleSettings:
-        """Under a minute: 400 impacts, 150 epochs, 30 trials."""
-        return cls(seeds=seeds, n_impacts=400, n_val=200, epochs=150, n_trials=30, mpc_seeds=1)
+    def quick(cls, seeds: tuple[int, ...] = (0, 1)) -> PaddleSettings:
+        """About a minute: 400 impacts, 150 epochs, 6 trials of 10 bounces."""
+        return cls(seeds=seeds, n_impacts=400, n_val=200, epochs=150, n_trials=6, mpc_seeds=2)
+
+    def scene(self) -> dict[str, Any]:
+        """The world's scene options (the tracking error)."""
+        return {"velocity_noise": self.velocity_noise, "normal_noise": self.normal_noise}
 
 
 @dataclass(frozen=True)
 class Trial:
-    """One control trial: the ball's drop (apex position and velocity) and the controller's parameters."""
+    """One control trial: the ball's drop (apex position and velocity), the first target, its generator's seed."""
 
     apex: np.ndarray  # (3,) m
     velocity: np.ndarray  # (3,) m/s, horizontal
     target_xy: np.ndarray  # (2,) m
-    v_min: float
-    v_max: float
+    seed: tuple[int, int]
 
 
 def make_trials(n: int, seed: int, g: float = 9.81) -> list[Trial]:
     """``n`` trials (see the module docstring); the ball reaches the impact plane with the drawn state."""
     rng = np.random.default_rng(seed)
     out = []
-    for _ in range(n):
+    for j in range(n):
         p = rng.uniform(-1.0, 1.0, 2)
         vh = rng.uniform(-1.0, 1.0, 2)
         vz = rng.uniform(-6.0, -2.0)
         t_fall = -vz / g
         apex = np.array([*(p - vh * t_fall), vz * vz / (2.0 * g)])
-        target = rng.uniform(-1.0, 1.0, 2)
-        v_min = rng.uniform(3.0, 4.0)
-        v_max = v_min + rng.uniform(1.0, 2.0)
-        out.append(Trial(apex, np.array([*vh, 0.0]), target, float(v_min), float(v_max)))
+        out.append(Trial(apex, np.array([*vh, 0.0]), rng.uniform(-1.0, 1.0, 2), (seed, j)))
     return out
 
 
-def make_goal(trial: Trial, s: PaddleSettings) -> Any:
-    """The controller's goal for a trial (``saml_ros.core.mpc.paddle_goal``)."""
-    from saml_ros.core.mpc import paddle_goal
+@dataclass
+class TrialChecks:
+    """Checks of every command the controller returned in the trials: box, roll / pitch and speed bounds."""
 
-    return paddle_goal(target_xy=trial.target_xy, roll=s.roll, pitch=s.pitch, v_rel=(trial.v_min, trial.v_max))
+    solves: int = 0
+    unsuccessful: int = 0
+    max_box_violation: float = 0.0
+    max_angle_violation: float = 0.0
+    #: largest |v_rel| bound violation (m/s) among commands the solver reported successful
+    max_speed_violation_success: float = 0.0
+    solve_time: float = 0.0
 
-
-def command_violation(system: PaddleBall, res: MPCResult, x_pre: np.ndarray, trial: Trial,
-                      s: PaddleSettings) -> dict[str, float]:
-    """How far the returned command leaves the control box, the roll/pitch bounds and the relative-speed bounds
-    (|v_ball^- - v_paddle| in [v_min, v_max]); 0 = inside."""
-    u = np.asarray(res.u, dtype=float)
-    box = max(bound_violation(res.plan_u, system.control_low, system.control_high),
-              bound_violation(u[None], system.control_low, system.control_high))
-    roll, pitch = (float(a) for a in roll_pitch_from_normal(torch.as_tensor(u[3:6])))
-    angle = max(0.0, s.roll[0] - roll, roll - s.roll[1], s.pitch[0] - pitch, pitch - s.pitch[1])
-    v_rel = float(np.linalg.norm(x_pre[3:6] - u[0:3]))
-    speed = max(0.0, trial.v_min - v_rel, v_rel - trial.v_max)
-    return {"box": box, "angle": angle, "speed": speed}
+    def to_dict(self) -> dict[str, float]:
+        return dict(self.__dict__)
 
 
 def run_trial(world: PaddleBallWorld, ctrl: Controller, trial: Trial, s: PaddleSettings,
-              record: bool = False) -> dict[str, Any]:
-    """Run one trial (see the module docstring); returns outcome, landing error and the command's checks."""
+              checks: TrialChecks) -> BounceRecord:
+    """Reset the world to the trial's drop and bounce the ball ``s.n_bounces`` times with ``ctrl``."""
     system = world.system
+    rng = np.random.default_rng(list(trial.seed))
     world.reset(trial.apex, trial.velocity)
-    _, x_pre = world.next_impact()
-    res = ctrl.solve(x_pre, make_goal(trial, s))
-    out: dict[str, Any] = {"failed": True, "reason": "", "error": float("nan"), "solve_time": res.solve_time,
-                           "solver_success": bool(res.success), "x_pre": x_pre, "u": np.asarray(res.u)}
-    out["violation"] = command_violation(system, res, x_pre, trial, s)
-    pred = np.asarray(res.plan_x, dtype=float)
-    if pred.shape[-1] >= 6 and np.all(np.isfinite(pred[0, 3:6])):
-        out["predicted_landing"] = landing_point(torch.as_tensor(x_pre[None, :3]),
-                                                 torch.as_tensor(pred[:1, 3:6]), system.g)[0].numpy()
-    try:
-        world.set_command(np.asarray(res.u, dtype=float))
-    except ValueError as exc:
-        out["reason"] = f"invalid command: {exc}"
-        return out
-    track: list[np.ndarray] = [world.ball_state[:3]] if record else []
-    imp = None
-    dt = world.timestep
-    for _ in range(int(world.options.impact_timeout / dt) + 1):
-        got = world.step(1)
-        if record:
-            track.append(world.ball_state[:3])
-        if got:
-            imp = got[0]
-            break
-        if world.failed():
-            break
-    if imp is None:
-        out["reason"] = world.failure_reason or "no impact"
-        return _finish(out, track)
-    out["v_post"] = imp.post_velocity
-    if not imp.on_plan:
-        out["reason"] = "impact not as planned"
-        return _finish(out, track)
-    if imp.post_velocity[2] <= 0.0:
-        out["reason"] = "ball not sent up"
-        return _finish(out, track)
-    z_ref = float(imp.pre[2])
-    prev = world.ball_state
-    landing = None
-    for _ in range(int(4.0 / dt)):
-        got = world.step(1)
-        st = world.ball_state
-        if record:
-            track.append(st[:3])
-        if got:
-            if got[0].pre[5] < 0.0:  # met by the paddle on its way down: continue its free flight to z_ref
-                landing = ballistic_crossing(got[0].pre, z_ref, system.g)
-                out["landing_z"] = z_ref
-                break
-            out["reason"] = REHIT  # e.g. by the paddle rushing to the next impact point
-            return _finish(out, track)
-        if st[5] < 0.0 and st[2] <= z_ref:
-            a = (prev[2] - z_ref) / max(prev[2] - st[2], 1e-12)
-            landing, out["landing_z"] = prev[:2] + a * (st[:2] - prev[:2]), z_ref
-            break
-        prev = st
-    if landing is None:
-        out["reason"] = "ball did not come back down"
-        return _finish(out, track)
-    out["landing"] = landing
-    out["error"] = float(np.linalg.norm(landing - trial.target_xy))
-    if max(abs(float(landing[0])), abs(float(landing[1]))) > world.options.reach + world.options.paddle_half_size:
-        out["reason"] = "out of reach"
-        return _finish(out, track)
-    out["failed"] = False
-    return _finish(out, track)
+    ctrl.reset()
 
+    def choose(k: int, x_pre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        offset = rng.uniform(-s.target_step, s.target_step, 2)
+        target = trial.target_xy if k == 0 else np.clip(x_pre[:2] + offset, -1.0, 1.0)
+        v_min = rng.uniform(*s.v_rel_min)
+        v_max = v_min + rng.uniform(*s.v_rel_width)
+        res = ctrl.solve(x_pre, paddle_goal(target_xy=target, roll=s.roll, pitch=s.pitch, v_rel=(v_min, v_max)))
+        u = np.asarray(res.u, dtype=float)
+        checks.solves += 1
+        checks.unsuccessful += int(not res.success)
+        checks.solve_time += res.solve_time
+        checks.max_box_violation = max(checks.max_box_violation,
+                                       bound_violation(res.plan_u, system.control_low, system.control_high),
+                                       bound_violation(u[None], system.control_low, system.control_high))
+        roll, pitch = (float(a) for a in roll_pitch_from_normal(torch.as_tensor(u[3:6])))
+        checks.max_angle_violation = max(checks.max_angle_violation, s.roll[0] - roll, roll - s.roll[1],
+                                         s.pitch[0] - pitch, pitch - s.pitch[1])
+        if res.success:
+            v_rel = float(np.linalg.norm(x_pre[3:6] - u[0:3]))
+            checks.max_speed_violation_success = max(checks.max_speed_violation_success, v_min - v_rel,
+                                                     v_rel - v_max)
+        return u, target
 
-def ballistic_crossing(state: np.ndarray, z_ref: float, g: float) -> np.ndarray:
-    """xy (m) where a ball in free flight from ``state`` ``[p, v]`` (6,) descends through height ``z_ref``."""
-    pz, vz = float(state[2]), float(state[5])
-    disc = max(vz * vz + 2.0 * g * (pz - z_ref), 0.0)
-    t = max((vz + np.sqrt(disc)) / g, 0.0)
-    return np.asarray(state[0:2] + state[3:5] * t, dtype=float)
-
-
-def _finish(out: dict[str, Any], track: list[np.ndarray]) -> dict[str, Any]:
-    if track:
-        out["track"] = np.stack(track)
-    return out
+    return bounce_sequence(world, choose, s.n_bounces)
 
 
 def collect(s: PaddleSettings, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, CollectStats]:
     """``n`` on-plan random impacts from a world seeded ``seed``: ``(x, u, y)`` and the collection stats."""
-    world = PaddleBallWorld(timestep=s.timestep, seed=seed)
+    world = PaddleBallWorld(timestep=s.timestep, seed=seed, **s.scene())
     stats = CollectStats()
     impacts = collect_impacts(world, n, np.random.default_rng(seed + 1), stats=stats)
     x, u, y = impacts_to_arrays(impacts)
     return x, u, y, stats
 
 
-def validation_errors(model: DynamicsModel | None, system: PaddleBall, x: np.ndarray, u: np.ndarray,
+def train_config(s: PaddleSettings) -> TrainConfig:
+    """Adam, initial learning rate 1e-3 for both steps (the paper), the primal rate on ``s.lr_schedule``."""
+    options: dict[str, Any] = {}
+    if s.lr_schedule != "constant":
+        options["primal_schedule"] = s.lr_schedule
+    return TrainConfig.paper(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-3, **options)
+
+
+def validation_errors(model: Any, system: PaddleBall, x: np.ndarray, u: np.ndarray,
                       y: np.ndarray) -> dict[str, Any]:
     """Per member: l2 error ``(E, N)``, mean l2, normalised error on fast balls, l2 on slow balls (< 0.1 m/s)."""
     if model is None:
@@ -260,9 +229,26 @@ def validation_errors(model: DynamicsModel | None, system: PaddleBall, x: np.nda
             "n_slow": int((~fast).sum())}
 
 
+def own_objective_check(trained: dict[tuple[str, str], TrainedModels], spec: ProblemSpec, x: np.ndarray,
+                        u: np.ndarray, y: np.ndarray) -> dict[str, Any]:
+    """Per kind and seed: the SA spec's objective (and constraint) on the TRAINING data for the SA and the UA model.
+    SA minimises that objective (under its constraint), so a trained SA model must end at or below UA there;
+    above it, SA is under-trained."""
+    out: dict[str, Any] = {}
+    for kind in sorted({k for k, _ in trained}):
+        vals = {}
+        for label in ("sufficient", "uniform"):
+            model = trained[(kind, label)].model
+            ev = evaluate_spec(model, spec, Transitions(model, spec, x, u, y))
+            vals[label] = {"objective": ev["objective"], "constraint": ev["constraints"][:, 0]}
+        sa, ua = vals["sufficient"]["objective"], vals["uniform"]["objective"]
+        out[kind] = {**vals, "sa_at_or_below_ua": bool(np.all(sa <= ua)), "per_seed_ok": (sa <= ua).tolist()}
+    return out
+
+
 @single_threaded
 def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str, Any]:
-    """Collect, train, validate, run the control trials; write results and figures into ``out``.
+    """Collect, train, validate, run the multi-bounce trials; write results and figures into ``out``.
 
     Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.single_threaded`)."""
     s = settings
@@ -274,132 +260,168 @@ def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str,
     with timer("collect"):
         x, u, y, stats = collect(s, s.n_impacts, s.data_seed)
         xv, uv, yv, _ = collect(s, s.n_val, s.data_seed + 1000)
-    config = TrainConfig.paper(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-3)
+    config = train_config(s)
     trained: dict[tuple[str, str], TrainedModels] = {}
     with timer("train"), quiet_trainer_warnings(), flush_denormals():
         for kind in s.kinds:
             for label, spec in specs.items():
                 trained[(kind, label)] = train_models(system, spec, x, u, y, config, list(s.seeds), s.hidden, kind,
                                                       progress, f"{kind} {label}")
+    own = own_objective_check(trained, specs["sufficient"], x, u, y)
     val = {f"{k}/{lab}": validation_errors(tm.model, system, xv, uv, yv) for (k, lab), tm in trained.items()}
     val["base"] = validation_errors(None, system, xv, uv, yv)
     trials = make_trials(s.n_trials, s.trial_seed, system.g)
     k = min(s.mpc_seeds, len(s.seeds))
-    models: dict[str, list[DynamicsModel | None]] = {"base": [None]}
+    models: dict[str, list[PredictionModel]] = {"base": [None], "oracle": [ORACLE]}
     for (kind, label), tm in trained.items():
         models[f"{kind}/{label}"] = [tm.model.member(i) for i in range(k)]
-    bar = progress_bar(sum(len(v) for v in models.values()) * len(trials), "paddle-ball control trials", progress)
-    world = PaddleBallWorld(timestep=s.timestep, seed=s.trial_seed)
+    bar = progress_bar(sum(len(v) for v in models.values()) * len(trials), "paddle-ball bounce trials", progress)
+    world = PaddleBallWorld(timestep=s.timestep, seed=s.trial_seed, **s.scene())
     control: dict[str, Any] = {}
-    tracks: dict[str, np.ndarray] = {}
     with timer("control"):
         for name, members in models.items():
-            rows = []
+            rows: list[list[BounceRecord]] = []
+            checks = TrialChecks()
             for model in members:
                 ctrl = make_controller(system, model, s.solver)
-                for j, trial in enumerate(trials):
-                    r = run_trial(world, ctrl, trial, s, record=(j == 0 and model is members[0]))
-                    if "track" in r:
-                        tracks[name] = r.pop("track")
-                    rows.append(r)
+                row = []
+                for trial in trials:
+                    row.append(run_trial(world, ctrl, trial, s, checks))
                     bar.update(1)
-            control[name] = summarize(rows)
+                rows.append(row)
+            control[name] = summarize(rows, s.n_bounces, checks)
     bar.close()
-    pairs = paired_control(control, s)
+    stats_ = control_stats(control, s)
     with timer("figures"):
         figs = [plot_error_scatter(val, s, out / "paddle_error_vs_speed.png"),
-                plot_tracks(tracks, trials[0], out / "paddle_trajectory.png")]
-    data = {"settings": s.__dict__, "specs": {k2: v.to_dict() for k2, v in specs.items()},
+                plot_bounces(control, s, out / "paddle_bounces.png")]
+    data: dict[str, Any] = {"settings": s.__dict__, "specs": {k2: v.to_dict() for k2, v in specs.items()},
             "models": save_models(out, {f"{k2[0]}/{k2[1]}": tm for k2, tm in trained.items()}),
             "data": {"n_train": len(x), "n_val": len(xv), "collect": stats.__dict__,
                      "frac_slow_train": float(np.mean(np.linalg.norm(y, axis=1) < 0.1))},
             "validation": {k2: {m: v for m, v in d.items() if m not in ("err", "speed")} for k2, d in val.items()},
-            "control": control, "paired": pairs,
+            "own_objective": own, "control": control, "stats": stats_,
             "training": {f"{k2[0]}/{k2[1]}": {"seconds": tm.train_seconds, "engine": tm.trainer.engine_used,
                                               "lambda": tm.trainer.lam} for k2, tm in trained.items()},
-            "trials": [{"target_xy": t.target_xy, "v_min": t.v_min, "v_max": t.v_max, "apex": t.apex}
-                       for t in trials],
+            "trials": [{"target_xy": t.target_xy, "apex": t.apex} for t in trials],
             "figures": [f.name for f in figs], "timing": timer.to_dict(), "machine": info}
+    data["claims"] = claims(data, s)
     write_results(out, markdown(data, s, timer), data)
     return data
 
 
-def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per-trial arrays (failed, error, solve time, violations) and failure reasons of one model's trials."""
+def summarize(rows: list[list[BounceRecord]], n_bounces: int, checks: TrialChecks) -> dict[str, Any]:
+    """Per (seed, trial) arrays ``(n_seeds, n_trials)``: bounces kept, failed, mean landing error over the
+    successful bounces (NaN for none); failure reasons; the command checks."""
     reasons: dict[str, int] = {}
-    for r in rows:
-        if r["failed"]:
-            reasons[r["reason"]] = reasons.get(r["reason"], 0) + 1
+    for row in rows:
+        for r in row:
+            if r.failure is not None:
+                key = r.failure.split(":")[0]
+                reasons[key] = reasons.get(key, 0) + 1
     return {
-        "failed": np.array([r["failed"] for r in rows]),
-        "lost": np.array([r["failed"] and r["reason"] != REHIT for r in rows]),
-        "error": np.array([np.nan if r["failed"] else r["error"] for r in rows]),
-        "error_any": np.array([r["error"] for r in rows]),
-        "solve_time": np.array([r["solve_time"] for r in rows]),
-        "solver_success": np.array([r["solver_success"] for r in rows]),
-        "max_box_violation": max(r["violation"]["box"] for r in rows),
-        "max_angle_violation": max(r["violation"]["angle"] for r in rows),
-        "max_speed_violation_success": max([r["violation"]["speed"] for r in rows if r["solver_success"]],
-                                           default=0.0),
-        "reasons": reasons,
+        "bounces": np.array([[r.bounces for r in row] for row in rows]),
+        "failed": np.array([[not r.completed for r in row] for row in rows]),
+        "error": np.array([[float(np.mean(r.errors)) if r.errors else math.nan for r in row] for row in rows]),
+        "first_error": np.array([[r.errors[0] if r.errors else math.nan for r in row] for row in rows]),
+        "reasons": reasons, "checks": checks, "n_bounces": n_bounces,
     }
 
 
-def paired_control(control: dict[str, Any], s: PaddleSettings) -> dict[str, Any]:
-    """Per kind, Uniform vs Sufficient paired by trial: failures (McNemar) and landing errors where both succeeded."""
+def control_stats(control: dict[str, Any], s: PaddleSettings) -> dict[str, Any]:
+    """Per kind: headroom of the failure rate and of the landing error (base vs oracle, trial by trial), the share
+    each learned arm captures, and the seed-level SA vs UA tests."""
+    base, oracle = control["base"], control["oracle"]
     out: dict[str, Any] = {}
     for kind in s.kinds:
         ua, sa = control.get(f"{kind}/uniform"), control.get(f"{kind}/sufficient")
         if ua is None or sa is None:
             continue
-        both = ~ua["failed"] & ~sa["failed"]
-        out[kind] = {"failure": paired_rate(ua["failed"], sa["failed"]),
-                     "lost": paired_rate(ua["lost"], sa["lost"]),
-                     "error_both_ok": paired(ua["error"][both], sa["error"][both])}
+        fails = {m: c["failed"].astype(float) for m, c in (("UA", ua), ("SA", sa))}
+        # landing error on each trial's FIRST bounce (defined for every arm that got one bounce off)
+        errs = {m: c["first_error"] for m, c in (("UA", ua), ("SA", sa))}
+        out[kind] = {
+            "failure": {"headroom": headroom(base["failed"][0].astype(float), oracle["failed"][0].astype(float), fails),
+                        "sa_vs_ua": seed_test(fails["UA"], fails["SA"])},
+            "bounces": {"sa_vs_ua": seed_test(-ua["bounces"].astype(float), -sa["bounces"].astype(float))},
+            "first_error": {"headroom": headroom(base["first_error"][0], oracle["first_error"][0], errs),
+                            "sa_vs_ua": seed_test(errs["UA"], errs["SA"])},
+            "error": {"sa_vs_ua": seed_test(ua["error"], sa["error"])},
+        }
+    return out
+
+
+def claims(data: dict[str, Any], s: PaddleSettings) -> list[Claim]:
+    out = []
+    for kind, st in data["stats"].items():
+        f, e = st["failure"], st["first_error"]
+        pf, pe = f["sa_vs_ua"].by_seed, e["sa_vs_ua"].by_seed
+        if kind == "full":
+            out.append(Claim(f"paddle ({kind})", f"SA fails less often than UA ({s.n_bounces} bounces)",
+                             "0.8 % vs 20.8 %",
+                             f"{100 * pf.mean_b:.1f} % vs {100 * pf.mean_a:.1f} %; SA − UA {100 * pf.diff:+.1f} "
+                             f"[{100 * pf.ci_low:+.1f}, {100 * pf.ci_high:+.1f}] points ({pf.n} seeds)",
+                             f["headroom"].headroom.pct(), verdict(f["headroom"].enough, pf),
+                             f"base fails {100 * f['headroom'].base:.0f} %, oracle {100 * f['headroom'].oracle:.0f} %"))
+        paper = PAPER[(kind, "sufficient")][1] + " vs " + PAPER[(kind, "uniform")][1] + " m"
+        out.append(Claim(f"paddle ({kind})", "SA's landing error is below UA's (first bounce)", paper,
+                         f"{fmt(pe.mean_b)} vs {fmt(pe.mean_a)} m; SA − UA {fmt(pe.diff, 4)} [{fmt(pe.ci_low, 4)}, "
+                         f"{fmt(pe.ci_high, 4)}] ({pe.n} seeds)", e["headroom"].headroom.pct(),
+                         verdict(e["headroom"].enough, pe),
+                         f"base {fmt(e['headroom'].base)} m, oracle {fmt(e['headroom'].oracle)} m"))
     return out
 
 
 def markdown(data: dict[str, Any], s: PaddleSettings, timer: Timer) -> str:
     d = data["data"]
     lines = [
-        "# Ball bouncing: full and residual models, Uniformly vs Sufficiently Accurate",
+        "# Ball bouncing: keep the ball bouncing — full and residual models, UA vs SA, base model and oracle",
         "",
         f"{d['n_train']} training impacts from the MuJoCo world ({d['collect']['sim_time'] / 60:.1f} simulated "
         f"minutes of random bounces, {100 * d['frac_slow_train']:.1f}% slow balls), {d['n_val']} validation "
-        f"impacts; nets {list(s.hidden)}, {s.epochs} epochs, Adam 1e-3 / 1e-3, seeds {list(s.seeds)}. "
-        f"{s.n_trials} control trials per model (solver `{s.solver}`, roll in {list(s.roll)}, pitch in "
-        f"{list(s.pitch)} rad), models of the first {min(s.mpc_seeds, len(s.seeds))} seed(s).",
+        f"impacts, paddle tracking error {s.velocity_noise} m/s (velocity) / {s.normal_noise} rad (normal) in "
+        f"both; nets {list(s.hidden)}, {s.epochs} epochs, Adam from 1e-3 (primal schedule `{s.lr_schedule}`), "
+        f"seeds {list(s.seeds)}. {s.n_trials} trials of {s.n_bounces} consecutive bounces per model and seed "
+        f"(solver `{s.solver}`, roll / pitch in {list(s.roll)} rad, later targets within ±{s.target_step} m of "
+        f"the impact point, |v_rel| >= {s.v_rel_min[0]} m/s); models of the first {min(s.mpc_seeds, len(s.seeds))} "
+        "seed(s). Oracle = the analytic true impact map (restitution 0.8, the 0.2 rad pitch bias) inside the same "
+        "MPC: MuJoCo's soft contact differs from it, so a learned model can beat it.",
         "",
-        "## Controller performance (MuJoCo)",
-        "",
+        "## Claims", "", claims_table(data["claims"]), "",
+        "## Controller performance (MuJoCo, multi-bounce)", "",
     ]
     rows = []
     for name, c in data["control"].items():
         kind, _, label = name.partition("/")
         paper = PAPER.get((kind, label), ("", ""))
-        rows.append([f"{kind} {SPEC_LABELS.get(label, '')}".strip() if label else "base model f_hat only",
-                     f"{100 * float(np.mean(c['failed'])):.1f}%", f"{100 * float(np.mean(c['lost'])):.1f}%",
-                     fmt_ms(c["error"], 3),
+        ch: TrialChecks = c["checks"]
+        rows.append([f"{kind} {SPEC_LABELS.get(label, '')}".strip() if label else f"{name}",
+                     f"{100 * float(np.mean(c['failed'])):.1f}%", f"{float(np.mean(c['bounces'])):.2f}",
+                     fmt_ms(c["first_error"], 3), fmt_ms(c["error"], 3),
                      f"{paper[0]} / {paper[1]}" if paper[0] else "",
-                     f"{1e3 * float(np.mean(c['solve_time'])):.1f}",
-                     f"{int(np.sum(~c['solver_success']))}/{len(c['solver_success'])}",
-                     f"{c['max_box_violation']:.1e} / {c['max_angle_violation']:.1e}",
+                     f"{1e3 * ch.solve_time / max(ch.solves, 1):.1f}", f"{ch.unsuccessful}/{ch.solves}",
+                     f"{ch.max_box_violation:.1e} / {ch.max_angle_violation:.1e}",
                      ", ".join(f"{k}: {v}" for k, v in c["reasons"].items())])
-    lines += [md_table(["model", "failure", f"failure without '{REHIT}'", "landing error (m), successful trials",
-                        "paper failure / mean error",
-                        "ms / solve", "unsuccessful solves", "max box / roll-pitch violation", "failure reasons"],
-                       rows), ""]
-    lines += ["Paired by trial (Sufficient − Uniform):", ""]
-    for kind, p in data["paired"].items():
-        f = p["failure"]
-        lines.append(f"- {kind}: failures Uniform {100 * f.rate_a:.1f}% vs Sufficient {100 * f.rate_b:.1f}%, "
-                     f"{f.only_a} trials failed only with Uniform, {f.only_b} only with Sufficient, exact McNemar "
-                     f"p = {fmt_p(f.p_mcnemar)}; without '{REHIT}': {100 * p['lost'].rate_a:.1f}% vs "
-                     f"{100 * p['lost'].rate_b:.1f}%, McNemar p = {fmt_p(p['lost'].p_mcnemar)}")
-    lines += ["", PAIRED_HEADER]
-    lines += [p["error_both_ok"].row(f"{kind}: landing error (m), trials both succeeded", 4)
-              for kind, p in data["paired"].items()]
-    lines += ["", "## Model errors on the validation impacts", ""]
+    lines += [md_table(["model", f"failed (< {s.n_bounces} bounces)", "bounces kept (mean)",
+                        "landing error, 1st bounce (m)", "landing error, all bounces (m)",
+                        "paper failure / mean error", "ms / solve", "unsuccessful solves",
+                        "max box / roll-pitch violation", "failure reasons"], rows), ""]
+    for kind, st in data["stats"].items():
+        lines += [f"* {kind}, failure rate: {st['failure']['headroom'].line()}.",
+                  f"* {kind}, failure rate: {st['failure']['sa_vs_ua'].line(3)}.",
+                  f"* {kind}, bounces kept (negated: lower = more bounces): {st['bounces']['sa_vs_ua'].line(2)}.",
+                  f"* {kind}, first-bounce landing error (m): {st['first_error']['headroom'].line()}.",
+                  f"* {kind}, first-bounce landing error (m): {st['first_error']['sa_vs_ua'].line(4)}.",
+                  f"* {kind}, landing error over all bounces (m): {st['error']['sa_vs_ua'].line(4)}."]
+    lines += ["", "## Training check: SA ends at or below UA on its own objective (training data)", ""]
+    rows = []
+    for kind, o in data["own_objective"].items():
+        rows.append([kind, fmt_ms(o["sufficient"]["objective"], 4), fmt_ms(o["uniform"]["objective"], 4),
+                     fmt_ms(o["sufficient"]["constraint"], 4), "yes" if o["sa_at_or_below_ua"] else
+                     f"NO ({sum(o['per_seed_ok'])}/{len(o['per_seed_ok'])} seeds)"])
+    lines += [md_table(["kind", "SA objective (normalised error, fast balls)", "UA on the same objective",
+                        "SA constraint g (slow balls, <= 0 met)", "SA <= UA for every seed"], rows), ""]
+    lines += ["## Model errors on the validation impacts", ""]
     rows = []
     for name, v in data["validation"].items():
         rows.append([name, fmt_ms(v["l2"], 4), fmt_ms(v["normalized_fast"], 4),
@@ -434,29 +456,27 @@ def plot_error_scatter(val: dict[str, Any], s: PaddleSettings, path: Path) -> Pa
     return save_figure(fig, path)
 
 
-def plot_tracks(tracks: dict[str, np.ndarray], trial: Trial, path: Path) -> Path:
-    """The first trial's ball trajectory under each model (side view x-z and top view x-y; red = target)."""
+def plot_bounces(control: dict[str, Any], s: PaddleSettings, path: Path) -> Path:
+    """Share of trials still bouncing after k bounces (survival curve), one line per model (all seeds pooled)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.4))
-    for name, tr in tracks.items():
-        ls = "--" if name == "base" else "-"
-        a1.plot(tr[:, 0], tr[:, 2], ls=ls, label=name)
-        a2.plot(tr[:, 0], tr[:, 1], ls=ls, label=name)
-        a2.plot(tr[-1, 0], tr[-1, 1], "o", ms=4, color=a2.lines[-1].get_color())
-    a2.plot(*trial.target_xy, "o", color="red", ms=9, label="target")
-    a1.axhline(0.0, color="k", lw=0.6)
-    a1.set_xlabel("x (m)")
-    a1.set_ylabel("z (m)")
-    a2.set_xlabel("x (m)")
-    a2.set_ylabel("y (m)")
-    a2.set_aspect("equal", "datalim")
-    a2.legend(fontsize=7)
-    fig.suptitle(f"trial 0: target ({trial.target_xy[0]:.2f}, {trial.target_xy[1]:.2f}) m, "
-                 f"|v_rel| in [{trial.v_min:.2f}, {trial.v_max:.2f}] m/s")
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    ks = np.arange(s.n_bounces + 1)
+    for name, c in control.items():
+        b = np.asarray(c["bounces"]).ravel()
+        ax.step(ks, [(b >= k).mean() for k in ks], where="post", label=name,
+                ls="--" if name in ("base", "oracle") else "-")
+    ax.set_xlabel("bounces k")
+    ax.set_ylabel("share of trials with >= k successful bounces")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"keeping the ball bouncing ({s.n_trials} trials per model and seed)")
     fig.tight_layout()
     return save_figure(fig, path)
 
+
+__all__ = ["PaddleSettings", "Trial", "make_trials", "run", "run_trial", "uniform_spec"]

@@ -5,6 +5,14 @@ The base models f_hat of the three systems are re-implemented here in numpy with
 and Jacobians against them and torch autograd). A system without a numpy twin falls back to torch autograd
 (``torch.func.jacrev``), which is exact but slow.
 
+The *oracle* is the true dynamics ``f`` as the MPC's model (``NumpyDynamics(system, "oracle")``,
+``make_controller(system, "oracle")``): the best any learned model can do inside the same MPC, used to measure
+how much a model can matter on a task (the headroom, docs/experiments.md). Its numpy twins
+(:class:`FrictionTrueNP`, :class:`QuadrotorTrueNP`, :class:`PaddleTrueNP`) are named by the registry entry's
+``true_model_np``; their Jacobians are exact wherever ``f`` is differentiable (friction: except where the
+friction just holds the cart, ``|w| = b(p)``; quadrotor: at the level attitude the tilt has a cone-shaped kink and
+the derivative 0 is used, as torch's ``tilt_angle``).
+
 Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``y`` ``(B, n_y)``, ``A = dy/dx`` ``(B, n_y, n_x)``,
 ``Bu = dy/du`` ``(B, n_y, n_u)``.
 """
@@ -12,7 +20,7 @@ Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``y`` ``(B, n_y)``, ``A = dy/d
 from __future__ import annotations
 
 import math
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 import torch
@@ -25,6 +33,11 @@ from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+#: the model name that makes the MPC predict with the TRUE dynamics (see the module docstring)
+ORACLE: Literal["oracle"] = "oracle"
+#: what an MPC predicts with: a learned model (residual or full), the oracle, or None (f_hat alone)
+PredictionModel = DynamicsModel | Literal["oracle"] | None
 
 
 class BaseModelNP(Protocol):
@@ -197,6 +210,9 @@ class QuadrotorBaseNP:
 class PaddleBaseNP:
     """The paper's impact map with the base restitution: ``v+ = a (v_rel - 2 n (n . v_rel)) + v_paddle``."""
 
+    #: rotation (rad) about world y from the commanded to the real normal (0: the base model has no bias)
+    pitch_offset = 0.0
+
     def __init__(self, system: PaddleBall) -> None:
         self.a = system.restitution_base
 
@@ -228,6 +244,160 @@ class PaddleBaseNP:
         return y, a, b
 
 
+class PaddleTrueNP(PaddleBaseNP):
+    """The true impact map (oracle): restitution ``restitution_true`` and the real normal ``R_y(normal_bias_y) n``.
+
+    A rotation about y adds to the pitch, so the fast paddle solver treats it as a pitch offset
+    (:attr:`pitch_offset`); ``dn_real/dn = R_y`` in the Jacobian.
+    """
+
+    def __init__(self, system: PaddleBall) -> None:
+        self.a = system.restitution_true
+        self.pitch_offset = system.normal_bias_y
+        c, s = math.cos(self.pitch_offset), math.sin(self.pitch_offset)
+        self._rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+    def _rotated(self, u: np.ndarray) -> np.ndarray:
+        ur = np.array(u, dtype=np.float64, copy=True)
+        ur[..., 3:6] = u[..., 3:6] @ self._rot.T
+        return ur
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return super().step1(x, self._rotated(u))
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        y, a, b = super().step_jac(x, self._rotated(u))
+        b[:, :, 3:6] = b[:, :, 3:6] @ self._rot
+        return y, a, b
+
+
+class FrictionTrueNP:
+    """The true friction dynamics (oracle): ``p' = p + dt v``, ``v' = sign(w) max(|w| - b(p), 0)``, ``w = v + dt u``.
+
+    Jacobians: while the cart moves (``|w| > b``) ``dv'/dv = 1``, ``dv'/du = dt``, ``dv'/dp = -sign(w) b'(p)``
+    (``b'`` in closed form); while friction holds it, all three are 0.
+    """
+
+    def __init__(self, system: FrictionDoubleIntegrator) -> None:
+        self.system = system
+        self.dt = system.dt
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.system.true_step_np(x, u)
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        p, v = x.tolist()
+        dt = self.dt
+        w = v + dt * float(u[0])
+        b = dt * float(self.system.friction_decel_np(p))
+        mag = abs(w) - b
+        return np.array((p + dt * v, math.copysign(mag, w) if mag > 0.0 else 0.0))
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        n, dt = x.shape[0], self.dt
+        p, v = x[:, 0], x[:, 1]
+        w = v + dt * u[:, 0]
+        b = dt * self.system.friction_decel_np(p)
+        moving = (np.abs(w) > b).astype(np.float64)
+        sgn = np.sign(w)
+        y = np.stack((p + dt * v, sgn * np.maximum(np.abs(w) - b, 0.0)), axis=1)
+        a = np.zeros((n, 2, 2))
+        a[:, 0, 0] = 1.0
+        a[:, 0, 1] = dt
+        a[:, 1, 0] = -sgn * dt * self.system.friction_slope_np(p) * moving
+        a[:, 1, 1] = moving
+        bu = np.zeros((n, 2, 1))
+        bu[:, 1, 0] = dt * moving
+        return y, a, bu
+
+
+class QuadrotorTrueNP:
+    """The true quadrotor dynamics (oracle): ``f_hat(x, u (1 + K(x)))`` with the per-motor ground-effect gain K,
+    then ``v' -= dt drag v`` (the optional linear drag).
+
+    Jacobians: ``dy/du = B_h diag(1 + K)``, ``dy/dx = A_h + B_h diag(u) dK/dx - dt drag [dv'/dv]`` with
+    ``A_h, B_h`` the base model's Jacobians at the produced forces and ``dK/dx`` in closed form (K depends on pz and
+    the attitude only).
+    """
+
+    def __init__(self, system: Quadrotor) -> None:
+        self.system = system
+        self.base = QuadrotorBaseNP(system)
+        self.arm, self.h_max, self.alpha = system.arm_length, system.h_max, system.alpha
+        self.damp = system.dt * system.drag  # velocity lost to drag per step, per unit of velocity
+
+    def gain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """K ``(B, 4)`` and dK/dx ``(B, 4, 13)`` at states ``x`` ``(B, 13)``."""
+        bsz = x.shape[0]
+        q = x[:, 6:10]
+        qw, qx, qy, qz = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+        nn = np.einsum("bi,bi->b", q, q)
+        # propeller height offsets: rzx = 2 (qx qz - qw qy) / |q|^2, rzy = 2 (qy qz + qw qx) / |q|^2
+        sx, sy = qx * qz - qw * qy, qy * qz + qw * qx
+        rzx, rzy = 2.0 * sx / nn, 2.0 * sy / nn
+        dsx = np.stack((-qy, qz, -qw, qx), axis=1)
+        dsy = np.stack((qx, qw, qz, qy), axis=1)
+        drzx = 2.0 * dsx / nn[:, None] - (4.0 * sx / nn**2)[:, None] * q
+        drzy = 2.0 * dsy / nn[:, None] - (4.0 * sy / nn**2)[:, None] * q
+        sign = np.array([[1.0, 0.0], [0.0, -1.0], [-1.0, 0.0], [0.0, 1.0]])  # offset_i = L (s_x rzx + s_y rzy)
+        off = self.arm * (rzx[:, None] * sign[:, 0] + rzy[:, None] * sign[:, 1])  # (B, 4)
+        doff = self.arm * (sign[None, :, 0, None] * drzx[:, None, :] + sign[None, :, 1, None] * drzy[:, None, :])
+        h = x[:, 2:3] + off
+        hf = 1.0 - h / self.h_max
+        height = np.clip(hf, 0.0, 1.0)
+        inside = ((hf > 0.0) & (hf < 1.0)).astype(np.float64)
+        # tilt theta = 2 atan2(|(qx, qy)|, |(qw, qz)|); derivative 0 at the level attitude (cone kink)
+        ra, rb = np.sqrt(qx * qx + qy * qy), np.sqrt(qw * qw + qz * qz)
+        theta = 2.0 * np.arctan2(ra, rb)
+        rr = ra * ra + rb * rb
+        inv_a = np.divide(1.0, ra, out=np.zeros_like(ra), where=ra > 0.0)
+        inv_b = np.divide(1.0, rb, out=np.zeros_like(rb), where=rb > 0.0)
+        dtheta = (2.0 / rr)[:, None] * np.stack(
+            (-ra * qw * inv_b, rb * qx * inv_a, rb * qy * inv_a, -ra * qz * inv_b), axis=1)
+        slack = np.maximum(0.5 * math.pi - theta, 0.0)
+        tilt = (4.0 / math.pi**2) * slack**2
+        dtilt = -(8.0 / math.pi**2) * slack  # d tilt / d theta
+        k = self.alpha * height * tilt[:, None]
+        dk = np.zeros((bsz, 4, 13))
+        dh = -(inside / self.h_max)  # d height / d h, (B, 4)
+        dk[:, :, 2] = self.alpha * dh * tilt[:, None]
+        dk[:, :, 6:10] = self.alpha * (dh[:, :, None] * doff * tilt[:, None, None]
+                                       + height[:, :, None] * (dtilt[:, None] * dtheta)[:, None, :])
+        return k, dk
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        y = self.base.step(x, u * (1.0 + self.gain(x)[0]))
+        if self.damp:
+            y[:, 3:6] -= self.damp * x[:, 3:6]
+        return y
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """One state in plain Python floats (the rollout's hot path; 4-5x faster than the batched :meth:`step`)."""
+        pz, qw, qx, qy, qz = float(x[2]), float(x[6]), float(x[7]), float(x[8]), float(x[9])
+        nn = qw * qw + qx * qx + qy * qy + qz * qz
+        rzx, rzy = 2.0 * (qx * qz - qw * qy) / nn, 2.0 * (qy * qz + qw * qx) / nn
+        theta = 2.0 * math.atan2(math.sqrt(qx * qx + qy * qy), math.sqrt(qw * qw + qz * qz))
+        slack = max(0.5 * math.pi - theta, 0.0)
+        tilt = self.alpha * (4.0 / math.pi**2) * slack * slack
+        f = u.tolist()
+        for i, off in enumerate((rzx, -rzy, -rzx, rzy)):
+            height = min(max(1.0 - (pz + self.arm * off) / self.h_max, 0.0), 1.0)
+            f[i] *= 1.0 + height * tilt
+        y = self.base.step1(x, np.array(f))
+        if self.damp:
+            y[3:6] -= self.damp * x[3:6]
+        return y
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        k, dk = self.gain(x)
+        y, a, b = self.base.step_jac(x, u * (1.0 + k))
+        a = a + np.einsum("bij,bj,bjk->bik", b, u, dk)
+        if self.damp:
+            y[:, 3:6] -= self.damp * x[:, 3:6]
+            a[:, 3:6, 3:6] -= self.damp * np.eye(3)
+        return y, a, b * (1.0 + k)[:, None, :]
+
+
 class TorchBaseNP:
     """Any system's ``base_step`` through torch autograd (exact but slow: the fallback for unknown systems)."""
 
@@ -250,19 +420,46 @@ class TorchBaseNP:
         return self.step(x, u), ja.numpy(), jb.numpy()
 
 
+class TorchTrueNP(TorchBaseNP):
+    """Any system's ``true_step`` through torch autograd (the oracle's fallback for systems without a twin)."""
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return self.system.true_step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        def one(xi: torch.Tensor, ui: torch.Tensor) -> torch.Tensor:
+            return self.system.true_step(xi[None], ui[None])[0]
+
+        xt, ut = torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(np.ascontiguousarray(u))
+        ja, jb = torch.func.vmap(torch.func.jacrev(one, argnums=(0, 1)))(xt, ut)
+        return self.step(x, u), ja.numpy(), jb.numpy()
+
+
 class NumpyDynamics:
-    """The model the MPC predicts with: ``f_hat + phi`` (residual), ``phi`` (full) or ``f_hat`` (no model).
+    """The model the MPC predicts with: ``f_hat + phi`` (residual), ``phi`` (full), ``f_hat`` (no model) or the
+    true dynamics ``f`` (``model = "oracle"``, :data:`ORACLE`).
 
     The learned part is a frozen copy of ensemble member ``member`` taken when this object is built. ``base`` is
     the numpy twin of ``system.base_step`` (:func:`saml_ros.core.mpc.factory.base_model_np` finds the system's
-    own); without one, the exact but slower autograd :class:`TorchBaseNP` serves.
+    own); without one, the exact but slower autograd :class:`TorchBaseNP` serves. ``true`` is the twin of
+    ``system.true_step`` the oracle uses (:func:`saml_ros.core.mpc.factory.true_model_np`; fallback
+    :class:`TorchTrueNP`).
     """
 
-    def __init__(self, system: System, model: DynamicsModel | None = None, member: int = 0,
-                 base: BaseModelNP | None = None) -> None:
+    def __init__(self, system: System, model: PredictionModel = None, member: int = 0,
+                 base: BaseModelNP | None = None, true: BaseModelNP | None = None) -> None:
         self.system = system
         self.base: BaseModelNP | None = None
         self.mlp: NumpyMLP | None = None
+        #: "residual", "full", "base" (f_hat alone) or "oracle"
+        self.kind: str
+        if isinstance(model, str):
+            if model != ORACLE:
+                raise ValueError(f"unknown prediction model {model!r}; a DynamicsModel, None or {ORACLE!r}")
+            self.kind = ORACLE
+            self.base = true if true is not None else TorchTrueNP(system)
+            return
         self.kind = "base" if model is None else model.kind
         if model is None or model.kind == "residual":
             self.base = base if base is not None else TorchBaseNP(system)

@@ -1,8 +1,9 @@
 """``make_controller``: the one entry point the MPC node and the experiment runners use.
 
 This is the MPC's only module that looks a system up in the registry: it resolves the system's MPC problem
-(:func:`make_task`) and the numpy twin of its base model (:func:`base_model_np`) and hands them to the
-controller, so the solvers, tasks and dynamics below it never dispatch on the system.
+(:func:`make_task`) and the numpy twins of its base model (:func:`base_model_np`) and of its true dynamics (the
+oracle, :func:`true_model_np`) and hands them to the controller, so the solvers, tasks and dynamics below it never
+dispatch on the system.
 """
 
 from __future__ import annotations
@@ -10,9 +11,8 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
-from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import Controller
-from saml_ros.core.mpc.dynamics_np import BaseModelNP, TorchBaseNP
+from saml_ros.core.mpc.dynamics_np import BaseModelNP, PredictionModel, TorchBaseNP, TorchTrueNP
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.registry import find_entry, get_entry
@@ -22,14 +22,16 @@ SOLVERS = ("fast", "slsqp")
 
 
 def make_controller(
-    system: System, model: DynamicsModel | None = None, solver: str = "fast", **options: Any
+    system: System, model: PredictionModel = None, solver: str = "fast", **options: Any
 ) -> Controller:
     """The paper's MPC for ``system`` planning with ``model``: the controller its registry entry names.
 
     Args:
         system: the system to control (its ``base_step`` is f_hat; ``true_step`` is never used).
         model: a residual or full :class:`DynamicsModel` for this system (member ``member`` of an ensemble,
-            default 0), or None for the base model f_hat alone. Swap later with ``set_model``.
+            default 0), None for the base model f_hat alone, or ``"oracle"`` for the TRUE dynamics (the registry
+            entry's ``true_model_np``: what a perfect model would do in the same MPC). Swap later with
+            ``set_model``.
         solver: ``"fast"`` (exact-derivative SQP / Gauss-Newton, warm-started) or ``"slsqp"`` (the paper's
             reference: scipy SLSQP with finite differences).
         options: ``horizon`` (default 10; ignored by a one-shot MPC such as the paddle ball's), ``member``,
@@ -46,7 +48,7 @@ def make_controller(
     if not entry.mpc_horizon:
         options.pop("horizon", None)  # one-shot: a horizon (e.g. the MPC node's generic parameter) is ignored
     ctor = entry.controllers()[solver]
-    parts: dict[str, Any] = {"base": base_model_np(system)}
+    parts: dict[str, Any] = {"base": base_model_np(system), "true": true_model_np(system)}
     if entry.mpc_task is not None:
         names = {p.name for p in entry.task_params}
         task_options = {k: options.pop(k) for k in list(options) if k in names}
@@ -84,6 +86,15 @@ def base_model_np(system: System) -> BaseModelNP:
     if entry is None or entry.base_model_np is None or not isinstance(system, entry.system_class()):
         return TorchBaseNP(system)
     return entry.base_model_np(system)
+
+
+def true_model_np(system: System) -> BaseModelNP:
+    """The numpy twin of ``system.true_step`` (the oracle) its registry entry names (autograd fallback for
+    systems without one, or not registered)."""
+    entry = find_entry(system.name)
+    if entry is None or entry.true_model_np is None or not isinstance(system, entry.system_class()):
+        return TorchTrueNP(system)
+    return entry.true_model_np(system)
 
 
 def _accepted(ctor: Any) -> set[str]:

@@ -70,6 +70,13 @@ def _friction_base_np(system: System) -> BaseModelNP:
     return FrictionBaseNP(_as(system, FrictionDoubleIntegrator))
 
 
+def _friction_true_np(system: System) -> BaseModelNP:
+    from saml_ros.core.mpc.dynamics_np import FrictionTrueNP
+    from saml_ros.core.systems.friction import FrictionDoubleIntegrator
+
+    return FrictionTrueNP(_as(system, FrictionDoubleIntegrator))
+
+
 def _friction_model(system: System) -> SteppedModel:
     from saml_ros.core.systems.friction import FrictionDoubleIntegrator
     from saml_ros.core.worlds.sim_core import friction_model
@@ -95,6 +102,7 @@ FRICTION = SystemEntry(
     goal_fields=("p",),
     mpc_task=_friction_task,
     base_model_np=_friction_base_np,
+    true_model_np=_friction_true_np,
     stepped_model=_friction_model,
     paper_samples=15000,
     paper_epochs=200,
@@ -138,6 +146,13 @@ def _quadrotor_base_np(system: System) -> BaseModelNP:
     return QuadrotorBaseNP(_as(system, Quadrotor))
 
 
+def _quadrotor_true_np(system: System) -> BaseModelNP:
+    from saml_ros.core.mpc.dynamics_np import QuadrotorTrueNP
+    from saml_ros.core.systems.quadrotor import Quadrotor
+
+    return QuadrotorTrueNP(_as(system, Quadrotor))
+
+
 def _quadrotor_model(system: System, landing_height: float = 0.1) -> SteppedModel:
     from saml_ros.core.systems.quadrotor import Quadrotor
     from saml_ros.core.worlds.sim_core import quadrotor_model
@@ -170,6 +185,7 @@ QUADROTOR = SystemEntry(
     ),
     mpc_task=_quadrotor_task,
     base_model_np=_quadrotor_base_np,
+    true_model_np=_quadrotor_true_np,
     stepped_model=_quadrotor_model,
     paper_samples=10000,
     paper_epochs=3000,
@@ -213,6 +229,13 @@ def _paddle_base_np(system: System) -> BaseModelNP:
     from saml_ros.core.systems.paddle_ball import PaddleBall
 
     return PaddleBaseNP(_as(system, PaddleBall))
+
+
+def _paddle_true_np(system: System) -> BaseModelNP:
+    from saml_ros.core.mpc.dynamics_np import PaddleTrueNP
+    from saml_ros.core.systems.paddle_ball import PaddleBall
+
+    return PaddleTrueNP(_as(system, PaddleBall))
 
 
 def _paddle_simulator(system: System, config: SimConfig, params: Mapping[str, Any]) -> SimCore:
@@ -259,6 +282,7 @@ PADDLE_BALL = SystemEntry(
     goal_factory=_paddle_goal,
     mpc_horizon=False,  # one-shot: the MPC chooses one impact command
     base_model_np=_paddle_base_np,
+    true_model_np=_paddle_true_np,
     paper_samples=20000,
     paper_epochs=200,
     bringup={

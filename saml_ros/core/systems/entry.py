@@ -55,6 +55,9 @@ class SystemEntry:
             system's controllers are not shooting controllers.
         base_model_np: ``(system) -> BaseModelNP``: numpy twin of ``base_step`` with exact Jacobians; None =
             torch autograd (exact but slow).
+        true_model_np: ``(system) -> BaseModelNP``: numpy twin of ``true_step`` (the MPC's oracle model,
+            ``make_controller(system, "oracle")``) with Jacobians exact where ``true_step`` is differentiable;
+            None = torch autograd of ``true_step``.
         stepped_model: ``(system, **options) -> SteppedModel`` for a time-stepped simulator core; None for an
             event-based system.
         paper_samples, paper_epochs: the paper's offline dataset size and epochs (``train`` defaults).
@@ -79,6 +82,7 @@ class SystemEntry:
     mpc_horizon: bool = True
     mpc_task: Callable[..., ShootingTask] | None = None
     base_model_np: Callable[[System], BaseModelNP] | None = None
+    true_model_np: Callable[[System], BaseModelNP] | None = None
     stepped_model: Callable[..., SteppedModel] | None = None
     paper_samples: int = 10_000
     paper_epochs: int = 200

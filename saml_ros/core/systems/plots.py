@@ -17,32 +17,39 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from numpy.typing import ArrayLike  # noqa: E402
 
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator  # noqa: E402
+from saml_ros.core.systems.friction import FRICTION_PROFILES, FrictionDoubleIntegrator  # noqa: E402
 from saml_ros.core.systems.quadrotor import Quadrotor, ground_effect_factor  # noqa: E402
 
 
-def plot_friction(path: Path, system: FrictionDoubleIntegrator | None = None) -> Path:
-    """Write mu(p) (m/s^2) and b(p) = dt mu(p) (m/s) over the sampled positions [-2, 2] m to ``path``."""
-    sys_ = system or FrictionDoubleIntegrator()
+def plot_friction(path: Path, systems: dict[str, FrictionDoubleIntegrator] | None = None) -> Path:
+    """Write mu(p) (m/s^2) and b(p) = dt mu(p) (m/s) over the sampled positions [-2, 2] m to ``path``, one curve
+    per system (default: every named profile of :data:`FRICTION_PROFILES`)."""
+    if systems is None:
+        systems = {name: FrictionDoubleIntegrator(profile=name) for name in FRICTION_PROFILES}
     p = torch.linspace(-2.0, 2.0, 801, dtype=torch.float64)
-    mu = sys_.friction_decel(p).numpy()
-    fig, ax = plt.subplots(figsize=(6.0, 3.4), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), constrained_layout=True)
     ax.axvspan(-0.5, 0.5, color="tab:orange", alpha=0.15, label="accuracy region |p| <= 0.5 m")
-    ax.plot(p.numpy(), mu, color="tab:blue", lw=2, label="mu(p)")
+    top = 0.0
+    for (name, sys_), color in zip(systems.items(), ("tab:blue", "tab:green", "tab:purple", "tab:red")):
+        mu = sys_.friction_decel(p).numpy()
+        top = max(top, float(mu.max()))
+        ax.plot(p.numpy(), mu, color=color, lw=2, label=f"{name}: mu(p)")
+    dt = next(iter(systems.values())).dt
     ax.set_xlabel("position p (m)")
     ax.set_ylabel("friction deceleration mu(p) (m/s^2)")
-    ax.set_ylim(0.0, 1.1 * float(mu.max()))
+    ax.set_ylim(0.0, 1.35 * top)
+
     def to_b(m: ArrayLike) -> np.ndarray:
-        return np.asarray(m) * sys_.dt
+        return np.asarray(m) * dt
 
     def to_mu(b: ArrayLike) -> np.ndarray:
-        return np.asarray(b) / sys_.dt
+        return np.asarray(b) / dt
 
     sec = ax.secondary_yaxis("right", functions=(to_b, to_mu))
-    sec.set_ylabel(f"b(p) = dt mu(p) (m/s), dt = {sys_.dt:g} s")
-    ax.set_title("Double integrator: position-varying kinetic friction")
+    sec.set_ylabel(f"b(p) = dt mu(p) (m/s), dt = {dt:g} s")
+    ax.set_title("Double integrator: position-varying kinetic friction (named profiles)")
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="upper center", ncol=3, fontsize=7)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

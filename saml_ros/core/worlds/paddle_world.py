@@ -52,6 +52,12 @@ class SceneOptions:
     ``max_tilt`` (rad, commanded normal tilt limit), ``swing_time`` (s, half-width of the constant-velocity
     window around the planned impact), ``min_approach_time`` (s, the earliest the controller plans an impact),
     ``recover_time`` (s, deceleration after the swing).
+    Tracking error of the low-level controller (the paper's "lower-level controllers that only attempt to match
+    the command"): ``velocity_noise`` (m/s, std of zero-mean Gaussian noise added to each component of the paddle
+    velocity the swing realises) and ``normal_noise`` (rad, std of the two small rotations, about world x and y,
+    applied to the real normal), drawn once per impact from the world's own tracking generator (seeded by
+    ``seed``), so the realised paddle velocity and normal differ from the command while the learner still sees
+    the command. ``0`` (default) = exact tracking.
     Failure: ``fall_margin`` (m below the impact plane), ``impact_timeout`` (s without an impact).
     Reset: ``drop_height`` (m, default ball height above the impact plane).
     """
@@ -73,6 +79,8 @@ class SceneOptions:
     swing_time: float = 0.04
     min_approach_time: float = 0.12
     recover_time: float = 0.25
+    velocity_noise: float = 0.0
+    normal_noise: float = 0.0
     fall_margin: float = 0.3
     impact_timeout: float = 3.0
     drop_height: float = 1.0
@@ -91,6 +99,8 @@ class SceneOptions:
                 raise ValueError(f"SceneOptions: {name} must be > 0, got {getattr(self, name)}")
         if self.spin_decay_time < 0 or self.friction < 0:
             raise ValueError("SceneOptions: spin_decay_time and friction must be >= 0")
+        if self.velocity_noise < 0 or not 0 <= self.normal_noise < 0.5:
+            raise ValueError("SceneOptions: velocity_noise must be >= 0 and normal_noise in [0, 0.5) rad")
         if not self.z_limits[0] < self.z_limits[1]:
             raise ValueError(f"SceneOptions: z_limits must be increasing, got {self.z_limits}")
         if self.max_tilt >= math.pi / 2:
@@ -106,7 +116,7 @@ class Impact:
         pre: ``(6,)`` ball ``[p (m), v (m/s)]`` at the last step before the first contact (the state x).
         u_cmd: ``(6,)`` the command the controller realised for this impact, after validation (clipped paddle
             velocity, normalised and tilt-limited normal): the control u the learner sees.
-        n_real: ``(3,)`` the real paddle normal ``R_y(normal_bias_y) n_cmd``.
+        n_real: ``(3,)`` the real paddle normal ``R_y(normal_bias_y) n_cmd`` (with the tracking error, if any).
         post_velocity: ``(3,)`` ball velocity (m/s) at the first step after the contact separated (the target y).
         paddle_velocity: ``(3,)`` the paddle velocity (m/s) at the first contact step.
         on_plan: True when the whole contact lay inside the planned constant-velocity swing window of an
@@ -213,6 +223,9 @@ class PaddleBallWorld:
                              f"valid: {[f.name for f in fields(SceneOptions)]}")
         self.options = replace(SceneOptions(), **scene_options)
         self.rng = np.random.default_rng(seed)
+        #: draws the tracking error (its own stream: the same seed gives the same errors whatever else is drawn)
+        self.tracking_rng = np.random.default_rng([seed, 1])
+        self._tracking = (np.zeros(3), np.zeros(2))
         self.model = self._build_model(timestep)
         self.data = mujoco.MjData(self.model)
         self._ball_geom = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, "ball")
@@ -451,7 +464,7 @@ class PaddleBallWorld:
         (6,) there, paddle coordinates ``[x, y, z, pitch, roll]`` (5,), real normal (3,), clipped to the reach?)."""
         o = self.options
         tau, ball = self.predict_impact(t_min=t_min)
-        n_real = _rotate_y(u[3:], self.system.normal_bias_y)
+        n_real = _rotate_y(self._realised_normal(u[3:]), self.system.normal_bias_y)
         roll, pitch = _roll_pitch(n_real)
         centre = ball[:3] - n_real * self._standoff
         low = np.array([-o.reach, -o.reach, o.z_limits[0]])
@@ -470,7 +483,7 @@ class PaddleBallWorld:
         tau, ball, q_i, n_real, clipped = self._impact_target(u, t_min)
         t_i = t_now + tau
         before = min(o.swing_time, 0.25 * tau)  # constant-velocity lead-in; the follow-through is swing_time
-        vel = np.concatenate((u[:3], (0.0, 0.0)))
+        vel = np.concatenate((u[:3] + self._tracking[0], (0.0, 0.0)))
         q_s, q_e = q_i - vel * before, q_i + vel * o.swing_time
         q_rest = q_e + vel * (0.5 * o.recover_time)
         t_s, t_e = t_i - before, t_i + o.swing_time
@@ -480,6 +493,22 @@ class PaddleBallWorld:
             _Segment(t_e, t_e + o.recover_time, q_e, vel, q_rest, np.zeros(5)),
         ]
         return _Plan(segments, u.copy(), n_real, t_i, ball, (t_s, t_e), clipped)
+
+    def _draw_tracking(self) -> None:
+        """The tracking error of the next impact: paddle velocity offset (3,) m/s, normal rotation (x, y) rad."""
+        o = self.options
+        dv = self.tracking_rng.normal(0.0, o.velocity_noise, 3) if o.velocity_noise > 0 else np.zeros(3)
+        dn = self.tracking_rng.normal(0.0, o.normal_noise, 2) if o.normal_noise > 0 else np.zeros(2)
+        self._tracking = (dv, dn)
+
+    def _realised_normal(self, n: np.ndarray) -> np.ndarray:
+        """The commanded normal ``n`` (3,) rotated by this impact's tracking error (about world x, then y)."""
+        ax, ay = self._tracking[1]
+        if ax == 0.0 and ay == 0.0:
+            return n
+        c, s = math.cos(ax), math.sin(ax)
+        n = np.array([n[0], c * n[1] - s * n[2], s * n[1] + c * n[2]])
+        return _rotate_y(n, ay)
 
     def _apply_plan(self) -> None:
         q, v = self._plan.eval(self.time)
@@ -503,6 +532,7 @@ class PaddleBallWorld:
         d.qvel[self._bv:self._bv + 3] = vel
         if self._pending is not None:
             self._u, self._pending = self._pending, None
+        self._draw_tracking()
         self._place_paddle()
         self._fresh = True
         self._in_contact = False
@@ -515,7 +545,7 @@ class PaddleBallWorld:
         """After a reset: put the paddle where it will meet the ball, already tilted: at rest, or already on its
         swing line when the impact is less than ``swing_time`` away (a reset needs no approach time)."""
         tau, _, q_i = self._impact_target(self._u, t_min=0.0)[:3]
-        vel = np.concatenate((self._u[:3], (0.0, 0.0)))
+        vel = np.concatenate((self._u[:3] + self._tracking[0], (0.0, 0.0)))
         start = (q_i - vel * tau, vel) if tau <= self.options.swing_time else (q_i, np.zeros(5))
         self._plan = self._make_plan(self.time, start=start, t_min=0.0)
         self._apply_plan()
@@ -576,6 +606,7 @@ class PaddleBallWorld:
                 self._last_impact_time = t
                 if self._pending is not None:
                     self._u, self._pending = self._pending, None
+                self._draw_tracking()
                 if self._failure is None:
                     self._plan = self._make_plan(t)
                 self._open = None
@@ -610,6 +641,96 @@ class PaddleBallWorld:
 
 
 Controller = Callable[[PaddleBallWorld, np.random.Generator], np.ndarray]
+
+#: a high-level controller of :func:`bounce_sequence`: ``(bounce index k, predicted pre-impact state (6,)) ->
+#: (command u (6,), target landing point (2,) m)``
+BounceChooser = Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+#: why :func:`bounce_sequence` ended early (besides the world's own ``"fell"``, ``"out_of_reach"``, ``"timeout"``)
+REHIT = "hit again while rising"
+OFF_PLAN = "impact not as planned"
+NOT_UP = "ball not sent up"
+LANDS_OUT = "lands out of reach"
+
+
+@dataclass
+class BounceRecord:
+    """The outcome of :func:`bounce_sequence`.
+
+    Attributes:
+        bounces: consecutive successful bounces (the ball left the paddle upwards, on plan, towards a landing
+            point within the paddle's reach); ``bounces == n`` for a completed sequence.
+        failure: why the sequence ended early, ``None`` when all ``n`` bounces succeeded.
+        targets, landings: per successful bounce, the target and the predicted landing point (m, xy) of the
+            ball's free flight where it next descends through the impact plane.
+        errors: per successful bounce, ``||landing - target||`` (m).
+        impacts: every impact of the sequence (the failing one included).
+    """
+
+    bounces: int
+    failure: str | None
+    targets: list[np.ndarray] = field(default_factory=list)
+    landings: list[np.ndarray] = field(default_factory=list)
+    errors: list[float] = field(default_factory=list)
+    impacts: list[Impact] = field(default_factory=list)
+
+    @property
+    def completed(self) -> bool:
+        return self.failure is None
+
+
+def bounce_sequence(world: PaddleBallWorld, choose: BounceChooser, n: int) -> BounceRecord:
+    """Keep the ball bouncing for ``n`` consecutive impacts from the world's current state (after
+    :meth:`PaddleBallWorld.reset`): before each impact ``choose(k, x_pre)`` gives the command for the predicted
+    pre-impact state and the bounce's target.
+
+    The sequence fails (and stops) when the ball is not kept bouncing: the world loses the ball, no impact comes
+    within ``impact_timeout``, the paddle meets the ball while it still rises (:data:`REHIT`), the impact was not
+    the planned one (:data:`OFF_PLAN`), the ball does not leave upwards (:data:`NOT_UP`) or its free flight comes
+    down outside the paddle's reach (:data:`LANDS_OUT`).
+    """
+    rec = BounceRecord(0, None)
+    o = world.options
+    reach = o.reach + o.paddle_half_size
+    for k in range(n):
+        _, x_pre = world.next_impact()
+        u, target = choose(k, x_pre)
+        try:
+            world.set_command(u)
+        except ValueError as exc:
+            rec.failure = f"invalid command: {exc}"
+            return rec
+        imp = None
+        for _ in range(int(o.impact_timeout / world.timestep) + 1):
+            got = world.step(1)
+            if got:
+                imp = got[0]
+                break
+            if world.failed():
+                break
+        if imp is None:
+            rec.failure = world.failure_reason or "timeout"
+            return rec
+        rec.impacts.append(imp)
+        if imp.pre[5] >= 0.0:
+            rec.failure = REHIT
+        elif not imp.on_plan:
+            rec.failure = OFF_PLAN
+        elif imp.post_velocity[2] <= 0.0:
+            rec.failure = NOT_UP
+        if rec.failure is not None:
+            return rec
+        _, nxt = world.predict_impact(t_min=0.0)  # the free flight's descent through the impact plane
+        landing = nxt[:2].copy()
+        if max(abs(float(landing[0])), abs(float(landing[1]))) > reach:
+            rec.failure = LANDS_OUT
+            return rec
+        target = np.asarray(target, dtype=np.float64)
+        rec.targets.append(target)
+        rec.landings.append(landing)
+        rec.errors.append(float(np.linalg.norm(landing - target)))
+        rec.bounces += 1
+    return rec
 
 #: impact speed (m/s) below which :func:`random_commands` cushions the ball (sample_inputs' slow balls: <= 0.51)
 SLOW_BALL_SPEED = 0.6

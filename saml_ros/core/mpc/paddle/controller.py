@@ -19,9 +19,8 @@ from typing import Any
 import numpy as np
 import scipy.optimize
 
-from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
-from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics
+from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel
 from saml_ros.core.mpc.paddle.multistart import SearchSettings, search
 from saml_ros.core.mpc.paddle.problem import PaddleGoal, PaddleProblem, control_from_theta, paddle_goal
 from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton, RunResult
@@ -34,8 +33,9 @@ class PaddleController:
 
     horizon = 1
 
-    def __init__(self, system: PaddleBall, model: DynamicsModel | None = None, member: int = 0,
-                 feas_tol: float = 1e-6, tol: float = 1e-4, base: BaseModelNP | None = None) -> None:
+    def __init__(self, system: PaddleBall, model: PredictionModel = None, member: int = 0,
+                 feas_tol: float = 1e-6, tol: float = 1e-4, base: BaseModelNP | None = None,
+                 true: BaseModelNP | None = None) -> None:
         if not isinstance(system, PaddleBall):
             raise ValueError(f"the paddle controller needs a PaddleBall system, got {system.name!r}")
         self.system: System = system
@@ -43,12 +43,12 @@ class PaddleController:
         self.member = member
         self.feas_tol = feas_tol  #: tolerance on |v_rel| bounds for success (m/s)
         self.tol = tol  #: landing error (m) below which a start is good enough (no further restarts)
-        self.base_np = base
-        self.dyn = NumpyDynamics(system, model, member, base)
+        self.base_np, self.true_np = base, true
+        self.dyn = NumpyDynamics(system, model, member, base, true)
         self._theta: np.ndarray | None = None
 
-    def set_model(self, model: DynamicsModel | None) -> None:
-        self.dyn = NumpyDynamics(self.system, model, self.member, self.base_np)
+    def set_model(self, model: PredictionModel) -> None:
+        self.dyn = NumpyDynamics(self.system, model, self.member, self.base_np, self.true_np)
 
     def reset(self) -> None:
         self._theta = None
@@ -120,7 +120,7 @@ class GaussNewtonPaddle(PaddleController):
     point found by then is returned).
     """
 
-    def __init__(self, system: PaddleBall, model: DynamicsModel | None = None, member: int = 0,
+    def __init__(self, system: PaddleBall, model: PredictionModel = None, member: int = 0,
                  max_iter: int = 20, max_time: float | None = None, **kwargs: Any) -> None:
         super().__init__(system, model, member, **kwargs)
         self.max_iter, self.max_time = max_iter, max_time
@@ -156,7 +156,7 @@ class GaussNewtonPaddle(PaddleController):
 class SLSQPPaddle(PaddleController):
     """The reference: scipy SLSQP on ``||landing - target||`` with finite differences, from the same starts."""
 
-    def __init__(self, system: PaddleBall, model: DynamicsModel | None = None, member: int = 0,
+    def __init__(self, system: PaddleBall, model: PredictionModel = None, member: int = 0,
                  max_iter: int = 100, ftol: float = 1e-8, **kwargs: Any) -> None:
         super().__init__(system, model, member, **kwargs)
         self.max_iter, self.ftol = max_iter, ftol

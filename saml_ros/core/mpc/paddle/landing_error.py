@@ -53,6 +53,10 @@ class LandingError:
             raise TypeError(f"LandingError needs the paddle-ball base model, got {type(dyn.base).__name__}")
         self.mlp = dyn.mlp
         self.a = dyn.base.a if dyn.base is not None else None  # base restitution, None for a full model
+        # the oracle's real normal is the commanded one pitched by this angle (rad); never with a network
+        self.pitch_offset = dyn.base.pitch_offset if dyn.base is not None else 0.0
+        if self.pitch_offset and self.mlp is not None:
+            raise TypeError("LandingError: a pitch offset of the impact map cannot be combined with a network")
         self.x = np.asarray(x, dtype=np.float64)
         self.vb = self.x[3:6]
         self.offset = self.x[0:2] - np.asarray(target_xy, dtype=np.float64)  # r at zero flight time (m)
@@ -64,6 +68,7 @@ class LandingError:
     def value(self, theta: list[float]) -> Point:
         """``r`` and ``v`` at one ``theta`` (5 floats); :meth:`derivatives` adds the derivatives."""
         p0, p1, p2, roll, pitch = theta
+        pitch += self.pitch_offset  # the normal the impact map sees; d/dpitch is unchanged
         cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
         n = (cr * sp, -sr, cr * cp)
         w = (self._vb[0] - p0, self._vb[1] - p1, self._vb[2] - p2)

@@ -14,11 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
-from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics
+from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
+
+#: the start rules of :class:`ShootingMPC` (option ``start``)
+START_MODES = ("robust", "plain")
 
 
 class ShootingMPC:
@@ -29,22 +31,31 @@ class ShootingMPC:
         model: residual/full model (member ``member`` is used) or None for f_hat alone.
         horizon: T, number of controls planned.
         feas_tol: tolerance on the state constraints for ``success`` (state units).
+        start: how each solve is started: ``"robust"`` (default: the cheapest of the shifted previous plan and the
+            task's candidate sequences, :meth:`_warm_start`) or ``"plain"`` (the paper's: a cold start at the
+            task's ``u_default`` (zero for the friction task), then the shifted previous plan, no candidates).
         task: the MPC problem (:func:`saml_ros.core.mpc.factory.make_task` builds the system's own, with its task
             options such as the quadrotor's ``min_height``); its horizon must be ``horizon``.
         base: numpy twin of the base model (see :class:`~saml_ros.core.mpc.dynamics_np.NumpyDynamics`).
+        true: numpy twin of the true dynamics, used when the model is ``"oracle"``.
     """
 
     def __init__(
         self,
         system: System,
-        model: DynamicsModel | None = None,
+        model: PredictionModel = None,
         horizon: int = 10,
         member: int = 0,
         feas_tol: float = 1e-4,
+        start: str = "robust",
         *,
         task: ShootingTask,
         base: BaseModelNP | None = None,
+        true: BaseModelNP | None = None,
     ) -> None:
+        if start not in START_MODES:
+            raise ValueError(f"unknown start {start!r}; valid: {list(START_MODES)}")
+        self.start = start
         self.system = system
         self.horizon = int(horizon)
         if task.horizon != self.horizon:
@@ -53,8 +64,8 @@ class ShootingMPC:
         self.feas_tol = feas_tol
         self.task = task
         self.n, self.m = system.state.size, system.control.size
-        self.base_np = base
-        self.dyn = NumpyDynamics(system, model, member, base)
+        self.base_np, self.true_np = base, true
+        self.dyn = NumpyDynamics(system, model, member, base, true)
         self._u_lo = np.tile(self.task.u_low, self.horizon)
         self._u_hi = np.tile(self.task.u_high, self.horizon)
         self._plan_u: np.ndarray | None = None
@@ -63,8 +74,8 @@ class ShootingMPC:
         self.tail = "repeat"
 
     # ------------------------------------------------------------------------------ Controller API
-    def set_model(self, model: DynamicsModel | None) -> None:
-        self.dyn = NumpyDynamics(self.system, model, self.member, self.base_np)
+    def set_model(self, model: PredictionModel) -> None:
+        self.dyn = NumpyDynamics(self.system, model, self.member, self.base_np, self.true_np)
 
     def reset(self) -> None:
         self._plan_u = None
@@ -142,6 +153,8 @@ class ShootingMPC:
         ``self.tail``. It competes with the candidates only if ``task.starts_every_solve`` (otherwise it is
         used as is); ties go to the previous plan, then to the earlier candidate."""
         starts = np.clip(task.u_starts, task.u_low, task.u_high) if task.u_starts.size else task.u_starts
+        if self.start == "plain":
+            starts = starts[:0]
         if self._plan_u is None or self._plan_x is None:
             if starts.shape[0] == 0:
                 return np.tile(task.u_default, (self.horizon, 1)), None

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import scipy.optimize
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.dynamics_np import PredictionModel
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
@@ -26,7 +26,7 @@ class SLSQPShootingMPC(ShootingMPC):
     def __init__(
         self,
         system: System,
-        model: DynamicsModel | None = None,
+        model: PredictionModel = None,
         horizon: int = 10,
         max_iter: int = 100,
         ftol: float = 1e-6,

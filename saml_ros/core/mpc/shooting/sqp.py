@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.dynamics_np import PredictionModel
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
@@ -58,7 +58,7 @@ class SQPShootingMPC(ShootingMPC):
     def __init__(
         self,
         system: System,
-        model: DynamicsModel | None = None,
+        model: PredictionModel = None,
         horizon: int = 10,
         max_iter: int = 20,
         tol: float = 3e-4,
