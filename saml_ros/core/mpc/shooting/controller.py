@@ -168,16 +168,8 @@ class ShootingMPC:
 
     def _rollout_batch(self, x0: np.ndarray, cands: np.ndarray) -> np.ndarray:
         """Predicted states ``(K, T+1, n)`` of control sequences ``cands`` ``(K, T, m)`` from ``x0`` ``(n,)``:
-        ONE batched rollout (T calls of ``dyn.step`` on ``(K, n), (K, m)``)."""
-        k, horizon = cands.shape[0], cands.shape[1]
-        xs = np.empty((k, horizon + 1, self.n))
-        xs[:, 0] = x0
-        x = xs[:, 0]
-        step = self.dyn.step
-        for t in range(horizon):
-            x = step(x, cands[:, t])
-            xs[:, t + 1] = x
-        return xs
+        ONE batched rollout (:meth:`NumpyDynamics.rollout_batch`)."""
+        return self.dyn.rollout_batch(x0, cands)
 
     def _fixed_rows(self, x0: np.ndarray, plan_u: np.ndarray, task: ShootingTask) -> np.ndarray:
         """Which of ``task.violations``' rows ``(n_cons,)`` no control can move: the linear rows at t = 1 whose
