@@ -377,6 +377,19 @@ class NumpyDynamics:
             nxt += pre[:n]
         return z[:, :n].transpose(2, 0, 1)
 
+    def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians of :meth:`step_jac` alone (the SQP has the prediction from its rollout): with a linear
+        base model (``base.linear``) neither the base step nor the network's output is computed."""
+        lin = None if self.base is None else getattr(self.base, "linear", None)
+        if self.mlp is None or (self.base is not None and lin is None):
+            _, a, b = self.step_jac(x, u)
+            return a, b
+        ap, bp = self.mlp.jacobians(x, u)
+        if lin is not None:
+            ap += lin[0]
+            bp += lin[1]
+        return ap, bp
+
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
         """Prediction and its Jacobians ``(B, n_y)``, ``(B, n_y, n_x)``, ``(B, n_y, n_u)``."""
         if self.base is None:

@@ -69,6 +69,16 @@ class NumpyMLP:
 
         Reverse mode from the output, ``W_L' M_{L-1} ... W_1' M_0 W_0'`` with ``M_i`` the diagonal PReLU
         derivatives: the Jacobians come out in their final layout (no transpose of a broadcast copy)."""
+        h, ja, jb = self._jac(x, u, True)
+        assert h is not None
+        return h, ja, jb
+
+    def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians of :meth:`forward_jac` without phi itself (skips the last layer's forward product)."""
+        _, ja, jb = self._jac(x, u, False)
+        return ja, jb
+
+    def _jac(self, x: np.ndarray, u: np.ndarray, want_y: bool) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
         if self._jt is None:
             self._jt = ([np.ascontiguousarray(w.T) for w in self.weights],
                         np.ascontiguousarray(self.w_x.T), np.ascontiguousarray(self.w_u.T))  # fmt: skip
@@ -84,14 +94,15 @@ class NumpyMLP:
         for i in range(1, n):
             mask = np.where(h >= 0.0, 1.0, self.slopes[i - 1])
             masks.append(mask)
-            h *= mask
-            h = h @ self.weights[i]
-            h += self.biases[i]
+            if i < n - 1 or want_y:
+                h *= mask
+                h = h @ self.weights[i]
+                h += self.biases[i]
         g = wt[-1] * masks[-1][:, None, :]  # (B, n_y, d_{L-1})
         for i in range(n - 2, 0, -1):
             g = g @ wt[i]
             g *= masks[i - 1][:, None, :]
-        return h, g @ wxt, g @ wut
+        return (h if want_y else None), g @ wxt, g @ wut
 
     def state_part(self, x: np.ndarray) -> np.ndarray:
         """The first layer's pre-activation from the state alone, ``x @ W_x + b_0`` ``(d,)``, for

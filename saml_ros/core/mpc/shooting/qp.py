@@ -194,7 +194,8 @@ class L1QP:
         if flag != 1:
             self._model = None  # start the next solve from a fresh workspace
             return None
-        return np.clip(np.asarray(x[:n]), lo, hi)
+        d = np.maximum(x[:n], lo)
+        return np.minimum(d, hi, out=d)
 
 
 def _solve_qp_daqp(

@@ -102,6 +102,10 @@ class SQPShootingMPC(ShootingMPC):
                          np.concatenate(ib).astype(np.intp))  # fmt: skip
         self._eye = np.eye(nu)
         self._zeros_nu = np.zeros(nu)
+        self._zeros_hess = np.zeros((nu, nu))
+        self._zeros_hess.flags.writeable = False
+        self._no_rows = np.zeros(0)
+        self._no_g = np.zeros((0, nu))
         self._l1qp: L1QP | None = None  # the l1 model's DAQP buffers (scalar stage cost), made on first use
         #: per-solve counters (iterations, QPs, rollouts, ...) of the last solve, for profiling
         self.stats: dict[str, int] = {}
@@ -122,7 +126,7 @@ class SQPShootingMPC(ShootingMPC):
     def _merit(self, xs: np.ndarray, task: ShootingTask, penalty: float) -> tuple[float, np.ndarray, np.ndarray]:
         """Merit (cost, norms smoothed + penalty * violation), residuals ``(T, k)``, constraint values."""
         r = xs[1:, task.res_idx] - task.target
-        c, _ = task.solver_violations(xs)
+        c = task.solver_violations(xs)[0] if task.n_cons else self._no_rows
         if r.shape[1] == 1:
             merit = float(np.abs(r).sum())
         else:
@@ -173,8 +177,8 @@ class SQPShootingMPC(ShootingMPC):
                 keep = ~self._fixed
                 g_con, c = g_con[keep], c[keep]
         else:
-            g_con = np.zeros((0, jac.shape[2]))
-        pen_c = np.full(c.size, penalty)
+            g_con = self._no_g
+        pen_c = np.full(c.size, penalty) if c.size else self._no_rows
         if k == 1:
             # exact l1 model |r_t + J_t d| (one slack per stage in the QP), no smooth part; the damping scales
             # with the mean squared sensitivity of the residuals, the curvature a smooth model would have
@@ -182,7 +186,7 @@ class SQPShootingMPC(ShootingMPC):
             self._l1_rows = (j1, r1)
             nu = j1.shape[1]
             scale = max(float(np.einsum("ij,ij->", j1, j1)) / nu, 1e-6)
-            return np.zeros((nu, nu)), self._zeros_nu, g_con, -c, pen_c, scale
+            return self._zeros_hess, self._zeros_nu, g_con, -c, pen_c, scale
         f = np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2)
         jf = jac.reshape(T * k, -1)
         v = np.einsum("tk,tkj->tj", r, jac)  # J_t' r_t
@@ -211,7 +215,9 @@ class SQPShootingMPC(ShootingMPC):
         pred = float(np.abs(r1).sum() - np.abs(r1 + j1 @ d).sum())
         if h_vec.size:
             pred += float(pen @ (np.maximum(-h_vec, 0.0) - np.maximum(g_mat @ d - h_vec, 0.0)))
-        return d, pred - float(grad @ d)
+        if grad is not self._zeros_nu:
+            pred -= float(grad @ d)
+        return d, pred
 
     def _qp(
         self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray,
@@ -251,12 +257,12 @@ class SQPShootingMPC(ShootingMPC):
         msg, converged = "max_iter", False
         it = 0
         for it in range(1, self.max_iter + 1):  # noqa: B007
-            _, a, b = self.dyn.step_jac(xs[:-1], u)
+            a, b = self.dyn.jacobians(xs[:-1], u)
             self.stats["jacobians"] += 1
             sens = self._sensitivities(a, b)
             hess, grad, g_mat, h_vec, pen, scale = self._subproblem(sens, xs, r, c, task, penalty)
             lo, hi = self._u_lo - u.reshape(-1), self._u_hi - u.reshape(-1)
-            rows0 = float(pen @ np.maximum(-h_vec, 0.0))
+            rows0 = float(pen @ np.maximum(-h_vec, 0.0)) if h_vec.size else 0.0
             accepted = False
             undamped_tried = False
             while True:
