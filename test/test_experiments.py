@@ -52,7 +52,7 @@ def test_paired_statistics_match_known_cases() -> None:
 
 def test_cli_parses_every_experiment_and_applies_seeds() -> None:
     parser = cli.build_parser()
-    for name in (*EXPERIMENT_NAMES, "all"):
+    for name in (*EXPERIMENT_NAMES, "all", "claims"):
         assert parser.parse_args([name, "--quick"]).name == name
     with pytest.raises(SystemExit):
         parser.parse_args(["nonsense"])
@@ -60,6 +60,30 @@ def test_cli_parses_every_experiment_and_applies_seeds() -> None:
     assert cli.settings_for("convergence", False, [7]).seed == 7
     assert cli.settings_for("paddle_ball", True, None).n_trials < cli.settings_for("paddle_ball", False, None).n_trials
     assert cli.main(["friction", "--seeds", "1", "1"]) == 2
+
+
+def test_claims_command_rebuilds_the_table_from_stored_results(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """``experiment claims`` reads the claims of every results.json under --out into claims.md, in the order of
+    EXPERIMENT_NAMES, and refuses a directory without results."""
+    from saml_ros.experiments.headroom import Claim
+
+    rows = {"quadrotor": Claim("quadrotor (drag 0.3)", "SA lands better", "4.21 vs 4.55", "1.0 vs 2.0", "5.0 %",
+                               "cannot show"),
+            "friction": Claim("friction (periodic)", "SA | costs less", "4.73 vs 5.51", "5.3 vs 5.6", "17.5 %",
+                              "holds", "SA captures 83 %")}
+    for name, claim in rows.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps({"claims": [claim.to_dict()]}))
+    assert cli.main(["claims", "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "claims.md").read_text()
+    assert capsys.readouterr().out.strip() == text.strip()
+    lines = [ln for ln in text.splitlines() if ln.startswith("| ")]
+    assert len(lines) == 3  # header + one row per stored claim
+    assert lines[1].startswith("| friction (periodic) | SA \\| costs less |") and "**holds**" in lines[1]
+    assert lines[2].startswith("| quadrotor (drag 0.3) |") and "**cannot show**" in lines[2]
+    assert "SA captures 83 %" in text and "friction, quadrotor" in text
+    assert cli.main(["claims", "--out", str(tmp_path / "empty")]) == 2
 
 
 # ------------------------------------------------------------------------------------------------ convergence

@@ -3,7 +3,8 @@ experiment``).
 
 Runs one of the paper's experiments (or ``all`` of them, one after the other) and writes ``results.md``,
 ``results.json`` and PNG figures into ``--out`` (default ``results/NAME``; for ``all``, ``--out`` is the parent
-directory). ``--quick`` runs a reduced version (about a minute each); ``--set`` overrides a field of the
+directory). ``claims`` collects the claims of the experiments already run under ``--out`` (default ``results``)
+into ``--out/claims.md`` without running anything. ``--quick`` runs a reduced version (about a minute each); ``--set`` overrides a field of the
 experiment's settings dataclass (a Python literal, e.g. ``--set drag=0.0`` or ``--set "profiles=('sticky_patch',)"``).
 See docs/experiments.md.
 """
@@ -28,7 +29,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "effect), or all.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("name", choices=(*EXPERIMENT_NAMES, "all"))
+    p.add_argument("name", choices=(*EXPERIMENT_NAMES, "all", "claims"),
+                   help="an experiment, all of them, or 'claims': rebuild claims.md from the results.json files "
+                        "already under --out")
     p.add_argument("--quick", action="store_true", help="reduced settings (about a minute per experiment)")
     p.add_argument("--out", type=Path, help="output directory (default: results/NAME; for 'all': results)")
     p.add_argument("--seeds", type=int, nargs="+",
@@ -99,9 +102,44 @@ def run_experiment(name: str, settings: Any, out: Path, progress: bool = True, r
     return result
 
 
+def collect_claims(parent: Path) -> tuple[list[Any], list[str]]:
+    """The claims stored in ``parent/<name>/results.json`` of every experiment run there, and those names."""
+    import json
+
+    from saml_ros.experiments.headroom import Claim
+
+    claims: list[Any] = []
+    found: list[str] = []
+    for name in EXPERIMENT_NAMES:
+        path = parent / name / "results.json"
+        if path.exists():
+            found.append(name)
+            claims += [Claim(**c) for c in json.loads(path.read_text()).get("claims", [])]
+    return claims, found
+
+
+def write_claims(parent: Path, claims: list[Any], title: str, footer: str) -> str:
+    """Write ``parent/claims.md`` (the claims table under ``title``, then ``footer``); returns its text."""
+    from saml_ros.experiments.headroom import claims_table
+
+    text = f"# {title}\n\n{claims_table(claims)}\n\n{footer}\n"
+    parent.mkdir(parents=True, exist_ok=True)
+    (parent / "claims.md").write_text(text)
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="[%(levelname)s] %(name)s: %(message)s")
+    if args.name == "claims":
+        parent = args.out or Path("results")
+        stored, ran = collect_claims(parent)
+        if not ran:
+            print(f"experiment claims: no results.json under {parent}/<experiment>/", file=sys.stderr)
+            return 2
+        print(write_claims(parent, stored, "Claims of the paper, one line each (`./dev experiment claims`)",
+                           f"Collected from the results of: {', '.join(ran)} (under {parent})."))
+        return 0
     names = list(EXPERIMENT_NAMES) if args.name == "all" else [args.name]
     if args.seeds is not None and len(set(args.seeds)) != len(args.seeds):
         print("experiment: --seeds must be distinct", file=sys.stderr)
@@ -139,14 +177,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"experiment {name}: done in {time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s "
               f"CPU; results in {out}/results.md, {out}/results.json and the PNG figures there", flush=True)
     if args.name == "all":
-        from saml_ros.experiments.headroom import claims_table
-
         parent = args.out or Path("results")
-        text = (f"# Claims of the paper, one line each (`./dev experiment all{' --quick' if args.quick else ''}`)\n\n"
-                f"{claims_table(found)}\n\nAll experiments: {time.perf_counter() - t_all:.1f} s wall, "
-                f"{time.process_time() - cpu0:.1f} s CPU.\n")
-        (parent / "claims.md").write_text(text)
-        print(text)
+        print(write_claims(parent, found, "Claims of the paper, one line each (`./dev experiment all"
+                                          f"{' --quick' if args.quick else ''}`)",
+                           f"All experiments: {time.perf_counter() - t_all:.1f} s wall, "
+                           f"{time.process_time() - cpu0:.1f} s CPU."))
     return 0
 
 
