@@ -331,3 +331,18 @@ def test_single_threaded_runner_decorator_pins_one_thread_and_restores() -> None
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(old)
+
+
+def test_paddle_training_check_compares_sa_and_ua_on_sas_objective() -> None:
+    """The training check alone (``python -m saml_ros.experiments.paddle_ball``) evaluates both models on SA's
+    objective and constraint on the training data and says per seed whether SA ends at or below UA."""
+    from saml_ros.experiments.paddle_ball import PaddleSettings, training_check
+
+    s = PaddleSettings(seeds=(0, 1), n_impacts=120, epochs=3)
+    res = training_check(s)
+    assert set(res["own_objective"]) == {"full", "residual"} and res["train_cpu_seconds"] > 0
+    for o in res["own_objective"].values():
+        sa, ua = np.asarray(o["sufficient"]["objective"]), np.asarray(o["uniform"]["objective"])
+        assert sa.shape == ua.shape == (2,) and np.all(np.isfinite(sa)) and np.all(ua > 0)
+        assert o["per_seed_ok"] == (sa <= ua).tolist()
+        assert np.asarray(o["uniform"]["constraint"]).shape == (2,)

@@ -486,4 +486,51 @@ def plot_bounces(control: dict[str, Any], s: PaddleSettings, path: Path) -> Path
     return save_figure(fig, path)
 
 
-__all__ = ["PaddleSettings", "Trial", "make_trials", "run", "run_trial", "uniform_spec"]
+@single_threaded
+def training_check(settings: PaddleSettings) -> dict[str, Any]:
+    """Collect the training impacts and train both kinds under both specs as in :func:`run` (no trials), then
+    :func:`own_objective_check` on the training data: returns it, with the training CPU seconds."""
+    import time
+
+    s = settings
+    system = PaddleBall()
+    specs = {"sufficient": ProblemSpec.for_system(system.paper_spec(), system),
+             "uniform": ProblemSpec.for_system(uniform_spec(), system)}
+    x, u, y, _ = collect(s, s.n_impacts, s.data_seed)
+    t0 = time.process_time()
+    trained: dict[tuple[str, str], TrainedModels] = {}
+    with quiet_trainer_warnings():
+        for kind in s.kinds:
+            for label, spec in specs.items():
+                trained[(kind, label)] = train_models(system, spec, x, u, y, train_config(s), list(s.seeds),
+                                                      s.hidden, kind, False, f"{kind} {label}")
+    return {"own_objective": own_objective_check(trained, specs["sufficient"], x, u, y),
+            "train_cpu_seconds": time.process_time() - t0}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``./dev python -m saml_ros.experiments.paddle_ball [--epochs N] [--schedule S] [--seeds ...]``: the training
+    check alone (SA vs UA on SA's objective and constraint, training data), one line per kind."""
+    import argparse
+    from dataclasses import replace
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--epochs", type=int, default=PaddleSettings.epochs)
+    ap.add_argument("--schedule", default=PaddleSettings.lr_schedule, help="primal schedule: constant, step, cosine")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    args = ap.parse_args(argv)
+    s = replace(PaddleSettings(), epochs=args.epochs, lr_schedule=args.schedule, seeds=tuple(args.seeds))
+    res = training_check(s)
+    for kind, o in res["own_objective"].items():
+        print(f"{kind}, {s.epochs} epochs, {s.lr_schedule}: SA objective {np.round(o['sufficient']['objective'], 4)}, "
+              f"UA {np.round(o['uniform']['objective'], 4)}; SA g {np.round(o['sufficient']['constraint'], 4)}, UA g "
+              f"{np.round(o['uniform']['constraint'], 4)}; SA <= UA per seed {o['per_seed_ok']}")
+    print(f"training: {res['train_cpu_seconds']:.0f} s CPU")
+    return 0
+
+
+__all__ = ["PaddleSettings", "Trial", "main", "make_trials", "run", "run_trial", "training_check", "uniform_spec"]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
