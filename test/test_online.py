@@ -354,8 +354,11 @@ def test_paused_training_process_buffers_but_neither_trains_nor_checkpoints(tmp_
     assert proc.resume()
     _wait(lambda: proc.status.get("updates", 0) >= 50 and len(saved) >= 1)
     paused = proc.pause()
-    assert paused is not None and paused[0] is not None and paused[1] == saved[-1]  # one checkpoint on pause
+    # one checkpoint of the unsaved updates on pause (none when a periodic one has just taken them all)
+    assert paused is not None and paused[1] == saved[-1]
     updates = paused[2]
+    found = CheckpointStore(tmp_path / "run").load_latest_valid()
+    assert found is not None and found.version == paused[1] and found.meta["updates"] == updates
     assert CheckpointStore(tmp_path / "run").versions()[-1] == paused[1]
     time.sleep(0.6)  # three checkpoint periods: no update, no checkpoint
     assert proc.status["updates"] == updates and saved[-1] == paused[1]
