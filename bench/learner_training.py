@@ -22,10 +22,10 @@ import numpy as np
 
 from saml_ros.core.systems import SYSTEM_NAMES
 
-#: ``(label, threads, flush_denormal)``: the first is the training process before subnormal flushing was
-#: added (it always ran one thread), the second today's default, the third torch's own thread default
+#: ``(label, threads, flush_denormal)``: the first is the training process without subnormal flushing (as it was
+#: before flushing was added), the second the default, the third torch's own thread default
 SETTINGS: tuple[tuple[str, int, bool], ...] = (
-    ("1 thread, subnormals kept (before)", 1, False),
+    ("1 thread, subnormals kept", 1, False),
     ("1 thread, subnormals flushed (default)", 1, True),
     ("torch default threads, flushed", 0, True),
 )

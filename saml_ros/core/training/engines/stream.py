@@ -31,6 +31,8 @@ from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.engines.base import RunState
 from saml_ros.core.training.engines.fast import FastRun, unsupported_reason
 
+_vector_norm = torch.linalg.vector_norm
+
 
 def stream_unsupported_reason(trainer: RunState, data: Transitions) -> str | None:
     """Why :class:`StreamRun` cannot run ``trainer`` on minibatches like ``data``'s rows, or ``None``."""
@@ -66,7 +68,9 @@ class StreamRun(FastRun):
         """The plain step's loss and gradient checks, on the step's values and gradient (one sync); a skipped
         step's values become NaN."""
         health = self.tr.health
-        total, obj, norm = torch.stack((row.sum(), row[:, 0].sum(), torch.linalg.vector_norm(grad))).tolist()
+        values = row.tolist()  # E x T floats: summed here, cheaper than tensor reductions at these sizes
+        obj, total = sum(v[0] for v in values), sum(sum(v) for v in values)
+        norm = float(_vector_norm(grad))
         why = health.check_loss_values(total, obj) or health.check_gradient_norm(norm)
         if why is None:
             health.count_healthy()
