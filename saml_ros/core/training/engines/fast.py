@@ -234,10 +234,9 @@ class FastRun:
 
     @torch.no_grad()
     def store_state(self) -> None:
-        """Write parameters, lambda and optimizer states back to the trainer (the primal moments as views of this
-        run's, see :meth:`FlatOptimizer.store`)."""
+        """Write parameters, lambda and optimizer states back to the trainer."""
         self.net.store()
-        self.popt.store(self.tr.primal_opt, self.net.views, alias=True)
+        self.popt.store(self.tr.primal_opt, self.net.views)
         self.dual.assign_(self.lam)
         if self.dopt is not None:
             self.dopt.store(self.dual.optimizer, lambda buf: [buf])

@@ -32,7 +32,6 @@ class FlatOptimizer:
         self.maximize = maximize
         self.param = param
         self.step_count = 0
-        self._aliased: list[dict[str, Tensor]] | None = None
         self.beta1, self.beta2, self.eps = 0.0, 0.0, 0.0
         self.m = self.v = param
         if self.kind == "adam":
@@ -59,25 +58,11 @@ class FlatOptimizer:
             vm.copy_(s["exp_avg"].reshape(vm.shape)).mul_(sign)
             vv.copy_(s["exp_avg_sq"].reshape(vv.shape))
 
-    def store(self, opt: torch.optim.Optimizer, views: Callable[[Tensor], list[Tensor]], alias: bool = False) -> None:
-        """Write the state into ``opt``. ``alias`` (descent only): the optimizer's moments become views of
-        :attr:`m` and :attr:`v` (as torch's own state, live), so a later store only sets the step count."""
+    def store(self, opt: torch.optim.Optimizer, views: Callable[[Tensor], list[Tensor]]) -> None:
         if self.kind != "adam" or self.step_count == 0:
             return
-        params = opt.param_groups[0]["params"]
-        if alias and not self.maximize:
-            if self._aliased is not None and all(opt.state.get(p) is d for p, d in zip(params, self._aliased)):
-                for d in self._aliased:
-                    d["step"].fill_(float(self.step_count))
-                return
-            self._aliased = []
-            for p, vm, vv in zip(params, views(self.m), views(self.v)):
-                d = {"step": torch.tensor(float(self.step_count), dtype=torch.float32), "exp_avg": vm, "exp_avg_sq": vv}
-                opt.state[p] = d
-                self._aliased.append(d)
-            return
         sign = -1.0 if self.maximize else 1.0
-        for p, vm, vv in zip(params, views(self.m), views(self.v)):
+        for p, vm, vv in zip(opt.param_groups[0]["params"], views(self.m), views(self.v)):
             opt.state[p] = {
                 "step": torch.tensor(float(self.step_count), dtype=torch.float32),
                 "exp_avg": (vm * sign).reshape(p.shape).clone(),
