@@ -120,7 +120,7 @@ def test_watcher_background_thread_hands_over_without_blocking(tmp_path: Path) -
     store = CheckpointStore(tmp_path / "run")
     prepared: list[int] = []
     with ModelWatcher(system, store.run_dir, poll_period=0.05,
-                      prepare=lambda lm: prepared.append(lm.version) or "ok") as watcher:
+                      prepare=lambda lm: prepared.append(lm.version) or "ok") as watcher:  # type: ignore[func-returns-value]
         t0 = time.perf_counter()
         assert watcher.take() is None
         assert time.perf_counter() - t0 < 0.01

@@ -26,7 +26,7 @@ from saml_ros.user_code import load_system_file
 REPO = Path(__file__).resolve().parents[1]
 SYSTEM_FILE = REPO / "examples" / "diff_drive" / "system.yaml"
 sys.path.insert(0, str(REPO / "examples" / "diff_drive"))
-import dynamics  # noqa: E402
+import dynamics  # type: ignore[import-not-found]  # noqa: E402
 
 DT_NS = 20_000_000
 T0 = 1_800_000_000 * 1_000_000_000
