@@ -1,4 +1,5 @@
-"""Run every benchmark (``./dev bench``) or the named ones (``./dev bench train mpc``).
+"""Run every benchmark (``./dev bench``) or the named ones (``./dev bench train mpc``); options after the names go
+to each named benchmark (``./dev bench learner --part training``).
 
 Each benchmark runs in its own process (so one's threads and DDS participants cannot disturb another) and
 prints ratios measured within its own run; see docs/performance.md.
@@ -14,7 +15,9 @@ BENCHES = ("train", "dual", "mpc", "sim", "learner", "closed_loop", "bags", "hea
 
 
 def main(argv: list[str] | None = None) -> int:
-    names = list(argv if argv is not None else sys.argv[1:]) or list(BENCHES)
+    args = list(argv if argv is not None else sys.argv[1:])
+    first_opt = next((i for i, a in enumerate(args) if a.startswith("-")), len(args))
+    names, options = args[:first_opt] or list(BENCHES), args[first_opt:]
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         print(f"bench: unknown benchmark(s) {unknown}; choose from {list(BENCHES)}", file=sys.stderr)
@@ -23,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         print(f"\n===== bench_{name} =====", flush=True)
         t0 = time.perf_counter()
-        rc = subprocess.call([sys.executable, "-m", f"bench.bench_{name}"])
+        rc = subprocess.call([sys.executable, "-m", f"bench.bench_{name}", *options])
         print(f"----- bench_{name}: exit {rc}, {time.perf_counter() - t0:.0f} s", flush=True)
         if rc != 0:
             failed.append(name)

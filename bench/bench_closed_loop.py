@@ -37,7 +37,8 @@ def _percentiles(values: Sequence[float]) -> str:
     return f"median {np.median(v):6.2f} ms  p99 {np.percentile(v, 99):6.2f} ms  max {v.max():7.2f} ms  (n={v.size})"
 
 
-def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Path) -> dict[str, Any]:
+def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Path,
+        sim_executor: str = "events") -> dict[str, Any]:
     """Run the loop for ``sim_time`` simulated seconds; returns the measurements (ms)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -55,7 +56,7 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
     ckpt_dir = workdir / "checkpoints"
     params = {
         "sim": {"mode": "lockstep", "episode_steps": 50, "seed": 0, "lockstep_timeout": 5.0,
-                "max_sim_time": 0.0},
+                "max_sim_time": 0.0, "executor": sim_executor},
         "mpc": {"system": "quadrotor", "solver": solver, "run_dir": str(ckpt_dir), "use_sim_time": True},
         "learner": {"system": "quadrotor", "run_dir": str(ckpt_dir), "use_sim_time": True, "min_transitions": 200,
                     "checkpoint_period": 1.0},
@@ -149,17 +150,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--sim-time", type=float, default=60.0, help="simulated seconds (dt = 0.1 s per step)")
     p.add_argument("--no-learner", action="store_true", help="simulator + MPC only")
     p.add_argument("--solver", default="fast", choices=("fast", "slsqp"))
+    p.add_argument("--executor", default="events", choices=("events", "single"), help="the simulator's executor")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: env or random 30..90)")
     args = p.parse_args(argv)
     domain = args.domain_id
     if domain is None:
         domain = int(os.environ["ROS_DOMAIN_ID"]) if "ROS_DOMAIN_ID" in os.environ else random.randint(30, 90)
     with tempfile.TemporaryDirectory(prefix="bench_closed_loop_") as tmp:
-        r = run(args.sim_time, not args.no_learner, domain, args.solver, Path(tmp))
+        r = run(args.sim_time, not args.no_learner, domain, args.solver, Path(tmp), args.executor)
     lat = r["latency"][5:]  # the first solves include import / allocation warm-up
     print(f"closed loop: quadrotor_sim (lockstep) + mpc ({args.solver})"
           f"{' + learner' if not args.no_learner else ''}; {r['steps']} steps in {r['wall']:.1f} s wall "
-          f"({r['steps'] / max(r['wall'], 1e-9):.0f} steps/s); model versions used {r['versions']}")
+          f"({r['steps'] / max(r['wall'], 1e-9):.0f} steps/s); model versions used {r['versions']}; simulator "
+          f"executor {args.executor}; load average {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    from saml_ros.core.systems import get_system
+
+    speed = r["steps"] * get_system("quadrotor").dt / max(r["wall"], 1e-9)
+    print(f"  simulated / wall time: {speed:.1f}x real time ({'meets' if speed >= 30 else 'misses'} the target of "
+          f">= 30x on an idle machine)")
     print(f"  state -> cmd latency (this process):  {_percentiles(lat)}")
     print(f"  MPC control step (mpc/status step_ms): {_percentiles(r['step_ms'][5:])}")
     print(f"  MPC solve time:                       {_percentiles(r['solve_ms'][5:])}")

@@ -11,6 +11,9 @@ Prints three numbers measured in one run, each as steps per second and as a mult
    responder node in this process that replies to each state with the safe default (hover thrust for the
    quadrotor), stamped with the state's stamp: the loop a lockstep MPC closes, with an instant MPC.
 
+``--executors single events --rounds N`` measures the node with rclpy's SingleThreadedExecutor and the
+experimental EventsExecutor (node and responder alike, ``SAML_EXECUTOR``) alternately, N runs each (best counts).
+
 Runs in a private ROS domain (ROS_DOMAIN_ID from the pid, LOCALHOST discovery) and stops the node it started.
 """
 
@@ -69,11 +72,11 @@ def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
     """Steps per second of the lockstep simulator node answered by a responder node in this process."""
     import rclpy
     from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-    from rclpy.executors import SingleThreadedExecutor
 
     from msg_schemas import DATA_QOS, RCLPY, get_schema
     from msg_schemas.telemetry import DIAGNOSTICS_TOPIC, TELEMETRY_QOS, diagnostics_from_msg
     from saml_ros.core.systems import get_entry, get_system
+    from saml_ros.nodes.runtime import make_executor
 
     system = get_system(system_name)
     schema = get_schema(system_name)
@@ -110,7 +113,7 @@ def bench_node(system_name: str, steps: int, warmup: int, timeout: float,
                              event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
     node.create_subscription(RCLPY.cls("diagnostic_msgs/msg/DiagnosticArray"), DIAGNOSTICS_TOPIC, on_diag,
                              TELEMETRY_QOS.to_rclpy())
-    executor = SingleThreadedExecutor()
+    executor = make_executor()
     executor.add_node(node)
     try:
         deadline = time.monotonic() + timeout
@@ -137,6 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=200)
     parser.add_argument("--timeout", type=float, default=120.0, help="s before giving up on the node")
     parser.add_argument("--no-clock", action="store_true", help="run the node with publish_clock:=false")
+    parser.add_argument("--executors", nargs="+", default=["single"], choices=["single", "events"],
+                        help="executors of the node and the responder (SAML_EXECUTOR), measured alternately")
+    parser.add_argument("--rounds", type=int, default=1, help="node runs per executor (alternating; best counts)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -149,11 +155,24 @@ def main(argv: list[str] | None = None) -> int:
     dt = get_system(args.system).dt
     core = bench_core(args.system, 5 * args.steps, with_messages=False)
     core_msgs = bench_core(args.system, args.steps, with_messages=True)
-    node, diag = bench_node(args.system, args.steps, args.warmup, args.timeout, publish_clock=not args.no_clock)
+    node_rates: dict[str, list[float]] = {ex: [] for ex in args.executors}
+    diag: dict[str, str] = {}
+    for r in range(args.rounds):
+        for ex in args.executors if r % 2 == 0 else list(reversed(args.executors)):
+            os.environ["SAML_EXECUTOR"] = ex
+            rate, diag = bench_node(args.system, args.steps, args.warmup, args.timeout,
+                                    publish_clock=not args.no_clock)
+            node_rates[ex].append(rate)
     print(f"{args.system} lockstep (dt = {dt} s), {os.cpu_count()} CPUs, load average "
           f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    for label, rate in (("core", core), ("core + messages", core_msgs), (f"node{'' if args.no_clock else ' + /clock'} + responder (2 procs)", node)):
-        print(f"  {label:<32} {rate:9.0f} steps/s = {rate * dt:8.0f} x real time")
+    rows = [("core", core), ("core + messages", core_msgs)]
+    clock = "" if args.no_clock else " + /clock"
+    rows += [(f"node{clock} + responder, {ex}", max(v)) for ex, v in node_rates.items()]
+    for label, rate in rows:
+        print(f"  {label:<36} {rate:9.0f} steps/s = {rate * dt:8.0f} x real time")
+    if len(node_rates) > 1 or args.rounds > 1:
+        for ex, v in node_rates.items():
+            print(f"  {ex} executor, every round (steps/s): {', '.join(f'{x:.0f}' for x in v)}")
     misses = {k: v for k, v in diag.items() if k.startswith(("rejected/", "lockstep_misses", "cmd_timeouts"))}
     print(f"  node counters: steps {diag.get('steps', '?')}, misses/rejections/timeouts {misses or 'none'}")
     return 0

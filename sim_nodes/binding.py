@@ -40,6 +40,9 @@ COMMON_PARAMS: tuple[Param, ...] = (
     Param("cmd_reject_margin", 0.5, "commands further outside the control bounds than this fraction of the "
                                     "bounds' width are rejected; closer ones are clipped"),
     Param("diagnostics_period", 1.0, "seconds between /diagnostics messages (wall clock)"),
+    Param("executor", "events", "rclpy executor the node spins on: events (rclpy.experimental.EventsExecutor, "
+                                "faster per lockstep step, docs/performance.md) | single (SingleThreadedExecutor); "
+                                "the environment variable SAML_EXECUTOR overrides it"),
     Param("plausible_bounds", "", "overrides of the system's plausible state ranges as a YAML mapping, e.g. "
                                   "'{x.pz: [-1.0, 2000.0]}'; a time-stepped simulator whose state leaves them "
                                   "restarts the episode (counted as diverged)"),

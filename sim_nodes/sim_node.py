@@ -55,7 +55,14 @@ from saml_ros.core.worlds.sim_core import (
     TARGET,
     Output,
 )
-from saml_ros.nodes.runtime import catch_stop_signals, exit_process, init_rclpy, shutdown, spin_until_stopped
+from saml_ros.nodes.runtime import (
+    EXECUTORS,
+    catch_stop_signals,
+    exit_process,
+    init_rclpy,
+    shutdown,
+    spin_until_stopped,
+)
 from sim_nodes.binding import SimBinding, config_from_params
 
 #: exit code for invalid parameters (as argparse's usage errors)
@@ -161,6 +168,8 @@ class SimNode(Node):
             descriptor = descriptor_cls(description=spec.description, dynamic_typing=True)
             value = self.declare_parameter(spec.name, spec.default, descriptor).value
             out[spec.name] = coerce_param(spec.name, value, spec.default, spec.item_type)
+        if out["executor"] not in EXECUTORS:
+            raise ValueError(f"parameter 'executor' must be one of {list(EXECUTORS)}, got {out['executor']!r}")
         for name in ("rate_hz", "diagnostics_period", "lockstep_timeout"):
             if not out[name] > 0:
                 raise ValueError(f"parameter {name!r} must be > 0, got {out[name]}")
@@ -289,7 +298,7 @@ def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
             code = USAGE_ERROR
         else:
             done = node.done_future
-            spin_until_stopped(node, stop, lambda: not done.done())
+            spin_until_stopped(node, stop, lambda: not done.done(), executor=node.params["executor"])
     finally:
         shutdown(node)
     if argv is None:

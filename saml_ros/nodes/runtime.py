@@ -55,21 +55,41 @@ def init_rclpy(args: Sequence[str]) -> None:
 
 
 def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool] | None = None, *,
-                       period: float = 0.1, announce: bool = True) -> None:
-    """Spin ``node`` on a SingleThreadedExecutor until a stop signal arrives or ``keep_going()`` is False.
+                       period: float = 0.1, announce: bool = True, executor: str = "single") -> None:
+    """Spin ``node`` on :func:`make_executor`'s executor until a stop signal arrives or ``keep_going()`` is False.
 
     Args:
         period: longest wait (s) between two looks at the flag.
         announce: log ``received SIGINT: shutting down`` (or SIGTERM) on the node's logger when a signal ended it.
+        executor: see :func:`make_executor`.
     """
-    from rclpy.executors import SingleThreadedExecutor
-
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
+    spinner = make_executor(executor)
+    spinner.add_node(node)
     while not stop["signal"] and (keep_going is None or keep_going()):
-        executor.spin_once(timeout_sec=period)
+        spinner.spin_once(timeout_sec=period)
     if announce and stop["signal"]:
         node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
+
+
+#: executors :func:`make_executor` knows (environment variable ``SAML_EXECUTOR``; docs/performance.md)
+EXECUTORS = ("single", "events")
+
+
+def make_executor(kind: str = "single") -> Any:
+    """An executor: ``"single"`` (rclpy's ``SingleThreadedExecutor``) or ``"events"`` (the experimental
+    ``EventsExecutor``: 2-7x more lockstep steps per second in ``bench sim``, but it fails in the recorder's
+    generic subscriptions, docs/performance.md, so only the simulator node uses it by default). The environment
+    variable ``SAML_EXECUTOR``, when set, overrides ``kind`` (for measurements)."""
+    kind = os.environ.get("SAML_EXECUTOR", kind)
+    if kind not in EXECUTORS:
+        raise ValueError(f"executor (or SAML_EXECUTOR) must be one of {EXECUTORS}, got {kind!r}")
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    from rclpy.executors import SingleThreadedExecutor
+
+    return SingleThreadedExecutor()
 
 
 def shutdown(node: Any | None) -> None:

@@ -4,8 +4,8 @@ It owns the replay buffer and recent window (fed through its :class:`~saml_ros.c
 model and the :class:`~saml_ros.core.training.PrimalDualTrainer`, created once ``min_transitions`` transitions
 have arrived: the input/output normalisation is fitted on exactly those transitions and then frozen (it is part
 of the model, so it is checkpointed and restored with it). :meth:`OnlineLearner.update` takes ``n`` primal-dual
-steps on minibatches sampled from the buffer; :meth:`OnlineLearner.compute_model_metrics` and
-:meth:`OnlineLearner.telemetry` report (:mod:`~saml_ros.core.online.telemetry`); checkpoints are written by
+steps on minibatches sampled from the buffer (the fast engine's path: :mod:`~saml_ros.core.online.updates`);
+:meth:`OnlineLearner.compute_model_metrics` and :meth:`OnlineLearner.telemetry` report (:mod:`~saml_ros.core.online.telemetry`); checkpoints are written by
 :meth:`OnlineLearner.save_checkpoint` and resumed from at construction (:mod:`~saml_ros.core.online.resume`).
 
 Threads: one thread may call :meth:`OnlineLearner.ingest` (per source) while another calls
@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.buffer import Policy, ReplayBuffer
 from saml_ros.core.checkpoint import CheckpointStore
@@ -35,6 +34,7 @@ from saml_ros.core.models import MODEL_KINDS, DynamicsModel
 from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.online.resume import ResumeInfo, resume_newest
 from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, feasibility_metrics, model_metrics
+from saml_ros.core.online.updates import OnlineUpdates
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition
 from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
@@ -136,6 +136,7 @@ class OnlineLearner:
         self.model = DynamicsModel(system, cfg.hidden, cfg.kind, n_models=1, seed=cfg.train.seed)
         self.model.to(cfg.train.torch_dtype)
         self.trainer: PrimalDualTrainer | None = None
+        self._updates: OnlineUpdates | None = None
         self._recent = RecentWindow(cfg.telemetry_window, n_x, n_u, n_y)
         self.ingest_path = Ingest(self.buffer, self._recent, Plausibility.for_system(system, cfg.plausible_bounds))
         self._lock = threading.RLock()
@@ -215,18 +216,10 @@ class OnlineLearner:
         with self._lock:
             if self.trainer is None:
                 self._start_training()
-            tr = self.trainer
-            assert tr is not None
-            bsz, dt = self.config.train.batch_size, self.config.train.torch_dtype
-            for _ in range(n_steps):
-                xb, ub, yb = self.buffer.sample(bsz, self._rng)
-                healthy = tr.health.healthy_steps
-                vals = tr.step(torch.from_numpy(xb).to(dt), torch.from_numpy(ub).to(dt), torch.from_numpy(yb).to(dt))
-                if tr.health.healthy_steps > healthy:  # a skipped step's values are not the model's
-                    self._averages.add(vals)
-                if tr.steps % (self.config.train.log_every or 100) == 0:
-                    tr.log_point()
-                    tr.history.keep_last(HISTORY_ROWS)
+            assert self.trainer is not None
+            if self._updates is None or self._updates.trainer is not self.trainer:
+                self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS)
+            self._updates.run(n_steps, self.buffer, self._rng, self._averages)
             return n_steps
 
     def _start_training(self) -> None:

@@ -26,16 +26,22 @@ class LoopConfig:
         updates_per_second: primal-dual updates per wall-clock second; 0 = as fast as possible.
         telemetry_rate: model metrics computed (and reported) per second, Hz.
         checkpoint_period: wall-clock seconds between checkpoints (only when there are new updates).
-        chunk: updates between two looks at the inbox and the clocks.
+        chunk: most updates between two looks at the inbox and the clocks.
+        chunk_seconds: wall-clock seconds of updates between two looks (the updates per chunk follow the measured
+            time per update, at most ``chunk``): long enough that the per-call cost of drawing and preparing the
+            minibatches is shared by many updates (:mod:`~saml_ros.core.online.updates`), short enough that
+            ingest, pause and stop wait little.
     """
 
     updates_per_second: float = 0.0
     telemetry_rate: float = 5.0
     checkpoint_period: float = 10.0
-    chunk: int = 10
+    chunk: int = 500
+    chunk_seconds: float = 0.02
 
     def __post_init__(self) -> None:
-        if self.updates_per_second < 0 or self.telemetry_rate <= 0 or self.checkpoint_period <= 0 or self.chunk < 1:
+        if (self.updates_per_second < 0 or self.telemetry_rate <= 0 or self.checkpoint_period <= 0 or self.chunk < 1
+                or self.chunk_seconds <= 0):
             raise ValueError(f"invalid loop configuration {self}")
 
 
@@ -76,6 +82,7 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
     next_metrics = 0.0
     paced_from: float | None = None
     paced_done = 0
+    per_update = 0.0  # measured seconds per update (a running mean); 0 until the first chunk
     while True:
         # the inbox first, but at most one telemetry period at a time: a backlog must not silence the reports
         drain_until = time.monotonic() + metrics_period
@@ -117,7 +124,7 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             paced_from = None
             conn.poll(0.05)  # an interruptible sleep: wakes up when data arrives
             continue
-        n = loop.chunk
+        n = max(1, min(loop.chunk, int(loop.chunk_seconds / per_update))) if per_update > 0 else 1
         if loop.updates_per_second > 0:
             if paced_from is None:
                 paced_from, paced_done = now, 0
@@ -125,10 +132,13 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             if due <= 0:
                 conn.poll(min(metrics_period, (paced_done + 1) / loop.updates_per_second - (now - paced_from)))
                 continue
-            n = min(due, loop.chunk)
+            n = min(due, n)
             paced_done += n
         try:
-            learner.update(n)
+            t0 = time.monotonic()
+            if learner.update(n):
+                took = (time.monotonic() - t0) / n
+                per_update = took if per_update == 0 else 0.8 * per_update + 0.2 * took
         except Exception as exc:  # noqa: BLE001 - report, back off, keep going
             send(("error", "training", f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s"))
             time.sleep(1.0)

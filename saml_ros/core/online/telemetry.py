@@ -97,6 +97,16 @@ class StepAverages:
         if len(self._con):
             self._con += vals.constraints[0].double().numpy()
 
+    def add_rows(self, rows: torch.Tensor) -> None:
+        """Add ``n`` steps' values of member 0 at once: ``rows`` ``(n, 1 + K)`` (objective, then g_k)."""
+        if not len(rows):
+            return
+        total = rows.double().sum(0).numpy()
+        self._n += len(rows)
+        self._obj += float(total[0])
+        if len(self._con):
+            self._con += total[1:]
+
     def take(self) -> tuple[float, np.ndarray]:
         """``(objective, constraints (K,))`` averaged since the previous call; the previous values again when no
         step ran in between (NaN before the first step)."""

@@ -17,8 +17,10 @@ longer (:mod:`saml_ros.core.learner_report`). A finite but exploding value in ev
 accident: after ``rebase_after`` consecutive skipped steps the running means start again (a new warm-up), so a
 real change of scale is learned from, while absurd minibatches among healthy ones never reach the model.
 
-The plain step (:func:`~saml_ros.core.training.engines.plain.primal_dual_step`, which online learning uses) checks
-every step exactly as above. The fast engine checks every ``check_every`` steps (the losses of those steps and the
+The plain step (:func:`~saml_ros.core.training.engines.plain.primal_dual_step`) checks every step exactly as
+above; so do the fast online updates (:mod:`~saml_ros.core.training.engines.stream`) for the loss and the
+gradient, with the weights checked per block of ``check_every`` steps (a bad block is put back and counted
+skipped). The fast engine's offline ``fit`` checks every ``check_every`` steps (the losses of those steps and the
 weights after them; a non-finite loss or gradient always reaches its weights through Adam) and on a problem
 restores the state from before them and counts all of them skipped: one check per block keeps its speed.
 
@@ -146,6 +148,10 @@ class TrainingHealth:
         """``"loss"`` (with the detail in :attr:`last_problem`) if the minibatch Lagrangian / objective (summed
         over members) is non-finite or the objective is exploding, else ``None``."""
         lag, obj = torch.stack((lagrangian.detach().sum(), objective.detach().sum())).tolist()
+        return self.check_loss_values(lag, obj)
+
+    def check_loss_values(self, lag: float, obj: float) -> str | None:
+        """:meth:`check_loss` on the minibatch Lagrangian and objective, summed over members, as floats."""
         if not (math.isfinite(lag) and math.isfinite(obj)):
             return self._problem("loss", f"non-finite minibatch loss (Lagrangian {lag}, objective {obj})")
         if self._loss.exploding(obj, self.config):
@@ -161,6 +167,10 @@ class TrainingHealth:
             return None
         with torch.no_grad():
             norm = float(torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))))
+        return self.check_gradient_norm(norm)
+
+    def check_gradient_norm(self, norm: float) -> str | None:
+        """:meth:`check_gradients` on the gradient's norm."""
         if not math.isfinite(norm):
             return self._problem("gradient", f"non-finite gradient (norm {norm})")
         if self._grad.exploding(norm, self.config):
@@ -173,6 +183,10 @@ class TrainingHealth:
         """``"weights"`` if a network weight or multiplier of ``run`` is non-finite or larger than ``max_weight``."""
         return self._weights_problem(max_abs([*run.model.net.parameters(), run.dual.value]))
 
+    def check_weights_of(self, tensors: list[torch.Tensor]) -> str | None:
+        """:meth:`check_weights` on ``tensors`` (e.g. a fast run's flat parameters and multipliers)."""
+        return self._weights_problem(max_abs(tensors))
+
     def _weights_problem(self, biggest: float) -> str | None:
         if biggest <= self.config.max_weight:  # NaN fails this
             return None
@@ -183,6 +197,13 @@ class TrainingHealth:
     # ------------------------------------------------------------------------------ outcomes
     def healthy(self, run: RunState) -> None:
         """A healthy step: update the running means and, every ``snapshot_every`` such steps, the snapshot."""
+        self.count_healthy()
+        self._since_snapshot += 1
+        if self._snapshot is None or self._since_snapshot >= self.config.snapshot_every:
+            self.take_snapshot(run)
+
+    def count_healthy(self) -> None:
+        """:meth:`healthy` without the snapshot (a run that keeps its own, like the fast online updates)."""
         cfg = self.config
         self._loss.add(self._pending_loss, cfg.warmup, cfg.smoothing)
         if self._pending_grad is not None:
@@ -190,9 +211,6 @@ class TrainingHealth:
         self._pending_grad = None
         self.healthy_steps += 1
         self.streak = 0
-        self._since_snapshot += 1
-        if self._snapshot is None or self._since_snapshot >= cfg.snapshot_every:
-            self.take_snapshot(run)
 
     def skip(self, reason: str, n: int = 1) -> None:
         """Count ``n`` skipped steps for ``reason`` (one of :data:`SKIP_REASONS`)."""

@@ -64,6 +64,9 @@ _prelu_kernel: Callable[[Tensor, Tensor], Tensor] = getattr(
 )
 _Snapshot = tuple[list[Tensor], tuple[int, int, int], Tensor | None]
 _Step = Callable[[Tensor, Tensor, list[StepGroup], Tensor], None]
+#: ``gate(row, grad)``: called after the backward pass with the step's term values ``(E, T)`` and the network part
+#: of the flat gradient; False skips the update (nothing of the run's state has changed by then)
+Gate = Callable[[Tensor, Tensor], bool]
 #: the dual methods with a flat implementation here (every one of :data:`~saml_ros.core.training.dual.DUAL_CLASSES`)
 FAST_DUALS: tuple[type[DualVariables], ...] = (DualVariables, NuPIDual, AugmentedDual, ResilientDual)
 
@@ -191,12 +194,16 @@ class FastRun:
             self.dopt = FlatOptimizer(dual.optimizer, self.lam, maximize=True)
         self.residual = model.kind == "residual"
         self._pending: list[Tensor] = []
+        self._synced: tuple[list[Tensor], list[int]] | None = None
         self._prepare_sources()
 
     # ------------------------------------------------------------------------------ state exchange
     @torch.no_grad()
     def load_state(self) -> None:
-        """Read parameters, lambda and optimizer states from the trainer."""
+        """Read parameters, lambda and optimizer states from the trainer (nothing to do when none of them changed
+        since :meth:`store_state`)."""
+        if self._synced is not None and self._in_sync(*self._synced):
+            return
         self.net.load()
         self.popt.load(self.tr.primal_opt, self.net.views)
         self.lam.copy_(self.dual.value)
@@ -210,6 +217,20 @@ class FastRun:
             if "exp_avg" in st:  # moments of the gradient -g (maximize) -> of g
                 self.net.extra_view(self.popt.m).copy_(-st["exp_avg"])
                 self.net.extra_view(self.popt.v).copy_(st["exp_avg_sq"])
+
+    def _trainer_tensors(self) -> list[Tensor]:
+        """Every tensor of the trainer's state this run reads (parameters, lambda, both optimizers' states)."""
+        ts: list[Tensor] = [*self.net.params, self.dual.param]
+        for opt in (self.tr.primal_opt, self.dual.optimizer):
+            for st in opt.state.values():
+                ts += [v for v in st.values() if isinstance(v, Tensor)]
+        return ts
+
+    def _in_sync(self, tensors: list[Tensor], versions: list[int]) -> bool:
+        """True when the trainer holds exactly ``tensors``, unchanged since (in-place changes bump ``_version``)."""
+        now = self._trainer_tensors()
+        return len(now) == len(tensors) and all(
+            a is b and a._version == v for a, b, v in zip(now, tensors, versions))
 
     @torch.no_grad()
     def store_state(self) -> None:
@@ -234,6 +255,8 @@ class FastRun:
                 "exp_avg": -self.net.extra_view(self.popt.m).clone(),
                 "exp_avg_sq": self.net.extra_view(self.popt.v).clone(),
             }
+        ts = self._trainer_tensors()
+        self._synced = (ts, [t._version for t in ts])
 
     # ------------------------------------------------------------------------------ data
     def _prepare_sources(self) -> None:
@@ -380,6 +403,13 @@ class FastRun:
         why = health.check_block(vals[a:b, :, 0], [self.net.flat, self.lam])
         if why is None:
             return
+        self._restore(snap)
+        vals[a:b] = float("nan")
+        health.skip(why, b - a)
+        health.restores += 1
+
+    def _restore(self, snap: _Snapshot) -> None:
+        """Put back the state of :meth:`_snapshot`."""
         with torch.no_grad():
             for dst, src in zip(self._state_tensors(), snap[0]):
                 dst.copy_(src)
@@ -388,14 +418,12 @@ class FastRun:
             self.dopt.step_count = snap[1][1]
         if self.dnupi is not None:
             self.dnupi.step_count, self.dnupi.xi = snap[1][2], snap[2]
-        vals[a:b] = float("nan")
-        health.skip(why, b - a)
-        health.restores += 1
 
-    def _make_step(self, bsz: int) -> _Step:
+    def _make_step(self, bsz: int, gate: Gate | None = None) -> _Step:
         """``step(z, r, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member, with
         normalised inputs ``z`` ``(E, B, n_in + 1)`` and ``r = f_hat - y`` ``(E, B, n_y)``; ``row`` ``(E, T)``
-        receives the minibatch term values (objective, then g_k)."""
+        receives the minibatch term values (objective, then g_k). With ``gate`` (see :data:`Gate`) the update
+        happens only when it returns True."""
         net, e = self.net, self.E
         n_hidden = net.n_layers - 1
         w, gw, gslopes = net.w, net.gw, net.gslopes
@@ -411,6 +439,7 @@ class FastRun:
         dd: list[Tensor] = list(h_view)  # PReLU derivative per hidden layer
         ostd = self.tr.model.out_std
         coef, grad, slopes, lam = self.coef, net.grad, net.slopes, self.lam
+        net_grad = grad[: net.x_offset]  # without the merged dual's slots
         popt, dopt, dnupi = self.popt, self.dopt, self.dnupi
         u, gu, k_dual = net.extra, net.gextra, self.k_dual
         fns = [group_step_fn(g, self.src_r.shape[-1], len(self.groups) == 1) for g in self.groups]
@@ -453,6 +482,8 @@ class FastRun:
                 sum_(gh * an[i - 1], dim=(1, 2), keepdim=True, out=gs_v[i - 1])
                 g = gh.mul_(dd[i - 1])
             bmm(z.transpose(1, 2), g, out=gw[0])
+            if gate is not None and not gate(row, net_grad):
+                return
             # primal step, dual step on the detached minibatch constraint estimates, projection on lambda >= 0
             if k_dual is not None:
                 if rho is not None:
