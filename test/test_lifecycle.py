@@ -189,5 +189,7 @@ def test_shutdown_transition_ends_the_process(loop: Loop) -> None:
     assert loop.change(LEARNER, "shutdown") and loop.change(MPC, "shutdown")
     assert loop.learner.wait(15.0) == 0 and loop.mpc.wait(15.0) == 0
     assert "cleanup: checkpoint version" in loop.learner.output()  # the deactivation had saved everything
-    assert "shutdown: final checkpoint version" in loop.learner.output().rsplit("resumed from", 1)[-1]
+    # a final checkpoint, or none needed: no update since the last periodic one (a loaded machine trains slowly)
+    after_restart = loop.learner.output().rsplit("resumed from", 1)[-1]
+    assert re.search(r"shutdown: (final checkpoint version \d+|checkpoint version \d+ is current)", after_restart)
     assert "Traceback" not in loop.learner.output() + loop.mpc.output()
