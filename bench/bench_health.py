@@ -13,6 +13,7 @@ Rounds alternate between the variants; each variant's best round counts (load on
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 
@@ -66,6 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=300, help="plain steps per round")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    logging.getLogger("saml_ros.trainer").setLevel(logging.ERROR)  # the short fits' verdicts are not the point here
     import os
 
     print(f"training-health overhead (load {os.getloadavg()[0]:.1f}); times per step, best of {args.rounds} rounds")
