@@ -48,6 +48,8 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     entry_points={
-        "console_scripts": [f"{name} = {target}" for name, target in read_executables().items()],
+        # every script runs saml_ros.executables:entry, which dispatches on the script's name to the table's target
+        # (and keeps a stop signal during start-up quiet)
+        "console_scripts": [f"{name} = saml_ros.executables:entry" for name in read_executables()],
     },
 )

@@ -6,6 +6,7 @@ import configparser
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -115,6 +116,21 @@ def test_entry_module_exit_code_for_unknown_name() -> None:
     assert "learner" in proc.stderr
 
 
+@pytest.mark.parametrize("delay", [0.3, 1.0, 2.0])
+def test_a_stop_signal_while_a_node_starts_ends_it_quietly(delay: float, tmp_path: Path) -> None:
+    """SIGINT (as Ctrl-C under ros2 launch sends it) at any moment of a node's start-up, while it still imports
+    rclpy and torch or once its own handlers run: exit status 0, no traceback, well within launch's 5 s grace."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID="231")
+    proc = subprocess.Popen([sys.executable, "-m", "saml_ros.executables", "learner", "--ros-args", "-p",
+                             f"run_dir:={tmp_path / 'run'}"], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
+
+
 def _colcon() -> str | None:
     return shutil.which("colcon", path=f"{VENV_BIN}{os.pathsep}{os.environ.get('PATH', '')}")
 
@@ -185,7 +201,11 @@ def test_colcon_build_installs_every_executable(tmp_path: Path) -> None:
     entry_points = configparser.ConfigParser(delimiters=("=",))
     entry_points.read(next(site.glob("saml_ros-*.egg-info")) / "entry_points.txt")
     console = {k: v.replace(" ", "") for k, v in entry_points["console_scripts"].items()}
-    assert console == EXECUTABLES
+    assert console == {name: "saml_ros.executables:entry" for name in EXECUTABLES}
+    # an installed script runs the executable it is named after
+    script = subprocess.run([str(prefix / "lib" / "saml_ros" / "bag_info"), "--help"], cwd=tmp_path,
+                            env=dict(env, PYTHONPATH=str(site)), capture_output=True, text=True, timeout=120)
+    assert script.returncode == 0 and "bag_info" in script.stdout, script.stdout + script.stderr
 
     # ament_index finds the package, and the installed Python package imports from the install space
     probe = (
