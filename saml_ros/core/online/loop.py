@@ -66,6 +66,8 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
     Paused (from the start when ``paused``, or after ``("pause",)``: a managed learner that was deactivated) the
     loop still takes data into the buffer and reports its status, but makes no updates, computes no model
     metrics and writes no checkpoints;
+    One function on purpose (longer than 80 lines): one event loop whose local state (pacing, paused, next
+    report) every message kind and the training chunk share.
     ``("pause",)`` first writes a checkpoint when there are unsaved updates and answers ``("paused", path |
     None, version, updates)``; ``("resume",)`` goes back to training (the pacing restarts from then).
     """

@@ -423,7 +423,10 @@ class FastRun:
         """``step(z, r, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member, with
         normalised inputs ``z`` ``(E, B, n_in + 1)`` and ``r = f_hat - y`` ``(E, B, n_y)``; ``row`` ``(E, T)``
         receives the minibatch term values (objective, then g_k). With ``gate`` (see :data:`Gate`) the update
-        happens only when it returns True."""
+        happens only when it returns True.
+
+        One closure on purpose (longer than 80 lines): the hot path binds every buffer and view once, so each
+        step is straight-line tensor operations without attribute lookups or calls between them."""
         net, e = self.net, self.E
         n_hidden = net.n_layers - 1
         w, gw, gslopes = net.w, net.gw, net.gslopes
