@@ -26,6 +26,7 @@ EXECUTABLES: dict[str, str] = {
     "play": "saml_ros.bags.play:main",
     "bringup": "saml_ros.bringup:main",
     "train": "saml_ros.offline.cli:main",
+    "export": "saml_ros.offline.export_cli:main",
     "experiment": "saml_ros.experiments.cli:main",
     "bag_info": "saml_ros.bags.info:main",
     "demo": "saml_ros.demo:main",

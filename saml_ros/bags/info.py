@@ -28,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bag_info", description="Describe a saml_ros bag (rosbag2, MCAP).")
     p.add_argument("bag", type=Path)
     p.add_argument("--system", help="system (default: from metadata.yaml or inferred from the topics)")
+    p.add_argument("--system-file", type=Path, help="a robot described by a system file (docs/your_robot.md)")
     p.add_argument("--namespace", nargs="+", metavar="NS", help="system namespace(s) (default: all found)")
     p.add_argument("--plot", type=Path, metavar="PNG", help="plot learner/model_error channels over time")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -47,8 +48,8 @@ def describe_qos(profiles: Sequence[Any]) -> str:
     return " | ".join(dict.fromkeys(parts))
 
 
-def summarize(bag: Bag, system: str | None = None, namespaces: Sequence[str] | None = None) -> dict[str, Any]:
-    """Everything ``bag_info`` prints, as a JSON-able dict."""
+def summarize(bag: Bag, system: Any = None, namespaces: Sequence[str] | None = None) -> dict[str, Any]:
+    """Everything ``bag_info`` prints, as a JSON-able dict (``system``: a name, a System or None = inferred)."""
     info: dict[str, Any] = {
         "path": str(bag.path),
         "version": bag.version,
@@ -70,7 +71,7 @@ def summarize(bag: Bag, system: str | None = None, namespaces: Sequence[str] | N
     return info
 
 
-def _transitions_summary(bag: Bag, system: str | None, namespaces: Sequence[str] | None) -> dict[str, Any]:
+def _transitions_summary(bag: Bag, system: Any, namespaces: Sequence[str] | None) -> dict[str, Any]:
     import torch
 
     from msg_schemas.telemetry import REJECT_REASONS
@@ -78,8 +79,8 @@ def _transitions_summary(bag: Bag, system: str | None, namespaces: Sequence[str]
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems import get_system
 
-    name = system or infer_system(bag)
-    sysobj = get_system(name)
+    sysobj = system if system is not None and not isinstance(system, str) else get_system(system or infer_system(bag))
+    name = sysobj.name
     tr = extract_transitions([bag.path], sysobj, namespaces)
     spec = ProblemSpec.for_system(sysobj.paper_spec(), sysobj)
     regions: dict[str, float] = {}
@@ -95,6 +96,9 @@ def _transitions_summary(bag: Bag, system: str | None, namespaces: Sequence[str]
                     for s in tr.sources},
         "spec": spec.raw.get("name", ""),
         "regions": regions,
+        # a robot's own topics (resampled): every counter of its pairing rule that is not zero
+        "pairing": {s.namespace: {k: v for k, v in s.counts.items() if v} for s in tr.sources}
+        if callable(getattr(sysobj, "pairing", None)) else {},
     }
 
 
@@ -118,6 +122,8 @@ def print_summary(info: dict[str, Any]) -> None:
     per_ns = "; ".join(f"{ns}: {s['transitions']}" + (f" (dropped {s['dropped']})" if s["dropped"] else "")
                        for ns, s in info["sources"].items())
     print(f"transitions: {info['transitions']} ({per_ns})")
+    for ns, counts in info.get("pairing", {}).items():
+        print(f"pairing {ns}: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
     if info["regions"]:
         print(f"constraint regions of the paper spec '{info['spec']}':")
         for k, frac in info["regions"].items():
@@ -196,6 +202,16 @@ def plot_model_error(bag: Bag, out: Path, namespaces: Sequence[str] | None = Non
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     path = args.bag
+    system: Any = args.system
+    if args.system_file is not None:
+        from saml_ros.core.systems.system_file import SystemFileError
+        from saml_ros.user_code import load_system_file
+
+        try:
+            system = load_system_file(args.system_file)
+        except SystemFileError as exc:
+            print(f"bag_info: {exc}", file=sys.stderr)
+            return 2
     if args.repair:
         try:
             res = repair_bag(path, args.out)
@@ -207,7 +223,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         path = res.path
     try:
         with Bag(path) as bag:
-            info = summarize(bag, args.system, args.namespace)
+            info = summarize(bag, system, args.namespace)
             if args.plot:
                 info["plot"] = str(plot_model_error(bag, args.plot, args.namespace))
     except BagError as exc:

@@ -11,8 +11,8 @@ polled every ``--poll-period`` s, so topics that appear late are picked up; topi
 their subscription (and resume if they come back). Each topic is subscribed with the QoS its publishers
 offer (reliable / transient local when all of them are), and their offered profiles go into metadata.yaml.
 
-The log time of a message is the recorder's clock when it arrived (wall time; simulated time with
-``--use-sim-time`` or ``--ros-args -p use_sim_time:=true``). ``play`` replays with those times.
+The log time of a message is when it arrived at the recorder (the middleware's receive time on the wall
+clock; the recorder's simulated time with ``--use-sim-time`` or ``--ros-args -p use_sim_time:=true``). ``play`` replays with those times.
 
 Durability: the pending MCAP chunk is written and the file flushed every ``--flush-period`` s (default
 0.5), so a crash (SIGKILL, power cut aside) loses at most that much. SIGINT / SIGTERM finish the bag
@@ -182,8 +182,8 @@ class Recorder:
             self.node.get_logger().warning(f"not recording {topic}: {exc}")
             return
 
-        def on_message(data: bytes, _key: tuple[str, str] = key) -> None:
-            self._write(_key, data)
+        def on_message(data: bytes, info: Any, _key: tuple[str, str] = key) -> None:
+            self._write(_key, data, info)
 
         self.subscriptions[key] = self.node.create_subscription(cls, topic, on_message, qos, raw=True)
         self.counters["topics"] += 1
@@ -191,11 +191,15 @@ class Recorder:
               f"{', transient local' if transient else ''})", flush=True)
 
     # -- data
-    def _write(self, key: tuple[str, str], data: bytes) -> None:
+    def _write(self, key: tuple[str, str], data: bytes, info: Any = None) -> None:
         if self.error is not None:
             return
+        # on the system clock, the middleware's receive time (not when this callback ran): unstamped messages
+        # (a robot's cmd_vel) are paired on it, as the learner does live
+        use_rmw = info is not None and not getattr(self._clock, "ros_time_is_active", False)
+        t = int(info["received_timestamp"]) if use_rmw else self._clock.now().nanoseconds
         try:
-            self.writer.write(key[0], key[1], data, self._clock.now().nanoseconds)
+            self.writer.write(key[0], key[1], data, t)
         except Exception as exc:  # disk full, ...: stop cleanly so the data already written stays readable
             self.counters["write_errors"] += 1
             self.error = f"cannot write to {self.writer.path}: {exc}"

@@ -3,8 +3,10 @@
 For every bag and every system namespace in it, the ``state``, ``applied_cmd`` (and, for the paddle ball,
 ``post_impact``) messages are decoded with ``msg_schemas`` and fed, in the order the recorder received
 them, to the learner's own pairing code (:class:`saml_ros.core.pairing.StampPairer`, one per bag and
-namespace): one implementation pairs online and offline. Malformed messages are dropped and counted
-exactly as the learner counts them (``SchemaError.reason``). A transition never spans two bags.
+namespace; for a robot described by a system file, its :class:`saml_ros.core.resampling.ResamplingPairer`, an
+unstamped message taking its log time as receipt time): one implementation pairs online and offline. Malformed
+messages are dropped and counted exactly as the learner counts them (``SchemaError.reason``). A transition
+never spans two bags.
 
     x, u, y = transitions_from_bags([Path("runs/flight1")], get_system("quadrotor"))
 
@@ -23,8 +25,10 @@ import numpy as np
 
 from msg_schemas import SchemaError, SystemSchema, get_schema
 from msg_schemas.names import join_topic, normalize_namespace
+from msg_schemas.path_codec import FieldPathCodec
 from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError
 from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
+from saml_ros.core.resampling import ResamplingPairer
 from saml_ros.core.systems import get_system, system_names
 
 
@@ -78,6 +82,21 @@ def _system_of(system: Any) -> Any:
     return get_system(system) if isinstance(system, str) else system
 
 
+def schema_of(system: Any) -> SystemSchema:
+    """The topic schema of a system: its own (a robot from a system file) or the built-in one of its name."""
+    own = getattr(system, "schema", None)
+    return own() if callable(own) else get_schema(system.name)
+
+
+def make_pairer(system: Any, schema: SystemSchema, source: int, name: str,
+                config: PairingConfig | None = None) -> StampPairer | ResamplingPairer:
+    """The learner's pairer for ``system``: resampling for a robot from a system file, else exact stamps."""
+    own = getattr(system, "pairing", None)
+    if callable(own) and config is None:
+        return ResamplingPairer(own(), source=source, name=name)
+    return StampPairer(config or PairingConfig.for_system(system, schema.target_pairing), source=source, name=name)
+
+
 def pairing_topics(schema: SystemSchema, namespace: str) -> dict[str, str]:
     """``{absolute topic: message type}`` the learner pairs in ``namespace``."""
     names = [schema.state_topic, schema.applied_cmd_topic]
@@ -86,16 +105,18 @@ def pairing_topics(schema: SystemSchema, namespace: str) -> dict[str, str]:
     return {join_topic(namespace, n): schema.topic(n).msg_type for n in names}
 
 
-def find_namespaces(bag: Bag, system: str) -> list[str]:
+def find_namespaces(bag: Bag, system: str | SystemSchema) -> list[str]:
     """Namespaces of ``bag`` holding ``system``'s pairing topics (state, applied_cmd, [post_impact]).
 
     Uses metadata.yaml's ``saml_ros.namespaces`` when the recorder stored them, else every ``<ns>`` with
     ``<ns>/state`` and the other pairing topics in the bag (types not checked here).
     """
-    schema = get_schema(system)
+    schema = get_schema(system) if isinstance(system, str) else system
     stored = bag.custom_data.get(CUSTOM_NAMESPACES, "")
-    if stored and bag.custom_data.get(CUSTOM_SYSTEM) == system:
+    if stored and bag.custom_data.get(CUSTOM_SYSTEM) == schema.system:
         return [normalize_namespace(n) for n in stored.split(",") if n]
+    if schema.state_topic.startswith("/"):  # absolute topics: no namespace
+        return ["/"] if all(t in bag.topics for t in pairing_topics(schema, "/")) else []
     suffix = "/" + schema.state_topic
     out = []
     for topic in bag.topics:
@@ -156,11 +177,12 @@ def extract_transitions(
         paths: bag directories (or the ``.mcap`` files inside them).
         system: a :class:`~saml_ros.core.systems.base.System` or its name.
         namespaces: system namespaces to use (default: every namespace of the system found in each bag).
-        config: pairing rule and limits (default: the learner's default for the system).
+        config: exact-stamp pairing rule and limits (default: the learner's rule for the system: resampling
+            (:mod:`saml_ros.core.resampling`) for a robot from a system file, where an unstamped message's
+            receipt time is its log time, else exact stamps).
     """
     sysobj = _system_of(system)
-    schema = get_schema(sysobj.name)
-    cfg = config or PairingConfig.for_system(sysobj, schema.target_pairing)
+    schema = schema_of(sysobj)
     if not paths:
         raise BagError("no bag given")
     xs: list[np.ndarray] = []
@@ -173,7 +195,7 @@ def extract_transitions(
         with Bag(path) as bag:
             if bag.message_count == 0:
                 raise BagError(f"bag {bag.path}: is empty (0 messages)")
-            nss = [normalize_namespace(n) for n in namespaces] if namespaces else find_namespaces(bag, sysobj.name)
+            nss = [normalize_namespace(n) for n in namespaces] if namespaces else find_namespaces(bag, schema)
             if not nss:
                 nss = [f"/{sysobj.name}"]  # so the error below names the expected topics
             needed: dict[str, str] = {}
@@ -182,9 +204,9 @@ def extract_transitions(
             bag.require_topics(needed, f"{sysobj.name} transitions")
             first = len(sources)
             pairers = {}
-            kinds: dict[str, tuple[StampPairer, str]] = {}
+            kinds: dict[str, tuple[StampPairer | ResamplingPairer, str]] = {}
             for ns in nss:
-                pairer = StampPairer(cfg, source=len(sources), name=f"{bag.path}:{ns}")
+                pairer = make_pairer(sysobj, schema, len(sources), f"{bag.path}:{ns}", config)
                 pairers[ns] = pairer
                 sources.append(SourceStats(bag.path, ns, 0, {}))
                 kinds[join_topic(ns, schema.state_topic)] = (pairer, "state")
@@ -195,7 +217,7 @@ def extract_transitions(
                 pairer, kind = kinds[msg.topic]
                 decoded = bag.decode(msg)  # undecodable CDR: a damaged bag, BagError
                 try:
-                    vec, stamp = _from_msg(schema, kind, decoded, msg.topic)
+                    vec, stamp = _from_msg(schema, kind, decoded, msg.topic, msg.log_time_ns)
                 except SchemaError as exc:  # counted exactly as the learner node counts it
                     pairer.reject(exc.reason)
                     continue
@@ -227,7 +249,10 @@ def extract_transitions(
     )
 
 
-def _from_msg(schema: SystemSchema, kind: str, msg: Any, topic: str) -> tuple[np.ndarray, int]:
+def _from_msg(schema: SystemSchema, kind: str, msg: Any, topic: str, log_time_ns: int) -> tuple[np.ndarray, int]:
+    codec = schema.state if kind == "state" else schema.control if kind == "applied_cmd" else schema.target
+    if isinstance(codec, FieldPathCodec):  # a robot's own messages: unstamped ones were stamped when recorded
+        return codec.from_msg(msg, topic, receipt_ns=log_time_ns)
     if kind == "state":
         return schema.state_from_msg(msg, topic)
     if kind == "applied_cmd":

@@ -40,7 +40,9 @@ TRAIN_PARAM_DOCS: dict[str, str] = {
 }
 
 _HEAD: tuple[Param, ...] = (
-    Param("system", "friction", "system name: friction | quadrotor | paddle_ball"),
+    Param("system", "friction", "system name: friction | quadrotor | paddle_ball (set from system_file when given)"),
+    Param("system_file", "", "a robot described by a system file (YAML, docs/your_robot.md): its own topics, field "
+                             "paths, units, base model and spec; empty = the registered 'system'"),
     Param("namespaces", [], "namespaces whose state/applied_cmd are paired (each separately, one shared buffer); "
                             "empty = this node's namespace", item_type=str),
     Param("spec_file", "", "problem spec YAML (docs/spec.md); empty = the paper's spec"),
@@ -113,6 +115,7 @@ class LearnerConfig:
     pairing_tolerance: float
     training_niceness: int
     train_threads: int
+    system_file: str = ""
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -153,8 +156,10 @@ class LearnerConfig:
             resume=p["resume"], telemetry_rate=p["telemetry_rate"], telemetry_window=p["telemetry_window"],
             diagnostics_rate=p["diagnostics_rate"], dt=p["dt"], pairing_window=p["pairing.window"],
             pairing_tolerance=p["pairing.tolerance"], training_niceness=p["training_niceness"],
-            train_threads=p["train_threads"],
+            train_threads=p["train_threads"], system_file=p["system_file"],
         )
+        if p["system_file"]:
+            check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
         config.train_config()  # validates train.*
         return config
 
@@ -217,16 +222,23 @@ class LearnerConfig:
                 min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
                 checkpoint_keep=self.checkpoint_keep,
             )
-            pairing = PairingConfig.for_system(system, target_pairing, tolerance=self.pairing_tolerance,
-                                               window=self.pairing_window, max_slots=max(10_000, 10 * self.pairing_window))
+            own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
+            pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(
+                system, target_pairing, tolerance=self.pairing_tolerance, window=self.pairing_window,
+                max_slots=max(10_000, 10 * self.pairing_window))
             loop = LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry_rate,
                               checkpoint_period=self.checkpoint_period)
         except TypeError as exc:
             raise ValueError(str(exc)) from None
+        params = system_params(system)
+        function = getattr(system, "user_function", None)
+        if function is not None:  # a robot's base model is user code: it travels pickled by reference
+            params = {**params, "base_function": function}
+        definition = getattr(system, "definition", None)  # a robot's field paths, for the decoder
         return LearnerSetup(
-            system=self.system, system_params=system_params(system), spec=spec.to_dict(), config=config,
+            system=self.system, system_params=params, spec=spec.to_dict(), config=config,
             run_dir=run_dir, resume=self.resume, loop=loop, niceness=self.training_niceness,
             threads=self.train_threads, sources=tuple((ns, pairing) for ns in self.namespaces),
             channels=tuple((index, kind) for index, kind, _ in channels), decoder=decoder,
-            decoder_args=(self.system, [(kind, topic) for _, kind, topic in channels]),
+            decoder_args=(self.system, [(kind, topic) for _, kind, topic in channels], definition),
         )

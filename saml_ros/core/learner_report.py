@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, WARN
+from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
@@ -43,6 +44,9 @@ def learner_diagnostics(
         values[f"rejected/{reason}"] = totals.get(reason, 0)
     for key in ("time_resets", "reanchors", "expired", "overflow"):
         values[key] = totals.get(key, 0)
+    for key in RESAMPLE_COUNTERS:  # a robot's own topics (resampled): intervals, gaps, jitter, unstamped, ...
+        if key in totals and key not in values and not key.startswith("received/"):
+            values[key] = totals[key]
     for ns in namespaces:
         c = by_source.get(ns, {})
         values[f"{ns}/paired"] = c.get("paired", 0)

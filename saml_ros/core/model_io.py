@@ -88,10 +88,14 @@ def model_from_payload(
     where = f"{path}: " if path else ""
     if meta.get("kind") != MODEL_KIND:
         raise IncompatibleCheckpoint(f"{where}not a saml_ros model checkpoint (kind={meta.get('kind')!r})")
+    params = meta.get("system_params", {})
     try:
-        system = get_system(meta["system"], **meta.get("system_params", {}))
+        system = get_system(meta["system"], **params)
     except (KeyError, ValueError, TypeError) as exc:
-        raise IncompatibleCheckpoint(f"{where}cannot rebuild its system: {exc}") from exc
+        # a robot whose base model is user code: only the caller (which imported it) can build it
+        if expect is None or "definition" not in params or expect.name != meta.get("system"):
+            raise IncompatibleCheckpoint(f"{where}cannot rebuild its system: {exc}") from exc
+        system = expect
     if system.schema_hash() != meta.get("schema_hash"):
         raise IncompatibleCheckpoint(
             f"{where}schema hash {meta.get('schema_hash')} does not match this saml_ros's {system.name} "
@@ -103,7 +107,8 @@ def model_from_payload(
                 f"{where}checkpoint is for system {system.name!r} (schema {system.schema_hash()}), "
                 f"expected {expect.name!r} (schema {expect.schema_hash()})"
             )
-        system = expect
+        if "definition" not in params:  # a robot's own stored definition carries its fitted base model: keep it
+            system = expect
     arch = meta["architecture"]
     try:
         model = DynamicsModel(system, arch["hidden"], arch["kind"], n_models=int(arch["n_models"]))

@@ -131,11 +131,16 @@ class DynamicsModel(nn.Module):
         """Fit input mean/std and output scale from data (numpy or torch).
 
         ``(N, .)`` arrays fit every member alike; ``(E, N, .)`` arrays fit each member on its own dataset.
-        The output scale is the std of what the network must produce (y - f_hat, or y); a field the base
+        A system with a ``fit_base(x, u, y)`` method (a system file's ``linear`` base model) fits its base
+        model here first, on the same data, once. The output scale is the std of what the network must
+        produce (y - f_hat, or y); a field the base
         model already predicts exactly (std below ``min_std``) keeps the tiny scale, so the network cannot
         disturb it.
         """
         xt, ut, yt = (torch.as_tensor(np.asarray(a), dtype=torch.float64) for a in (x, u, y))
+        fit_base = getattr(self.system, "fit_base", None)
+        if self.kind == "residual" and callable(fit_base) and xt.dim() == 2:
+            fit_base(xt.numpy(), ut.numpy(), yt.numpy())  # a base model fitted from data (system files' 'linear')
         z = torch.cat([xt, ut], -1)
         resid = yt - self.base(xt, ut) if self.kind == "residual" else yt
         if z.shape[-2] < 2:

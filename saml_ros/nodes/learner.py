@@ -39,7 +39,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 
 import msg_schemas.telemetry as tele
-from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, get_schema
+from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, QosSpec, get_schema
 from msg_schemas.decode import make_decoder
 from msg_schemas.names import join_topic
 from saml_ros.core.checkpoint import CheckpointStore
@@ -61,13 +61,27 @@ class ConfigError(Exception):
     """An unrecoverable configuration problem; the message says which parameter and why."""
 
 
+def load_robot(path: str) -> Any:
+    """The robot of system file ``path``, registered under its name; :class:`ConfigError` naming the problem."""
+    from saml_ros.core.systems.system_file import SystemFileError
+    from saml_ros.user_code import load_system_file
+
+    try:
+        return load_system_file(path)
+    except SystemFileError as exc:
+        raise ConfigError(f"parameter 'system_file': {exc}") from None
+
+
 class LearnerNode(Node):
     """The learner; raises :class:`ConfigError` from the constructor on bad configuration."""
 
     def __init__(self, namespace: str | None, launched: Any = None) -> None:
         super().__init__(NODE_NAME, namespace=namespace)
         try:
-            self.p = p = LearnerConfig.from_params(declare_params(self, learner_params()), self.get_namespace())
+            values = declare_params(self, learner_params())
+            if values.get("system_file"):
+                values["system"] = load_robot(values["system_file"]).name
+            self.p = p = LearnerConfig.from_params(values, self.get_namespace())
             self.system = p.make_system()
             self.spec = p.load_spec(self.system)
         except ValueError as exc:
@@ -79,13 +93,15 @@ class LearnerNode(Node):
         except OSError as exc:
             raise ConfigError(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
         sc = self.schema
-        kinds = [("state", sc.state_topic, sc.state.msg_type), ("applied_cmd", sc.applied_cmd_topic,
-                                                                sc.control.msg_type)]
+        kinds = [("state", sc.state_topic, sc.state), ("applied_cmd", sc.applied_cmd_topic, sc.control)]
         if sc.target_pairing == "same":
-            kinds.append(("target", sc.target_topic, sc.target.msg_type))
+            kinds.append(("target", sc.target_topic, sc.target))
         #: one channel per (namespace, kind): (namespace, kind, topic, message type)
-        self.channels = [(ns, kind, join_topic(ns, name), msg_type)
-                         for ns in p.namespaces for kind, name, msg_type in kinds]
+        self.channels = [(ns, kind, join_topic(ns, name), codec.msg_type)
+                         for ns in p.namespaces for kind, name, codec in kinds]
+        #: channels whose messages have no header (a robot's cmd_vel): stamped with their receive time
+        self.unstamped = [getattr(codec, "stamped", True) is False for _ in p.namespaces for _, _, codec in kinds]
+        self.channel_qos = [sc.topic(name).qos for _ in p.namespaces for _, name, _ in kinds]
         self.received = [0] * len(self.channels)
         self.trainer = self._start_training(launched)
         self._create_interfaces()
@@ -95,7 +111,8 @@ class LearnerNode(Node):
         if r is not None:
             self._announce(r["path"], r["version"])
         self.get_logger().info(
-            f"learner for {p.system!r} on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
+            f"learner for {p.system!r}" + (f" (system file {p.system_file})" if p.system_file else "")
+            + f" on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
             f"({self.spec.describe()}), model {p.model_kind} {ready.hidden}, run_dir {run_dir}, "
             + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
                else "fresh start")
@@ -135,25 +152,39 @@ class LearnerNode(Node):
         # message objects here is most of a bare subscriber's per-message cost
         # KEEP_ALL: a burst that outruns the callbacks (e.g. while the training process imports torch) waits in
         # the reader queue instead of overwriting older transitions; reliable writers are slowed, not dropped
-        data_qos = DATA_QOS.to_rclpy()
-        data_qos.history = HistoryPolicy.KEEP_ALL
+        def data_qos(spec: QosSpec) -> Any:  # the topic's QoS (a robot's file may make it best effort)
+            qos = spec.to_rclpy()
+            qos.history = HistoryPolicy.KEEP_ALL
+            return qos
+
         self._subs = [
-            self.create_subscription(RCLPY.cls(msg_type), topic, self._make_callback(ch), data_qos,
-                                     callback_group=self.data_group, raw=True)
+            self.create_subscription(RCLPY.cls(msg_type), topic, self._make_callback(ch),
+                                     data_qos(self.channel_qos[ch]), callback_group=self.data_group, raw=True)
             for ch, (_, _, topic, msg_type) in enumerate(self.channels)
         ]
         self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group)
         self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group)
 
     # ---------------------------------------------------------------------------------------------- ingest
-    def _make_callback(self, channel: int) -> Callable[[bytes], None]:
+    def _make_callback(self, channel: int) -> Callable[..., None]:
         submit, received = self.trainer.submit_raw, self.received
 
         def callback(data: bytes) -> None:
             received[channel] += 1
             submit(channel, data)
 
-        return callback
+        if not self.unstamped[channel]:
+            return callback
+        clock = self.get_clock()
+        sim_time = bool(self.get_parameter("use_sim_time").value)
+
+        def stamp_on_receipt(data: bytes, info: Any) -> None:
+            # the middleware's receive time (the system clock, like the robot's stamps) unless on simulated time
+            t = int(info["received_timestamp"]) if not sim_time and info else clock.now().nanoseconds
+            received[channel] += 1
+            submit(channel, (data, t))
+
+        return stamp_on_receipt
 
     # ---------------------------------------------------------------------------------------------- training
     def _child_log(self, level: int, text: str) -> None:
@@ -221,7 +252,7 @@ def create_node(launched: Any = None) -> LearnerNode:
     command line remaps ``__ns``. ``launched``: a training interpreter from :func:`prelaunch_trainer`.
     Raises :class:`ConfigError`."""
     try:
-        system, remapped = probe_system(NODE_NAME)
+        system, remapped = probe_system(NODE_NAME, file_param="system_file")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
     return LearnerNode(None if remapped else f"/{system}", launched)

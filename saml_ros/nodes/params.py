@@ -40,17 +40,33 @@ def declare_params(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     return out
 
 
-def probe_system(node_name: str, default: str = "friction") -> tuple[str, bool]:
+def probe_system(node_name: str, default: str = "friction", file_param: str | None = None) -> tuple[str, bool]:
     """``(system, remapped)``: the ``system`` parameter a node called ``node_name`` gets (from the command line or
     a parameter file) and whether ``__ns`` is remapped, read by a short-lived probe node: a node's namespace
-    (``/<system>`` unless remapped) must be known when it is created. ``ValueError`` naming ``system`` if
-    rclpy refuses the value."""
+    (``/<system>`` unless remapped) must be known when it is created. With ``file_param`` (e.g. ``system_file``)
+    set to a system file, the system is the ``name`` in that file (the node reports a bad file when it loads it).
+    ``ValueError`` naming ``system`` if rclpy refuses the value."""
     probe = Node(node_name)
     try:
         system = probe.declare_parameter("system", default).value
+        path = probe.declare_parameter(file_param, "").value if file_param else ""
     except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad overrides
         raise ValueError(f"parameter 'system': {exc}") from None
     finally:
         remapped = probe.get_namespace() != "/"
         probe.destroy_node()
+    if path:
+        system = _file_system_name(str(path)) or system
     return system, remapped
+
+
+def _file_system_name(path: str) -> str | None:
+    """The ``name`` of a system file, or None when it cannot be read."""
+    import yaml
+
+    try:
+        with open(path) as f:
+            name = yaml.safe_load(f).get("name")
+    except Exception:  # noqa: BLE001 - reported properly when the node loads the file
+        return None
+    return name if isinstance(name, str) and name.isidentifier() else None

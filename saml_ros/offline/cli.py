@@ -33,7 +33,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train a residual (or full) dynamics model with the primal-dual method (Algorithm 1).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--system", required=True, choices=system_names())
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--system", choices=system_names())
+    which.add_argument("--system-file", type=Path, help="a robot described by a system file (docs/your_robot.md); "
+                       "its data comes from --bag")
     p.add_argument("--spec", type=Path, help="problem spec YAML (default: the paper's spec for the system)")
     p.add_argument("--uniform", action="store_true", help="drop the constraints: the Uniformly Accurate baseline")
     p.add_argument("--kind", choices=("residual", "full"), default="residual")
@@ -75,7 +78,24 @@ def load_spec(system: Any, path: Path | None, uniform: bool) -> ProblemSpec:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
-    system = get_system(args.system)
+    system: Any
+    if args.system_file is not None:
+        from saml_ros.core.systems.system_file import SystemFileError
+        from saml_ros.user_code import load_system_file
+
+        try:
+            system = load_system_file(args.system_file)  # registers the robot
+        except SystemFileError as exc:
+            print(f"train: {exc}", file=sys.stderr)
+            return 2
+        if not args.bag:
+            print(f"train: {system.name} comes from a system file and has no simulator in saml_ros: give its "
+                  "recordings with --bag", file=sys.stderr)
+            return 2
+        if args.hidden is None:
+            args.hidden = list(system.paper_hidden)
+    else:
+        system = get_system(args.system)
     try:
         spec = load_spec(system, args.spec, args.uniform)
         noise = _parse_noise(args.noise)

@@ -23,6 +23,7 @@ import numpy as np
 from msg_schemas.telemetry import REJECT_REASONS
 from saml_ros.core.buffer import ReplayBuffer
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
+from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 
 log = logging.getLogger("saml_ros.online")
 
@@ -67,18 +68,23 @@ class Ingest:
 
     def __init__(self, buffer: ReplayBuffer, recent: RecentWindow) -> None:
         self.buffer, self.recent = buffer, recent
-        self._sources: list[StampPairer] = []
+        self._sources: list[StampPairer | ResamplingPairer] = []
 
-    def add_source(self, name: str, pairing: PairingConfig) -> int:
-        """Register a source with its pairing rule; returns its index."""
-        p = StampPairer(pairing, source=len(self._sources), name=name)
+    def add_source(self, name: str, pairing: PairingConfig | ResampleConfig) -> int:
+        """Register a source with its pairing rule (exact stamps, or resampling onto a fixed period for a robot's
+        own unsynchronised topics); returns its index."""
+        p: StampPairer | ResamplingPairer
+        if isinstance(pairing, ResampleConfig):
+            p = ResamplingPairer(pairing, source=len(self._sources), name=name)
+        else:
+            p = StampPairer(pairing, source=len(self._sources), name=name)
         for reason in REJECT_REASONS:
             p.counts.setdefault(reason, 0)
         self._sources.append(p)
         return p.source
 
     @property
-    def sources(self) -> list[StampPairer]:
+    def sources(self) -> list[StampPairer | ResamplingPairer]:
         return list(self._sources)
 
     def ingest(self, source: int, kind: str, stamp_ns: int, vector: Any) -> AddResult:

@@ -34,6 +34,7 @@ from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.online.resume import ResumeInfo, resume_newest
 from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, model_metrics
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition
+from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
@@ -141,12 +142,12 @@ class OnlineLearner:
         self.compute_model_metrics()
 
     # ------------------------------------------------------------------------------------------ ingest
-    def add_source(self, name: str, pairing: PairingConfig) -> int:
+    def add_source(self, name: str, pairing: PairingConfig | ResampleConfig) -> int:
         """Register a source (robot / namespace) with its pairing rule; returns its index."""
         return self.ingest_path.add_source(name, pairing)
 
     @property
-    def sources(self) -> list[StampPairer]:
+    def sources(self) -> list[StampPairer | ResamplingPairer]:
         return self.ingest_path.sources
 
     def ingest(self, source: int, kind: str, stamp_ns: int, vector: Any) -> AddResult:

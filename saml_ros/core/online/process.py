@@ -40,6 +40,7 @@ from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
 from saml_ros.core.online.loop import LoopConfig
 from saml_ros.core.online.resume import ResumeError
 from saml_ros.core.pairing import PairingConfig, Transition, total_counts
+from saml_ros.core.resampling import ResampleConfig
 from saml_ros.core.spec import ProblemSpec
 
 log = logging.getLogger("saml_ros.online")
@@ -85,7 +86,7 @@ class LearnerSetup:
     niceness: int = 10
     threads: int = 1
     flush_denormal: bool = True
-    sources: tuple[tuple[str, PairingConfig], ...] = ()
+    sources: tuple[tuple[str, PairingConfig | ResampleConfig], ...] = ()
     channels: tuple[tuple[int, str], ...] = ()
     decoder: DecoderFactory | None = None
     decoder_args: Any = None

@@ -6,11 +6,14 @@ e.g. ``get_system("quadrotor", alpha=0.3)``; ``get_entry(name)`` is the system's
 defaults, experiment). The dynamics live in :mod:`.friction`, :mod:`.quadrotor` and :mod:`.paddle_ball`
 (import the classes from there); the contract they implement is :mod:`.base`. See ``docs/systems.md``.
 
+Robots described by a YAML system file (:mod:`.system_file`) are registered by :mod:`.robot_entry`.
+
 This face imports no torch (the registry imports a system's module only when it is asked for it).
 """
 
 from __future__ import annotations
 
+from saml_ros.core.systems import robot_entry  # noqa: F401 - installs the loader of robots' stored definitions
 from saml_ros.core.systems.entry import SystemEntry
 from saml_ros.core.systems.registry import (
     SYSTEM_NAMES,
@@ -21,6 +24,7 @@ from saml_ros.core.systems.registry import (
     register_system,
     system_class,
     system_names,
+    unregister_system,
 )
 
 __all__ = [
@@ -33,4 +37,5 @@ __all__ = [
     "register_system",
     "system_class",
     "system_names",
+    "unregister_system",
 ]

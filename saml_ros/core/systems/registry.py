@@ -7,13 +7,16 @@ simulator core, bringup defaults, paper training budget and experiment are field
 the registry never asks "which system is this?": it looks the entry up by name (:func:`get_entry`) and uses
 what the entry holds.
 
-The table is open: :func:`register_system` adds an entry at run time; the built-in three
+The table is open: :func:`register_system` adds an entry at run time (a robot from a system file:
+:mod:`saml_ros.core.systems.robot_entry`; :func:`register_loader` rebuilds one from a stored definition in a
+process that never read its file); the built-in three
 (:mod:`saml_ros.core.systems.builtin`) are registered when this module is first imported. Importing the
 registry imports neither torch, MuJoCo nor the MPC.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from saml_ros.core.systems import builtin
@@ -44,6 +47,14 @@ def register_system(entry: SystemEntry, *, replace: bool = False) -> SystemEntry
     return entry
 
 
+def unregister_system(name: str) -> SystemEntry | None:
+    """Remove the entry registered as ``name`` (a robot loaded from a system file, a test's system) and return
+    it; ``None`` if there is none. The built-in systems cannot be removed (``ValueError``)."""
+    if name in SYSTEM_NAMES:
+        raise ValueError(f"{name!r} is a built-in system; it cannot be unregistered")
+    return _ENTRIES.pop(name, None)
+
+
 def system_names() -> tuple[str, ...]:
     """Names of every registered system, in registration order (the built-in three first)."""
     return tuple(_ENTRIES)
@@ -72,13 +83,31 @@ def default_params(name: str) -> dict[str, Any]:
     return get_entry(name).default_params()
 
 
+#: ``loader(name, overrides) -> entry | None``: builds and registers a system this process has not registered from
+#: what it is asked with (a robot's stored definition: :mod:`saml_ros.core.systems.robot_entry`)
+Loader = Callable[[str, Mapping[str, Any]], "SystemEntry | None"]
+_LOADERS: list[Loader] = []
+
+
+def register_loader(loader: Loader) -> None:
+    """Let :func:`get_system` ask ``loader`` for names that are not registered (see :data:`Loader`)."""
+    if loader not in _LOADERS:
+        _LOADERS.append(loader)
+
+
 def get_system(name: str, **overrides: Any) -> System:
-    """Build system ``name`` with parameters ``overrides``.
+    """Build system ``name`` with parameters ``overrides``; a name not registered yet is offered to the
+    loaders (:func:`register_loader`), e.g. a robot rebuilt from the definition a checkpoint stored.
 
     Raises ``ValueError`` for an unknown name, an unknown parameter (listing the valid ones) or an invalid
     parameter value.
     """
-    return get_entry(name).make_system(**overrides)
+    entry = find_entry(name)
+    for loader in _LOADERS if entry is None else ():
+        entry = loader(name, overrides)
+        if entry is not None:
+            break
+    return (entry or get_entry(name)).make_system(**overrides)
 
 
 for _entry in builtin.ENTRIES:

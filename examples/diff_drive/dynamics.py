@@ -1,0 +1,68 @@
+"""The example robot's physics (numpy, no ROS): a differential-drive base whose wheels slip on a wet patch.
+
+State ``[x (m), y (m), yaw (rad), v (m/s), w (rad/s)]``: pose in the odom frame, measured forward speed and yaw
+rate. Command ``[v_cmd (m/s), w_cmd (rad/s)]``. The wheel controller makes the wheel speeds follow the command
+with a first-order lag ``TAU``; on the floor the base moves at ``traction(x, y)`` times the wheel speeds. The wet
+patch in front of the dock (at x = 1.5, y = 0) cuts the traction to about half: exactly what the unicycle base
+model of ``system.yaml`` (no slip) does not know, and where the learned model has to be accurate.
+
+saml_ros never sees this file: it learns from the topics the robot node (``robot.py``) publishes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+TAU = 0.12  # s, wheel speed lag
+WET_CENTER = (1.15, 0.0)  # m
+WET_RADIUS = 0.35  # m (std-dev of the Gaussian patch)
+WET_LOSS_V = 0.55  # fraction of forward traction lost at the centre of the patch
+WET_LOSS_W = 0.45  # fraction of yaw traction lost at the centre
+DRY_TRACTION = 0.97
+V_MAX, W_MAX = 0.5, 1.5  # command limits (m/s, rad/s)
+ARENA = 2.5  # m, half-width: the robot stops at a wall
+
+
+def wetness(x: float, y: float) -> float:
+    """0 on dry floor, 1 at the centre of the wet patch."""
+    d2 = (x - WET_CENTER[0]) ** 2 + (y - WET_CENTER[1]) ** 2
+    return math.exp(-d2 / (2.0 * WET_RADIUS**2))
+
+
+def traction(x: float, y: float) -> tuple[float, float]:
+    """(forward, yaw) traction factors at (x, y)."""
+    wet = wetness(x, y)
+    return DRY_TRACTION * (1.0 - WET_LOSS_V * wet), DRY_TRACTION * (1.0 - WET_LOSS_W * wet)
+
+
+class DiffDrive:
+    """The simulated base: :meth:`step` advances ``dt`` seconds under a held command."""
+
+    def __init__(self, x: float = 0.0, y: float = 0.0, yaw: float = 0.0, substeps: int = 10) -> None:
+        self.pose = np.array([x, y, yaw], dtype=np.float64)
+        self.wheel = np.zeros(2)  # wheel-level forward speed and yaw rate (m/s, rad/s)
+        self.substeps = substeps
+
+    def state(self) -> np.ndarray:
+        """``[x, y, yaw, v, w]`` as measured (odometry from a ground-truth tracker)."""
+        kv, kw = traction(self.pose[0], self.pose[1])
+        return np.array([*self.pose, kv * self.wheel[0], kw * self.wheel[1]])
+
+    def step(self, cmd: np.ndarray, dt: float) -> None:
+        u = np.clip(np.asarray(cmd, dtype=np.float64), [-V_MAX, -W_MAX], [V_MAX, W_MAX])
+        h = dt / self.substeps
+        a = 1.0 - math.exp(-h / TAU)
+        for _ in range(self.substeps):
+            self.wheel += a * (u - self.wheel)
+            kv, kw = traction(self.pose[0], self.pose[1])
+            v, w = kv * self.wheel[0], kw * self.wheel[1]
+            yaw = self.pose[2]
+            nx = self.pose[0] + v * math.cos(yaw + 0.5 * w * h) * h
+            ny = self.pose[1] + v * math.sin(yaw + 0.5 * w * h) * h
+            if abs(nx) > ARENA or abs(ny) > ARENA:  # a wall: the base stops there
+                self.wheel[0] = 0.0
+            else:
+                self.pose[0], self.pose[1] = nx, ny
+            self.pose[2] = (yaw + w * h + math.pi) % (2.0 * math.pi) - math.pi

@@ -1,0 +1,167 @@
+"""Bring your own robot, end to end with real processes (docs/your_robot.md).
+
+The example differential-drive robot (examples/diff_drive/robot.py: its own rclpy node, nav_msgs/Odometry at
+50 Hz, unstamped geometry_msgs/Twist on cmd_vel) is driven by examples/diff_drive/wander.py at 10 Hz, recorded by
+``record``, and learned online by the unmodified ``learner`` from ``system_file:=examples/diff_drive/system.yaml``
+(no saml_ros code knows this robot). The model error in the dock approach must fall, a checkpoint is written and
+exported (ONNX, TorchScript, numpy) with predictions equal to the model's, and the recorded bag pairs into the
+same kind of transitions, on which the learned model beats the base model in the dock approach.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import ros_helpers
+from ros_helpers import Process, RosDomain, TestNode, wait_for
+
+from msg_schemas import telemetry as tele
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "examples" / "diff_drive"
+SYSTEM_FILE = EXAMPLE / "system.yaml"
+NS = "/dd"
+
+ros_env = ros_helpers.ros_env
+ros_node = ros_helpers.ros_node
+
+
+@pytest.fixture(autouse=True)
+def _forget_registered_robots() -> Iterator[None]:
+    """Robots these tests load are registered by name; other test modules expect only the built-in systems."""
+    from saml_ros.core.systems import system_names, unregister_system
+
+    before = set(system_names())
+    yield
+    for name in set(system_names()) - before:
+        unregister_system(name)
+
+
+def launch_script(dom: RosDomain, script: Path, *ros_args: str) -> Process:
+    """A plain rclpy script (the user's robot, not a saml_ros executable) in the test's domain."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    log = dom.log_dir / f"{script.stem}-{time.monotonic_ns()}.log"
+    with open(log, "wb") as out:
+        popen = subprocess.Popen([sys.executable, str(script), "--ros-args", "-r", f"__ns:={NS}", *ros_args],
+                                 stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
+    proc = Process(script.stem, popen, log)
+    dom.processes.append(proc)
+    return proc
+
+
+def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_node: TestNode,
+                                                        tmp_path: Path) -> None:
+    from sensor_msgs.msg import JointState
+
+    run, bag = tmp_path / "run", tmp_path / "bag"
+    learner = ros_env.launch(
+        "learner", "-p", f"system_file:={SYSTEM_FILE}", "-p", f"run_dir:={run}", "-p", "min_transitions:=200",
+        "-p", "checkpoint_period:=2.0", "-p", "telemetry_rate:=4.0", "-p", "train.primal_lr:=0.003",
+        "-p", "train.batch_size:=256", namespace=NS)
+    rec = ros_env.launch("record", args=["-o", str(bag), "--topics", f"{NS}/odom", f"{NS}/cmd_vel"])
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    diagnostics = ros_node.subscribe(DiagnosticArray, "/diagnostics")
+    telemetry: list[dict[str, float]] = []
+    ros_node.subscribe(JointState, f"{NS}/learner/model_error",
+                       callback=lambda m: telemetry.append(tele.model_error_from_msg(m)[0]))
+    # the robot starts once the learner listens, so the learner sees its first drive into the dock approach
+    wait_for(lambda: telemetry or not learner.alive(), timeout=60, what="the learner to start")
+    assert learner.alive(), learner.output()
+    wait_for(lambda: "record: recording" in rec.output() or "record: writing" in rec.output() or not rec.alive(),
+             what="the recorder")
+    robot = launch_script(ros_env, EXAMPLE / "robot.py", "-p", "x0:=0.4")  # starts 0.3 m before the dock approach
+    wander = launch_script(ros_env, EXAMPLE / "wander.py", "-p", "seed:=3")
+
+    key = "error_in/dock_approach"
+
+    def first_in_region() -> float | None:
+        """The live in-region error of the model before (or within the first 50 updates of) training: f_hat's."""
+        vals = [t[key] for t in telemetry if t["updates"] <= 50 and t["n_in/dock_approach"] >= 20]
+        return vals[-1] if vals else None
+
+    try:
+        wait_for(lambda: first_in_region() is not None or not learner.alive(), timeout=45,
+                 what="the first in-region model error: " + str([(t["updates"], t["n_in/dock_approach"])
+                                                                 for t in telemetry[-5:]]))
+        assert learner.alive(), learner.output()
+        base_err = first_in_region()
+        assert base_err is not None
+
+        def learned() -> bool:
+            t = telemetry[-1]
+            return t["training"] == 1 and t["updates"] >= 1000 and t[key] < 0.5 * base_err
+
+        wait_for(lambda: learned() or not learner.alive(), timeout=45, what="the in-region error to halve")
+        assert learner.alive(), learner.output()
+        last = telemetry[-1]
+    finally:
+        for p in (wander, robot):
+            p.stop()
+    learner.signal(signal.SIGINT)  # both stop at once: the learner writes its final checkpoint, the recorder its bag
+    rec.signal(signal.SIGINT)
+    assert learner.stop(timeout=30) == 0, learner.output()
+    assert rec.stop(timeout=20) == 0, rec.output()
+    out = learner.output()
+    assert "configuration error" not in out and "system file" in out, out
+    # /diagnostics carries the resampling counters of the robot's own topics
+    entries = [e for m in diagnostics for e in tele.diagnostics_from_msg(m)[0] if e.name.endswith("learner")]
+    assert entries, "no learner diagnostics"
+    values = entries[-1].values
+    assert int(values["unstamped/applied_cmd"]) > 0 and int(values["paired"]) > 200, values
+    assert int(values["intervals"]) == sum(int(values[k]) for k in ("paired", "gap", "no_cmd", "stale_cmd",
+                                                                  "ambiguous_cmd")), values
+    assert last[key] < 0.5 * base_err and last["rejected/duplicate"] == 0, last
+
+    # the checkpoint, through the Python API; its export equals it
+    from saml_ros.api import load_model
+    from saml_ros.bags.transitions import extract_transitions
+
+    model = load_model(run)
+    assert model.system.name == "diff_drive" and model.loaded.meta["updates"] >= 1000
+    res = model.export(tmp_path / "export")
+    assert set(res.files) == {"onnx", "torchscript", "numpy"} and res.base_exported
+    assert max(res.max_abs_error.values()) < 1e-5, res.max_abs_error
+
+    # the recording: the same pairing rule yields the robot's transitions; the learned model beats f_hat there
+    data = extract_transitions([bag], model.system)
+    c = data.counts
+    assert len(data) > 500 and c["unstamped/applied_cmd"] == c["received/applied_cmd"] > 100, c
+    inside = (data.x[:, 0] >= 0.7) & (data.x[:, 0] <= 1.9) & (np.abs(data.x[:, 1]) <= 0.5)
+    assert inside.sum() >= 20
+    xi, ui, yi = data.x[inside], data.u[inside], data.y[inside]
+    err_model = float(np.linalg.norm(model.predict(xi, ui) - yi, axis=1).mean())
+    err_base = float(np.linalg.norm(model.base(xi, ui) - yi, axis=1).mean())
+    assert err_model < 0.75 * err_base, (err_model, err_base)
+    import onnxruntime
+
+    sess = onnxruntime.InferenceSession(str(res.files["onnx"]))
+    dt = np.float32 if model.loaded.model.in_mean.dtype.is_floating_point and \
+        str(model.loaded.model.in_mean.dtype) == "torch.float32" else np.float64
+    (y_onnx,) = sess.run(["y"], {"x": xi.astype(dt), "u": ui.astype(dt)})
+    np.testing.assert_allclose(y_onnx, model.predict(xi, ui), atol=1e-5)
+
+    # (``train --system-file ... --bag`` on such a bag: test_your_robot_offline.py)
+
+
+@pytest.mark.parametrize("problem, message", [
+    ("path", "state.fields[0].path"),
+    ("missing", "no such file"),
+])
+def test_learner_refuses_a_bad_system_file(ros_env: RosDomain, tmp_path: Path, problem: str, message: str) -> None:
+    path = tmp_path / "robot.yaml"
+    if problem == "path":
+        path.write_text(SYSTEM_FILE.read_text().replace("pose.pose.position.x", "pose.pose.positon.x"))
+    learner = ros_env.launch("learner", "-p", f"system_file:={path}", "-p", f"run_dir:={tmp_path / 'run'}",
+                             namespace=NS)
+    assert learner.wait(60) == 2, learner.output()
+    out = learner.output()
+    assert "configuration error" in out and message in out, out
