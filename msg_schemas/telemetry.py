@@ -140,6 +140,30 @@ MPC_STATUS_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("deadline_misses", "count", "solves that finished after their deadline, so far"),
 )
 MPC_STATUS_NAMES: tuple[str, ...] = tuple(n for n, _, _ in MPC_STATUS_FIELDS)
+#: the names the MPC node appends after the standard ones (``guard_*`` / ``monitor_*`` / ``model_source`` only
+#: when a ``guard.*`` remedy is on)
+MPC_STATUS_EXTRA_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("success", "1", "1 when the last plan satisfied every constraint, else 0"),
+    ("step_ms", "ms", "wall-clock time of the whole control step (swap + solve + publish)"),
+    ("swap_ms", "ms", "time spent swapping in a new model in this step (0 = no swap)"),
+    ("swaps", "count", "models swapped in so far"),
+    ("checkpoints_refused", "count", "checkpoints refused (incompatible, corrupt, missing, error) so far"),
+    ("checkpoints_gated", "count", "valid checkpoints held back by the gate.* hook so far"),
+    ("solves", "count", "control steps so far"),
+    ("guard_fallbacks", "count", "steps planned with f_hat because the ensemble disagreed by more than "
+                                 "guard.max_disagreement on the learned plan, so far"),
+    ("guard_base_solves", "count", "steps planned with f_hat (fallbacks, after a roll back, before any model)"),
+    ("guard_rollbacks", "count", "roll backs by the live monitor (to the previous model, else f_hat), so far"),
+    ("guard_disagreement", "state units", "ensemble disagreement sigma on the last learned plan checked (NaN: "
+                                          "none yet or a single model)"),
+    ("monitor_error_model", "squared state units", "live one-step squared error of the model in use, mean over "
+                                                   "the monitor's window (NaN: empty, e.g. on f_hat)"),
+    ("monitor_error_base", "squared state units", "the same for the base model f_hat on the same transitions"),
+    ("live_error_model", "squared state units", "one-step squared error of the model in use on the last live "
+                                                "transition (previous state, command sent, this state)"),
+    ("live_error_base", "squared state units", "the same for f_hat"),
+    ("model_source", "1", "1 = this step was planned with the learned model, 0 = with f_hat"),
+)
 
 
 def mpc_status_to_msg(values: Mapping[str, float], stamp_ns: int, *, factory: MessageFactory = RCLPY) -> Any:
@@ -273,7 +297,9 @@ def clock_from_msg(msg: Any, topic: str = CLOCK_TOPIC) -> int:
 
 # ------------------------------------------------------------------------------------------ topic specs
 def _status_docs() -> tuple[FieldDoc, ...]:
-    return tuple(FieldDoc(n, u, f"position[{i}]", f"/{n}/position", d) for i, (n, u, d) in enumerate(MPC_STATUS_FIELDS))
+    std = [FieldDoc(n, u, f"position[{i}]", f"/{n}/position", d) for i, (n, u, d) in enumerate(MPC_STATUS_FIELDS)]
+    extra = [FieldDoc(n, u, "position[i] (by name)", f"/{n}/position", d) for n, u, d in MPC_STATUS_EXTRA_FIELDS]
+    return tuple(std + extra)
 
 
 TELEMETRY_TOPICS: tuple[TopicSpec, ...] = (
@@ -294,9 +320,13 @@ TELEMETRY_TOPICS: tuple[TopicSpec, ...] = (
 GLOBAL_TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, TELEMETRY_QOS, "every node", "rqt_runtime_monitor, Foxglove",
               "One DiagnosticStatus per node (name = node's full name) with its counters, e.g. "
-              "rejected/<reason>, as key/value strings.",
+              "rejected/<reason>, as key/value strings. The MPC's guard adds guard_fallbacks, guard_base_solves, "
+              "guard_rollbacks, guard_bounded_solves, guard_rolled_back_versions (comma-separated), "
+              "monitor_error_model and monitor_error_base (level WARN after a roll back).",
               fields=(FieldDoc("rejected/<reason>", "count", "status[i].values[j].value (string)",
-                               "/<node name>/rejected/<reason>"),)),
+                               "/<node name>/rejected/<reason>"),
+                      FieldDoc("guard_rollbacks", "count", "status[i].values[j].value (string)",
+                               "/<node name>/guard_rollbacks"))),
     TopicSpec(CLOCK_TOPIC, CLOCK, CLOCK_QOS, "the simulator running in lockstep", "every node (use_sim_time)",
               "Simulated time.", fields=(FieldDoc("clock", "s", "clock.sec + 1e-9 clock.nanosec", "/clock/sec"),)),
 )  # fmt: skip

@@ -124,11 +124,15 @@ class MPCNode(Node):
         values = self.diagnostic_values()
         refused = values["checkpoints_refused"]
         version = self.service.model_version
-        level = WARN if refused or self.service.counters["solver_errors"] else OK
+        rollbacks = self.service.counters["rollbacks"]
+        level = WARN if refused or rollbacks or self.service.counters["solver_errors"] else OK
         message = (f"model version {version}; {values['solves']} solves" if "solves" in values
                    else f"model version {version}; waiting for states")
         if refused:
             message += f"; {refused} checkpoint(s) refused, last: {values['last_refusal']}"
+        if rollbacks:
+            message += (f"; {rollbacks} roll back(s) by the live monitor (versions "
+                        f"{values.get('guard_rolled_back_versions', '')} not used again)")
         entry = DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.diag_pub.publish(diagnostics_to_msg([entry], self.get_clock().now().nanoseconds))
 

@@ -12,7 +12,11 @@ The node decodes messages and publishes; everything in between is here and unit-
   bounds, sends the command (the node's ``send`` publishes ``cmd``) and returns the ``mpc/status`` values; a
   step (swap + solve + send) longer than the deadline is counted as a miss;
 * counters (``solves``, ``solves_failed``, ``solver_errors``, ``deadline_misses``, ``swaps``,
-  ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`.
+  ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`;
+* with any ``guard.*`` remedy on, the controller is a :class:`~saml_ros.core.mpc.guard.GuardedController`: each
+  control step first shows it the live transition that just happened (previous state, the command sent, this
+  state; not across a stamp jump) and a roll back changes the model in use (``rollbacks``, logged); its counters
+  go on ``mpc/status`` and ``/diagnostics`` (``guard_*``, ``monitor_error_*``).
 """
 
 from __future__ import annotations
@@ -28,7 +32,9 @@ import numpy as np
 
 from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, checkpoint_gate
 from saml_ros.core.mpc.config import MPCConfig
+from saml_ros.core.mpc.contract import Controller
 from saml_ros.core.mpc.factory import make_controller
+from saml_ros.core.mpc.guard import GuardedController, make_guarded_controller
 from saml_ros.core.systems.registry import get_entry
 
 #: one answer: the stamp of the state it answered (ns) and the ``mpc/status`` values
@@ -44,8 +50,15 @@ class MPCService:
         self.send = send
         self.logger = logger
         self.system = get_entry(config.system).make_system()
-        self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
-                                          **config.controller_options())
+        self.guarded: GuardedController | None = None
+        if config.guard.enabled:
+            self.guarded = make_guarded_controller(self.system, config.solver, config.guard, member=config.member,
+                                                   **config.controller_options())
+            self.controller: Controller = self.guarded
+        else:
+            self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
+                                              **config.controller_options())
+        self._last_sent: tuple[np.ndarray, np.ndarray] | None = None  # (state, command) of the last step
         self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
         self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
         self.u_safe = np.clip(self.system.safe_control(), self.u_low, self.u_high)
@@ -57,6 +70,7 @@ class MPCService:
         self.pending: tuple[np.ndarray, int, float] | None = None  # realtime: newest unanswered state
         self.step_ms_max_swap = 0.0
         self._last_warn: dict[str, float] = {}
+        self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
         run_dir = Path(config.run_dir) if config.run_dir else None
         self.watcher = ModelWatcher(self.system, run_dir, poll_period=config.poll_period, logger=logger,
                                     accept=checkpoint_gate(config.gate_max_constraint, config.gate_min_updates))
@@ -111,13 +125,17 @@ class MPCService:
     def control_step(self, x: np.ndarray, stamp: int, t_start: float) -> Answer:
         """Swap in a ready model, solve for state ``x`` (stamp ns), send the clipped command, return the status
         values (``t_start``: ``time.perf_counter()`` when the step's clock started)."""
+        jumped = self.last_stamp is None
         if self.last_stamp is not None:
             dt_ns = stamp - self.last_stamp
             # a reset, a new episode or a restarted simulator: the warm start is meaningless
             if dt_ns < 0 or (self.system.dt > 0 and dt_ns > 1.5e9 * self.system.dt):
                 self.controller.reset()
                 self.counters["warm_start_resets"] += 1
+                jumped = True
         self.last_stamp = stamp
+        if self.guarded is not None and self._last_sent is not None and not jumped:
+            self._observe(*self._last_sent, x)
         swap_ms = 0.0
         ready = self.watcher.take()
         if ready is not None:
@@ -125,7 +143,9 @@ class MPCService:
             self.swap(ready)
             swap_ms = 1e3 * (time.perf_counter() - t0)
         u, values = self._solve(x, stamp)
-        self.send(np.clip(u, self.u_low, self.u_high), stamp)
+        u_sent = np.clip(u, self.u_low, self.u_high)
+        self.send(u_sent, stamp)
+        self._last_sent = (np.array(x, dtype=np.float64), u_sent)
         step_ms = 1e3 * (time.perf_counter() - t_start)
         self.counters["solves"] += 1
         if step_ms > 1e3 * self.deadline_s:
@@ -143,7 +163,30 @@ class MPCService:
             "checkpoints_gated": float(stats["gated"]),
             "solves": float(self.counters["solves"]),
         }
+        if self.guarded is not None:
+            values |= self.guarded.values()
+            values["model_source"] = 1.0 if self.guarded.last_source == "learned" else 0.0
         return stamp, values
+
+    def _observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> None:
+        """Show the guard the live transition ``(x, u) -> x_next``; on a roll back switch the model in use."""
+        assert self.guarded is not None
+        old = self.model_version
+        try:
+            rolled = self.guarded.observe(x, u, x_next)
+        except Exception as exc:  # noqa: BLE001 - the monitor must never stop the control loop
+            self.counters["monitor_errors"] += 1
+            self.warn_throttled("monitor", f"live monitor raised {type(exc).__name__}: {exc}")
+            return
+        if rolled:
+            self.counters["rollbacks"] += 1
+            self.model_version = self.guarded.tag
+            self.model_path = self._paths.get(self.model_version, "")
+            m = self.guarded.monitor
+            self.logger.warning(
+                f"rolled back from model version {old} to {self.model_version or 'the base model f_hat'}: its live "
+                f"one-step error {m.last_model:.4g} (window mean above f_hat's {m.mean_base:.4g} + margin); "
+                f"version {old} is not used again")
 
     def _solve(self, x: np.ndarray, stamp: int) -> tuple[np.ndarray, dict[str, float]]:
         try:
@@ -164,7 +207,11 @@ class MPCService:
 
     def swap(self, ready: ReadyModel) -> None:
         """Plan with the model ``ready`` from now on."""
-        self.controller.set_model(ready.loaded.model)
+        if self.guarded is not None:
+            self.guarded.set_model(ready.loaded.model, ready.version, ready.loaded.meta)
+            self._paths[ready.version] = str(ready.path)
+        else:
+            self.controller.set_model(ready.loaded.model)
         old, self.model_version, self.model_path = self.model_version, ready.version, str(ready.path)
         self.counters["swaps"] += 1
         self.logger.info(f"model version {old} -> {ready.version} ({ready.path.name})")
@@ -192,4 +239,13 @@ class MPCService:
         values["checkpoints_gated"] = stats["gated"]
         values["last_gated"] = stats["last_gated"]
         values["max_step_ms_during_swap"] = round(self.step_ms_max_swap, 3)
+        if self.guarded is not None:
+            g = self.guarded
+            values["guard_fallbacks"] = g.counters["fallbacks"]
+            values["guard_base_solves"] = g.counters["solves_base"]
+            values["guard_rollbacks"] = g.counters["rollbacks"]
+            values["guard_bounded_solves"] = g.counters["bounded"]
+            values["guard_rolled_back_versions"] = ",".join(str(v) for v in sorted(g.banned))
+            values["monitor_error_model"] = g.monitor.mean_model
+            values["monitor_error_base"] = g.monitor.mean_base
         return values
