@@ -37,6 +37,8 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", sorted(str(p.relative_to(here)) for p in here.glob("config/*.yaml"))),
+        ("share/" + package_name + "/launch", sorted(str(p.relative_to(here)) for p in here.glob("launch/*.launch.*"))),
+        ("share/" + package_name + "/layouts", sorted(str(p.relative_to(here)) for p in here.glob("layouts/*.*"))),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

@@ -10,7 +10,7 @@ import subprocess
 import sys
 import time
 
-BENCHES = ("train", "mpc", "sim", "learner", "closed_loop", "bags")
+BENCHES = ("train", "dual", "mpc", "sim", "learner", "closed_loop", "bags", "health", "soak", "sweep")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -53,7 +53,7 @@ def train_quick(system: System, n: int, epochs: int, seed: int = 0) -> tuple[Dyn
     model = DynamicsModel(system, seed=seed)
     model.fit_normalization(x, u, y)
     spec = ProblemSpec.for_system(system.paper_spec(), system)
-    trainer = PrimalDualTrainer(model, spec, TrainConfig(epochs=epochs, batch_size=128, primal_lr=3e-3, seed=seed))
+    trainer = PrimalDualTrainer(model, spec, TrainConfig.paper(epochs=epochs, batch_size=128, primal_lr=3e-3, seed=seed))
     t0 = time.perf_counter()
     trainer.fit(Transitions(model, spec, x, u, y))
     return model, time.perf_counter() - t0

@@ -195,8 +195,8 @@ def bench_throughput(rounds: int, profile: bool) -> dict[str, float]:
     for name, sysname, hidden, batch, n, plain_steps in THROUGHPUT_CASES:
         p = make_problem(name, sysname, hidden, n)
         plain = PaperLoop(p, batch)
-        fast, data = make_trainer(p, TrainConfig(batch_size=batch, engine="fast"))
-        ours_plain, data_p = make_trainer(p, TrainConfig(batch_size=batch, engine="plain"))
+        fast, data = make_trainer(p, TrainConfig.paper(batch_size=batch, engine="fast"))
+        ours_plain, data_p = make_trainer(p, TrainConfig.paper(batch_size=batch, engine="plain"))
         per_epoch = n // batch
         epochs = max(1, plain_steps // per_epoch)
         plain.run(20)
@@ -256,7 +256,7 @@ def bench_seeds(n_seeds: int, epochs: int) -> float:
     x, u, y = (np.stack([q[i] for q in parts]) for i in range(3))
     times = {}
     for engine in ("fast", "plain"):
-        cfg = TrainConfig(epochs=epochs, batch_size=128, engine=engine)
+        cfg = TrainConfig.paper(epochs=epochs, batch_size=128, engine=engine)
         times[f"ensemble of {n_seeds}, {engine} engine"] = _train_group(system, spec, x, u, y, cfg, seeds, (4, 2))[0]
         times[f"one by one, {engine} engine"] = sum(
             _train_group(system, spec, x[i : i + 1], u[i : i + 1], y[i : i + 1], cfg, [s], (4, 2))[0]
@@ -313,7 +313,7 @@ def bench_grid(epochs: int, probe_steps: int) -> float:
             x, u, y = grid_data(system, n)
             bsz = min(GRID_BATCH, n)
             steps_run = GRID_EPOCHS * max(1, n // bsz)
-            cfg = TrainConfig(epochs=epochs, batch_size=GRID_BATCH, engine="fast")
+            cfg = TrainConfig.paper(epochs=epochs, batch_size=GRID_BATCH, engine="fast")
             secs, tr, data = _train_group(system, spec, x, u, y, cfg, list(range(GRID_DATASETS)), hidden)
             grouped = secs * GRID_EPOCHS / epochs
             if full:
@@ -321,7 +321,7 @@ def bench_grid(epochs: int, probe_steps: int) -> float:
             solo = {}
             for engine in ("plain", "fast"):
                 probe_epochs = max(1, -(-probe_steps // max(1, n // bsz)))
-                c = TrainConfig(epochs=probe_epochs, batch_size=GRID_BATCH, engine=engine)
+                c = TrainConfig.paper(epochs=probe_epochs, batch_size=GRID_BATCH, engine=engine)
                 s, t1, _ = _train_group(system, spec, x[:1], u[:1], y[:1], c, [0], hidden)
                 solo[engine] = s / t1.steps * steps_run * GRID_DATASETS
             tot["grouped fast"] += grouped

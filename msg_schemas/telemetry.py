@@ -48,11 +48,26 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 CLOCK_TOPIC = "/clock"
 
 #: rejection reasons counted by nodes as ``rejected/<reason>``: the :class:`~msg_schemas.base.SchemaError`
-#: reasons, then the learner's pairing reasons
+#: reasons, then the learner's pairing reasons, then ``bounds`` (a value outside the system's plausible range,
+#: ``saml_ros.core.plausibility``)
 REJECT_REASONS: tuple[str, ...] = (
     "shape", "names", "nan", "quaternion", "stamp", "format",
-    "duplicate", "out_of_order", "late", "outlier", "unpaired",
+    "duplicate", "out_of_order", "late", "outlier", "unpaired", "bounds",
 )  # fmt: skip
+#: why the MPC refused a checkpoint (``checkpoints_refused/<reason>`` on /diagnostics): unreadable or foreign files
+#: (``saml_ros.core.model_watch``), then a model that fails the acceptance checks (``saml_ros.core.model_acceptance``:
+#: non-finite weights, predictions outside the plausible range, residuals beyond what the training data showed)
+CHECKPOINT_REFUSAL_REASONS: tuple[str, ...] = (
+    "incompatible", "corrupt", "missing", "error", "non_finite", "implausible", "residual",
+)  # fmt: skip
+#: why the MPC answered a state with the system's safe command (``safe_commands/<reason>``): the solver raised,
+#: returned a non-finite result, planned through states outside the plausible range (``implausible``: the model
+#: predicts nonsense there), the state itself was outside the plausible range (``bounds``), or (only with
+#: ``safe_on_infeasible``) the plan violated a constraint
+SAFE_COMMAND_REASONS: tuple[str, ...] = ("solver_error", "non_finite", "implausible", "bounds", "infeasible")
+#: why a training step was skipped and the last healthy state kept (``train_health/skipped/<reason>``): a non-finite
+#: or exploding minibatch loss, gradient, or updated weights (``saml_ros.core.training.health``)
+TRAINING_SKIP_REASONS: tuple[str, ...] = ("loss", "gradient", "weights")
 
 
 # ----------------------------------------------------------------------------- stamped named vectors
@@ -139,17 +154,21 @@ MPC_STATUS_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("model_version", "count", "checkpoint version of the model in use (0 = base model only)"),
     ("deadline_misses", "count", "solves that finished after their deadline, so far"),
 )
-MPC_STATUS_NAMES: tuple[str, ...] = tuple(n for n, _, _ in MPC_STATUS_FIELDS)
-#: the names the MPC node appends after the standard ones (``guard_*`` / ``monitor_*`` / ``model_source`` only
-#: when a ``guard.*`` remedy is on)
-MPC_STATUS_EXTRA_FIELDS: tuple[tuple[str, str, str], ...] = (
-    ("success", "1", "1 when the last plan satisfied every constraint, else 0"),
-    ("step_ms", "ms", "wall-clock time of the whole control step (swap + solve + publish)"),
-    ("swap_ms", "ms", "time spent swapping in a new model in this step (0 = no swap)"),
-    ("swaps", "count", "models swapped in so far"),
-    ("checkpoints_refused", "count", "checkpoints refused (incompatible, corrupt, missing, error) so far"),
-    ("checkpoints_gated", "count", "valid checkpoints held back by the gate.* hook so far"),
-    ("solves", "count", "control steps so far"),
+#: values the MPC node appends to every ``mpc/status`` message after the standard ones (documented; optional for
+#: other publishers)
+MPC_STATUS_EXTRA: tuple[tuple[str, str, str], ...] = (
+    ("success", "1", "1 when the last solve met every constraint, else 0"),
+    ("safe", "1", "1 when the last answer was the system's safe command (failed or non-finite solve, implausible "
+                  "state), else 0"),
+    ("safe_commands", "count", "answers that were the safe command, so far (reasons on /diagnostics: "
+                               "safe_commands/<reason>)"),
+    ("step_ms", "ms", "the whole control step (swap + solve + publish)"),
+    ("swap_ms", "ms", "the model swap in this step (0 = none)"),
+    ("swaps", "count", "models swapped in, so far"),
+    ("checkpoints_refused", "count", "checkpoints refused, so far (reasons on /diagnostics)"),
+    ("checkpoints_gated", "count", "valid checkpoints held back by gate.*, so far"),
+    ("solves", "count", "control steps, so far"),
+    # only when a guard.* remedy is on
     ("guard_fallbacks", "count", "steps planned with f_hat because the ensemble disagreed by more than "
                                  "guard.max_disagreement on the learned plan, so far"),
     ("guard_base_solves", "count", "steps planned with f_hat (fallbacks, after a roll back, before any model)"),
@@ -164,6 +183,7 @@ MPC_STATUS_EXTRA_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("live_error_base", "squared state units", "the same for f_hat"),
     ("model_source", "1", "1 = this step was planned with the learned model, 0 = with f_hat"),
 )
+MPC_STATUS_NAMES: tuple[str, ...] = tuple(n for n, _, _ in MPC_STATUS_FIELDS)
 
 
 def mpc_status_to_msg(values: Mapping[str, float], stamp_ns: int, *, factory: MessageFactory = RCLPY) -> Any:
@@ -297,9 +317,31 @@ def clock_from_msg(msg: Any, topic: str = CLOCK_TOPIC) -> int:
 
 # ------------------------------------------------------------------------------------------ topic specs
 def _status_docs() -> tuple[FieldDoc, ...]:
-    std = [FieldDoc(n, u, f"position[{i}]", f"/{n}/position", d) for i, (n, u, d) in enumerate(MPC_STATUS_FIELDS)]
-    extra = [FieldDoc(n, u, "position[i] (by name)", f"/{n}/position", d) for n, u, d in MPC_STATUS_EXTRA_FIELDS]
-    return tuple(std + extra)
+    docs = [FieldDoc(n, u, f"position[{i}]", f"/{n}/position", d) for i, (n, u, d) in enumerate(MPC_STATUS_FIELDS)]
+    docs += [FieldDoc(n, u, "position[i]", f"/{n}/position", d) for n, u, d in MPC_STATUS_EXTRA]
+    return tuple(docs)
+
+
+#: the counters and values of ``/diagnostics`` that name a reason, with who reports them
+DIAGNOSTICS_REASON_DOCS: tuple[tuple[str, str, str], ...] = (
+    ("rejected/<reason>", "count", "every node: messages dropped, by reason: " + ", ".join(REJECT_REASONS)
+     + " (bounds: a value outside the system's plausible range; the simulators count commands far outside the "
+       "control box as bounds)"),
+    ("<ns>/rejected/<reason>", "count", "learner: the same, per namespace"),
+    ("checkpoints_refused/<reason>", "count", "mpc: checkpoints refused (the current model kept), by reason: "
+     + ", ".join(CHECKPOINT_REFUSAL_REASONS)),
+    ("safe_commands/<reason>", "count", "mpc: states answered with the system's safe command, by reason: "
+     + ", ".join(SAFE_COMMAND_REASONS)),
+    ("train_health/skipped/<reason>", "count", "learner: training steps skipped (the last healthy state kept), by "
+     "reason: " + ", ".join(TRAINING_SKIP_REASONS) + "; train_health/skipped (all), train_health/restores (weights "
+     "restored), train_health/unhealthy_streak (consecutive skipped steps: WARN after one, ERROR from "
+     "health.error_after on), checkpoints_unhealthy (checkpoints not written: the model was not healthy)"),
+    ("feasibility/<k>", "1", "learner: met, not converged, likely infeasible or pending, for constraint k (text, "
+     "not plottable; docs/training.md); it sets the level: met OK, not converged WARN, likely infeasible ERROR"),
+    ("reachable/<k>", "loss", "learner: the left-hand side g_k + eps_k the model reaches now"),
+    ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback) to the previous model, else "
+     "f_hat; guard_rolled_back_versions lists the versions never used again"),
+)
 
 
 TELEMETRY_TOPICS: tuple[TopicSpec, ...] = (
@@ -323,10 +365,8 @@ GLOBAL_TOPICS: tuple[TopicSpec, ...] = (
               "rejected/<reason>, as key/value strings. The MPC's guard adds guard_fallbacks, guard_base_solves, "
               "guard_rollbacks, guard_bounded_solves, guard_rolled_back_versions (comma-separated), "
               "monitor_error_model and monitor_error_base (level WARN after a roll back).",
-              fields=(FieldDoc("rejected/<reason>", "count", "status[i].values[j].value (string)",
-                               "/<node name>/rejected/<reason>"),
-                      FieldDoc("guard_rollbacks", "count", "status[i].values[j].value (string)",
-                               "/<node name>/guard_rollbacks"))),
+              fields=tuple(FieldDoc(n, u, "status[i].values[j].value (string)", f"/<node name>/{n}", d)
+                           for n, u, d in DIAGNOSTICS_REASON_DOCS)),
     TopicSpec(CLOCK_TOPIC, CLOCK, CLOCK_QOS, "the simulator running in lockstep", "every node (use_sim_time)",
               "Simulated time.", fields=(FieldDoc("clock", "s", "clock.sec + 1e-9 clock.nanosec", "/clock/sec"),)),
 )  # fmt: skip

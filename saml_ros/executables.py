@@ -27,9 +27,13 @@ EXECUTABLES: dict[str, str] = {
     "bringup": "saml_ros.bringup:main",
     "train": "saml_ros.offline.cli:main",
     "export": "saml_ros.offline.export_cli:main",
+    "sweep": "saml_ros.offline.sweep_cli:main",
     "experiment": "saml_ros.experiments.cli:main",
     "bag_info": "saml_ros.bags.info:main",
     "demo": "saml_ros.demo:main",
+    "layouts": "saml_ros.viewers.cli:main",
+    "foxglove_server": "saml_ros.viewers.foxglove_server:main",
+    "lifecycle_manager": "saml_ros.nodes.lifecycle_manager:main",
 }
 
 #: exit code for an unknown or unavailable executable (same as argparse's usage errors)

@@ -40,6 +40,9 @@ COMMON_PARAMS: tuple[Param, ...] = (
     Param("cmd_reject_margin", 0.5, "commands further outside the control bounds than this fraction of the "
                                     "bounds' width are rejected; closer ones are clipped"),
     Param("diagnostics_period", 1.0, "seconds between /diagnostics messages (wall clock)"),
+    Param("plausible_bounds", "", "overrides of the system's plausible state ranges as a YAML mapping, e.g. "
+                                  "'{x.pz: [-1.0, 2000.0]}'; a time-stepped simulator whose state leaves them "
+                                  "restarts the episode (counted as diverged)"),
 )
 
 
@@ -78,4 +81,5 @@ def config_from_params(p: dict[str, Any], t0_ns: int = LOCKSTEP_T0_NS) -> SimCon
         seed=p["seed"],
         reject_margin=p["cmd_reject_margin"],
         t0_ns=t0_ns,
+        plausible_bounds=p["plausible_bounds"],
     )

@@ -11,7 +11,8 @@ entry builds the core (``SystemEntry.simulator``).
 * Every timer runs on the steady clock: the simulator is the clock source, so ``use_sim_time`` never
   drives it. Realtime stamps start at the wall time of the first state; lockstep stamps at 1 s.
 * Bad commands are rejected (log line, throttled; counter ``rejected/<reason>``), never fatal.
-  SIGINT / SIGTERM, or ``max_sim_time`` reached, end the node with exit code 0; bad parameters with 2.
+  SIGINT / SIGTERM (any number of them), or ``max_sim_time`` reached, end the node with exit code 0; bad
+  parameters with 2.
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -55,6 +55,7 @@ from saml_ros.core.worlds.sim_core import (
     TARGET,
     Output,
 )
+from saml_ros.nodes.runtime import catch_stop_signals, exit_process, init_rclpy, shutdown, spin_until_stopped
 from sim_nodes.binding import SimBinding, config_from_params
 
 #: exit code for invalid parameters (as argparse's usage errors)
@@ -265,29 +266,32 @@ def _usage(binding: SimBinding) -> str:
 def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
     """Run the simulator node of ``binding`` until SIGINT / SIGTERM or ``max_sim_time`` (exit code 0).
 
-    ``argv`` excludes the program name (default ``sys.argv[1:]``); ROS arguments follow ``--ros-args``.
+    ``argv`` excludes the program name (default ``sys.argv[1:]``); ROS arguments follow ``--ros-args``. Signals
+    only set a stop flag (:mod:`saml_ros.nodes.runtime`): a callback is never interrupted, however many arrive.
+    Run as the process entry (``argv`` None) the process ends right after rclpy's shutdown
+    (:func:`~saml_ros.nodes.runtime.exit_process`).
     """
+    stop = catch_stop_signals()
     args = [binding.node_name, *(sys.argv[1:] if argv is None else argv)]
     ros_start = args.index("--ros-args") if "--ros-args" in args else len(args)
     if any(a in ("-h", "--help") for a in args[1:ros_start]):
         print(_usage(binding))
         return 0
     torch.set_num_threads(1)  # one small state per step: extra threads only contend for the 2 cores
-    rclpy.init(args=args)
+    init_rclpy(args)
     node: SimNode | None = None
+    code = 0
     try:
         try:
             node = SimNode(binding)
         except ValueError as exc:
             print(f"{binding.node_name}: {exc}", file=sys.stderr)
-            return USAGE_ERROR
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin_until_future_complete(node.done_future)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+            code = USAGE_ERROR
+        else:
+            done = node.done_future
+            spin_until_stopped(node, stop, lambda: not done.done())
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+        shutdown(node)
+    if argv is None:
+        exit_process(code)
+    return code

@@ -97,8 +97,8 @@ def _assert_same(plain: PrimalDualTrainer, fast: PrimalDualTrainer, rtol: float,
 @pytest.mark.parametrize("name", sorted(SPECS))
 def test_fast_equals_plain_for_every_loss_and_mean(name):
     """~250 steps of Adam (the paper's optimizer) in float64: same weights, lambdas, optimizer state, history."""
-    cfg = TrainConfig(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
-                      log_every=7)
+    cfg = TrainConfig.paper(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
+                            log_every=7)
     plain, fast, dp, df = _pair(SPECS[name], cfg)
     assert fast_engine.unsupported_reason(fast, df) is None
     plain.fit(dp)
@@ -118,7 +118,7 @@ def test_fast_equals_plain_for_models_and_optimizers(variant):
     """Ensembles, full models, no hidden layer, and every optimizer pairing: the dual Adam merged into the
     primal flat tensor (the default), a separate dual Adam (other betas), SGD."""
     kw: dict[str, Any] = {}
-    cfg = TrainConfig(epochs=6, batch_size=16, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=2)
+    cfg = TrainConfig.paper(epochs=6, batch_size=16, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=2)
     if variant == "ensemble_shared":
         kw = {"e": 3}
     elif variant == "ensemble_per_member":
@@ -149,7 +149,7 @@ def test_float32_paper_setting_matches_to_rounding():
     component by its running RMS, so differences grow over training; after 300 steps they stay below 1e-5
     on weights of size ~0.5 and 1e-6 on lambda, where any real difference in the algorithm gives > 1e-3.
     """
-    cfg = TrainConfig(epochs=10, batch_size=100, dual_lr=1e-2, seed=1)
+    cfg = TrainConfig.paper(epochs=10, batch_size=100, dual_lr=1e-2, seed=1)
     plain, fast, dp, df = _pair(SPECS["paper"], cfg, n=3000)
     plain.fit(dp)
     fast.fit(df)
@@ -168,7 +168,7 @@ def test_heldout_metrics_match_after_a_full_short_training():
     for engine in ("plain", "fast"):
         model = DynamicsModel(FRICTION, (8, 4), n_models=3, seed=3)
         model.fit_normalization(x, u, y)
-        tr = PrimalDualTrainer(model, spec, TrainConfig(epochs=25, batch_size=128, dual_lr=1e-2, engine=engine))
+        tr = PrimalDualTrainer(model, spec, TrainConfig.paper(epochs=25, batch_size=128, dual_lr=1e-2, engine=engine))
         tr.fit(Transitions(model, spec, x, u, y))
         assert tr.engine_used == engine
         evals.append(evaluate_models(model, spec, xt, ut, yt))
@@ -183,7 +183,7 @@ def test_heldout_metrics_match_after_a_full_short_training():
 
 def test_unsupported_settings_fall_back_to_the_plain_loop():
     """AMSGrad has no fast implementation: fit() must run the plain loop, with plain results."""
-    cfg = TrainConfig(epochs=3, batch_size=16, dual_lr=1e-2, dtype="float64")
+    cfg = TrainConfig.paper(epochs=3, batch_size=16, dual_lr=1e-2, dtype="float64")
     reference, fast, dr, df = _pair(SPECS["paper"], replace(cfg, engine="plain"))
     for tr in (reference, fast):
         tr.primal_opt.param_groups[0]["amsgrad"] = True
@@ -209,7 +209,7 @@ def test_unsupported_settings_fall_back_to_the_plain_loop():
 def test_engines_can_be_mixed_and_resumed():
     """Optimizer state goes through the torch optimizers: fast, then plain, then fast again (with values from
     online steps pending in between) equals plain all the way; a callback sees the current model."""
-    cfg = TrainConfig(epochs=2, batch_size=16, dual_lr=5e-2, dtype="float64", seed=4, log_every=5)
+    cfg = TrainConfig.paper(epochs=2, batch_size=16, dual_lr=5e-2, dtype="float64", seed=4, log_every=5)
     plain, mixed, dp, dm = _pair(SPECS["paper"], cfg)
     seen: dict[str, list[float]] = {"plain": [], "fast": []}
 
@@ -238,3 +238,56 @@ def test_engines_can_be_mixed_and_resumed():
     restored.load_state(mixed.state())
     for a, b in zip(restored.model.parameters(), mixed.model.parameters()):
         assert torch.equal(a, b)
+
+
+#: every dual method with parameters that make its arithmetic matter within a short run
+METHODS: dict[str, dict[str, Any]] = {
+    "nupi": {"dual_method": "nupi", "dual_lr": 0.05, "nupi_kp": 5.0, "nupi_ema": 0.3},
+    "augmented": {"dual_method": "augmented", "penalty": 0.5},
+    "augmented_sgd": {"dual_method": "augmented", "penalty": 0.5, "dual_optimizer": "sgd", "dual_lr": 1.0},
+    "resilient": {"dual_method": "resilient", "relax_cost": 2.0},
+    "resilient_sgd": {"dual_method": "resilient", "relax_cost": 2.0, "dual_optimizer": "sgd", "dual_lr": 1.0},
+}
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+@pytest.mark.parametrize("spec_name", ["paper", "mixed"])
+def test_fast_equals_plain_for_every_dual_method(method, spec_name):
+    """Every dual method in flat form: ~180 steps in float64 with the same bounds as the paper's method (lambda, the
+    dual optimizer's state, the history); the methods do move lambda differently from the paper's."""
+    cfg = TrainConfig.paper(**{"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
+                               "seed": 5, "log_every": 7, **METHODS[method]})
+    plain, fast, dp, df = _pair(SPECS[spec_name], cfg)
+    assert fast_engine.unsupported_reason(fast, df) is None
+    plain.fit(dp)
+    fast.fit(df)
+    assert plain.history.as_arrays()["lambdas"].max() > 0
+    _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
+    ref, _, dr, _ = _pair(SPECS[spec_name], replace(cfg, dual_method="paper", dual_optimizer="adam", dual_lr=5e-2))
+    ref.fit(dr)
+    assert float((ref.lam - plain.lam).abs().max()) > 1e-3  # the method changed the run
+
+
+@pytest.mark.parametrize("schedules", [("cosine", "cosine"), ("step", "step"), ("cosine", "constant"),
+                                       ("constant", "step")])
+@pytest.mark.parametrize("method", ["paper", "nupi", "augmented"])
+def test_fast_equals_plain_under_learning_rate_schedules(schedules, method):
+    """Schedules in both engines: the same rates per update (equal schedules keep the dual Adam merged into the
+    primal flat tensor, different ones do not), a horizon of the run's own length, and the optimizers' final
+    learning rates are the last update's."""
+    primal, dual = schedules
+    cfg = TrainConfig.paper(**{"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
+                               "seed": 5, "primal_schedule": primal, "dual_schedule": dual, "lr_floor": 0.1,
+                               "lr_drops": 3, **({} if method == "paper" else METHODS[method])})
+    plain, fast, dp, df = _pair(SPECS["paper"], cfg)
+    plain.fit(dp)
+    fast.fit(df)
+    run = fast_engine.FastRun(fast, df)
+    assert (run.k_dual is not None) == (method != "nupi" and primal == dual)
+    _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
+    steps = plain.steps
+    for tr in (plain, fast):
+        ps, ds = tr.schedules
+        assert ps.horizon == steps  # epochs x minibatches per epoch
+        assert tr.primal_opt.param_groups[0]["lr"] == ps.lr(steps - 1)
+        assert tr.dual.lr == ds.lr(steps - 1)

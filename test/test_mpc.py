@@ -59,6 +59,33 @@ def test_numpy_model_and_jacobians_match_torch(name: str, kind: str) -> None:
     np.testing.assert_allclose(b, jb.detach().numpy(), atol=1e-10)
 
 
+@pytest.mark.parametrize(("name", "kind", "hidden"), [("friction", "residual", (4, 2)), ("friction", "full", (4, 2)),
+                                                  ("friction", "residual", ()), ("quadrotor", "residual", (16, 8))])
+def test_batched_rollout_equals_step_by_step(name: str, kind: str, hidden: tuple[int, ...]) -> None:
+    """``rollout_batch`` (fused for the linear friction base and for full models, plain steps otherwise) predicts
+    the same states as T one-sample steps, for every sequence of the batch."""
+    system = get_system(name)
+    model = DynamicsModel(system, kind=kind, hidden=hidden, seed=3).double()
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for w in model.net.weights:
+            w.add_(0.3 * torch.randn(w.shape, generator=gen, dtype=w.dtype))
+        for s in model.net.slopes:  # one slope outside [0, 1]: the np.where branch of PReLU
+            s.fill_(-0.3)
+    dyn = NumpyDynamics(system, model, base=base_model_np(system))
+    rng = np.random.default_rng(0)
+    x0 = system.sample_inputs(1, rng)[0][0]
+    us = np.stack([system.sample_inputs(7, rng)[1] for _ in range(5)], 0).transpose(1, 0, 2)  # (K=7, T=5, m)
+    xs = dyn.rollout_batch(x0, us)
+    assert xs.shape == (7, 6, system.state.size)
+    for k in range(7):
+        x = x0.copy()
+        np.testing.assert_allclose(xs[k, 0], x0)
+        for t in range(5):
+            x = dyn.step1(x, us[k, t])
+            np.testing.assert_allclose(xs[k, t + 1], x, rtol=1e-12, atol=1e-12)
+
+
 def test_ensemble_uses_member_zero_and_rejects_other_systems() -> None:
     system = get_system("friction")
     ens = perturbed("friction", n_models=3)

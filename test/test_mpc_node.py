@@ -391,3 +391,78 @@ def test_node_realtime_mode_answers_the_newest_state(tmp_path: Path, domain: int
         probe.close()
         rc = proc.stop(signal.SIGINT)
     assert rc == 0, proc.log()
+
+
+def test_node_refuses_poisoned_checkpoints_keeps_its_model_keeps_landing_and_answers_failures_safely(
+    tmp_path: Path, domain: int
+) -> None:
+    """One MPC process: it starts on a good checkpoint, refuses a non-finite, an implausible (a residual of 1e6 m)
+    and an out-of-evidence checkpoint that appear while the test lands the quadrotor with it (the test process
+    steps the true dynamics, like a lockstep simulator), keeps its model and lands; then an implausible state and a
+    model that is broken away from its training data (accepted: nothing in its data or the recent states shows
+    it) are answered with hover thrust."""
+    from test_model_acceptance import _evidence, _model, _save
+
+    quad = get_system("quadrotor")
+    store = CheckpointStore(tmp_path / "run")
+    ev = _evidence()
+    _save(store, _model(), ev)  # version 1, loaded before the first solve
+    proc = MPCProcess(tmp_path, domain, {"system": "quadrotor", "run_dir": str(store.run_dir), "poll_period": 0.1})
+    probe = Probe(domain)
+    k = [0]
+
+    def step(x: np.ndarray) -> np.ndarray:
+        u = probe.step(x, T0_NS + k[0] * DT_NS, proc)
+        k[0] += 1
+        return u
+
+    def diag(key: str) -> int:
+        probe.executor.spin_once(timeout_sec=0.0)
+        return int(probe.diag.get(key, "0"))
+
+    try:
+        probe.wait_connected(proc)
+        x = _hover((1.0, -1.0, 2.0))
+        poison = {5: ("non_finite", _model(1), "weights"), 12: ("implausible", _model(2, {"pz": 1e6}), None),
+                  19: ("residual", _model(3, {"vz": 30.0}), None)}
+        for i in range(45):
+            if i in poison:
+                _save(store, poison[i][1], ev, poison[i][2])
+            x = quad.true_step_np(x, step(x))
+            if x[2] < 0.1:  # the simulator's ground contact
+                x[2], x[5], x[10:13] = 0.1, max(x[5], 0.0), 0.0
+        probe.spin_until(lambda: diag("checkpoints_refused") >= 3, 10, "the three refusals", proc)
+        for reason in ("non_finite", "implausible", "residual"):
+            assert diag(f"checkpoints_refused/{reason}") == 1, probe.diag
+        assert {s["model_version"] for s in probe.status} == {1.0}  # kept its model throughout
+        assert np.linalg.norm(x[:2]) < 0.3 and x[2] < 0.4, x[:6]  # and landed on it
+        assert diag("safe_commands") == 0 and all(s["safe"] == 0.0 for s in probe.status)
+
+        n_status = len(probe.status)
+        np.testing.assert_array_equal(step(_hover((0.0, 0.0, 2e4))), quad.safe_control())  # 20 km up
+        probe.spin_until(lambda: len(probe.status) > n_status and diag("safe_commands/bounds") == 1, 10,
+                         "the safe command for an implausible state", proc)
+        assert probe.status[-1]["safe"] == 1.0 and diag("rejected/bounds") == 1
+
+        # broken beyond px = 3 m, where neither its training data (|px| <= 2 m) nor the recent states reach
+        from test_plausibility import _trap_model
+
+        _save(store, _trap_model("quadrotor", "px", 3.0, 3e38, torch.float32), _evidence(1, px=2.0))
+        deadline = time.monotonic() + 20
+        while probe.status[-1]["model_version"] != 5.0:
+            assert time.monotonic() < deadline, proc.log()
+            step(_hover((0.5, 0.0, 1.5)))
+        np.testing.assert_array_equal(step(_hover((5.0, 0.0, 1.5))), quad.safe_control())
+        assert np.all(np.isfinite(step(_hover((0.5, 0.0, 1.5)))))  # and plans again where the model is sane
+        probe.spin_until(lambda: diag("safe_commands/non_finite") + diag("safe_commands/implausible") == 1, 10,
+                         "the safe command for a failed solve", proc)
+        assert diag("safe_commands") == 2 and probe.diag.get("checkpoints_refused") == "3"
+        assert sorted(probe.cmds) == [T0_NS + i * DT_NS for i in range(k[0])]  # every state answered
+    finally:
+        probe.close()
+        rc = proc.stop(signal.SIGTERM)
+    assert rc == 0, proc.log()
+    log = proc.log()
+    for reason in ("non_finite", "implausible", "residual"):
+        assert f"refused checkpoint ({reason})" in log
+    assert "sent the safe command" in log

@@ -116,8 +116,13 @@ def test_learner_parameter_table() -> None:
     table = learner_params()
     train = [n for n in names(table) if n.startswith("train.")]
     assert train == [f"train.{f}" for f in ("batch_size", "primal_lr", "dual_lr", "primal_optimizer",
-                                            "dual_optimizer", "log_every", "seed", "dtype", "engine")]
+                                            "dual_optimizer", "log_every", "seed", "dtype", "engine",
+                                            "dual_method", "nupi_kp", "nupi_ema", "penalty", "relax_cost",
+                                            "primal_schedule", "dual_schedule", "schedule_steps", "lr_gamma",
+                                            "lr_drops", "lr_floor", "device")]
     by_name = {p.name: p for p in table}
+    assert all(not by_name[n].description.startswith("TrainConfig.") for n in train)  # each has its own text
+    assert by_name["train.dual_method"].default == TrainConfig().dual_method == "augmented"
     assert by_name["train.primal_lr"].default == TrainConfig().primal_lr
     assert by_name["namespaces"].item_type is str and by_name["model.hidden"].item_type is int
     assert all(p.description for p in table) and len(by_name) == len(table)
@@ -152,6 +157,8 @@ def test_learner_config_defaults_namespaces_system_and_spec(tmp_path: Path) -> N
     ({"resume": 1}, "parameter 'resume': expected bool"),
     ({"train.batch_size": 0}, r"parameters 'train\.\*': batch_size must be >= 1"),
     ({"train.epochs": 3}, r"unknown learner parameter\(s\) \['train.epochs'\]"),
+    ({"train.dual_method": "lagrange"}, r"parameters 'train\.\*': dual_method must be one of"),
+    ({"train.primal_schedule": "cosine"}, r"parameters 'train\.\*': primal_schedule 'cosine' needs schedule_steps"),
 ])
 def test_learner_config_names_the_bad_parameter(values: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):

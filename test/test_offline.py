@@ -24,7 +24,7 @@ def test_sufficient_beats_uniform_inside_region_and_loses_outside():
     `./dev demo --offline` (docs/results.md)."""
     system = get_system("friction")
     spec = ProblemSpec.for_system(system.paper_spec(), system)
-    cmp = compare(system, spec, TrainConfig(epochs=30, batch_size=128, dual_lr=1e-2), seeds=[0, 1, 2],
+    cmp = compare(system, spec, TrainConfig.paper(epochs=30, batch_size=128, dual_lr=1e-2), seeds=[0, 1, 2],
                   n_train=5000, n_test=20000)
     sa, ua = cmp.eval_sufficient.regions[0], cmp.eval_uniform.regions[0]
     assert (sa.inside < ua.inside).all(), (sa.inside, ua.inside)     # every seed, paired
@@ -51,6 +51,41 @@ def test_train_cli_writes_a_usable_checkpoint_and_report(tmp_path):
     assert len(metrics["test"]["regions"]["near_origin"]["inside"]) == 2
     x = np.zeros((1, 2))
     assert np.isfinite(loaded.model.predict_np(x, np.ones((1, 1)))).all()
+
+
+def test_train_cli_dual_method_restarts_and_feasibility_report(tmp_path):
+    """--dual-method / --train pick the method and its parameters; --restarts keeps one member per seed chosen on
+    the held-out split; the feasibility verdict is printed and in metrics.json. A bound of 0.2 m/s is met by the
+    4-2 net in 20 epochs; the checkpoint holds the 2 kept members."""
+    spec = tmp_path / "loose.yaml"
+    spec.write_text("objective: {loss: l2}\nconstraints:\n  - {name: near_origin, loss: l2, eps: 0.2, region: "
+                    "{norm: {fields: [x.p, x.v], ord: inf, max: 0.5}}}\n")
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--spec", str(spec),
+         "--samples", "2000", "--epochs", "20", "--seeds", "2", "--restarts", "3", "--dual-method", "resilient",
+         "--train", "relax_cost=500", "--train", "primal_schedule=step", "--test-samples", "1000", "--out",
+         str(out), "--no-progress"],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "dual method resilient, schedules step / cosine" in proc.stdout
+    assert "feasibility [met]" in proc.stdout and proc.stdout.count("kept member") == 2
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["train_config"]["relax_cost"] == 500 and metrics["train_config"]["dual_method"] == "resilient"
+    sel = metrics["selection"]
+    assert sel["restarts"] == 3 and len(sel["chosen"]) == 2 and all(sel["feasible"])
+    assert sel["chosen"][0] in (0, 1, 2) and sel["chosen"][1] in (3, 4, 5)
+    feas = metrics["feasibility"]["constraints"]["near_origin"]
+    assert feas["verdict"] == "met" and feas["n_met"] == 2 and len(feas["members"]) == 2
+    assert feas["lhs_min"] < 0.2
+    loaded = load_model(out / "ckpt-000001.saml", expect=get_system("friction"))
+    assert loaded.model.n_models == 2
+    bad = subprocess.run(
+        [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--train", "nupi_gain=1",
+         "--out", str(tmp_path / "bad")], cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )
+    assert bad.returncode == 2 and "--train expects FIELD=VALUE" in bad.stderr
 
 
 def test_train_cli_rejects_a_bad_spec_without_writing(tmp_path):

@@ -340,6 +340,34 @@ def test_training_process_trains_checkpoints_and_stops_with_a_final_checkpoint(t
     assert found is not None and found.version == final[1] and found.meta["updates"] == final[2]
 
 
+def test_paused_training_process_buffers_but_neither_trains_nor_checkpoints(tmp_path: Path) -> None:
+    """What a managed learner's deactivation relies on: started paused it buffers data and reports, but makes no
+    update; pause() writes one checkpoint of the unsaved updates and then nothing more; resume() trains on."""
+    saved: list[int] = []
+    proc = TrainingProcess(_setup(tmp_path / "run", paused=True), on_checkpoint=lambda p, v: saved.append(v))
+    proc.start()
+    for tr in transitions(400, seed=23):
+        proc.submit(tr)
+    _wait(lambda: proc.status.get("buffer_size", 0) == 400)
+    time.sleep(0.5)  # 2.5 checkpoint periods
+    assert proc.status["updates"] == 0 and not saved and proc.paused
+    assert proc.resume()
+    _wait(lambda: proc.status.get("updates", 0) >= 50 and len(saved) >= 1)
+    paused = proc.pause()
+    assert paused is not None and paused[0] is not None and paused[1] == saved[-1]  # one checkpoint on pause
+    updates = paused[2]
+    assert CheckpointStore(tmp_path / "run").versions()[-1] == paused[1]
+    time.sleep(0.6)  # three checkpoint periods: no update, no checkpoint
+    assert proc.status["updates"] == updates and saved[-1] == paused[1]
+    assert CheckpointStore(tmp_path / "run").versions()[-1] == paused[1]
+    again = proc.pause()  # pausing a paused process writes nothing
+    assert again is not None and again[0] is None and again[1] == paused[1]
+    assert proc.resume()
+    _wait(lambda: proc.status.get("updates", 0) > updates and saved[-1] > paused[1])
+    final = proc.stop()
+    assert final is not None and final[2] > updates
+
+
 def test_training_process_reports_resume_errors_and_survives_being_killed(tmp_path: Path) -> None:
     run = tmp_path / "run"
     checkpointed_learner(tmp_path, seed=21, updates=30)  # a real checkpoint of a (4, 2) friction model in run
@@ -423,3 +451,85 @@ def test_raw_ingest_decodes_pairs_and_counts_rejections(caplog: pytest.LogCaptur
     assert (a["nan"], a["shape"], b["names"]) == (1, 1, 1)
     assert a["received/applied_cmd"] == 21 and b["received/state"] == 41
     assert "rejected/nan: bad message (nan)" in caplog.text and "rejected/names" in caplog.text
+
+
+# ------------------------------------------------------------------------------------------- dual methods online
+def test_learning_rate_schedule_online_follows_the_update_count() -> None:
+    """Online there are no epochs: a cosine schedule runs over train.schedule_steps updates (then holds its floor),
+    'auto' stays constant, and an explicit schedule without a horizon is refused at configuration."""
+    cfg = TrainConfig(batch_size=32, primal_lr=4e-3, dual_lr=1e-2, dual_method="nupi", primal_schedule="cosine",
+                      dual_schedule="step", schedule_steps=60, lr_floor=0.25, lr_drops=2, lr_gamma=0.5)
+    learner = new_learner(train=cfg)
+    for tr in transitions(300, seed=11):
+        learner.add(tr)
+    learner.update(30)
+    tr = learner.trainer
+    assert tr is not None
+    # update t uses lr0 * factor(t): the last one run here is t = 29 (cosine at 29/60, step after 1 of 2 drops)
+    assert tr.primal_opt.param_groups[0]["lr"] == pytest.approx(4e-3 * (0.25 + 0.75 * (1 + math.cos(math.pi * 29 / 60)) / 2))
+    assert tr.dual.lr == pytest.approx(1e-2 * 0.5)
+    learner.update(50)
+    assert tr.primal_opt.param_groups[0]["lr"] == pytest.approx(1e-3)  # the floor, 0.25 x 4e-3, past T = 60
+    assert tr.dual.lr == pytest.approx(1e-2 * 0.25)
+    auto = new_learner(train=TrainConfig(batch_size=32, primal_lr=4e-3, dual_method="augmented"))
+    for t in transitions(300, seed=12):
+        auto.add(t)
+    auto.update(20)
+    assert auto.trainer is not None and auto.trainer.primal_opt.param_groups[0]["lr"] == 4e-3
+    with pytest.raises(ValueError, match="schedule_steps"):
+        config(train=TrainConfig(primal_schedule="cosine"))
+
+
+@pytest.mark.parametrize("method", ["nupi", "augmented", "resilient"])
+def test_every_dual_method_trains_online_and_resumes_exactly(tmp_path: Path, method: str) -> None:
+    """Each method runs in the learner's step loop; a checkpoint holds its multiplier state (nuPI's smoothed error
+    too), so a resumed learner continues exactly like the one that saved it."""
+    cfg = TrainConfig(batch_size=64, primal_lr=3e-3, dual_lr=1e-2, dual_method=method, log_every=20)
+    learner = new_learner(tmp_path, train=cfg)
+    for tr in transitions(400, seed=13):
+        learner.add(tr)
+    learner.update(100)
+    assert learner.lam[0] > 0
+    learner.save_checkpoint()
+    again = new_learner(tmp_path, train=cfg)
+    assert again.trainer is not None and again.updates == 100
+    st_a, st_b = learner.trainer.dual.optimizer.state_dict()["state"], again.trainer.dual.optimizer.state_dict()["state"]
+    assert st_a.keys() == st_b.keys() and all(torch.equal(st_a[k][n], st_b[k][n]) for k in st_a for n in st_a[k])
+    if method == "nupi":
+        assert "xi" in st_b[0]
+    xb, ub, yb = (torch.as_tensor(a[:64], dtype=torch.float32) for a in SYSTEM.make_dataset(64, np.random.default_rng(3)))
+    for ln in (learner, again):
+        ln.trainer.step(xb, ub, yb)
+    assert torch.equal(learner.trainer.lam, again.trainer.lam)
+
+
+def test_feasibility_verdict_in_telemetry_and_diagnostics() -> None:
+    """The learner diagnoses its history: a bound the model meets at once is 'met' (OK), one no model can meet
+    (eps = 1e-6 m/s: below the float32 rounding of the targets) is 'likely infeasible' (ERROR) on /diagnostics."""
+    from saml_ros.core.learner_report import learner_diagnostics
+
+    loose, tight = (ProblemSpec.for_system({**SYSTEM.paper_spec(), "constraints": [
+        {**SYSTEM.paper_spec()["constraints"][0], "eps": e}]}, SYSTEM) for e in (5.0, 1e-6))
+    out = {}
+    for name, spec in (("loose", loose), ("tight", tight)):
+        cfg = config(train=TrainConfig(batch_size=64, primal_lr=3e-3, dual_lr=1e-2, log_every=25))
+        learner = OnlineLearner(SYSTEM, spec, cfg)
+        for tr in transitions(600, seed=14):
+            learner.add(tr)
+        assert math.isnan(learner.compute_model_metrics()["verdict/near_origin"])  # no history yet
+        learner.update(1000)
+        learner.compute_model_metrics()
+        tele = learner.telemetry()
+        assert {"verdict/near_origin", "lhs_min/near_origin", "lambda_rising/near_origin",
+                "reachable/near_origin"} <= set(tele)
+        level, message, values = learner_diagnostics(learner.counts(), learner.status(), {}, {}, [], [],
+                                                     [("near_origin", spec.constraints[0].eps)])
+        out[name] = (tele, level, message, values)
+    tele, level, message, values = out["loose"]
+    assert tele["verdict/near_origin"] == 0 and level == 0 and values["feasibility/near_origin"] == "met"
+    assert tele["lambda_rising/near_origin"] == 0 and tele["lambda/near_origin"] == 0
+    tele, level, message, values = out["tight"]
+    assert tele["verdict/near_origin"] == 2 and tele["lambda_rising/near_origin"] == 1
+    assert level == 2 and values["feasibility/near_origin"] == "likely infeasible"
+    assert "constraint 'near_origin' likely infeasible" in message
+    assert tele["lhs_min/near_origin"] > 1e-4 and tele["reachable/near_origin"] >= tele["lhs_min/near_origin"]

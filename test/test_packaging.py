@@ -156,6 +156,24 @@ def test_colcon_build_installs_every_executable(tmp_path: Path) -> None:
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "saml_ros").is_file()
     for cfg in (REPO / "config").glob("*.yaml"):
         assert (prefix / "share" / "saml_ros" / "config" / cfg.name).is_file(), cfg.name
+    # ros2 launch saml_ros <file> finds the launch files, and their $(find-pkg-share saml_ros)/config/... exists
+    launch_files = sorted((REPO / "launch").glob("*.launch.xml"))
+    layout_files = sorted((REPO / "layouts").glob("*.*"))
+    assert len(launch_files) >= 6 and len(layout_files) >= 6
+    for src, sub in [(f, "launch") for f in launch_files] + [(f, "layouts") for f in layout_files]:
+        installed = prefix / "share" / "saml_ros" / sub / src.name
+        assert installed.is_file() and installed.read_bytes() == src.read_bytes(), f"not installed: {installed}"
+    from launch_parse import evaluate
+
+    share = prefix / "share" / "saml_ros"
+    for launch in launch_files:
+        for system in ("friction", "quadrotor", "paddle_ball"):
+            result = evaluate(share / "launch" / launch.name, {"system": system}, share=share)
+            assert all(f.is_relative_to(share) for f in result.files), result.files
+            for node in result.nodes:
+                assert (prefix / "lib" / "saml_ros" / node.executable).is_file(), node.executable
+                for src in node.params:
+                    assert src.path is None or (src.path.is_file() and src.path.is_relative_to(share)), src.path
 
     site = next((prefix / "lib").glob("python3*/site-packages"))
     for pkg in ("saml_ros", "msg_schemas", "sim_nodes"):

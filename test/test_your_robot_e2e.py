@@ -134,7 +134,9 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
     # the recording: the same pairing rule yields the robot's transitions; the learned model beats f_hat there
     data = extract_transitions([bag], model.system)
     c = data.counts
-    assert len(data) > 500 and c["unstamped/applied_cmd"] == c["received/applied_cmd"] > 100, c
+    # the run's length depends on how fast the learner learns; most intervals of the recording must pair
+    assert len(data) > 200 and len(data) >= 0.6 * c["received/state"], c
+    assert c["unstamped/applied_cmd"] == c["received/applied_cmd"] > 50, c
     inside = (data.x[:, 0] >= 0.7) & (data.x[:, 0] <= 1.9) & (np.abs(data.x[:, 1]) <= 0.5)
     assert inside.sum() >= 20
     xi, ui, yi = data.x[inside], data.u[inside], data.y[inside]

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from saml_ros.bags.io import Bag, BagError, message_class, rclpy_qos_for_playback
-from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown
 
 CLOCK_TOPIC = "/clock"
 
@@ -163,6 +163,7 @@ class Player:
             pub.wait_for_all_acked(ack)
 
 
+@process_main
 def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.node import Node
     from rclpy.utilities import remove_ros_args

@@ -42,7 +42,7 @@ from saml_ros.bags.io import (
     qos_from_rclpy,
     saml_topics,
 )
-from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, spin_until_stopped
 
 #: topics recorded next to the namespaces' topics by default
 GLOBAL_DEFAULT_TOPICS = ("/clock", "/diagnostics")
@@ -234,6 +234,7 @@ def default_output() -> Path:
     return Path(time.strftime("rosbag2_%Y_%m_%d-%H_%M_%S"))
 
 
+@process_main
 def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.node import Node
     from rclpy.parameter import Parameter

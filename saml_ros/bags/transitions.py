@@ -16,6 +16,7 @@ type, undecodable message, no transition at all) raises :class:`~saml_ros.bags.i
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from msg_schemas.names import join_topic, normalize_namespace
 from msg_schemas.path_codec import FieldPathCodec
 from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError
 from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
+from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.resampling import ResamplingPairer
 from saml_ros.core.systems import get_system, system_names
 
@@ -92,8 +94,9 @@ def make_pairer(system: Any, schema: SystemSchema, source: int, name: str,
                 config: PairingConfig | None = None) -> StampPairer | ResamplingPairer:
     """The learner's pairer for ``system``: resampling for a robot from a system file, else exact stamps."""
     own = getattr(system, "pairing", None)
-    if callable(own) and config is None:
-        return ResamplingPairer(own(), source=source, name=name)
+    if callable(own) and config is None:  # with the system's plausible ranges, as the learner checks them
+        return ResamplingPairer(dataclasses.replace(own(), bounds=Plausibility.for_system(system)), source=source,
+                                name=name)
     return StampPairer(config or PairingConfig.for_system(system, schema.target_pairing), source=source, name=name)
 
 

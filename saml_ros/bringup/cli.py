@@ -10,7 +10,9 @@ What it does:
    learner's checkpoints, one ROS parameter file per node (``params/<node>.yaml``) and each child's log
    (``logs/<node>.log``);
 2. starts the learner and the MPC (and ``record`` with ``--record DIR``) in the system namespace
-   ``/<system>``, each in its own process group, waits until they subscribe to ``state``, then starts the
+   ``/<system>``, each in its own process group and unconfigured (``autostart: false``), configures and then
+   activates both through their lifecycle services (``lifecycle_msgs/srv/ChangeState``; a failed transition
+   stops the run, the node's log says why), waits until they subscribe to ``state``, then starts the
    simulator (lockstep by default, so the loop runs as fast as its slowest participant);
 3. prints a progress line every ``--progress-period`` wall seconds, read from the topics (simulated time from
    the state stamps, episodes, the learner's in-region model error, the MPC's model version and solve time);

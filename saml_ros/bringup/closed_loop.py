@@ -115,6 +115,22 @@ class _Loop:
                  + f"; ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0 (default)')}")
         return started
 
+    def activate_consumers(self, monitor: Monitor, started: list[Child]) -> None:
+        """Configure, then activate the managed nodes (learner, MPC) through their lifecycle services."""
+        from saml_ros.nodes.lifecycle_client import drive
+
+        managed = [f"{self.namespace}/{NODE_NAMES[c.name]}" for c in started if c.name in ("learner", "mpc")]
+        t0 = time.monotonic()
+        errors = drive(monitor.node, lambda t: monitor.executor.spin_once(timeout_sec=t), managed,
+                       ["configure", "activate"], self.opts.startup_timeout,
+                       cancelled=lambda: "reason" in self.stop or bool(self.procs.exited()))
+        if self.procs.exited():
+            self.stop.setdefault("reason", f"child {self.procs.exited()[0].name} exited during start-up")
+        elif errors:
+            self.stop.setdefault("reason", "lifecycle: " + "; ".join(errors))
+        else:
+            self.say(f"[bringup] configured and activated {', '.join(managed)} in {time.monotonic() - t0:.1f} s")
+
     def start_simulator(self, monitor: Monitor, started: list[Child], t_wall0: float) -> None:
         """Wait until the consumers listen (no state is answered by nobody), then start the simulator."""
         n_learners = (1 + ("learner_ua" in self.files)) if self.opts.learner else 0
@@ -196,7 +212,9 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
     try:
         monitor = Monitor(system, loop.namespace, goal_position(system, params["mpc"]), result)
         started = loop.start_consumers(run_dir)
-        loop.start_simulator(monitor, started, t_wall0)
+        loop.activate_consumers(monitor, started)
+        if "reason" not in loop.stop:
+            loop.start_simulator(monitor, started, t_wall0)
         result.wall_time = loop.spin(monitor, result)
         result.stop_reason = loop.stop["reason"]
         loop.say(f"[bringup] stopping ({result.stop_reason}) ...")

@@ -89,12 +89,13 @@ def ros_params_file(params: Mapping[str, Any]) -> str:
 
 
 def node_params(config: Mapping[str, Any], run_dir: Path) -> dict[str, dict[str, Any]]:
-    """The ROS parameters of each node section, with the ones bringup owns (system, run_dir, use_sim_time)."""
+    """The ROS parameters of each node section, with the ones bringup owns (system, run_dir, use_sim_time and
+    ``autostart: false``: bringup drives the learner's and the MPC's lifecycle transitions itself)."""
     system = config["system"]
     lockstep = config["sim"].get("mode", "lockstep") == "lockstep"
     sim = dict(config["sim"])
-    learner = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["learner"]}
-    mpc = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["mpc"]}
+    learner = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["learner"], "autostart": False}
+    mpc = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["mpc"], "autostart": False}
     out = {"sim": sim, "learner": learner, "mpc": mpc}
     if config.get("learner_ua") is not None:
         out["learner_ua"] = {**learner, "run_dir": str(run_dir / CHECKPOINTS_UA), **config["learner_ua"],

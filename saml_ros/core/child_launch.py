@@ -17,8 +17,12 @@ from typing import Any
 #: a started training interpreter waiting for its :class:`~saml_ros.core.online.process.LearnerSetup`:
 #: ``(process, connection)``
 LaunchedChild = tuple["subprocess.Popen[bytes]", Any]
-#: what the training interpreter runs (``argv[1]`` = its socket's file descriptor)
-CHILD_CODE = "import sys; from saml_ros.core.online.child import child_entry; child_entry(int(sys.argv[1]))"
+#: what the training interpreter runs (``argv[1]`` = its socket's file descriptor); it ignores SIGINT and SIGTERM
+#: from its first line: a Ctrl-C reaches the whole process group, also while it still imports torch, and the parent
+#: decides when training stops
+CHILD_CODE = ("import signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+              "signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+              "from saml_ros.core.online.child import child_entry; child_entry(int(sys.argv[1]))")
 
 
 def launch_child() -> LaunchedChild:

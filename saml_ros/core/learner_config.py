@@ -16,16 +16,21 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from msg_schemas.names import normalize_namespace
+from msg_schemas.names import join_topic, normalize_namespace
 from saml_ros.core.params import Param, check, read_params
 
 if TYPE_CHECKING:
-    from saml_ros.core.online import LearnerSetup
+    from msg_schemas.base import SystemSchema
+    from saml_ros.core.online import LearnerSetup, TrainingProcess
     from saml_ros.core.online.process import DecoderFactory
+    from saml_ros.core.plausibility import Plausibility
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems.base import System
     from saml_ros.core.training import TrainConfig
+    from saml_ros.core.training.health import HealthConfig
 
+#: one subscription of the learner: namespace, kind (state, applied_cmd, target), topic, message type
+Channel = tuple[str, str, str, str]
 #: ``train.*`` parameters: TrainConfig field -> description (``epochs`` is an offline-only field)
 TRAIN_PARAM_DOCS: dict[str, str] = {
     "batch_size": "minibatch size M sampled from the replay buffer per update",
@@ -37,6 +42,22 @@ TRAIN_PARAM_DOCS: dict[str, str] = {
     "seed": "seed of the model initialisation and the minibatch sampling",
     "dtype": "'float32' or 'float64' for the model and the minibatches",
     "engine": "offline training engine (not used by the online step loop)",
+    "dual_method": "how the multipliers move: 'paper' (Algorithm 1), 'nupi' (PI controller), 'augmented' "
+                   "(augmented Lagrangian) or 'resilient' (constraints relaxed at a price); docs/training.md",
+    "nupi_kp": "nupi: proportional gain K_P (integral gain 1, step train.dual_lr, error g / eps)",
+    "nupi_ema": "nupi: smoothing nu of the error signal, in [0, 1)",
+    "penalty": "augmented: penalty c (objective units); rho_k = c / eps_k",
+    "relax_cost": "resilient: price alpha (dimensionless): relaxing eps by a fraction r costs alpha r^2 / 2 times "
+                  "the objective",
+    "primal_schedule": "learning-rate schedule of the model: 'auto', 'constant', 'step' or 'cosine' (online, 'auto' "
+                       "is constant unless train.schedule_steps > 0)",
+    "dual_schedule": "learning-rate schedule of the multipliers (as train.primal_schedule)",
+    "schedule_steps": "horizon T of the step / cosine schedules in updates (online: needed for either; 0 = none)",
+    "lr_gamma": "step schedule: factor of each drop, in (0, 1]",
+    "lr_drops": "step schedule: number of evenly spaced drops over the horizon",
+    "lr_floor": "cosine schedule: final learning rate as a fraction of the first, in [0, 1]",
+    "device": "training device: cpu | cuda | cuda:N (checked at start-up; a device that cannot be used is a "
+              "configuration error)",
 }
 
 _HEAD: tuple[Param, ...] = (
@@ -75,6 +96,15 @@ _TAIL: tuple[Param, ...] = (
                                    "and the MPC first when CPUs are short"),
     Param("train_threads", 1, "torch intra-op threads of the training process (0 = torch's default, one per "
                               "core); 1 is fastest for these small networks on a shared machine"),
+    Param("plausible_bounds", "", "overrides of the system's plausible ranges as a YAML mapping, e.g. "
+                                  "'{x.pz: [-1.0, 2000.0], u.f1: [0.0, 40.0]}' (fields x.<state>, u.<control>, "
+                                  "next.<target>; .inf = open); messages outside are rejected (rejected/bounds)"),
+    Param("health.explode_ratio", 1e4, "a minibatch objective or gradient norm this many times its running mean "
+                                       "is exploding: the training step is skipped"),
+    Param("health.max_weight", 1e6, "a network weight or multiplier larger than this after an update is exploding: "
+                                    "the last healthy state is restored"),
+    Param("health.error_after", 100, "consecutive skipped training steps from which /diagnostics reports ERROR "
+                                     "(WARN once any step was skipped)"),
 )
 
 
@@ -121,6 +151,10 @@ class LearnerConfig:
     system_file: str = ""
     model_ensemble: int = 1
     uniform: bool = False
+    plausible_bounds: str = ""
+    health_explode_ratio: float = 1e4
+    health_max_weight: float = 1e6
+    health_error_after: int = 100
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -163,21 +197,46 @@ class LearnerConfig:
             diagnostics_rate=p["diagnostics_rate"], dt=p["dt"], pairing_window=p["pairing.window"],
             pairing_tolerance=p["pairing.tolerance"], training_niceness=p["training_niceness"],
             train_threads=p["train_threads"], system_file=p["system_file"], model_ensemble=p["model.ensemble"],
-            uniform=p["uniform"],
+            uniform=p["uniform"], plausible_bounds=p["plausible_bounds"],
+            health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
+            health_error_after=p["health.error_after"],
         )
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
         config.train_config()  # validates train.*
+        config.health_config()
         return config
+
+    def health_config(self) -> HealthConfig:
+        """The :class:`~saml_ros.core.training.health.HealthConfig` of ``health.*``; ``ValueError`` naming them."""
+        from saml_ros.core.training.health import HealthConfig
+
+        check(self.health_explode_ratio > 1, "health.explode_ratio", "> 1", self.health_explode_ratio)
+        check(self.health_max_weight > 0, "health.max_weight", "> 0", self.health_max_weight)
+        check(self.health_error_after >= 1, "health.error_after", ">= 1", self.health_error_after)
+        return HealthConfig(explode_ratio=self.health_explode_ratio, max_weight=self.health_max_weight,
+                            error_after=self.health_error_after)
+
+    def plausibility(self, system: System) -> Plausibility:
+        """The system's plausible ranges with ``plausible_bounds``; ``ValueError`` naming the parameter."""
+        from saml_ros.core.plausibility import Plausibility
+
+        try:
+            return Plausibility.for_system(system, self.plausible_bounds)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"parameter 'plausible_bounds': {exc}") from None
 
     def train_config(self) -> TrainConfig:
         """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
         from saml_ros.core.training import TrainConfig
+        from saml_ros.core.training.schedule import schedules_for
 
         try:
-            return TrainConfig.from_dict(self.train)
+            config = TrainConfig.from_dict(self.train)
+            schedules_for(config, 0)  # online: a step / cosine schedule needs train.schedule_steps
         except (ValueError, TypeError) as exc:
             raise ValueError(f"parameters 'train.*': {exc}") from None
+        return config
 
     def make_system(self) -> System:
         """The system, with ``dt`` when it is set (> 0); ``ValueError`` naming ``system`` / ``dt``."""
@@ -204,6 +263,39 @@ class LearnerConfig:
         except (SpecError, OSError) as exc:
             raise ValueError(f"parameter 'spec_file': {exc}") from None
 
+    def channels(self, schema: SystemSchema) -> list[Channel]:
+        """One :data:`Channel` per (namespace, kind) the learner subscribes: ``state``, ``applied_cmd`` and, where
+        the schema pairs the target with the state of the same stamp (paddle ball), ``target``."""
+        kinds = [("state", schema.state_topic, schema.state.msg_type),
+                 ("applied_cmd", schema.applied_cmd_topic, schema.control.msg_type)]
+        if schema.target_pairing == "same":
+            kinds.append(("target", schema.target_topic, schema.target.msg_type))
+        return [(ns, kind, join_topic(ns, name), msg_type) for ns in self.namespaces for kind, name, msg_type in kinds]
+
+    def start_training(self, system: System, spec: ProblemSpec, schema: SystemSchema, run_dir: str,
+                       decoder: DecoderFactory, *, paused: bool = False, launched: Any = None,
+                       **callbacks: Any) -> TrainingProcess:
+        """The training process of :meth:`training_setup` for ``schema``'s :meth:`channels`, started (``paused``:
+        not training until ``resume()``; ``launched``: a pre-started interpreter; ``callbacks``: the
+        ``on_*`` arguments of :class:`~saml_ros.core.online.TrainingProcess`).
+
+        Raises:
+            ValueError: an invalid setting, a run directory whose checkpoints contradict the configuration, or a
+                training process that could not start; the message says which.
+        """
+        from saml_ros.core.online import ResumeError, TrainingProcess
+
+        channels = [(self.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels(schema)]
+        setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
+        trainer = TrainingProcess(dataclasses.replace(setup, paused=paused), **callbacks)
+        try:
+            trainer.start(launched=launched)
+        except ResumeError as exc:
+            raise ValueError(str(exc)) from None
+        except RuntimeError as exc:
+            raise ValueError(f"the training process could not start: {exc}") from None
+        return trainer
+
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
                        channels: list[tuple[int, str, str]], decoder: DecoderFactory) -> LearnerSetup:
         """The :class:`~saml_ros.core.online.LearnerSetup` of the training process (imports torch).
@@ -224,17 +316,20 @@ class LearnerConfig:
         from saml_ros.core.online import LearnerSetup, LoopConfig, OnlineConfig
         from saml_ros.core.pairing import PairingConfig
 
+        bounds = self.plausibility(system)
         try:
             config = OnlineConfig(
                 kind=self.model_kind, hidden=tuple(self.model_hidden) or None, train=self.train_config(),
                 buffer_capacity=self.buffer_capacity, buffer_policy=self.buffer_policy,
                 min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
                 checkpoint_keep=self.checkpoint_keep, n_models=self.model_ensemble,
+                plausible_bounds=self.plausible_bounds, health=self.health_config(),
             )
             own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
             pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(
                 system, target_pairing, tolerance=self.pairing_tolerance, window=self.pairing_window,
                 max_slots=max(10_000, 10 * self.pairing_window))
+            pairing = dataclasses.replace(pairing, bounds=bounds)
             loop = LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry_rate,
                               checkpoint_period=self.checkpoint_period)
         except TypeError as exc:

@@ -1,20 +1,66 @@
-"""What the learner node reports on ``/diagnostics``, from the training process's counters (ROS-free).
+"""What the learner node reports on ``/diagnostics`` and in its log, from the training process's counters
+(ROS-free).
 
 :func:`learner_diagnostics` turns the totals and per-source counts of the pairing, the learner's status, the
 training process's own counters and the node's per-channel reception counts into the diagnostic values, level
-(0 OK, 1 WARN, 2 ERROR as ``diagnostic_msgs``) and one-line message.
+(0 OK, 1 WARN, 2 ERROR as ``diagnostic_msgs``) and one-line message. The feasibility verdict of each constraint
+(the status' ``verdict/<k>``: met, not converged, likely infeasible; docs/training.md) sets the level too: OK,
+WARN, ERROR. The log lines of the lifecycle steps: :func:`configured_message`,
+:func:`paused_message` and :func:`stopped_message`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, WARN
+from msg_schemas.telemetry import ERROR, OK, REJECT_REASONS, TRAINING_SKIP_REASONS, WARN
 from saml_ros.core.resampling import COUNTERS as RESAMPLE_COUNTERS
+
+#: the training-health values of the learner's status reported on /diagnostics
+HEALTH_KEYS: tuple[str, ...] = (
+    "train_health/skipped", *(f"train_health/skipped/{r}" for r in TRAINING_SKIP_REASONS), "train_health/restores",
+    "train_health/unhealthy_streak", "checkpoints_unhealthy",
+)
+
+if TYPE_CHECKING:
+    from saml_ros.core.learner_config import LearnerConfig
+    from saml_ros.core.online import ReadyInfo, TrainingProcess
+    from saml_ros.core.spec import ProblemSpec
+
+#: ``(path of a checkpoint just written or None, model version, updates)``, as the training process reports a
+#: pause or a stop
+Saved = tuple["str | None", int, int]
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
+#: the ``feasibility/<k>`` value of each ``verdict/<k>`` code (what ``diagnosis.VERDICT_CODES`` numbers)
+VERDICT_NAMES: dict[int, str] = {0: "met", 1: "not converged", 2: "likely infeasible"}
+
+
+def feasibility_report(status: Mapping[str, float], constraints: Sequence[tuple[str, float]]) -> tuple[
+        int, list[str], dict[str, Any]]:
+    """``(level, message parts, values)`` of the constraints' verdicts in ``status`` (``verdict/<k>``,
+    ``lhs_min/<k>``, ``lambda_rising/<k>``, ``reachable/<k>``); ``constraints`` are ``(name, eps)``. A constraint
+    without a verdict yet is ``"pending"`` (level OK)."""
+    level, parts = OK, []
+    values: dict[str, Any] = {}
+    for name, eps in constraints:
+        code = status.get(f"verdict/{name}", math.nan)
+        verdict = VERDICT_NAMES.get(int(code), "pending") if math.isfinite(code) else "pending"
+        values[f"feasibility/{name}"] = verdict
+        for key in ("lhs_min", "reachable"):
+            v = status.get(f"{key}/{name}", math.nan)
+            values[f"{key}/{name}"] = f"{v:.6g}" if math.isfinite(v) else "nan"
+        rising = status.get(f"lambda_rising/{name}", math.nan)
+        values[f"lambda_rising/{name}"] = int(rising) if math.isfinite(rising) else -1
+        if verdict in ("not converged", "likely infeasible"):
+            level = max(level, WARN if verdict == "not converged" else ERROR)
+            reach = status.get(f"reachable/{name}", math.nan)
+            parts.append(f"constraint '{name}' {verdict} (eps {eps:.4g}, reachable {reach:.4g})")
+    return level, parts, values
 
 
 def learner_diagnostics(
@@ -24,8 +70,15 @@ def learner_diagnostics(
     by_source: Mapping[str, Mapping[str, int]],
     namespaces: Sequence[str],
     channels: Sequence[ChannelCount],
+    constraints: Sequence[tuple[str, float]] = (),
+    error_after: int = 100,
 ) -> tuple[int, str, dict[str, Any]]:
     """``(level, message, values)`` of the learner's diagnostics.
+
+    Level: ERROR when the training process failed or dropped data, or while ``error_after`` or more consecutive
+    training steps were skipped as unhealthy (``train_health/unhealthy_streak``), or a checkpoint could not be
+    written because the model was unhealthy; WARN once any message was rejected or any training step skipped;
+    OK otherwise.
 
     Args:
         totals: pairing counts summed over the sources (``paired`` and each reject reason, ``time_resets``, ...).
@@ -35,6 +88,8 @@ def learner_diagnostics(
         by_source: pairing counts per namespace.
         namespaces: the namespaces paired, in order.
         channels: one :data:`ChannelCount` per subscription.
+        constraints: ``(name, eps)`` of the spec's constraints (their verdicts: :func:`feasibility_report`).
+        error_after: the ``health.error_after`` parameter.
     """
     values: dict[str, Any] = {"paired": totals.get("paired", 0)}
     for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written", "checkpoints_skipped"):
@@ -44,6 +99,8 @@ def learner_diagnostics(
         values[f"rejected/{reason}"] = totals.get(reason, 0)
     for key in ("time_resets", "reanchors", "expired", "overflow"):
         values[key] = totals.get(key, 0)
+    for key in HEALTH_KEYS:
+        values[key] = int(status.get(key, 0))
     for key in RESAMPLE_COUNTERS:  # a robot's own topics (resampled): intervals, gaps, jitter, unstamped, ...
         if key in totals and key not in values and not key.startswith("received/"):
             values[key] = totals[key]
@@ -57,7 +114,59 @@ def learner_diagnostics(
         values[f"{ns}/publishers/{kind}"] = publishers
     rejected = sum(totals.get(r, 0) for r in REJECT_REASONS)
     failed = process.get("train_errors", 0) or process.get("dropped", 0)
-    level = ERROR if failed else (WARN if rejected else OK)
+    skipped, streak = values["train_health/skipped"], values["train_health/unhealthy_streak"]
+    sick = streak >= error_after or values["checkpoints_unhealthy"] > 0
+    level = ERROR if failed or sick else (WARN if rejected or skipped else OK)
     message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                f"version {values['model_version']}, rejected {rejected}")
-    return level, message, values
+    f_level, parts, f_values = feasibility_report(status, constraints)
+    values.update(f_values)
+    if skipped:
+        message += f", training steps skipped {skipped}" + (f" ({streak} in a row)" if streak else "")
+    if parts:
+        message += "; " + "; ".join(parts)
+    return max(level, f_level), message, values
+
+
+def process_counters(trainer: TrainingProcess) -> dict[str, int]:
+    """The training process's own counters for :func:`learner_diagnostics` (``process``)."""
+    out = {"train_errors": trainer.errors, "train_restarts": trainer.restarts, "queued": trainer.queued,
+           "dropped": trainer.dropped}
+    if trainer.ready is not None:
+        out.update(train_threads=trainer.ready.threads, train_flush_denormal=int(trainer.ready.flush_denormal))
+    return out
+
+
+def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, run_dir: Path, pid: int | None) -> str:
+    """The log line of a finished ``configure``: what is learned, from where, and how the training process runs."""
+    r = ready.resumed
+    return (f"learner for {p.system!r}" + (f" (system file {p.system_file})" if p.system_file else "")
+            + f" on {p.namespaces}: spec '{spec.raw.get('name')}' ({spec.describe()}), "
+            f"model {p.model_kind} {ready.hidden}, run_dir {run_dir}, "
+            + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
+               else "fresh start")
+            + f"; training process pid {pid} ({ready.threads} torch thread(s), subnormals "
+            + ("flushed" if ready.flush_denormal else "not flushed")
+            + f"); training starts after {p.min_transitions} transitions once active")
+
+
+def paused_message(paused: Saved) -> str:
+    """The log line of a ``deactivate``."""
+    path, version, updates = paused
+    written = "written" if path is not None else "is current"
+    return f"deactivated: training paused after {updates} updates (checkpoint version {version} {written})"
+
+
+def stopped_message(final: Saved | None, updates: float, paired: int, min_transitions: int,
+                    step: str = "shutdown") -> tuple[bool, str]:
+    """``(is an error, log line)`` of the training process's end in lifecycle ``step`` (``shutdown`` or
+    ``cleanup``); ``final`` None: it did not stop in time."""
+    if final is None:
+        return True, f"{step}: the training process did not stop in time; it was killed"
+    path, version, done = final
+    if path is not None:
+        return False, f"{step}: final checkpoint version {version} ({done} updates)"
+    if updates > 0 or version > 0:
+        return False, f"{step}: checkpoint version {version} is current ({done} updates)"
+    return False, (f"{step}: no checkpoint written, training never started ({paired}/{min_transitions} "
+                   "transitions)")

@@ -36,6 +36,10 @@ class IncompatibleCheckpoint(CheckpointError):
     """A readable checkpoint that does not fit the system it is meant for (schema or system mismatch)."""
 
 
+class UnhealthyModel(ValueError):
+    """A model with a non-finite weight or normalisation value: it is never written into a checkpoint."""
+
+
 def system_params(system: System) -> dict[str, Any]:
     params = getattr(system, "params", None)
     return dict(params()) if callable(params) else {}
@@ -44,9 +48,14 @@ def system_params(system: System) -> dict[str, Any]:
 def model_payload(model: DynamicsModel, spec: ProblemSpec) -> tuple[dict[str, np.ndarray], dict[str, Any], Any]:
     """The model's part of a checkpoint: arrays ``model/...`` (weights and normalisation), meta (``kind``,
     system, its parameters, schema hash, layouts, architecture, spec) and the model state's skeleton (for
-    ``meta["skeletons"]["model"]``)."""
+    ``meta["skeletons"]["model"]``). Raises :class:`UnhealthyModel` if a weight or normalisation value is NaN or
+    infinite (no checkpoint with non-finite weights is ever written)."""
     system = model.system
-    arrays, skeleton = torch_state_to_arrays("model", model.state_dict())
+    state = model.state_dict()
+    bad = [k for k, v in state.items() if not bool(torch.isfinite(v).all())]
+    if bad:
+        raise UnhealthyModel(f"the model has non-finite values in {bad}: not written")
+    arrays, skeleton = torch_state_to_arrays("model", state)
     meta = {
         "kind": MODEL_KIND,
         "system": system.name,

@@ -22,7 +22,10 @@ replaced is looked at again, an unchanged one never twice):
 * ``corrupt``: truncated, damaged, not a checkpoint, a malformed ``latest`` pointer
   (:class:`~saml_ros.core.checkpoint.CheckpointError`);
 * ``missing``: an announced file that does not exist (e.g. pruned before it could be read);
-* ``error``: anything else raised while loading or preparing (never propagated: the watcher keeps going).
+* ``error``: anything else raised while loading or preparing (never propagated: the watcher keeps going);
+* ``non_finite``, ``implausible``, ``residual``: the model fails the ``vet`` hook's acceptance check (the MPC's:
+  :func:`saml_ros.core.model_acceptance.check_model`: non-finite weights, predictions outside the plausible range
+  or further from the base model than the training data ever showed).
 
 An optional ``accept(loaded) -> reason | None`` hook can hold back checkpoints that are *valid but not good
 enough yet* (e.g. the learner's own estimate says the accuracy constraints are not met): they are counted as
@@ -48,11 +51,12 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from saml_ros.core.checkpoint import CheckpointError, CheckpointStore
+from saml_ros.core.model_acceptance import ACCEPTANCE_REASONS
 from saml_ros.core.model_io import IncompatibleCheckpoint, LoadedModel, load_model
 from saml_ros.core.systems.base import System
 
 #: refusal reasons, in the order the counters are reported
-REFUSAL_REASONS: tuple[str, ...] = ("incompatible", "corrupt", "missing", "error")
+REFUSAL_REASONS: tuple[str, ...] = ("incompatible", "corrupt", "missing", "error", *ACCEPTANCE_REASONS)
 
 
 class Logger(Protocol):
@@ -110,6 +114,8 @@ class ModelWatcher:
         logger: where refusals and loads are logged (``None``: silent).
         accept: optional ``accept(loaded) -> reason | None`` run after loading; a returned reason holds the
             checkpoint back (counted as ``gated``, logged).
+        vet: optional ``vet(loaded) -> (reason, message) | None`` run right after loading; a returned pair
+            refuses the checkpoint under ``reason`` (one of :data:`REFUSAL_REASONS`).
 
     Thread safety: :meth:`notify`, :meth:`take`, :meth:`stats` may be called from any thread.
     """
@@ -124,6 +130,7 @@ class ModelWatcher:
         loader: Callable[[Path, System], LoadedModel] | None = None,
         logger: Logger | None = None,
         accept: Callable[[LoadedModel], str | None] | None = None,
+        vet: Callable[[LoadedModel], tuple[str, str] | None] | None = None,
     ) -> None:
         if not poll_period > 0:
             raise ValueError(f"poll_period must be > 0 s, got {poll_period}")
@@ -134,6 +141,7 @@ class ModelWatcher:
         self._loader = loader or (lambda path, system: load_model(path, expect=system))
         self._log = logger
         self._accept = accept
+        self._vet = vet
         self._cond = threading.Condition()
         self._work = threading.Lock()  # one load at a time (background thread or a synchronous call)
         self._notes: list[tuple[str, int | None, str | None]] = []
@@ -317,6 +325,10 @@ class ModelWatcher:
         t0 = time.perf_counter()
         try:
             loaded = self._loader(path, self.system)
+            refused = self._vet(loaded) if self._vet is not None else None
+            if refused is not None:
+                self._refuse(str(path), loaded.version, *refused)
+                return None
             held_back = self._accept(loaded) if self._accept is not None else None
             if held_back is not None:
                 self._hold_back(path, loaded.version, held_back)

@@ -20,7 +20,9 @@ At most ``max_slots`` stamps are remembered in total (the oldest go first), what
 
 Each event is checked in this order; a rejected event is counted under its reason and dropped, never paired:
 
-1. ``stamp``: not an int >= 0. ``shape``: wrong vector length. ``nan``: NaN or Inf in the vector.
+1. ``stamp``: not an int >= 0. ``shape``: wrong vector length. ``nan``: NaN or Inf in the vector. ``bounds``: a
+   value outside the system's plausible range (:class:`~saml_ros.core.plausibility.Plausibility`, when the
+   config has one).
 2. ``duplicate``: an event of this kind with the same stamp is already remembered.
 3. ``late``: stamped at or before the newest dropped entry (its partners were forgotten).
 4. ``out_of_order``: stamped before the newest accepted event of the same kind.
@@ -57,12 +59,14 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from saml_ros.core.plausibility import Plausibility
+
 KINDS: tuple[str, ...] = ("state", "applied_cmd", "target")
 MODES: tuple[str, ...] = ("next", "same")
 
 #: reasons a single event is dropped by :meth:`StampPairer.add` (a subset of msg_schemas' REJECT_REASONS);
 #: ``outlier`` events are dropped by a later call (see "Re-anchoring")
-EVENT_REJECTS: tuple[str, ...] = ("stamp", "shape", "nan", "duplicate", "late", "out_of_order", "outlier")
+EVENT_REJECTS: tuple[str, ...] = ("stamp", "shape", "nan", "bounds", "duplicate", "late", "out_of_order", "outlier")
 #: rejections that may reveal a new clock (see "Re-anchoring" in the module docstring)
 _ORDER_REJECTS = frozenset({"duplicate", "late", "out_of_order"})
 #: every counter a :class:`StampPairer` keeps (all start at 0)
@@ -119,6 +123,8 @@ class PairingConfig:
         window: newest accepted states whose stamps (and everything newer) are remembered.
         max_slots: hard cap on remembered stamps.
         reanchor: consecutive increasing rejected events of one kind that re-anchor its clock (>= 2).
+        bounds: plausible ranges of the vectors (events outside them are rejected as ``bounds``); ``None``: no
+            range check.
     """
 
     mode: str
@@ -130,6 +136,7 @@ class PairingConfig:
     window: int = 1000
     max_slots: int = 10_000
     reanchor: int = 3
+    bounds: Plausibility | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -152,10 +159,12 @@ class PairingConfig:
 
     @classmethod
     def for_system(cls, system: Any, target_pairing: str, *, dt: float | None = None, tolerance: float = 1e-6,
-                   window: int = 1000, max_slots: int = 10_000, reanchor: int = 3) -> PairingConfig:
+                   window: int = 1000, max_slots: int = 10_000, reanchor: int = 3,
+                   plausible_bounds: Mapping[str, Any] | str | None = None) -> PairingConfig:
         """Config for a :class:`~saml_ros.core.systems.base.System` (``dt``, ``tolerance`` in s).
 
-        ``target_pairing`` is ``SystemSchema.target_pairing``; ``dt`` defaults to ``system.dt``.
+        ``target_pairing`` is ``SystemSchema.target_pairing``; ``dt`` defaults to ``system.dt``; the bounds are the
+        system's plausible ranges with ``plausible_bounds`` overrides (:meth:`Plausibility.for_system`).
         """
         step = float(system.dt if dt is None else dt)
         return cls(
@@ -168,6 +177,7 @@ class PairingConfig:
             window=window,
             max_slots=max_slots,
             reanchor=reanchor,
+            bounds=Plausibility.for_system(system, plausible_bounds),
         )
 
 
@@ -248,6 +258,11 @@ class StampPairer:
             return self._drop("shape", f"{kind} at {_fmt(stamp)}: expected {size} values, got shape {vec.shape}")
         if not np.isfinite(vec).all():
             return self._drop("nan", f"{kind} at {_fmt(stamp)}: non-finite value(s) {vec.tolist()}")
+        bounds = self.config.bounds
+        if bounds is not None:
+            why = bounds.outside(kind, vec)
+            if why is not None:
+                return self._drop("bounds", f"{kind} at {_fmt(stamp)}: outside the plausible range: {why}")
         reason, detail = self._classify(kind, stamp)
         run = self._runs[kind]
         if reason is None:

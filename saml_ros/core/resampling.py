@@ -28,7 +28,7 @@ A command stamped before an interval that was already decided is counted ``late`
 raise ``latency`` if this happens).
 
 Each event is checked like :class:`~saml_ros.core.pairing.StampPairer` does: ``stamp`` (not an int >= 0),
-``shape``, ``nan``, ``duplicate`` (the same stamp as the previous message of that kind, within 1 us),
+``shape``, ``nan``, ``bounds`` (outside the config's plausible ranges), ``duplicate`` (the same stamp as the previous message of that kind, within 1 us),
 ``out_of_order`` (older than the previous one of that kind). ``reanchor`` consecutive out-of-order states whose
 stamps increase among themselves are a new clock (a restarted robot or simulator): everything pending is
 dropped (``time_resets``) and the grid restarts at the first of them.
@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.pairing import NS_PER_S, AddResult, Transition
+from saml_ros.core.plausibility import Plausibility
 
 KINDS: tuple[str, ...] = ("state", "applied_cmd")
 STATE_RULES: tuple[str, ...] = ("interpolate", "nearest")
@@ -64,7 +65,7 @@ MIXED_POLICIES: tuple[str, ...] = ("hold", "drop")
 #: every counter a :class:`ResamplingPairer` keeps (all start at 0); see the module docstring
 COUNTERS: tuple[str, ...] = (
     "received/state", "received/applied_cmd", "unstamped/state", "unstamped/applied_cmd", "intervals", "paired",
-    "stamp", "shape", "nan", "duplicate", "out_of_order", "late",
+    "stamp", "shape", "nan", "bounds", "duplicate", "out_of_order", "late",
     "gap", "no_cmd", "stale_cmd", "ambiguous_cmd", "mixed_cmd",
     "missing/state", "missing/applied_cmd", "jitter/state", "jitter/applied_cmd",
     "max_interval_us/state", "max_interval_us/applied_cmd", "time_resets",
@@ -93,6 +94,8 @@ class ResampleConfig:
         jitter_tolerance: fraction of the period an interval may deviate before it counts as jitter.
         stamped_state, stamped_cmd: whether the messages carry a header stamp (else stamped on receipt).
         reanchor: consecutive increasing out-of-order states that restart the clock (>= 2).
+        bounds: plausible ranges of the vectors (:mod:`saml_ros.core.plausibility`); an event outside them is
+            rejected as ``bounds``; ``None``: no range check.
     """
 
     n_x: int
@@ -112,6 +115,7 @@ class ResampleConfig:
     stamped_state: bool = True
     stamped_cmd: bool = True
     reanchor: int = 3
+    bounds: Plausibility | None = None
 
     def __post_init__(self) -> None:
         if self.n_x < 1 or self.n_u < 0:
@@ -251,6 +255,9 @@ class ResamplingPairer:
                                        f"shape {vec.shape}")
         if not np.isfinite(vec).all():
             return self._drop("nan", f"{kind} at {_fmt(stamp)}: non-finite value(s) {vec.tolist()}")
+        bounds = self.config.bounds
+        if bounds is not None and (why := bounds.outside(kind, vec)) is not None:
+            return self._drop("bounds", f"{kind} at {_fmt(stamp)}: outside the plausible range: {why}")
         last = self._last_stamp[kind]
         if last is not None and abs(stamp - last) <= _SAME_NS:
             return self._drop("duplicate", f"{kind} at {_fmt(stamp)} has the stamp of the previous {kind}")

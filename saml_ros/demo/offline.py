@@ -41,7 +41,7 @@ def offline_main(argv: list[str] | None = None) -> int:
     print(f"demo: training {args.seeds} Sufficiently + {args.seeds} Uniformly Accurate 4-2 PReLU residual "
           f"models, {args.samples} samples, {args.epochs} epochs ...")
     t0 = time.perf_counter()
-    cmp = compare(system, spec, TrainConfig(epochs=args.epochs), list(range(args.seeds)), args.samples,
+    cmp = compare(system, spec, TrainConfig.paper(epochs=args.epochs), list(range(args.seeds)), args.samples,
                   args.test_samples, progress=True)
     elapsed = time.perf_counter() - t0
     args.out.mkdir(parents=True, exist_ok=True)

@@ -37,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
                    help="override a settings field (Python literal; repeatable)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--ray", help="run the independent units (convergence: the grid cells) on Ray: local, auto or "
+                                 "a cluster address (same numbers as in-process; other experiments run in-process)")
+    p.add_argument("--ray-cpus", type=int, help="CPUs of a --ray local instance (default: all)")
     return p
 
 
@@ -81,12 +84,18 @@ def settings_for(name: str, quick: bool, seeds: list[int] | None, overrides: lis
     return replace(settings, **changes) if changes else settings
 
 
-def run_experiment(name: str, settings: Any, out: Path, progress: bool = True) -> dict[str, Any]:
+#: experiments whose independent units run on Ray with ``--ray``
+RAY_EXPERIMENTS = ("convergence",)
+
+
+def run_experiment(name: str, settings: Any, out: Path, progress: bool = True, ray: str | None = None,
+                   ray_cpus: int | None = None) -> dict[str, Any]:
     """Run experiment ``name`` with ``settings`` into ``out``; returns its results dict."""
     import importlib
 
     module = importlib.import_module(f"saml_ros.experiments.{name}")
-    result: dict[str, Any] = module.run(settings, out, progress)
+    kwargs = {"ray": ray, "ray_cpus": ray_cpus} if name in RAY_EXPERIMENTS and ray else {}
+    result: dict[str, Any] = module.run(settings, out, progress, **kwargs)
     return result
 
 
@@ -97,6 +106,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds is not None and len(set(args.seeds)) != len(args.seeds):
         print("experiment: --seeds must be distinct", file=sys.stderr)
         return 2
+    if args.ray:
+        from saml_ros.offline.parallel import RayUnavailable, check_ray
+
+        try:
+            check_ray(args.ray)
+        except RayUnavailable as exc:
+            print(f"experiment: {exc}", file=sys.stderr)
+            return 2
+        if not set(names) & set(RAY_EXPERIMENTS):
+            print(f"experiment: --ray applies to {', '.join(RAY_EXPERIMENTS)} only", file=sys.stderr)
+            return 2
     found: list[Any] = []
     cpu0, t_all = time.process_time(), time.perf_counter()
     for name in names:
@@ -112,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         print(f"experiment {name}{' (quick)' if args.quick else ''} -> {out}", flush=True)
         c0 = time.process_time()
-        data = run_experiment(name, settings, out, progress=not args.no_progress)
+        data = run_experiment(name, settings, out, progress=not args.no_progress, ray=args.ray,
+                              ray_cpus=args.ray_cpus)
         found += data.get("claims", [])
         print((out / "results.md").read_text())
         print(f"experiment {name}: done in {time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s "

@@ -303,7 +303,7 @@ def train_paper_comparison(system: System, seeds: Sequence[int], n_train: int, n
     from saml_ros.offline.pipelines import compare
 
     spec = ProblemSpec.for_system(system.paper_spec() if spec_dict is None else spec_dict, system)
-    config = TrainConfig(epochs=epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
+    config = TrainConfig.paper(epochs=epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-4)
     with timer("train"), quiet_trainer_warnings(), flush_denormals():
         cmp = compare(system, spec, config, list(seeds), n_train, n_test, hidden, progress=progress)
     return spec, cmp

@@ -116,11 +116,48 @@ def pstar_check(system: System, sigma: float, eps: float, n: int, seed: int = 12
     }
 
 
+@dataclass(frozen=True)
+class Cell:
+    """One (net, N) cell of the grid: an independent unit (:mod:`saml_ros.offline.parallel`)."""
+
+    net: tuple[int, ...]
+    n: int
+    seeds: tuple[int, ...]
+    settings: ConvergenceSettings
+    test: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def train_cell(cell: Cell) -> dict[str, Any]:
+    """Train one cell's datasets as one ensemble (generated from the cell's seeds) and evaluate it."""
+    s = cell.settings
+    system = get_system("friction")
+    spec = ProblemSpec.for_system(convergence_spec(s.eps), system)
+    config = TrainConfig.paper(epochs=s.epochs, batch_size=s.batch_size, primal_lr=1e-3, dual_lr=1e-4, seed=s.seed)
+    xt, ut, yt = cell.test
+    with quiet_trainer_warnings(), flush_denormals():
+        x, u, y = generate_datasets(system, cell.n, list(cell.seeds), {"v": s.sigma})
+        res = train_models(system, spec, x, u, y, config, list(cell.seeds), cell.net, "residual")
+        final = res.trainer.evaluate(Transitions(res.model, spec, x, u, y))
+        test = evaluate_spec(res.model, spec, Transitions(res.model, spec, xt, ut, yt), res.trainer.lam)
+    return {
+        "net": list(cell.net), "n": cell.n, "seeds": list(cell.seeds), "train_seconds": res.train_seconds,
+        "engine": res.trainer.engine_used,
+        "lagrangian": final["lagrangian"], "objective": final["objective"],
+        "constraint": final["constraints"][:, 0], "lambda": final["lambdas"][:, 0],
+        "test_objective": test["objective"], "test_constraint": test["constraints"][:, 0],
+    }
+
+
 @single_threaded
-def run(settings: ConvergenceSettings, out: Path, progress: bool = True) -> dict[str, Any]:
+def run(settings: ConvergenceSettings, out: Path, progress: bool = True, ray: str | None = None,
+        ray_cpus: int | None = None) -> dict[str, Any]:
     """Run the grid; write ``results.md``, ``results.json``, ``convergence_boxplot.png`` into ``out``.
 
-    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.single_threaded`)."""
+    Runs single-threaded with subnormals flushed (:func:`~saml_ros.experiments.common.single_threaded`). The
+    cells are independent units: ``ray`` (``local``, ``auto`` or an address) runs them on Ray, with the same
+    numbers as in this process (:func:`saml_ros.offline.parallel.map_units`)."""
+    from saml_ros.offline.parallel import map_units
+
     s = settings
     timer = Timer()
     system = get_system("friction")
@@ -129,37 +166,24 @@ def run(settings: ConvergenceSettings, out: Path, progress: bool = True) -> dict
     with timer("pstar"):
         ps = pstar_check(system, s.sigma, s.eps, s.n_pstar)
     pstar = s.sigma**2
-    noise = {"v": s.sigma}
-    xt, ut, yt = system.make_dataset(s.n_test, np.random.default_rng(s.seed + 999_999), noise)
-    config = TrainConfig(epochs=s.epochs, batch_size=s.batch_size, primal_lr=1e-3, dual_lr=1e-4, seed=s.seed)
-    cells: list[dict[str, Any]] = []
-    bar = progress_bar(len(s.nets) * len(s.sizes), "convergence grid (net x N)", progress)
-    datasets = {}
-    for j, n in enumerate(s.sizes):
-        seeds = [s.seed + 1000 * j + k for k in range(s.n_datasets)]
-        datasets[n] = (seeds, generate_datasets(system, n, seeds, noise))
-    for net in s.nets:
-        for n in s.sizes:
-            seeds, (x, u, y) = datasets[n]
-            with timer(f"train {net[0]}-{net[1]}"), quiet_trainer_warnings(), flush_denormals():
-                res = train_models(system, spec, x, u, y, config, seeds, net, "residual")
-                final = res.trainer.evaluate(Transitions(res.model, spec, x, u, y))
-                test = evaluate_spec(res.model, spec, Transitions(res.model, spec, xt, ut, yt), res.trainer.lam)
-            cells.append({
-                "net": list(net), "n": n, "seeds": seeds, "train_seconds": res.train_seconds,
-                "engine": res.trainer.engine_used,
-                "lagrangian": final["lagrangian"], "objective": final["objective"],
-                "constraint": final["constraints"][:, 0], "lambda": final["lambdas"][:, 0],
-                "test_objective": test["objective"], "test_constraint": test["constraints"][:, 0],
-            })
-            bar.set_postfix_str(f"net {net} N={n} median L={np.median(final['lagrangian']):.4f}", refresh=False)
-            bar.update(1)
+    test = system.make_dataset(s.n_test, np.random.default_rng(s.seed + 999_999), {"v": s.sigma})
+    grid = [Cell(tuple(net), n, tuple(s.seed + 1000 * j + k for k in range(s.n_datasets)), s, test)
+            for net in s.nets for j, n in enumerate(s.sizes)]
+    bar = progress_bar(len(grid), "convergence grid (net x N)", progress)
+
+    def done(i: int, cell: dict[str, Any]) -> None:
+        bar.set_postfix_str(f"net {cell['net']} N={cell['n']} median L={np.median(cell['lagrangian']):.4f}",
+                            refresh=False)
+        bar.update(1)
+
+    with timer("train" + (f" (ray {ray})" if ray else "")):
+        cells = map_units(train_cell, grid, ray=ray, num_cpus=ray_cpus, on_result=done)
     bar.close()
     fig = out / "convergence_boxplot.png"
     plot_boxes(cells, s, pstar, fig)
     found = claims(cells, s, pstar)
     data = {"settings": s.__dict__, "spec": spec.to_dict(), "pstar": pstar, "pstar_check": ps, "cells": cells,
-            "claims": found, "timing": timer.to_dict(), "machine": info}
+            "claims": found, "timing": timer.to_dict(), "machine": info, "backend": ray or "in-process"}
     write_results(out, markdown(cells, s, ps, pstar, timer, fig.name, found), data)
     return data
 

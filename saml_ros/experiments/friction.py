@@ -206,7 +206,8 @@ def run_profile(system: FrictionDoubleIntegrator, s: FrictionSettings, timer: Ti
     bar.close()
     stats = {mode: control_stats(res) for mode, res in control.items()}
     errors = model_error_data(cmp)
-    data = {"profile": profile, "system": system.params(), "mu_bounds": system.mu_bounds,
+    mu = system.friction_decel_np(np.linspace(-2.0, 2.0, 4001))
+    data = {"profile": profile, "system": system.params(), "mu_range": (float(mu.min()), float(mu.max())),
             "spec": spec.to_dict(), "starts": x0s[:, 0], "model_errors": errors, "control": control,
             "stats": stats, "calibration": calibration(errors, stats[s.modes[0]], system),
             "training": training_summary(cmp),
@@ -326,8 +327,8 @@ def markdown(data: dict[str, Any], s: FrictionSettings, timer: Timer) -> str:
 
 
 def profile_markdown(profile: str, d: dict[str, Any], s: FrictionSettings) -> list[str]:
-    lo, hi = d["mu_bounds"]
-    lines = [f"## Profile `{profile}` (mu(p) within [{lo:.2f}, {hi:.2f}] m/s^2)", "",
+    lo, hi = d["mu_range"]
+    lines = [f"## Profile `{profile}` (mu(p) from {lo:.2f} to {hi:.2f} m/s^2 over p in [-2, 2] m)", "",
              "### Model errors (held-out l2 error of the next state, m/s)", ""]
     for name, r in d["model_errors"].items():
         rows = []

@@ -45,9 +45,11 @@ class Estimate:
         return dict(self.__dict__)
 
     def pct(self, digits: int = 1) -> str:
-        """``"17.5 % [16.9, 18.1]"``."""
-        return (f"{100 * self.value:.{digits}f} % [{100 * self.ci_low:.{digits}f}, "
-                f"{100 * self.ci_high:.{digits}f}]")
+        """``"17.5 % [16.9, 18.1]"`` (``n/a`` for an undefined interval, e.g. one seed)."""
+        def one(v: float) -> str:
+            return f"{100 * v:.{digits}f}" if math.isfinite(v) else "n/a"
+
+        return f"{one(self.value)} % [{one(self.ci_low)}, {one(self.ci_high)}]"
 
     def text(self, digits: int = 3, sci: bool = False) -> str:
         return f"{fmt(self.value, digits, sci)} [{fmt(self.ci_low, digits, sci)}, {fmt(self.ci_high, digits, sci)}]"
@@ -116,6 +118,8 @@ class Headroom:
     def line(self) -> str:
         """One sentence for a results table."""
         mark = "" if self.enough else f" — **cannot show a model effect** (headroom < {100 * MIN_HEADROOM:.0f} %)"
+        if np.isfinite(self.headroom.value) and self.headroom.value < 0:
+            mark += ": the oracle does worse than the base model here"
         shares = "; ".join(f"{k} captures {v.pct(0)} of it" for k, v in self.shares.items())
         return (f"headroom (base − oracle) / base = {self.headroom.pct()} (base {fmt(self.base)}, oracle "
                 f"{fmt(self.oracle)}){mark}" + (f"; {shares}" if shares else ""))

@@ -209,7 +209,7 @@ def train_config(s: PaddleSettings) -> TrainConfig:
     options: dict[str, Any] = {}
     if s.lr_schedule != "constant":
         options["primal_schedule"] = s.lr_schedule
-    return TrainConfig(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-3, **options)
+    return TrainConfig.paper(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-3, **options)
 
 
 def validation_errors(model: Any, system: PaddleBall, x: np.ndarray, u: np.ndarray,

@@ -1,29 +1,25 @@
 """Online learner node (``ros2 run saml_ros learner``): pairs simulator / robot data and trains the model live.
 
-A thin rclpy wrapper over :class:`saml_ros.core.online.OnlineLearner` (see docs/learner.md):
+Wiring over :class:`saml_ros.core.online.TrainingProcess` (docs/learner.md), parameters from
+:class:`saml_ros.core.learner_config.LearnerConfig`:
 
-* subscribes, per namespace in ``namespaces``, to ``state``, ``applied_cmd`` (and ``post_impact`` for the
-  paddle ball) with ``DATA_QOS`` in one callback group, taking the *serialized* messages (``raw=True``): the
-  callbacks only count and queue them (building Python message objects is most of a subscriber's cost);
-* a niced training process (:class:`saml_ros.core.online.TrainingProcess`) gets them in batches, deserializes
-  and converts them with msg_schemas (:func:`make_decoder`), pairs them per namespace (malformed / duplicate /
-  out-of-order / late messages are counted under ``rejected/<reason>`` and logged, throttled per reason, never
-  paired) and trains: replay buffer, primal-dual steps, the live model error, a checkpoint every
-  ``checkpoint_period`` s. Training never competes with ingest for Python's GIL, and the OS runs this process
-  first when CPUs are short;
-* publishes ``learner/model_error`` (sensor_msgs/JointState, names -> values) at ``telemetry_rate``,
-  ``learner/checkpoint`` (std_msgs/String JSON, transient local) after every checkpoint and ``/diagnostics``;
-* on SIGINT / SIGTERM writes a final checkpoint and exits 0. Configuration errors (unknown system, bad spec,
-  bad parameter, a run directory of another system) are logged and exit with status 2.
+* subscribes, per namespace in ``namespaces``, to ``state``, ``applied_cmd`` (and ``post_impact`` for the paddle
+  ball) taking the *serialized* messages (``raw=True``), which the callbacks only count and queue; a niced
+  training process decodes (:func:`make_decoder`) and pairs them (bad input counted under ``rejected/<reason>``),
+  trains (replay buffer, primal-dual steps) and checkpoints every ``checkpoint_period`` s, never competing with
+  ingest for the GIL;
+* publishes ``learner/model_error`` at ``telemetry_rate``, ``learner/checkpoint`` (transient local) after every
+  checkpoint and ``/diagnostics``;
+* a managed node (docs/learner.md, "Lifecycle"): ``configure`` reads the parameters and the spec and starts the
+  training process paused (resumed from the newest checkpoint), ``activate`` subscribes and trains,
+  ``deactivate`` unsubscribes and pauses after one checkpoint, ``cleanup`` ends the training process. With
+  ``autostart`` (default) it walks configure and activate itself and a configuration error exits 2;
+* on SIGINT / SIGTERM (or ``shutdown``) writes a final checkpoint and exits 0.
 
-Wiring only: the parameters are :class:`saml_ros.core.learner_config.LearnerConfig`'s, the training is the
-training process's. torch is imported only once :func:`main` has started that process (so both import it at
-the same time, which halves the start-up).
+torch is imported only once :func:`main` has started the training interpreter (both import it at once, which
+halves the start-up). Usage::
 
-Usage::
-
-    ros2 run saml_ros learner --ros-args -r __ns:=/friction -p system:=friction \\
-        --params-file config/learner.yaml
+    ros2 run saml_ros learner --ros-args -r __ns:=/friction -p system:=friction --params-file config/learner.yaml
 """
 
 from __future__ import annotations
@@ -35,19 +31,25 @@ from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 
 import msg_schemas.telemetry as tele
 from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, QosSpec, get_schema
 from msg_schemas.decode import make_decoder
-from msg_schemas.names import join_topic
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.learner_config import LearnerConfig, learner_params
-from saml_ros.core.learner_report import learner_diagnostics
-from saml_ros.nodes.params import declare_params, probe_system
-from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
+from saml_ros.core.learner_report import (
+    configured_message,
+    learner_diagnostics,
+    paused_message,
+    process_counters,
+    stopped_message,
+)
+from saml_ros.core.lifecycle import TransitionRefused
+from saml_ros.nodes.managed import ManagedNode, run_managed
+from saml_ros.nodes.params import current_values, declare_params, probe_system
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, log_at, process_main, shutdown, wants_help
 
 if TYPE_CHECKING:
     from saml_ros.core.online import TrainingProcess
@@ -62,92 +64,123 @@ class ConfigError(Exception):
 
 
 def load_robot(path: str) -> Any:
-    """The robot of system file ``path``, registered under its name; :class:`ConfigError` naming the problem."""
+    """The robot of system file ``path``, registered under its name; ValueError naming the problem."""
     from saml_ros.core.systems.system_file import SystemFileError
     from saml_ros.user_code import load_system_file
 
     try:
         return load_system_file(path)
     except SystemFileError as exc:
-        raise ConfigError(f"parameter 'system_file': {exc}") from None
+        raise ValueError(f"parameter 'system_file': {exc}") from None
 
 
-class LearnerNode(Node):
-    """The learner; raises :class:`ConfigError` from the constructor on bad configuration."""
+class LearnerNode(ManagedNode):
+    """The learner (a managed node, see the module docstring); ``launched``: a training interpreter from
+    :func:`prelaunch_trainer`, used by the first ``configure``."""
 
     def __init__(self, namespace: str | None, launched: Any = None) -> None:
-        super().__init__(NODE_NAME, namespace=namespace)
+        super().__init__(NODE_NAME, namespace)
+        self._table = learner_params()
         try:
-            values = declare_params(self, learner_params())
+            declare_params(self, self._table)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        self._launched = launched
+        self.trainer: TrainingProcess | None = None
+        self._subs: list[Any] = []
+        self._pubs: list[Any] = []  # made by configure, destroyed by cleanup
+        self._timers: list[Any] = []
+        self.active = False
+
+    # ---------------------------------------------------------------------------------------------- lifecycle
+    def configure_node(self) -> None:
+        try:
+            values = current_values(self, self._table)
             if values.get("system_file"):
                 values["system"] = load_robot(values["system_file"]).name
             self.p = p = LearnerConfig.from_params(values, self.get_namespace())
             self.system = p.make_system()
             self.spec = p.load_spec(self.system)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise TransitionRefused(str(exc)) from None
         self.schema = get_schema(p.system)
         self.run_dir = run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
         try:
             CheckpointStore(run_dir, keep=p.checkpoint_keep)  # fail here, clearly, if it cannot be created
         except OSError as exc:
-            raise ConfigError(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
+            raise TransitionRefused(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
+        self.channels = p.channels(self.schema)
         sc = self.schema
-        kinds = [("state", sc.state_topic, sc.state), ("applied_cmd", sc.applied_cmd_topic, sc.control)]
-        if sc.target_pairing == "same":
-            kinds.append(("target", sc.target_topic, sc.target))
-        #: one channel per (namespace, kind): (namespace, kind, topic, message type)
-        self.channels = [(ns, kind, join_topic(ns, name), codec.msg_type)
-                         for ns in p.namespaces for kind, name, codec in kinds]
+        kinds = {"state": (sc.state_topic, sc.state), "applied_cmd": (sc.applied_cmd_topic, sc.control),
+                 "target": (sc.target_topic, sc.target)}
         #: channels whose messages have no header (a robot's cmd_vel): stamped with their receive time
-        self.unstamped = [getattr(codec, "stamped", True) is False for _ in p.namespaces for _, _, codec in kinds]
-        self.channel_qos = [sc.topic(name).qos for _ in p.namespaces for _, name, _ in kinds]
+        self.unstamped = [getattr(kinds[kind][1], "stamped", True) is False for _, kind, _, _ in self.channels]
+        self.channel_qos = [sc.topic(kinds[kind][0]).qos for _, kind, _, _ in self.channels]
         self.received = [0] * len(self.channels)
-        self.trainer = self._start_training(launched)
-        self._create_interfaces()
+        launched, self._launched = self._launched, None
+        try:  # imports torch (the training interpreter is importing it meanwhile)
+            self.trainer = p.start_training(self.system, self.spec, self.schema, str(run_dir), make_decoder,
+                                            paused=True, launched=launched, on_checkpoint=self._announce,
+                                            on_log=self._child_log, on_error=self._child_error)
+        except ValueError as exc:
+            raise TransitionRefused(str(exc)) from None
+        self._create_publishers()
         ready = self.trainer.ready
         assert ready is not None
-        r = ready.resumed
-        if r is not None:
-            self._announce(r["path"], r["version"])
-        self.get_logger().info(
-            f"learner for {p.system!r}" + (f" (system file {p.system_file})" if p.system_file else "")
-            + f" on {p.namespaces}: spec '{self.spec.raw.get('name')}' "
-            f"({self.spec.describe()}), model {p.model_kind} {ready.hidden}, run_dir {run_dir}, "
-            + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
-               else "fresh start")
-            + f"; training process pid {self.trainer.pid} ({ready.threads} torch thread(s), subnormals "
-            + ("flushed" if ready.flush_denormal else "not flushed")
-            + f"); training starts after {p.min_transitions} transitions"
-        )
+        if ready.resumed is not None:
+            self._announce(ready.resumed["path"], ready.resumed["version"])
+        self.get_logger().info(configured_message(p, self.spec, ready, run_dir, self.trainer.pid))
 
-    def _start_training(self, launched: Any) -> TrainingProcess:
-        from saml_ros.core.online import ResumeError, TrainingProcess  # torch: the training process is running
+    def activate_node(self) -> None:
+        assert self.trainer is not None
+        self._subscribe()
+        self.trainer.resume()
+        self.active = True
 
-        p = self.p
-        try:
-            setup = p.training_setup(self.system, self.spec, self.schema.target_pairing, str(self.run_dir),
-                                     [(p.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels],
-                                     decoder=make_decoder)
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
-        trainer = TrainingProcess(setup, on_checkpoint=self._announce, on_log=self._child_log,
-                                  on_error=self._child_error)
-        try:
-            trainer.start(launched=launched)
-        except ResumeError as exc:
-            raise ConfigError(str(exc)) from None
-        except RuntimeError as exc:
-            raise ConfigError(f"the training process could not start: {exc}") from None
-        return trainer
+    def deactivate_node(self) -> None:
+        self._unsubscribe()
+        self.active = False
+        if self.trainer is not None:
+            paused = self.trainer.pause()
+            if paused is None:
+                raise RuntimeError("the training process did not pause within 30 s")
+            self.get_logger().info(paused_message(paused))
 
-    def _create_interfaces(self) -> None:
+    def cleanup_node(self, step: str = "cleanup") -> None:
+        self._unsubscribe()
+        self.active = False
+        if self.trainer is not None:
+            self.stop(step)
+            self.trainer = None
+        for timer in self._timers:
+            self.destroy_timer(timer)
+        for pub in self._pubs:
+            self.destroy_publisher(pub)
+        self._timers, self._pubs = [], []
+
+    def shutdown_node(self, state: str) -> None:
+        self.cleanup_node("shutdown")  # active: no pause first, the stop writes the final checkpoint at once
+
+    def discard_prelaunched(self) -> None:
+        """Let an unused pre-launched training interpreter exit."""
+        if self._launched is not None:
+            discard_child(self._launched)
+            self._launched = None
+
+    def _create_publishers(self) -> None:
         self.data_group = MutuallyExclusiveCallbackGroup()
         self.timer_group = MutuallyExclusiveCallbackGroup()
         telemetry_qos = TELEMETRY_QOS.to_rclpy()
         self.pub_error = self.create_publisher(RCLPY.cls(tele.JOINT_STATE), tele.MODEL_ERROR_TOPIC, telemetry_qos)
         self.pub_ckpt = self.create_publisher(RCLPY.cls(tele.STRING), tele.CHECKPOINT_TOPIC, CHECKPOINT_QOS.to_rclpy())
         self.pub_diag = self.create_publisher(RCLPY.cls(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, telemetry_qos)
+        self._pubs = [self.pub_error, self.pub_ckpt, self.pub_diag]
+        self._timers = [
+            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group),
+            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group),
+        ]
+
+    def _subscribe(self) -> None:
         # raw=True: the callback gets the serialized message, decoded in the training process; building Python
         # message objects here is most of a bare subscriber's per-message cost
         # KEEP_ALL: a burst that outruns the callbacks (e.g. while the training process imports torch) waits in
@@ -162,11 +195,15 @@ class LearnerNode(Node):
                                      data_qos(self.channel_qos[ch]), callback_group=self.data_group, raw=True)
             for ch, (_, _, topic, msg_type) in enumerate(self.channels)
         ]
-        self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group)
-        self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group)
+
+    def _unsubscribe(self) -> None:
+        for sub in self._subs:
+            self.destroy_subscription(sub)
+        self._subs = []
 
     # ---------------------------------------------------------------------------------------------- ingest
     def _make_callback(self, channel: int) -> Callable[..., None]:
+        assert self.trainer is not None
         submit, received = self.trainer.submit_raw, self.received
 
         def callback(data: bytes) -> None:
@@ -188,14 +225,7 @@ class LearnerNode(Node):
 
     # ---------------------------------------------------------------------------------------------- training
     def _child_log(self, level: int, text: str) -> None:
-        # one call site per severity: rclpy refuses a call site whose severity changes between calls
-        logger = self.get_logger()
-        if level >= logging.ERROR:
-            logger.error(text)
-        elif level >= logging.WARNING:
-            logger.warning(text)
-        else:
-            logger.info(text)
+        log_at(self.get_logger(), level, text)
 
     def _child_error(self, what: str, text: str) -> None:
         self.get_logger().error(f"{what}: {text}")
@@ -208,21 +238,16 @@ class LearnerNode(Node):
         except Exception as exc:  # noqa: BLE001 - e.g. the publisher is not created yet or already gone
             self.get_logger().warning(f"could not announce checkpoint {path}: {exc}")
 
-    def stop(self) -> None:
-        """Stop training: the training process writes a final checkpoint if there is anything new."""
+    def stop(self, step: str = "shutdown") -> None:
+        """End the training process (in lifecycle ``step``): it writes a final checkpoint if there is anything
+        new."""
+        assert self.trainer is not None
         final = self.trainer.stop()
-        status = self.trainer.status
-        if final is None:
-            self.get_logger().error("shutdown: the training process did not stop in time; it was killed")
-        elif final[0] is not None:
+        if final is not None and final[0] is not None:
             self._announce(final[0], final[1])
-            self.get_logger().info(f"shutdown: final checkpoint version {final[1]} ({final[2]} updates)")
-        elif status.get("updates", 0) > 0 or final[1] > 0:
-            self.get_logger().info(f"shutdown: checkpoint version {final[1]} is current ({final[2]} updates)")
-        else:
-            paired = self.trainer.counts().get("paired", 0)
-            self.get_logger().info(f"shutdown: no checkpoint written, training never started ({paired}/"
-                                   f"{self.p.min_transitions} transitions)")
+        error, text = stopped_message(final, self.trainer.status.get("updates", 0),
+                                      self.trainer.counts().get("paired", 0), self.p.min_transitions, step)
+        log_at(self.get_logger(), logging.ERROR if error else logging.INFO, text)
 
     # ---------------------------------------------------------------------------------------------- telemetry
     def _stamp_ns(self) -> int:
@@ -231,18 +256,25 @@ class LearnerNode(Node):
     def _publish_telemetry(self) -> None:
         from saml_ros.core.online import assemble_telemetry  # imported by the training start already
 
+        if not self.active or self.trainer is None:
+            return
         values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self.trainer.counts())
         self.pub_error.publish(tele.model_error_to_msg(values, self._stamp_ns()))
 
     def _publish_diagnostics(self) -> None:
         tr = self.trainer
-        process = {"train_errors": tr.errors, "train_restarts": tr.restarts, "queued": tr.queued, "dropped": tr.dropped}
-        if tr.ready is not None:
-            process.update(train_threads=tr.ready.threads, train_flush_denormal=int(tr.ready.flush_denormal))
-        channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count())
+        if tr is None:
+            return
+        channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count() if self._subs else 0)
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
-        level, message, values = learner_diagnostics(tr.counts(), tr.status, process, tr.source_counts,
-                                                     self.p.namespaces, channels)
+        level, message, values = learner_diagnostics(tr.counts(), tr.status, process_counters(tr), tr.source_counts,
+                                                     self.p.namespaces, channels,
+                                                     [(t.name, t.eps) for t in self.spec.constraints],
+                                                     self.p.health_error_after)
+        values["lifecycle"] = self.state_label
+        values["invalid_transitions"] = self.invalid_transitions
+        if not self.active:
+            message = f"{self.state_label}: {message}"
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
@@ -264,8 +296,10 @@ def prelaunch_trainer() -> LaunchedChild:
     return launch_child()
 
 
+@process_main
 def main(argv: Sequence[str] | None = None) -> int:
-    """``learner [--ros-args ...]``: run until SIGINT / SIGTERM, then write a final checkpoint and exit 0."""
+    """``learner [--ros-args ...]``: run until SIGINT / SIGTERM (or ``shutdown``), then write a final checkpoint
+    and exit 0; exit 2 when the node cannot be created or, with ``autostart``, not configured."""
     stop = catch_stop_signals()
     args = full_argv(NODE_NAME, argv)
     if wants_help(args):
@@ -283,10 +317,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             discard_child(launched)
             return CONFIG_ERROR
         try:
-            spin_until_stopped(node, stop)
+            return run_managed(node, stop, CONFIG_ERROR)
         finally:
-            node.stop()
-        return 0
+            node.discard_prelaunched()
     finally:
         shutdown(node)
 

@@ -9,10 +9,19 @@ Subscribes ``state`` (DATA_QOS) and ``learner/checkpoint`` (CHECKPOINT_QOS, tran
 * Models: the node starts on the base model f_hat when ``run_dir`` holds no checkpoint. A
   :class:`~saml_ros.core.model_watch.ModelWatcher` follows ``learner/checkpoint`` and polls ``run_dir``
   (``latest``) as a fallback, loads new checkpoints on a background thread and the control step swaps the
-  ready model in between two solves. Incompatible or corrupt checkpoints are refused (log + counter +
-  ``mpc/status`` ``checkpoints_refused``) and the current model is kept.
+  ready model in between two solves. Incompatible, corrupt or unacceptable checkpoints (non-finite weights,
+  implausible predictions, residuals beyond the training data's: :mod:`saml_ros.core.model_acceptance`) are refused
+  (log + counter + ``mpc/status`` ``checkpoints_refused``) and the current model is kept.
+* Failure path: a state outside the system's plausible range, a failed or non-finite solve is answered with the
+  system's safe command (``safe = 1`` and ``safe_commands`` on ``mpc/status``, ``safe_commands/<reason>`` on
+  ``/diagnostics``).
 * Deadline: a control step (swap + solve + publish, from the state's arrival in lockstep or the timer tick in
   realtime) that takes longer than ``deadline_ms`` counts as a deadline miss.
+* A managed node (docs/nodes.md, "Lifecycle"): ``configure`` reads and validates the parameters, builds the
+  controller and loads the newest checkpoint, ``activate`` subscribes ``state`` and commands, ``deactivate``
+  unsubscribes (no ``cmd`` at all: the robot side falls back to its safe command after its command timeout,
+  as the simulators do), ``cleanup`` releases everything. With ``autostart`` (default) it walks configure and
+  activate itself and bad parameters exit 2; a managed node stays unconfigured with the reason logged.
 
 Wiring only: the parameters are :class:`saml_ros.core.mpc.config.MPCConfig`'s, the work is
 :class:`saml_ros.core.mpc.service.MPCService`'s. See docs/nodes.md for the parameters and examples.
@@ -21,7 +30,7 @@ Wiring only: the parameters are :class:`saml_ros.core.mpc.config.MPCConfig`'s, t
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -29,7 +38,6 @@ import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
@@ -45,49 +53,92 @@ from msg_schemas.telemetry import (
     diagnostics_to_msg,
     mpc_status_to_msg,
 )
+from saml_ros.core.lifecycle import TransitionRefused
 from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_entry
-from saml_ros.nodes.params import declare_params, probe_system
-from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, shutdown, spin_until_stopped, wants_help
+from saml_ros.nodes.managed import ManagedNode, run_managed
+from saml_ros.nodes.params import current_values, declare_params, probe_system
+from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help
 
 #: exit code for invalid parameters (as argparse's usage errors)
 USAGE_ERROR = 2
 
 
-class MPCNode(Node):
-    """See the module docstring; raises ``ValueError`` naming the parameter on bad configuration."""
+class MPCNode(ManagedNode):
+    """See the module docstring; raises ``ValueError`` naming the parameter when rclpy refuses a value."""
 
     def __init__(self, system_name: str, namespace: str | None = None) -> None:
-        super().__init__("mpc", namespace=namespace)
-        self.config = config = MPCConfig.from_params(declare_params(self, MPCConfig.params(system_name)))
-        if config.system != system_name:
-            raise ValueError(f"parameter system={config.system!r} does not match the node's system {system_name!r}")
+        super().__init__("mpc", namespace)
+        self.system_name = system_name
+        self.table = MPCConfig.params(system_name)
+        declare_params(self, self.table)
         self.schema = get_schema(system_name)
-        self.cmd_pub = self.create_publisher(RCLPY.cls(self.schema.control.msg_type), self.schema.cmd_topic,
-                                             DATA_QOS.to_rclpy())
-        self.service = MPCService(config, self._send, self.get_logger())
-        self.service.start()
+        self.service: MPCService | None = None
+        self.state_sub: Any = None
+        self._entities: list[tuple[Callable[[Any], Any], Any]] = []  # (destroy, entity) made by configure
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+    def configure_node(self) -> None:
+        try:
+            config = MPCConfig.from_params(current_values(self, self.table))
+        except ValueError as exc:
+            raise TransitionRefused(str(exc)) from None
+        if config.system != self.system_name:
+            raise TransitionRefused(f"parameter system={config.system!r} does not match the node's system "
+                                    f"{self.system_name!r}")
+        self.service = service = MPCService(config, self._send, self.get_logger())
+        service.start()
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        # cmd is a lifecycle publisher: it publishes only while the node is active
+        self.cmd_pub = self.create_lifecycle_publisher(RCLPY.cls(self.schema.control.msg_type),
+                                                       self.schema.cmd_topic, DATA_QOS.to_rclpy())
         self.status_pub = self.create_publisher(JointState, MPC_STATUS_TOPIC, TELEMETRY_QOS.to_rclpy())
         self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy())
-        self.create_subscription(RCLPY.cls(self.schema.state.msg_type), self.schema.state_topic, self._on_state,
-                                 DATA_QOS.to_rclpy())
-        self.create_subscription(String, CHECKPOINT_TOPIC, self._on_checkpoint, CHECKPOINT_QOS.to_rclpy())
-        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._entities = [
+            (self.destroy_lifecycle_publisher, self.cmd_pub),
+            (self.destroy_publisher, self.status_pub),
+            (self.destroy_publisher, self.diag_pub),
+            (self.destroy_subscription, self.create_subscription(String, CHECKPOINT_TOPIC, self._on_checkpoint,
+                                                                 CHECKPOINT_QOS.to_rclpy())),
+            (self.destroy_timer, self.create_timer(1.0 / max(config.diagnostics_rate, 1e-3),
+                                                   self._publish_diagnostics, clock=steady)),
+        ]
         if config.mode == "realtime":
-            self.create_timer(1.0 / config.rate_hz, self._on_tick, clock=steady)
-        self.create_timer(1.0 / max(config.diagnostics_rate, 1e-3), self._publish_diagnostics, clock=steady)
-        horizon = f"T={config.horizon}" if get_entry(system_name).mpc_horizon else "one-shot"
+            self._entities.append((self.destroy_timer, self.create_timer(1.0 / config.rate_hz, self._on_tick,
+                                                                         clock=steady)))
+        horizon = f"T={config.horizon}" if get_entry(self.system_name).mpc_horizon else "one-shot"
         self.get_logger().info(
-            f"{system_name} MPC ({config.solver}{', QP ' + QP_BACKEND if config.solver == 'fast' else ''}, "
+            f"{self.system_name} MPC ({config.solver}{', QP ' + QP_BACKEND if config.solver == 'fast' else ''}, "
             f"{horizon}, {config.mode}{f' at {config.rate_hz:g} Hz' if config.mode == 'realtime' else ''}, "
-            f"deadline {1e3 * self.service.deadline_s:.0f} ms), goal {config.goal!r}, run_dir "
-            f"{config.run_dir or '(none)'}"
+            f"deadline {1e3 * service.deadline_s:.0f} ms), goal {config.goal!r}, run_dir "
+            f"{config.run_dir or '(none)'}; commands once active"
         )
+
+    def activate_node(self) -> None:
+        self.state_sub = self.create_subscription(RCLPY.cls(self.schema.state.msg_type), self.schema.state_topic,
+                                                  self._on_state, DATA_QOS.to_rclpy())
+
+    def deactivate_node(self) -> None:
+        if self.state_sub is not None:
+            self.destroy_subscription(self.state_sub)
+            self.state_sub = None
+        if self.service is not None:
+            self.service.pending = None  # realtime: a state received while active is not answered later
+
+    def cleanup_node(self) -> None:
+        self.deactivate_node()
+        for destroy, entity in self._entities:
+            destroy(entity)
+        self._entities = []
+        if self.service is not None:
+            self.service.stop()
+            self.service = None
 
     # ------------------------------------------------------------------------------------------ callbacks
     def _on_checkpoint(self, msg: Any) -> None:
+        assert self.service is not None
         try:
             info = checkpoint_from_msg(msg, CHECKPOINT_TOPIC)
         except SchemaError as exc:
@@ -96,6 +147,7 @@ class MPCNode(Node):
         self.service.notify(info.path, info.version, info.schema_hash)
 
     def _on_state(self, msg: Any) -> None:
+        assert self.service is not None
         t_arrival = time.perf_counter()
         try:
             x, stamp = self.schema.state_from_msg(msg, self.schema.state_topic)
@@ -105,7 +157,8 @@ class MPCNode(Node):
         self._publish_status(self.service.receive(x, stamp, t_arrival))
 
     def _on_tick(self) -> None:
-        self._publish_status(self.service.tick())
+        if self.service is not None and self.state_sub is not None:
+            self._publish_status(self.service.tick())
 
     # ------------------------------------------------------------------------------------------ publishing
     def _send(self, u: np.ndarray, stamp: int) -> None:
@@ -116,28 +169,34 @@ class MPCNode(Node):
             stamp, values = answer
             self.status_pub.publish(mpc_status_to_msg(values, stamp))
 
-    def diagnostic_values(self) -> dict[str, Any]:
-        """What ``/diagnostics`` reports (counters, model in use, checkpoint statistics)."""
-        return self.service.diagnostic_values()
-
     def _publish_diagnostics(self) -> None:
-        values = self.diagnostic_values()
+        if self.service is None:
+            return
+        values = self.service.diagnostic_values()
+        values["lifecycle"] = state = self.state_label
+        values["invalid_transitions"] = self.invalid_transitions
         refused = values["checkpoints_refused"]
         version = self.service.model_version
         rollbacks = self.service.counters["rollbacks"]
-        level = WARN if refused or rollbacks or self.service.counters["solver_errors"] else OK
+        safe = values["safe_commands"]
+        level = WARN if refused or safe or rollbacks or self.service.counters["solver_errors"] else OK
         message = (f"model version {version}; {values['solves']} solves" if "solves" in values
                    else f"model version {version}; waiting for states")
+        if safe:
+            message += f"; {safe} safe command(s) sent"
         if refused:
             message += f"; {refused} checkpoint(s) refused, last: {values['last_refusal']}"
         if rollbacks:
             message += (f"; {rollbacks} roll back(s) by the live monitor (versions "
                         f"{values.get('guard_rolled_back_versions', '')} not used again)")
+        if state != "active":
+            message = f"{state}: {message}"
         entry = DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.diag_pub.publish(diagnostics_to_msg([entry], self.get_clock().now().nanoseconds))
 
     def destroy_node(self) -> None:
-        self.service.stop()
+        if self.service is not None:
+            self.service.stop()
         super().destroy_node()
 
 
@@ -153,6 +212,7 @@ def create_node() -> MPCNode:
     return MPCNode(system, None if remapped else f"/{system}")
 
 
+@process_main
 def main(argv: Sequence[str] | None = None) -> int:
     """``mpc [--ros-args ...]``: run the node until SIGINT / SIGTERM (exit 0); bad parameters exit 2."""
     args = full_argv("mpc", argv)
@@ -171,8 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ValueError, TypeError) as exc:
             rclpy.logging.get_logger("mpc").fatal(f"configuration error: {exc}")
             return USAGE_ERROR
-        spin_until_stopped(node, stop)
-        return 0
+        return run_managed(node, stop, USAGE_ERROR)
     finally:
         shutdown(node)
 

@@ -12,6 +12,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -36,6 +37,19 @@ def declare_params(node: Node, params: Iterable[Param]) -> dict[str, Any]:
             got = node.declare_parameter(p.name, value, descriptor).value
         except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad overrides
             raise ValueError(f"parameter {p.name!r}: {exc}") from None
+        out[p.name] = p.default if got is None else got
+    return out
+
+
+def current_values(node: Node, params: Iterable[Param]) -> dict[str, Any]:
+    """The current values of the declared ``params`` of ``node`` by name (the default where rclpy has none, as
+    for an empty list); a managed node reads them at ``configure``, so values set meanwhile apply."""
+    out: dict[str, Any] = {}
+    for p in params:
+        try:
+            got = node.get_parameter(p.name).value
+        except ParameterUninitializedException:  # an empty list declared by its type holds no value
+            got = None
         out[p.name] = p.default if got is None else got
     return out
 

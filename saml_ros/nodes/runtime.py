@@ -2,16 +2,23 @@
 
 SIGINT and SIGTERM only set a stop flag, and rclpy starts without its own signal handlers (which would raise
 inside a callback): the executable leaves its spin loop, finishes its shutdown work (a final checkpoint, closing
-a bag) and exits 0 (docs/architecture.md, "Nodes"). Imports rclpy only inside the functions that need it.
+a bag) and exits 0 (docs/architecture.md, "Nodes"). Any number of further signals during that work only set the
+flag again: under ``ros2 launch`` a terminal's Ctrl-C reaches every node twice (from the terminal's process group,
+then from launch), and launch sends SIGTERM 5 s later. :func:`process_main` then ends the process at once
+instead of running the interpreter's teardown (see :func:`exit_process`). Imports rclpy only inside the functions
+that need it.
 """
 
 from __future__ import annotations
 
+import functools
+import logging
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
 from types import FrameType
-from typing import Any
+from typing import Any, TypeVar
 
 #: ``{"signal": number of the newest SIGINT / SIGTERM received, 0 = none yet}``
 StopFlag = dict[str, int]
@@ -73,3 +80,55 @@ def shutdown(node: Any | None) -> None:
         node.destroy_node()
     if rclpy.ok():
         rclpy.shutdown()
+
+
+def log_at(logger: Any, level: int, text: str) -> None:
+    """``text`` on an rclpy ``logger`` at Python logging ``level`` (error, warning, else info); one call site per
+    severity, as rclpy refuses a call site whose severity changes between calls."""
+    if level >= logging.ERROR:
+        logger.error(text)
+    elif level >= logging.WARNING:
+        logger.warning(text)
+    else:
+        logger.info(text)
+
+
+def exit_process(code: int) -> None:
+    """End this process now with ``code``: flush stdout, stderr and Python logging, then ``os._exit``.
+
+    Only for the end of an executable whose shutdown work is done (checkpoint written, bag closed, rclpy shut
+    down). The interpreter's own teardown is what it skips: with torch imported it takes about 1 s on an idle
+    2-core machine and over 5 s under load (torch's library finalizers), longer than ``ros2 launch`` waits
+    before SIGTERM; and a SIGINT arriving in it (the terminal's second one) would print a ``KeyboardInterrupt``
+    traceback, because Python resets the handlers to their defaults while finalizing.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):  # closed or replaced stream: nothing left to flush
+            pass
+    os._exit(code)
+
+
+_Main = TypeVar("_Main", bound=Callable[..., Any])
+
+
+def process_main(main: _Main) -> _Main:
+    """Decorate an executable's ``main(argv=None)``: run as the process entry (``argv`` None, as the console
+    script and ``python -m saml_ros.executables`` call it), it ends the process with :func:`exit_process` once
+    ``main`` returned its exit code; called with an explicit ``argv`` (in-process, e.g. from a test) it just
+    returns the code. An exception propagates as usual (traceback, exit code 1)."""
+
+    @functools.wraps(main)
+    def wrapper(argv: Sequence[str] | None = None) -> Any:
+        code = main(argv)
+        if argv is None:
+            if isinstance(code, str):  # as sys.exit(message): the message on stderr, status 1
+                print(code, file=sys.stderr)
+            exit_process(code if isinstance(code, int) else (0 if code is None else 1))
+        return code
+
+    return wrapper  # type: ignore[return-value]

@@ -20,9 +20,12 @@ import torch
 import yaml
 
 from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.device import DeviceError, resolve_device
+from saml_ros.core.model_evidence import DataEvidence
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import get_entry, get_system, system_names
 from saml_ros.core.training import TrainConfig, save_checkpoint
+from saml_ros.core.training.config import DUAL_METHODS
 from saml_ros.offline.pipelines import evaluate_models, generate_datasets, mean_std, train_models
 from saml_ros.offline.plots import plot_training_curves
 
@@ -47,15 +50,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Gaussian noise on a target field of the training data, e.g. v=0.2 (repeatable)")
     p.add_argument("--bag", type=Path, nargs="+", help="train from recorded bags instead of generated data")
     p.add_argument("--epochs", type=int, help="epochs (default: the paper's for the system)")
-    p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
-    p.add_argument("--primal-lr", type=float, default=TrainConfig.primal_lr)
-    p.add_argument("--dual-lr", type=float, default=TrainConfig.dual_lr)
-    p.add_argument("--primal-optimizer", choices=("adam", "sgd"), default="adam")
-    p.add_argument("--dual-optimizer", choices=("adam", "sgd"), default="adam")
+    p.add_argument("--dual-method", choices=DUAL_METHODS, default=TrainConfig.dual_method,
+                   help="how the multipliers move (docs/training.md); 'paper' is Algorithm 1 with the paper's "
+                        "learning rates and constant schedules unless given here")
+    p.add_argument("--batch-size", type=int, help=f"default {TrainConfig.batch_size}")
+    p.add_argument("--primal-lr", type=float, help="default: the method's (TrainConfig / TrainConfig.paper())")
+    p.add_argument("--dual-lr", type=float, help="default: the method's (TrainConfig / TrainConfig.paper())")
+    p.add_argument("--primal-optimizer", choices=("adam", "sgd"))
+    p.add_argument("--dual-optimizer", choices=("adam", "sgd"))
+    p.add_argument("--train", action="append", default=[], metavar="FIELD=VALUE",
+                   help="any other TrainConfig field, e.g. primal_schedule=cosine or nupi_kp=5 (repeatable)")
+    p.add_argument("--restarts", type=int, default=1,
+                   help="train this many initialisations per seed and keep the best feasible one on a held-out "
+                        "split (docs/training.md)")
+    p.add_argument("--holdout", type=float, default=0.2, help="fraction of each seed's data held out for --restarts")
     p.add_argument("--seed", type=int, default=0, help="first seed")
     p.add_argument("--seeds", type=int, default=1, help="train this many seeds at once (one ensemble)")
     p.add_argument("--out", type=Path, help="output run directory (default: runs/train-<system>-<time>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--device", default="cpu", help="training device: cpu (default) | cuda | cuda:N; checked before "
+                                                   "anything runs")
     return p
 
 
@@ -68,6 +82,30 @@ def _parse_noise(items: list[str]) -> dict[str, float]:
         except ValueError:
             raise SystemExit(f"train: --noise expects FIELD=SIGMA, got {it!r}") from None
     return out
+
+
+def train_config(args: argparse.Namespace, epochs: int) -> TrainConfig:
+    """The training config of the command line: the method's defaults (:meth:`TrainConfig.paper` for ``paper``,
+    else :class:`TrainConfig`'s), then the options given.
+
+    Raises:
+        ValueError: a bad ``--train FIELD=VALUE`` or value.
+    """
+    base = TrainConfig.paper() if args.dual_method == "paper" else TrainConfig()
+    d: dict[str, Any] = {**base.__dict__, "epochs": epochs, "seed": args.seed, "dual_method": args.dual_method,
+                         "device": args.device}
+    for name in ("batch_size", "primal_lr", "dual_lr", "primal_optimizer", "dual_optimizer"):
+        if getattr(args, name) is not None:
+            d[name] = getattr(args, name)
+    fields = TrainConfig.__dataclass_fields__
+    for item in args.train:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep or name not in fields:
+            raise ValueError(f"--train expects FIELD=VALUE with FIELD one of {sorted(fields)}, got {item!r}")
+        kind = type(getattr(base, name))
+        d[name] = text.strip() if kind is str else kind(float(text)) if kind is int else kind(text)
+    return TrainConfig.from_dict(d)
 
 
 def load_spec(system: Any, path: Path | None, uniform: bool) -> ProblemSpec:
@@ -97,20 +135,23 @@ def main(argv: list[str] | None = None) -> int:
     else:
         system = get_system(args.system)
     try:
+        resolve_device(args.device)
         spec = load_spec(system, args.spec, args.uniform)
         noise = _parse_noise(args.noise)
         for name in noise:
             system.target.index(name)
-    except (SpecError, KeyError, OSError) as exc:
+    except (SpecError, KeyError, OSError, DeviceError) as exc:
         print(f"train: {exc}", file=sys.stderr)
         return 2
     entry = get_entry(system.name)  # the paper's dataset size and epochs
     epochs = args.epochs if args.epochs is not None else entry.paper_epochs
     n_train = args.samples or entry.paper_samples
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
-    config = TrainConfig(epochs=epochs, batch_size=args.batch_size, primal_lr=args.primal_lr,
-                         dual_lr=args.dual_lr, primal_optimizer=args.primal_optimizer,
-                         dual_optimizer=args.dual_optimizer, seed=args.seed)
+    try:
+        config = train_config(args, epochs)
+    except ValueError as exc:
+        print(f"train: {exc}", file=sys.stderr)
+        return 2
     out = args.out or Path("runs") / f"train-{system.name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
     if args.bag:
@@ -142,12 +183,26 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"train: {system.name}, {args.kind} model {list(args.hidden or system.paper_hidden)}, "
           f"spec '{spec.raw.get('name')}': {spec.describe()}")
-    print(f"train: {source}; {epochs} epochs, batch {args.batch_size}, seeds {seeds} -> {out}")
+    print(f"train: {source}; {epochs} epochs, batch {config.batch_size}, seeds {seeds}"
+          + (f" x {args.restarts} restarts" if args.restarts > 1 else "") + f" -> {out}")
+    print(f"train: dual method {config.dual_method}, schedules {config.schedule('primal')} / "
+          f"{config.schedule('dual')}, lr {config.primal_lr:g} / {config.dual_lr:g}")
     torch.manual_seed(args.seed)
-    result = train_models(system, spec, x, u, y, config, seeds, args.hidden, args.kind,
-                          progress=not args.no_progress, desc=f"{system.name} {spec.raw.get('name')}")
+    try:
+        result = train_models(system, spec, x, u, y, config, seeds, args.hidden, args.kind,
+                              progress=not args.no_progress, desc=f"{system.name} {spec.raw.get('name')}",
+                              restarts=args.restarts, holdout=args.holdout)
+    except ValueError as exc:
+        print(f"train: {exc}", file=sys.stderr)
+        return 2
     metrics: dict[str, Any] = {"train_seconds": result.train_seconds, "n_train": result.n_train,
-                               "updates": result.trainer.steps, "seeds": seeds, "source": source}
+                               "updates": result.trainer.steps, "seeds": seeds, "source": source,
+                               "train_config": dict(config.__dict__)}
+    if result.selection is not None:
+        metrics["selection"] = {"rule": "docs/training.md#restarts-and-selection", "restarts": args.restarts,
+                                "chosen": result.selection.chosen, "feasible": result.selection.feasible,
+                                "heldout_objective": result.selection.objective.tolist(),
+                                "heldout_constraints": result.selection.constraints.tolist()}
     if len(xt):
         ev = evaluate_models(result.model, spec, xt, ut, yt)
         metrics["test"] = {
@@ -158,11 +213,14 @@ def main(argv: list[str] | None = None) -> int:
                                  "overall": r.overall.tolist(), "frac_inside": r.frac_inside}
                         for r in ev.regions},
         }
-    feas = result.trainer.feasibility()
-    metrics["feasibility_warnings"] = feas.messages()
+    diag = result.trainer.diagnosis
+    assert diag is not None
+    metrics["feasibility"] = diag.to_dict()
 
     store = CheckpointStore(out)
-    ckpt, version = save_checkpoint(store, result.trainer, metrics=metrics)
+    fx, fu, fy = (np.asarray(a).reshape(-1, np.shape(a)[-1]) for a in (x, u, y))  # every seed's data
+    evidence = DataEvidence.from_data(system, fx, fu, fy, rng=np.random.default_rng(args.seed))
+    ckpt, version = save_checkpoint(store, result.trainer, metrics=metrics, evidence=evidence)
     (out / "history.json").write_text(json.dumps(result.history.to_dict()))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))
@@ -176,8 +234,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"train: constraint '{r.name}': error inside {mean_std(r.inside)}, "
                   f"outside {mean_std(r.outside)} ({100 * r.frac_inside:.1f}% of test data inside)")
     print(f"train: lambda = {np.round(result.trainer.lam.numpy(), 4).tolist()}")
-    if feas.messages():
-        print(f"train: WARNING {len(feas.messages())} constraint(s) still violated at the end (see warnings above)")
+    if result.selection is not None:
+        for line in result.selection.describe():
+            print(f"train: {line}")
+    for c in diag.constraints:
+        print(f"train: feasibility [{c.verdict}] {c.message}")
     print(f"train: checkpoint {ckpt} (version {version}); curves {fig}; metrics {out / 'metrics.json'}")
     return 0
 

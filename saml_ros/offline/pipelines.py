@@ -19,6 +19,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
 from saml_ros.core.training import History, PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training.selection import Selection, select_members, take_trainer
 
 
 def generate_datasets(
@@ -31,7 +32,11 @@ def generate_datasets(
 
 @dataclass
 class TrainedModels:
-    """An ensemble trained with one spec; member i was trained with ``seeds[i]``."""
+    """An ensemble trained with one spec; member i was trained with ``seeds[i]``.
+
+    With restarts, ``trainer`` holds the kept member of each seed and ``selection`` says which restart it was
+    (:mod:`saml_ros.core.training.selection`); ``n_train`` is then the training split's size per seed.
+    """
 
     spec: ProblemSpec
     model: DynamicsModel
@@ -39,6 +44,7 @@ class TrainedModels:
     seeds: list[int]
     train_seconds: float
     n_train: int
+    selection: Selection | None = None
 
     @property
     def history(self) -> History:
@@ -57,13 +63,35 @@ def train_models(
     kind: str = "residual",
     progress: bool = False,
     desc: str = "training",
+    restarts: int = 1,
+    holdout: float = 0.2,
 ) -> TrainedModels:
-    """Train ``len(seeds)`` models at once. ``x, u, y`` are ``(N, .)`` (shared) or ``(E, N, .)``."""
+    """Train ``len(seeds)`` models at once. ``x, u, y`` are ``(N, .)`` (shared) or ``(E, N, .)`` (one per seed).
+
+    ``restarts > 1``: each seed trains ``restarts`` members from different initialisations (restart r of seed s is
+    initialised with seed ``s + 100003 r``; r = 0 is the seed's own) on the first ``1 - holdout`` of its data, and
+    keeps the best feasible one on the rest (:func:`~saml_ros.core.training.selection.select_members`); all
+    ``len(seeds) * restarts`` members train as one ensemble.
+    """
     seeds = list(seeds)
-    model = DynamicsModel(system, hidden, kind, n_models=len(seeds), seed=seeds[0])
-    if len(seeds) > 1:  # distinct initialisations per seed
+    if restarts < 1 or not 0 < holdout < 1:
+        raise ValueError(f"restarts must be >= 1 and holdout in (0, 1), got {restarts}, {holdout}")
+    inits = [s + 100_003 * r for s in seeds for r in range(restarts)]
+    xh = uh = yh = None
+    if restarts > 1:
+        n = x.shape[-2]
+        n_fit = n - max(1, int(round(holdout * n)))
+        if n_fit < 2:
+            raise ValueError(f"{n} transitions per seed are too few to hold out {holdout:.0%} for selection")
+        x, xh = x[..., :n_fit, :], x[..., n_fit:, :]
+        u, uh = u[..., :n_fit, :], u[..., n_fit:, :]
+        y, yh = y[..., :n_fit, :], y[..., n_fit:, :]
+        if x.ndim == 3:  # one dataset per seed: the same one for each of its restarts
+            x, u, y, xh, uh, yh = (np.repeat(a, restarts, axis=0) for a in (x, u, y, xh, uh, yh))
+    model = DynamicsModel(system, hidden, kind, n_models=len(inits), seed=inits[0])
+    if len(inits) > 1:  # distinct initialisations per seed
         with torch.no_grad():
-            for i, s in enumerate(seeds):
+            for i, s in enumerate(inits):
                 one = DynamicsModel(system, hidden, kind, n_models=1, seed=s)
                 for p_all, p_one in zip(model.net.parameters(), one.net.parameters()):
                     p_all[i].copy_(p_one[0])
@@ -73,7 +101,16 @@ def train_models(
     data = Transitions(model, spec, x, u, y)
     t0 = time.perf_counter()
     trainer.fit(data, progress=progress, desc=desc)
-    return TrainedModels(spec, model, trainer, seeds, time.perf_counter() - t0, len(data))
+    seconds = time.perf_counter() - t0
+    if restarts == 1:
+        return TrainedModels(spec, model, trainer, seeds, seconds, len(data))
+    assert xh is not None and uh is not None and yh is not None
+    groups = [list(range(i * restarts, (i + 1) * restarts)) for i in range(len(seeds))]
+    sel = select_members(model, spec, Transitions(model, spec, xh, uh, yh), groups)
+    kept = take_trainer(trainer, sel.chosen)
+    kept.diagnosis = kept.diagnose(Transitions(kept.model, spec, *(a[sel.chosen] if a.ndim == 3 else a
+                                                                    for a in (x, u, y))))
+    return TrainedModels(spec, kept.model, kept, seeds, seconds, len(data), sel)
 
 
 @dataclass

@@ -18,6 +18,7 @@ from saml_ros.core.model_monitor import MonitorConfig
 from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.mpc.guard import GuardConfig
 from saml_ros.core.params import Param, check, read_params
+from saml_ros.core.plausibility import parse_overrides
 from saml_ros.core.systems.registry import get_entry
 
 #: how the node answers states
@@ -53,6 +54,15 @@ PARAMS: tuple[Param, ...] = (
     Param("guard.min_samples", 3, "transitions in the window before the monitor may roll back"),
     Param("guard.ratio", 1.0, "roll back when mean error(model) > ratio * mean error(f_hat) + margin"),
     Param("guard.margin", 0.01, "see guard.ratio (squared state units, summed over the target fields)"),
+    Param("plausible_bounds", "", "overrides of the system's plausible ranges as a YAML mapping, e.g. "
+                                  "'{x.pz: [-1.0, 2000.0]}' (fields x.<state>, u.<control>, next.<target>; .inf = "
+                                  "open); a state outside is answered with the safe command (rejected/bounds)"),
+    Param("accept.residual_factor", 4.0, "refuse a checkpoint whose model, on its probe set or the recent states, "
+                                         "differs from the base model by more than this multiple of the largest "
+                                         "residual its training data showed (0 = no residual check)"),
+    Param("safe_on_infeasible", False, "also answer with the safe command when the plan is finite but violates a "
+                                       "constraint (by default only failed or non-finite solves and implausible "
+                                       "states are)"),
 )
 
 
@@ -98,6 +108,9 @@ class MPCConfig:
     goal: Any
     task: dict[str, Any]
     guard: GuardConfig = GuardConfig()
+    plausible_bounds: str = ""
+    accept_residual_factor: float = 4.0
+    safe_on_infeasible: bool = False
 
     @staticmethod
     def params(system: str) -> list[Param]:
@@ -147,6 +160,11 @@ class MPCConfig:
             raise ValueError(f"parameters 'guard.*': {exc}") from None
         check(not guard.enabled or entry.mpc_task is not None, "guard.*", "off for a one-shot MPC (paddle_ball)",
               "on")
+        check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
+        try:
+            parse_overrides(p["plausible_bounds"])
+        except ValueError as exc:
+            raise ValueError(f"parameter 'plausible_bounds': {exc}") from None
         return cls(
             system=system, solver=p["solver"], horizon=p["horizon"], member=p["member"],
             solver_options=parse_solver_options(p["solver_options"]), mode=p["mode"], rate_hz=p["rate_hz"],
@@ -155,6 +173,8 @@ class MPCConfig:
             gate_min_updates=p["gate.min_updates"],
             goal=entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params}),
             task={t.name: p[f"task.{t.name}"] for t in entry.task_params}, guard=guard,
+            plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
+            safe_on_infeasible=p["safe_on_infeasible"],
         )
 
     def controller_options(self) -> dict[str, Any]:

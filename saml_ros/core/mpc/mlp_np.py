@@ -21,6 +21,8 @@ class NumpyMLP:
     """
 
     _wt: list[np.ndarray] | None = None  # transposed weights for :meth:`jac_u1`, made on first use
+    #: transposed weights for :meth:`forward_jac` (all layers, and W_x', W_u'), made on first use
+    _jt: tuple[list[np.ndarray], np.ndarray, np.ndarray] | None = None
 
     def __init__(self, model: DynamicsModel, member: int = 0) -> None:
         if not 0 <= member < model.n_models:
@@ -63,17 +65,44 @@ class NumpyMLP:
         return h
 
     def forward_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """phi and its Jacobians: ``(B, n_y)``, ``(B, n_y, n_x)``, ``(B, n_y, n_u)``."""
+        """phi and its Jacobians: ``(B, n_y)``, ``(B, n_y, n_x)``, ``(B, n_y, n_u)``.
+
+        Reverse mode from the output, ``W_L' M_{L-1} ... W_1' M_0 W_0'`` with ``M_i`` the diagonal PReLU
+        derivatives: the Jacobians come out in their final layout (no transpose of a broadcast copy)."""
+        h, ja, jb = self._jac(x, u, True)
+        assert h is not None
+        return h, ja, jb
+
+    def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians of :meth:`forward_jac` without phi itself (skips the last layer's forward product)."""
+        _, ja, jb = self._jac(x, u, False)
+        return ja, jb
+
+    def _jac(self, x: np.ndarray, u: np.ndarray, want_y: bool) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        if self._jt is None:
+            self._jt = ([np.ascontiguousarray(w.T) for w in self.weights],
+                        np.ascontiguousarray(self.w_x.T), np.ascontiguousarray(self.w_u.T))  # fmt: skip
+        wt, wxt, wut = self._jt
         n = len(self.weights)
-        h = x @ self.w_x + u @ self.w_u + self.biases[0]
-        jac = self.weights[0][None, :, :]  # (1 | B, n_in, d): d h / d z, transposed
+        h = x @ self.w_x
+        h += u @ self.w_u
+        h += self.biases[0]
+        if n == 1:  # affine: constant Jacobians
+            bsz = x.shape[0]
+            return h, np.broadcast_to(wxt, (bsz, *wxt.shape)).copy(), np.broadcast_to(wut, (bsz, *wut.shape)).copy()
+        masks = []
         for i in range(1, n):
-            a = self.slopes[i - 1]
-            mask = np.where(h >= 0.0, 1.0, a)
-            h = (h * mask) @ self.weights[i] + self.biases[i]
-            jac = (jac * mask[:, None, :]) @ self.weights[i]
-        jac_t = np.broadcast_to(jac, (x.shape[0], *jac.shape[1:])).transpose(0, 2, 1)
-        return h, jac_t[:, :, : self.n_x], jac_t[:, :, self.n_x :]
+            mask = np.where(h >= 0.0, 1.0, self.slopes[i - 1])
+            masks.append(mask)
+            if i < n - 1 or want_y:
+                h *= mask
+                h = h @ self.weights[i]
+                h += self.biases[i]
+        g = wt[-1] * masks[-1][:, None, :]  # (B, n_y, d_{L-1})
+        for i in range(n - 2, 0, -1):
+            g = g @ wt[i]
+            g *= masks[i - 1][:, None, :]
+        return (h if want_y else None), g @ wxt, g @ wut
 
     def state_part(self, x: np.ndarray) -> np.ndarray:
         """The first layer's pre-activation from the state alone, ``x @ W_x + b_0`` ``(d,)``, for

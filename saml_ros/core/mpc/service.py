@@ -7,11 +7,21 @@ The node decodes messages and publishes; everything in between is here and unit-
   right before the next solve;
 * :meth:`MPCService.receive` takes a decoded state: in lockstep it is answered at once; in realtime it is kept
   until :meth:`MPCService.tick` (an older unanswered one is skipped and counted);
+* the watcher's ``vet`` hook refuses a checkpoint whose model is broken or poisoned
+  (:mod:`~saml_ros.core.model_acceptance`: non-finite weights, predictions outside the plausible range or further
+  from the base model than its training data showed, on its probe set and on the recent states answered here);
 * a control step resets the warm start after a stamp jump (reset, new episode, restarted simulator), solves,
-  takes the system's safe command when the solver raises or returns an invalid control, clips to the control
-  bounds, sends the command (the node's ``send`` publishes ``cmd``) and returns the ``mpc/status`` values; a
-  step (swap + solve + send) longer than the deadline is counted as a miss;
-* counters (``solves``, ``solves_failed``, ``solver_errors``, ``deadline_misses``, ``swaps``,
+  clips to the control bounds, sends the command (the node's ``send`` publishes ``cmd``) and returns the
+  ``mpc/status`` values; a step (swap + solve + send) longer than the deadline is counted as a miss;
+* the failure path: a state outside the system's plausible range (:mod:`~saml_ros.core.plausibility`; counted
+  ``rejected/bounds``, never solved from), a solver that raises, a non-finite result (cost, plan or control: the
+  controller fell back), a plan through predicted states outside the plausible range (the model predicts nonsense
+  there, though the solver may call it a success) and, with ``safe_on_infeasible``, a plan that violates a
+  constraint are answered with the
+  system's safe command (:meth:`~saml_ros.core.systems.base.System.safe_control`), counted
+  ``safe_commands/<reason>`` (:data:`~msg_schemas.telemetry.SAFE_COMMAND_REASONS`) and flagged ``safe = 1`` on
+  ``mpc/status``; a finite plan that violates a constraint is otherwise sent and counted ``solves_failed``;
+* counters (``solves``, ``solves_failed``, ``solver_errors``, ``safe_commands``, ``deadline_misses``, ``swaps``,
   ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`;
 * with any ``guard.*`` remedy on, the controller is a :class:`~saml_ros.core.mpc.guard.GuardedController`: each
   control step first shows it the live transition that just happened (previous state, the command sent, this
@@ -22,20 +32,27 @@ The node decodes messages and publishes; everything in between is here and unit-
 from __future__ import annotations
 
 import math
+import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from msg_schemas.telemetry import SAFE_COMMAND_REASONS
+from saml_ros.core.model_acceptance import AcceptanceConfig, Probe, acceptance_hook
 from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, checkpoint_gate
 from saml_ros.core.mpc.config import MPCConfig
-from saml_ros.core.mpc.contract import Controller
+from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import make_controller
 from saml_ros.core.mpc.guard import GuardedController, make_guarded_controller
+from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.systems.registry import get_entry
+
+#: recent (state, command) pairs kept as the acceptance check's probe rows
+RECENT_PROBES = 256
 
 #: one answer: the stamp of the state it answered (ns) and the ``mpc/status`` values
 Answer = tuple[int, dict[str, float]]
@@ -59,9 +76,13 @@ class MPCService:
             self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
                                               **config.controller_options())
         self._last_sent: tuple[np.ndarray, np.ndarray] | None = None  # (state, command) of the last step
+        self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
         self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
         self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
         self.u_safe = np.clip(self.system.safe_control(), self.u_low, self.u_high)
+        self.bounds = Plausibility.for_system(self.system, config.plausible_bounds)
+        self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=RECENT_PROBES)
+        self._recent_lock = threading.Lock()
         self.deadline_s = config.deadline_s(self.system.dt)
         self.model_version = 0
         self.model_path = ""
@@ -70,10 +91,11 @@ class MPCService:
         self.pending: tuple[np.ndarray, int, float] | None = None  # realtime: newest unanswered state
         self.step_ms_max_swap = 0.0
         self._last_warn: dict[str, float] = {}
-        self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
         run_dir = Path(config.run_dir) if config.run_dir else None
+        vet = acceptance_hook(self.bounds, self.recent_probe, AcceptanceConfig(config.accept_residual_factor))
         self.watcher = ModelWatcher(self.system, run_dir, poll_period=config.poll_period, logger=logger,
-                                    accept=checkpoint_gate(config.gate_max_constraint, config.gate_min_updates))
+                                    accept=checkpoint_gate(config.gate_max_constraint, config.gate_min_updates),
+                                    vet=vet)
 
     def start(self) -> None:
         """Load the newest valid checkpoint of ``run_dir`` if there is one (before the first solve), then start
@@ -142,10 +164,14 @@ class MPCService:
             t0 = time.perf_counter()
             self.swap(ready)
             swap_ms = 1e3 * (time.perf_counter() - t0)
-        u, values = self._solve(x, stamp)
-        u_sent = np.clip(u, self.u_low, self.u_high)
-        self.send(u_sent, stamp)
-        self._last_sent = (np.array(x, dtype=np.float64), u_sent)
+        u, values = self._answer(x, stamp)
+        u = np.clip(u, self.u_low, self.u_high)
+        self.send(u, stamp)
+        # the live monitor scores transitions from solved commands only (a safe command says nothing of the model)
+        self._last_sent = None if values["safe"] else (np.array(x, dtype=np.float64), u)
+        if not values["safe"]:
+            with self._recent_lock:
+                self._recent.append((np.array(x, dtype=np.float64), u))
         step_ms = 1e3 * (time.perf_counter() - t_start)
         self.counters["solves"] += 1
         if step_ms > 1e3 * self.deadline_s:
@@ -162,6 +188,7 @@ class MPCService:
             "checkpoints_refused": float(stats["refused"]),
             "checkpoints_gated": float(stats["gated"]),
             "solves": float(self.counters["solves"]),
+            "safe_commands": float(self.counters["safe_commands"]),
         }
         if self.guarded is not None:
             values |= self.guarded.values()
@@ -188,22 +215,56 @@ class MPCService:
                 f"one-step error {m.last_model:.4g} (window mean above f_hat's {m.mean_base:.4g} + margin); "
                 f"version {old} is not used again")
 
-    def _solve(self, x: np.ndarray, stamp: int) -> tuple[np.ndarray, dict[str, float]]:
+    def recent_probe(self) -> Probe | None:
+        """The recent states answered with a solved (not safe) command, and those commands: the acceptance
+        check's probe rows ``(x (R, n_x), u (R, n_u))``, or ``None`` before the first one."""
+        with self._recent_lock:
+            rows = list(self._recent)
+        if not rows:
+            return None
+        return np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows])
+
+    def _answer(self, x: np.ndarray, stamp: int) -> tuple[np.ndarray, dict[str, float]]:
+        """The command for state ``x`` and its status values: the solved one, or the safe command (see the module
+        docstring's failure path)."""
+        why = self.bounds.outside("state", x) if np.shape(x) == (self.system.state.size,) else None
+        if why is not None:
+            self.reject("bounds", f"state at t={stamp * 1e-9:.3f} s outside the plausible range: {why}")
+            return self._safe("bounds", f"implausible state ({why})")
         try:
             res = self.controller.solve(x, self.config.goal)
-            u = np.asarray(res.u, dtype=np.float64)
-            if u.shape != (self.system.control.size,) or not np.all(np.isfinite(u)):
-                raise ValueError(f"solver returned an invalid control {u!r}")
-            values = {"solve_time_ms": 1e3 * res.solve_time, "cost": float(res.cost),
-                      "iterations": float(res.iterations), "success": float(bool(res.success))}
-            if not res.success:
-                self.counters["solves_failed"] += 1
-                self.warn_throttled("fail", f"solve at t={stamp * 1e-9:.3f} s not successful: {res.message}")
-            return u, values
         except Exception as exc:  # noqa: BLE001 - never leave the simulator without an answer
             self.counters["solver_errors"] += 1
-            self.warn_throttled("error", f"solver raised {type(exc).__name__}: {exc}; sent the safe control")
-            return self.u_safe, {"solve_time_ms": math.nan, "cost": math.nan, "iterations": 0.0, "success": 0.0}
+            return self._safe("solver_error", f"solver raised {type(exc).__name__}: {exc}")
+        u = np.asarray(res.u, dtype=np.float64)
+        values = {"solve_time_ms": 1e3 * res.solve_time, "cost": float(res.cost),
+                  "iterations": float(res.iterations), "success": float(bool(res.success)), "safe": 0.0}
+        broken = _broken(res, u, self.system.control.size)
+        if broken is not None:
+            return self._safe("non_finite", f"{broken} ({res.message})", values)
+        plan = np.asarray(res.plan_x, dtype=np.float64).reshape(-1, self.system.state.size)
+        outside = ~self.bounds.state.inside(plan)
+        if outside.any():
+            step = int(np.argmax(outside))
+            return self._safe("implausible", f"the plan predicts an implausible state at step {step}: "
+                              f"{self.bounds.state.outside(plan[step])}", values)
+        if not res.success:
+            self.counters["solves_failed"] += 1
+            if self.config.safe_on_infeasible:
+                return self._safe("infeasible", f"plan violates a constraint: {res.message}", values)
+            self.warn_throttled("fail", f"solve at t={stamp * 1e-9:.3f} s not successful: {res.message}")
+        return u, values
+
+    def _safe(self, reason: str, text: str, values: dict[str, float] | None = None) -> tuple[np.ndarray, dict[str, float]]:
+        """The safe command, counted under ``reason`` (one of :data:`SAFE_COMMAND_REASONS`)."""
+        assert reason in SAFE_COMMAND_REASONS
+        self.counters["safe_commands"] += 1
+        self.counters[f"safe_commands/{reason}"] += 1
+        self.warn_throttled(f"safe_commands/{reason}", f"sent the safe command {self.u_safe.tolist()}: {text}")
+        out = {"solve_time_ms": math.nan, "cost": math.nan, "iterations": 0.0, "success": 0.0}
+        out.update(values or {})
+        out["safe"] = 1.0
+        return self.u_safe, out
 
     def swap(self, ready: ReadyModel) -> None:
         """Plan with the model ``ready`` from now on."""
@@ -229,6 +290,10 @@ class MPCService:
         """Counters, the model in use and the watcher's statistics, for ``/diagnostics``."""
         stats = self.watcher.stats()
         values: dict[str, Any] = {k: v for k, v in sorted(self.counters.items())}
+        values["safe_commands"] = self.counters["safe_commands"]
+        for r in SAFE_COMMAND_REASONS:
+            values[f"safe_commands/{r}"] = self.counters[f"safe_commands/{r}"]
+        values["rejected/bounds"] = self.counters["rejected/bounds"]
         values["model_version"] = self.model_version
         values["model_path"] = self.model_path
         values["checkpoints_loaded"] = stats["loaded"]
@@ -249,3 +314,15 @@ class MPCService:
             values["monitor_error_model"] = g.monitor.mean_model
             values["monitor_error_base"] = g.monitor.mean_base
         return values
+
+
+def _broken(res: MPCResult, u: np.ndarray, size: int) -> str | None:
+    """Why ``res`` (with control ``u``) cannot be used: a wrong-sized or non-finite control, a non-finite cost or
+    plan (the controller fell back); ``None`` if it can."""
+    if u.shape != (size,) or not np.all(np.isfinite(u)):
+        return f"invalid control {u!r}"
+    if not math.isfinite(float(res.cost)):
+        return f"non-finite cost {res.cost}"
+    if not (np.all(np.isfinite(res.plan_x)) and np.all(np.isfinite(res.plan_u))):
+        return "non-finite plan"
+    return None

@@ -23,6 +23,7 @@ import numpy as np
 from msg_schemas.telemetry import REJECT_REASONS
 from saml_ros.core.buffer import ReplayBuffer
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
+from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 
 log = logging.getLogger("saml_ros.online")
@@ -64,11 +65,18 @@ class RecentWindow:
 
 
 class Ingest:
-    """One pairer per source (robot / namespace), feeding one replay buffer and one recent window."""
+    """One pairer per source (robot / namespace), feeding one replay buffer and one recent window.
 
-    def __init__(self, buffer: ReplayBuffer, recent: RecentWindow) -> None:
+    ``bounds``: the plausible ranges already-paired batches (:meth:`add_batch`) are checked against (rows with a
+    non-finite or implausible value are dropped and counted as ``nan`` / ``bounds``); each source's pairer checks
+    single events with its own config's bounds.
+    """
+
+    def __init__(self, buffer: ReplayBuffer, recent: RecentWindow, bounds: Plausibility | None = None) -> None:
         self.buffer, self.recent = buffer, recent
+        self.bounds = bounds
         self._sources: list[StampPairer | ResamplingPairer] = []
+        self._batch_rejects: dict[str, int] = {"nan": 0, "bounds": 0}
 
     def add_source(self, name: str, pairing: PairingConfig | ResampleConfig) -> int:
         """Register a source with its pairing rule (exact stamps, or resampling onto a fixed period for a robot's
@@ -105,15 +113,31 @@ class Ingest:
 
     def add_batch(self, x: np.ndarray, u: np.ndarray, y: np.ndarray, stamp: Any = 0.0, source: Any = 0) -> None:
         """Add ``B`` paired transitions at once: ``x (B, n_x)``, ``u (B, n_u)``, ``y (B, n_y)``, ``stamp`` in s and
-        ``source`` scalars or ``(B,)`` (much cheaper per row than :meth:`add`)."""
+        ``source`` scalars or ``(B,)`` (much cheaper per row than :meth:`add`). Rows with a non-finite value or one
+        outside :attr:`bounds` are dropped (counted ``nan`` / ``bounds``)."""
         if len(x) == 0:
             return
+        x, u, y = (np.asarray(a, np.float64) for a in (x, u, y))
+        finite = np.isfinite(x).all(1) & np.isfinite(u).all(1) & np.isfinite(y).all(1)
+        keep = finite
+        if self.bounds is not None:
+            keep = finite & self.bounds.state.inside(x) & self.bounds.control.inside(u) & self.bounds.target.inside(y)
+        if not keep.all():
+            self._batch_rejects["nan"] += int((~finite).sum())
+            self._batch_rejects["bounds"] += int((finite & ~keep).sum())
+            log.warning("dropped %d of %d paired transition(s): non-finite or outside the plausible range",
+                        int((~keep).sum()), len(x))
+            x, u, y = x[keep], u[keep], y[keep]
+            stamp = np.asarray(stamp)[keep] if np.ndim(stamp) else stamp
+            source = np.asarray(source)[keep] if np.ndim(source) else source
+            if len(x) == 0:
+                return
         self.buffer.add_batch(x, u, y, stamp=stamp, source=source)
-        self.recent.add_batch(np.asarray(x, np.float64), np.asarray(u, np.float64), np.asarray(y, np.float64))
+        self.recent.add_batch(x, u, y)
 
     def counts(self) -> dict[str, int]:
-        """All sources' pairing and rejection counters, summed."""
-        return total_counts(dict(list(p.counts.items())) for p in self._sources)
+        """All sources' pairing and rejection counters, summed (with the batches' rejections)."""
+        return total_counts([*(dict(list(p.counts.items())) for p in self._sources), dict(self._batch_rejects)])
 
 
 class EventSink(Protocol):

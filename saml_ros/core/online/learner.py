@@ -29,15 +29,20 @@ import torch
 
 from saml_ros.core.buffer import Policy, ReplayBuffer
 from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.model_evidence import DataEvidence
+from saml_ros.core.model_io import UnhealthyModel
 from saml_ros.core.models import MODEL_KINDS, DynamicsModel
 from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.online.resume import ResumeInfo, resume_newest
-from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, model_metrics
+from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, feasibility_metrics, model_metrics
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition
+from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
+from saml_ros.core.training.health import HealthConfig, TrainingHealth
+from saml_ros.core.training.schedule import schedules_for
 
 log = logging.getLogger("saml_ros.online")
 
@@ -66,6 +71,9 @@ class OnlineConfig:
         telemetry_window: most recent transitions the live model error is computed on.
         checkpoint_keep: checkpoint files kept in the run directory (older ones are pruned).
         n_models: ensemble members (each its own initialisation and minibatches from the one buffer).
+        plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.plausibility`) for
+            already-paired batches (each source's pairing config carries its own).
+        health: the training-health limits (:mod:`saml_ros.core.training.health`).
     """
 
     kind: str = "residual"
@@ -77,6 +85,8 @@ class OnlineConfig:
     telemetry_window: int = 1000
     checkpoint_keep: int = 5
     n_models: int = 1
+    plausible_bounds: str = ""
+    health: HealthConfig = field(default_factory=HealthConfig)
 
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -97,6 +107,7 @@ class OnlineConfig:
             raise ValueError(f"n_models must be >= 1, got {self.n_models}")
         if self.telemetry_window < 1 or self.checkpoint_keep < 1:
             raise ValueError("telemetry_window and checkpoint_keep must be >= 1")
+        schedules_for(self.train, 0)  # online training has no epochs: a schedule needs train.schedule_steps
 
 
 class OnlineLearner:
@@ -136,7 +147,7 @@ class OnlineLearner:
         self.model.to(cfg.train.torch_dtype)
         self.trainer: PrimalDualTrainer | None = None
         self._recent = RecentWindow(cfg.telemetry_window, n_x, n_u, n_y)
-        self.ingest_path = Ingest(self.buffer, self._recent)
+        self.ingest_path = Ingest(self.buffer, self._recent, Plausibility.for_system(system, cfg.plausible_bounds))
         self._lock = threading.RLock()
         self._rng = np.random.default_rng(cfg.train.seed)
         self._averages = StepAverages(spec.n_constraints)
@@ -145,6 +156,9 @@ class OnlineLearner:
         self._saved_at = clock()
         self.checkpoints_written = 0
         self.checkpoints_skipped = 0
+        #: checkpoints not written because the model had non-finite values
+        self.checkpoints_unhealthy = 0
+        self._evidence: DataEvidence | None = None
         self.resumed: ResumeInfo | None = None
         self._metrics: dict[str, float] = {}
         if store is not None and resume:
@@ -219,8 +233,10 @@ class OnlineLearner:
                 xb, ub, yb = self.buffer.sample(bsz * e, self._rng)
                 if e > 1:  # (E, B, .): every member its own minibatch
                     xb, ub, yb = (a.reshape(e, bsz, -1) for a in (xb, ub, yb))
+                healthy = tr.health.healthy_steps
                 vals = tr.step(torch.from_numpy(xb).to(dt), torch.from_numpy(ub).to(dt), torch.from_numpy(yb).to(dt))
-                self._averages.add(vals)
+                if tr.health.healthy_steps > healthy:  # a skipped step's values are not the model's
+                    self._averages.add(vals)
                 if tr.steps % (self.config.train.log_every or 100) == 0:
                     tr.log_point()
                     tr.history.keep_last(HISTORY_ROWS)
@@ -230,7 +246,7 @@ class OnlineLearner:
         m = self.config.min_transitions
         rows = self.buffer.arrays()  # oldest first: the first min_transitions ever added (capacity >= m)
         self.model.fit_normalization(rows.x[:m], rows.u[:m], rows.y[:m])
-        self.trainer = PrimalDualTrainer(self.model, self.spec, self.config.train)
+        self.trainer = PrimalDualTrainer(self.model, self.spec, self.config.train, self.config.health)
         log.info("training started: normalisation fitted on the first %d transitions and frozen", m)
 
     # ------------------------------------------------------------------------------------------ telemetry
@@ -239,12 +255,14 @@ class OnlineLearner:
 
         Heavier than :meth:`telemetry` (one forward pass over the window): call it at the telemetry rate
         from the thread that trains. Returns (and caches for :meth:`telemetry`) the model part of the metrics
-        (:func:`~saml_ros.core.online.telemetry.model_metrics`).
+        (:func:`~saml_ros.core.online.telemetry.model_metrics`) and the feasibility diagnosis of the training
+        history (:func:`~saml_ros.core.online.telemetry.feasibility_metrics`).
         """
         window = self._recent.arrays()
         with self._lock:
             out = model_metrics(self.model, self.spec, window, self._averages.take(), self.lam, self.updates,
                                 self.model_version)
+            out.update(feasibility_metrics(self.trainer, self.spec))
         self._metrics = out
         return dict(out)
 
@@ -259,7 +277,11 @@ class OnlineLearner:
             training=1.0 if self.training else 0.0,
             checkpoints_written=float(self.checkpoints_written),
             checkpoints_skipped=float(self.checkpoints_skipped),
+            checkpoints_unhealthy=float(self.checkpoints_unhealthy),
         )
+        tr = self.trainer
+        if tr is not None:
+            out.update({k: float(v) for k, v in tr.health.counters().items()})
         return out
 
     def telemetry(self) -> dict[str, float]:
@@ -279,7 +301,12 @@ class OnlineLearner:
         return self.dirty and self._clock() - self._saved_at >= period_s
 
     def save_checkpoint(self, extra: Mapping[str, Any] | None = None) -> tuple[Path, int] | None:
-        """Write the next checkpoint into the store (``None`` if no store or no trainer yet).
+        """Write the next checkpoint into the store (``None`` if no store or no trainer yet, or if the model is not
+        healthy: a non-finite weight is never written; counted in ``checkpoints_unhealthy`` and logged).
+
+        The checkpoint holds the training health (``meta["health"]``) and the evidence of the data
+        (:class:`~saml_ros.core.model_evidence.DataEvidence` of the replay buffer, its residual maximum merged with
+        that of every earlier checkpoint of this process, and a probe set drawn from the buffer).
 
         Raises:
             OSError: the run directory is not writable (the caller logs and retries later).
@@ -287,6 +314,9 @@ class OnlineLearner:
         if self.store is None or self.trainer is None:
             return None
         with self._lock:
+            rows = self.buffer.arrays()
+            fresh = DataEvidence.from_data(self.system, rows.x, rows.u, rows.y, np.random.default_rng([0, self.updates]))
+            evidence = fresh.merged(self._evidence, self.buffer.total_added) if fresh is not None else self._evidence
             counts = self.counts()
             info = {
                 "paired": counts.get("paired", 0),
@@ -299,7 +329,14 @@ class OnlineLearner:
             if bound is not None:
                 info[RESIDUAL_BOUND_KEY] = bound.tolist()
             metrics = {k: v for k, v in self._metrics.items() if isinstance(v, float)}
-            path, version = save_checkpoint(self.store, self.trainer, metrics, {"learner": info})
+            try:
+                path, version = save_checkpoint(self.store, self.trainer, metrics, {"learner": info}, evidence)
+            except UnhealthyModel as exc:
+                self.checkpoints_unhealthy += 1
+                self._saved_at = self._clock()  # retry at the next period, not at once
+                log.error("checkpoint not written: %s", exc)
+                return None
+            self._evidence = evidence
             self.model_version = version
             self._saved_updates = self.trainer.steps
             self._saved_at = self._clock()
@@ -324,6 +361,8 @@ class OnlineLearner:
         if found is None:
             return
         trainer, path, version = found.trainer, found.path, found.version
+        trainer.health = TrainingHealth(self.config.health)
+        self._evidence = found.evidence
         self.model = trainer.model
         self.model.train()
         self.trainer = trainer

@@ -40,19 +40,34 @@ class LoopConfig:
 
 
 
-def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, raw: RawIngest | None = None) -> None:
+def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, raw: RawIngest | None = None,
+             stop_requested: Callable[[], bool] | None = None, paused: bool = False) -> None:
     """The training loop of a training process (or any thread owning ``learner``).
 
     ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
-    (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``) and ``("stop",)``.
-    The whole inbox is handled before every chunk of updates, so ingest goes first. ``send`` reports
+    (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``), ``("pause",)``,
+    ``("resume",)`` and ``("stop",)``.
+    The whole inbox is handled before every chunk of updates, so ingest goes first (a backlog longer than one
+    telemetry period is handled a period at a time, with a status report in between). ``send`` reports
     ``("status", status, {source name: counters})`` at ``loop.telemetry_rate``, ``("checkpoint", path,
     version)`` after each save, ``("error", what, message)`` and, on stop, ``("stopped", path | None, version,
     updates)`` after a final checkpoint (when there are updates not yet saved). Returns after a stop.
-    """
+    ``stop_requested()`` True (the training process got
+    :data:`~saml_ros.core.online.process.STOP_SIGNAL`) stops at once, as ``("stop",)`` would, without handling
+    what is still in the inbox: data not yet in the buffer cannot change the final checkpoint, and a backlog of
+    it must not hold the shutdown past a launcher's grace period.
 
-    def report() -> None:
-        learner.compute_model_metrics()
+    Paused (from the start when ``paused``, or after ``("pause",)``: a managed learner that was deactivated) the
+    loop still takes data into the buffer and reports its status, but makes no updates, computes no model
+    metrics and writes no checkpoints;
+    ``("pause",)`` first writes a checkpoint when there are unsaved updates and answers ``("paused", path |
+    None, version, updates)``; ``("resume",)`` goes back to training (the pacing restarts from then).
+    """
+    requested = stop_requested or (lambda: False)
+
+    def report(metrics: bool = True) -> None:
+        if metrics:
+            learner.compute_model_metrics()
         if raw is not None:
             raw.check_orphans()
         send(("status", learner.status(), {p.name: dict(p.counts) for p in learner.sources}))
@@ -62,13 +77,25 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
     paced_from: float | None = None
     paced_done = 0
     while True:
-        while conn.poll():
-            msg = conn.recv()
+        # the inbox first, but at most one telemetry period at a time: a backlog must not silence the reports
+        drain_until = time.monotonic() + metrics_period
+        while True:
+            msg: Any = ("stop",) if requested() else (
+                conn.recv() if conn.poll() and time.monotonic() < drain_until else None)
+            if msg is None:
+                break
             if msg[0] == "raw":
                 if raw is not None:
                     raw.feed(msg[1])
             elif msg[0] == "batch":
                 learner.add_batch(*msg[1:])
+            elif msg[0] == "pause":
+                saved = save_and_announce(learner, send) if learner.dirty and not paused else None
+                report()
+                paused, paced_from = True, None
+                send(("paused", str(saved[0]) if saved else None, learner.model_version, learner.updates))
+            elif msg[0] == "resume":
+                paused, paced_from = False, None
             elif msg[0] == "stop":
                 saved = save_and_announce(learner, send) if learner.dirty else None
                 report()
@@ -77,10 +104,15 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
                 return
         now = time.monotonic()
         if now >= next_metrics:
-            report()
+            report(metrics=not paused)  # paused: the counters only, the model has not changed
             next_metrics = now + metrics_period
+        if paused:
+            conn.poll(0.05)  # an interruptible sleep: wakes up when a message arrives
+            continue
         if learner.checkpoint_due(loop.checkpoint_period):
             save_and_announce(learner, send)
+        if conn.poll():
+            continue  # still a backlog: ingest before training
         if not learner.training:
             paced_from = None
             conn.poll(0.05)  # an interruptible sleep: wakes up when data arrives

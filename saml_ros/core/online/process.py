@@ -12,17 +12,20 @@ Socket protocol (``multiprocessing.connection`` messages, tuples):
 
 * parent -> child: first the :class:`LearnerSetup`; then ``("batch", x, u, y, stamp_s, source)`` (paired
   transitions, arrays ``(B, .)`` / ``(B,)``), ``("raw", [(channel, payload), ...])`` (messages for the setup's
-  decoder) and finally ``("stop",)``;
+  decoder), ``("pause",)`` / ``("resume",)`` (a managed learner's deactivation and activation) and finally
+  ``("stop",)``;
 * child -> parent: ``("ready", resumed, hidden, status, compute)`` once built (or ``("fatal", "resume" |
   "error", message)`` and exit), then ``("status", status, {source: counters})``, ``("checkpoint", path,
-  version)``, ``("error", what, message)``, ``("log", level, text)`` and, after a stop, ``("stopped", path |
-  None, version, updates)``.
+  version)``, ``("error", what, message)``, ``("log", level, text)``, after a pause ``("paused", path | None,
+  version, updates)`` and, after a stop, ``("stopped", path | None, version, updates)``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
+import signal
 import subprocess
 import threading
 import time
@@ -48,6 +51,9 @@ log = logging.getLogger("saml_ros.online")
 #: ``factory(decoder_args) -> decode``: builds a training process's raw-message decoder (a module-level function,
 #: so it pickles by reference; e.g. :func:`msg_schemas.decode.make_decoder`)
 DecoderFactory = Callable[[Any], Decode]
+#: what :meth:`TrainingProcess.stop` sends the training process: save now, skip the inbox (see
+#: :func:`~saml_ros.core.online.loop.run_loop`)
+STOP_SIGNAL = signal.SIGUSR1
 
 
 @dataclass(frozen=True)
@@ -74,6 +80,7 @@ class LearnerSetup:
             ``msg_schemas.SchemaError``, for a malformed one). The caller passes it, so message formats (and
             rclpy) stay out of the core.
         decoder_args: picklable argument of the decoder factory.
+        paused: start without training (data is still buffered) until :meth:`TrainingProcess.resume`.
     """
 
     system: str
@@ -90,6 +97,7 @@ class LearnerSetup:
     channels: tuple[tuple[int, str], ...] = ()
     decoder: DecoderFactory | None = None
     decoder_args: Any = None
+    paused: bool = False
 
     def __post_init__(self) -> None:
         if self.threads < 0:
@@ -187,6 +195,9 @@ class TrainingProcess:
         self._stopping = threading.Event()
         self._stopped = threading.Event()
         self._final: tuple[str | None, int, int] | None = None
+        self._paused = setup.paused
+        self._pause_reply: tuple[str | None, int, int] | None = None
+        self._pause_done = threading.Event()
         self._proc: subprocess.Popen[bytes] | None = None
         self._conn: Any = None
         self._threads: list[threading.Thread] = []
@@ -234,12 +245,17 @@ class TrainingProcess:
                 return self.ready
 
     def stop(self, timeout: float = 60.0) -> tuple[str | None, int, int] | None:
-        """Ship what is queued, ask the child for a final checkpoint and wait for it to exit.
+        """Ask the child for a final checkpoint now and wait for it to exit.
 
-        Returns ``(path of the final checkpoint or None if nothing was new, model version, updates)``, or None
-        if the child did not answer within ``timeout`` s (it is then killed).
+        What is still queued here or in the child's inbox is dropped (it is not in the buffer yet, so it cannot
+        change the final checkpoint): :data:`STOP_SIGNAL` makes the child save at once, however far behind its
+        ingest is. Returns ``(path of the final checkpoint or None if nothing was new, model version, updates)``,
+        or None if the child did not answer within ``timeout`` s (it is then killed).
         """
         self._stopping.set()
+        if self._proc is not None and self._proc.poll() is None:
+            with contextlib.suppress(OSError):
+                self._proc.send_signal(STOP_SIGNAL)
         for t in self._threads:
             if t.name == "learner-ship":
                 t.join(timeout)
@@ -256,6 +272,33 @@ class TrainingProcess:
                 self._proc.kill()
                 self._proc.wait(5.0)
         return self._final
+
+    def pause(self, timeout: float = 30.0) -> tuple[str | None, int, int] | None:
+        """Stop training (data is still buffered): the child first writes a checkpoint when it has unsaved
+        updates. Returns ``(path of that checkpoint or None, model version, updates)`` once the child has
+        paused (after what is already queued for it), or None if it did not answer within ``timeout`` s."""
+        self._paused = True
+        self._pause_done.clear()
+        if not self._send_control(("pause",)):
+            return None
+        return self._pause_reply if self._pause_done.wait(timeout) else None
+
+    def resume(self) -> bool:
+        """Train again after :meth:`pause` (or a start with ``setup.paused``); False if the child is gone."""
+        self._paused = False
+        return self._send_control(("resume",))
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    def _send_control(self, msg: tuple[Any, ...]) -> bool:
+        try:
+            with self._send_lock:
+                self._conn.send(msg)
+            return True
+        except (OSError, ValueError, AttributeError):  # not started, or being restarted (it restarts paused)
+            return False
 
     @property
     def pid(self) -> int | None:
@@ -286,9 +329,11 @@ class TrainingProcess:
         return total_counts(self.source_counts.values())
 
     def _ship(self) -> None:
-        """Send queued data in batches every few ms (a blocking pipe write stalls this thread only)."""
+        """Send queued data in batches every few ms (a blocking pipe write stalls this thread only); returns as
+        soon as :meth:`stop` is called (the child no longer reads data then)."""
         while True:
-            stopping = self._stopping.is_set()
+            if self._stopping.is_set():
+                return
             n = len(self._raw)
             if n:
                 items = [self._raw.popleft() for _ in range(n)]
@@ -315,8 +360,6 @@ class TrainingProcess:
                 except (OSError, ValueError):  # the child is being restarted: keep the batch
                     self._outbox.extendleft(reversed(trs))
                     time.sleep(0.1)
-            if stopping and not self._outbox and not self._raw:
-                return
             time.sleep(0.005)
 
     def _read(self) -> None:
@@ -342,6 +385,9 @@ class TrainingProcess:
             elif kind == "error":
                 self.errors += 1
                 self.on_error(msg[1], msg[2])
+            elif kind == "paused":
+                self._pause_reply = (msg[1], msg[2], msg[3])
+                self._pause_done.set()
             elif kind == "stopped":
                 self._final = (msg[1], msg[2], msg[3])
                 self._stopped.set()
@@ -360,7 +406,7 @@ class TrainingProcess:
         self.on_error("process", f"the training process exited unexpectedly (exit code {code}); restarting it "
                                  "from the newest checkpoint (the replay buffer starts empty)")
         time.sleep(0.5)
-        setup = dataclasses.replace(self.setup, resume=True)
+        setup = dataclasses.replace(self.setup, resume=True, paused=self._paused)
         while not self._stopping.is_set():
             try:
                 with self._send_lock:

@@ -1,6 +1,6 @@
 """Resuming an online learner from the newest *valid* checkpoint of its run directory (weights, normalisation,
 lambda, optimizer states, update count), refusing one that contradicts the configuration (:class:`ResumeError`)
-and skipping (with the reason) newer ones that are unreadable or inconsistent."""
+and skipping (with the reason) newer ones that are unreadable, inconsistent or hold non-finite weights."""
 
 from __future__ import annotations
 
@@ -11,8 +11,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from saml_ros.core.checkpoint import CheckpointError, CheckpointStore, read_checkpoint
+from saml_ros.core.model_evidence import DataEvidence
 from saml_ros.core.model_io import MODEL_KIND, LoadedModel, model_from_payload
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems.base import System
@@ -46,12 +48,14 @@ class ResumeInfo:
 
 @dataclass
 class Resumed:
-    """A trainer rebuilt from checkpoint ``path`` (``version``), and the newer checkpoints skipped on the way."""
+    """A trainer rebuilt from checkpoint ``path`` (``version``), the newer checkpoints skipped on the way, and the
+    evidence of the training data the checkpoint holds (if any)."""
 
     trainer: PrimalDualTrainer
     path: Path
     version: int
     skipped: list[tuple[Path, str]]
+    evidence: DataEvidence | None = None
 
 
 def resume_newest(
@@ -95,7 +99,7 @@ def resume_newest(
         except Exception as exc:  # noqa: BLE001 - CheckpointError, or torch refusing inconsistent states
             skipped.append((path, str(exc) if isinstance(exc, CheckpointError) else f"{path}: {exc}"))
             continue
-        return Resumed(trainer, path, version, skipped), len(skipped)
+        return Resumed(trainer, path, version, skipped, DataEvidence.from_checkpoint(arrays, meta, system)), len(skipped)
     log.error("resume: no usable checkpoint in %s, starting from scratch: %s", store.run_dir,
               "; ".join(r for _, r in skipped))
     return None, len(skipped)
@@ -110,6 +114,9 @@ def _check_and_rebuild(arrays: dict[str, np.ndarray], meta: dict[str, Any], path
             f"trains {system.name!r} (schema {system.schema_hash()}): use another run_dir or resume:=false"
         )
     loaded = model_from_payload(arrays, meta, expect=system, path=path)
+    bad = [k for k, v in loaded.model.state_dict().items() if not bool(torch.isfinite(v).all())]
+    if bad or not bool(torch.isfinite(loaded.lam).all()):
+        raise CheckpointError(f"{path}: non-finite weights or multipliers ({bad or ['lam']}): not resumed from")
     arch = loaded.model.architecture()
     diffs = [f"{k}: checkpoint {arch[k]!r}, configured {want[k]!r}" for k in ("kind", "hidden", "n_models")
              if arch[k] != want[k]]

@@ -14,6 +14,8 @@ import torch
 from msg_schemas.telemetry import model_error_names
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
+from saml_ros.core.training import PrimalDualTrainer
+from saml_ros.core.training.diagnosis import MIN_ROWS, VERDICT_CODES
 
 #: extra ``learner/model_error`` values appended after the canonical names
 EXTRA_METRICS: tuple[tuple[str, str, str], ...] = (
@@ -25,6 +27,12 @@ EXTRA_METRICS: tuple[tuple[str, str, str], ...] = (
 #: extra per-constraint values (``<name>/<k>``)
 EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
     ("n_in", "count", "recent transitions inside region k (error_in is NaN when 0)"),
+    ("verdict", "code", "feasibility verdict of constraint k over the training history's tail: 0 met, 1 not "
+                        "converged, 2 likely infeasible (NaN until the history has enough rows; docs/training.md)"),
+    ("lhs_min", "loss", "smallest left-hand side g_k + eps_k of any training-history row"),
+    ("lambda_rising", "1", "1 while lambda_k is still rising over the history's tail, else 0"),
+    ("reachable", "loss", "the left-hand side g_k + eps_k the model reaches now (the tail's mean): the bound it "
+                          "could meet"),
 )
 
 
@@ -32,7 +40,7 @@ def assemble_telemetry(
     constraint_names: Sequence[str], status: Mapping[str, float], counts: Mapping[str, int]
 ) -> dict[str, float]:
     """``learner/model_error`` values in order: :func:`~msg_schemas.telemetry.model_error_names` first, then
-    :data:`EXTRA_METRICS` and ``n_in/<k>``.
+    :data:`EXTRA_METRICS` and the :data:`EXTRA_PER_CONSTRAINT` values of each constraint.
 
     Args:
         constraint_names: the spec's constraint names.
@@ -50,7 +58,26 @@ def assemble_telemetry(
         if n != "paired":
             out[n] = float(status.get(n, math.nan))
     for c in constraint_names:
-        out[f"n_in/{c}"] = float(status.get(f"n_in/{c}", 0.0))
+        for n, _, _ in EXTRA_PER_CONSTRAINT:
+            out[f"{n}/{c}"] = float(status.get(f"{n}/{c}", 0.0 if n == "n_in" else math.nan))
+    return out
+
+
+def feasibility_metrics(trainer: PrimalDualTrainer | None, spec: ProblemSpec) -> dict[str, float]:
+    """``verdict/<k>``, ``lhs_min/<k>``, ``lambda_rising/<k>``, ``reachable/<k>`` of the diagnosis of the
+    trainer's history (:func:`~saml_ros.core.training.diagnosis.diagnose`; NaN before training or while the
+    history is shorter than :data:`~saml_ros.core.training.diagnosis.MIN_ROWS` rows). Member 0."""
+    names = spec.constraint_names
+    out = {f"{n}/{c}": math.nan for c in names for n in ("verdict", "lhs_min", "lambda_rising", "reachable")}
+    if trainer is None or len(trainer.history.step) < MIN_ROWS or not names:
+        return out
+    diag = trainer.diagnose()
+    for c in diag.constraints:
+        m = c.members[0]
+        out[f"verdict/{c.name}"] = float(VERDICT_CODES[m.verdict])
+        out[f"lhs_min/{c.name}"] = m.lhs_min
+        out[f"lambda_rising/{c.name}"] = 1.0 if m.lam_rising else 0.0
+        out[f"reachable/{c.name}"] = m.g + c.eps
     return out
 
 

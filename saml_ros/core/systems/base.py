@@ -22,6 +22,10 @@ import torch
 
 from saml_ros.core.layout import VectorLayout, schema_hash
 
+#: a command further outside the control box than this fraction of the box's width is implausible (the
+#: simulators' default ``cmd_reject_margin`` is the same fraction: between the box and this margin they clip)
+PLAUSIBLE_CONTROL_MARGIN = 0.5
+
 
 class System(abc.ABC):
     """A dynamical system with a true model and an imperfect first-principles base model f_hat."""
@@ -68,6 +72,27 @@ class System(abc.ABC):
         once the last command timed out and what the MPC sends when its solve fails. Zero, clipped into the
         control bounds, unless the system overrides it (quadrotor: hover thrust; paddle: level, at rest)."""
         return np.clip(np.zeros(self.control.size), self.control_low, self.control_high)
+
+    def plausible_state(self) -> dict[str, tuple[float, float]]:
+        """Plausible range ``{field: (low, high)}`` of each state field, in the field's unit: a value outside it is
+        not a physical state of this system but a fault (a broken sensor, a bad driver, a hostile sender), and
+        every receiver rejects it (counted ``rejected/bounds``). Generous by design: orders of magnitude beyond
+        the paper's training distribution are outside, anything a real run reaches is inside. A field that is not
+        listed is unbounded. Node parameter ``plausible_bounds`` overrides these (:mod:`saml_ros.core.plausibility`).
+        """
+        return {}
+
+    def plausible_target(self) -> dict[str, tuple[float, float]]:
+        """Plausible range of each target field (see :meth:`plausible_state`); the state's ranges when the target
+        is the next state."""
+        return self.plausible_state() if self.target is self.state else {}
+
+    def plausible_control(self) -> dict[str, tuple[float, float]]:
+        """Plausible range of each control field: the control box widened by :data:`PLAUSIBLE_CONTROL_MARGIN`
+        times its width on either side (what the simulators reject rather than clip)."""
+        low, high = np.asarray(self.control_low, float), np.asarray(self.control_high, float)
+        span = PLAUSIBLE_CONTROL_MARGIN * (high - low)
+        return {f: (float(lo), float(hi)) for f, lo, hi in zip(self.control.names, low - span, high + span)}
 
     # ----------------------------------------------------------------- conveniences (not overridden)
     def schema_hash(self) -> str:

@@ -127,6 +127,11 @@ class FrictionDoubleIntegrator(System):
     def control_high(self) -> np.ndarray:
         return np.array([self.u_max])
 
+    def plausible_state(self) -> dict[str, tuple[float, float]]:
+        """|p| <= 1000 m (a long track), |v| <= 100 m/s (10 s at the full 10 m/s^2); the paper's data spans
+        |p| <= 2 m, |v| <= 2.5 m/s, and a random-input roll-out of 3000 steps drifts about 100 m."""
+        return {"p": (-1000.0, 1000.0), "v": (-100.0, 100.0)}
+
     def friction_decel(self, p: torch.Tensor) -> torch.Tensor:
         """mu(p): friction deceleration magnitude (m/s^2) at positions ``p`` (any shape, m), > 0."""
         mu = torch.full_like(p, self.mu_base)

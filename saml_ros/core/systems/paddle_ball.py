@@ -138,6 +138,18 @@ class PaddleBall(System):
     def control_high(self) -> np.ndarray:
         return np.array([1.0, 1.0, 4.0, 1.0, 1.0, 1.0])
 
+    def plausible_state(self) -> dict[str, tuple[float, float]]:
+        """Ball before impact within 10 m of the paddle's workspace horizontally, -5 .. 10 m high, speeds <= 30 m/s
+        per axis (a ball dropped from 45 m); the paper's data spans +-1 m, +-0.05 m, 6 m/s."""
+        out = {f: (-10.0, 10.0) for f in ("px", "py")}
+        out["pz"] = (-5.0, 10.0)
+        out.update({f: (-30.0, 30.0) for f in ("vx", "vy", "vz")})
+        return out
+
+    def plausible_target(self) -> dict[str, tuple[float, float]]:
+        """Post-impact ball velocity <= 30 m/s per axis."""
+        return {f: (-30.0, 30.0) for f in self.target.names}
+
     def safe_control(self) -> np.ndarray:
         """Level paddle at rest: ``[pvx, pvy, pvz] = 0``, normal ``[0, 0, 1]``."""
         return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])

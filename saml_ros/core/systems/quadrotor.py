@@ -132,6 +132,17 @@ class Quadrotor(System):
     def control_high(self) -> np.ndarray:
         return np.full(4, self.f_max)
 
+    def plausible_state(self) -> dict[str, tuple[float, float]]:
+        """Within 1000 m horizontally, height -100 .. 1000 m (a world frame need not sit on the ground), speeds and
+        body rates <= 100 (m/s, rad/s) per axis (a racing quadrotor reaches about 50 m/s and 35 rad/s), quaternion
+        components within +-1.5 (the codec checks the norm); the paper's data spans +-10 m, 0.1 .. 5 m, +-6 m/s,
+        +-2.5 rad/s."""
+        out = {f: (-1000.0, 1000.0) for f in ("px", "py")}
+        out["pz"] = (-100.0, 1000.0)
+        out.update({f: (-100.0, 100.0) for f in ("vx", "vy", "vz", "wx", "wy", "wz")})
+        out.update({f: (-1.5, 1.5) for f in ("qw", "qx", "qy", "qz")})
+        return out
+
     def hover_thrust(self) -> np.ndarray:
         """Motor forces (N), shape ``(4,)``, that hold a level quadrotor still without ground effect."""
         return np.full(4, self.mass * self.g / 4.0)

@@ -1,30 +1,43 @@
 """Primal-dual training of dynamics models (the paper's Algorithm 1), offline and one step at a time.
 
 ``config`` (:class:`TrainConfig`), ``dataset`` (:class:`Transitions`, a fixed dataset), ``dual`` (the
-multipliers: :class:`DualVariables`), ``history`` (the training curve and its bookkeeping), ``engines`` (how
-``fit`` runs: plain autograd or the fast hand-written engine), ``trainer`` (:class:`PrimalDualTrainer`),
+multipliers of each dual method: :class:`DualVariables` and its subclasses; ``nupi``: the PI controller),
+``schedule`` (learning-rate schedules), ``history`` (the training curve and its bookkeeping), ``diagnosis``
+(the end-of-run feasibility verdicts), ``engines`` (how ``fit`` runs: plain autograd or the fast hand-written
+engine), ``trainer`` (:class:`PrimalDualTrainer`), ``selection`` (restarts: keep the best feasible member),
 ``evaluate`` (dataset-level spec values), ``trainer_io`` (a trainer into a model checkpoint and back; loading a
-model alone is :mod:`saml_ros.core.model_io`, which does not import this package).
+model alone is :mod:`saml_ros.core.model_io`, which does not import this package). docs/training.md says which
+dual method to use when.
 """
 
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.dataset import Transitions
-from saml_ros.core.training.dual import DualVariables
+from saml_ros.core.training.diagnosis import FeasibilityDiagnosis, diagnose
+from saml_ros.core.training.dual import DualVariables, make_dual
 from saml_ros.core.training.evaluate import evaluate_spec
 from saml_ros.core.training.history import FeasibilityReport, History, TrainingLog
+from saml_ros.core.training.schedule import LRSchedule
+from saml_ros.core.training.selection import Selection, select_members, take_trainer
 from saml_ros.core.training.trainer import PrimalDualTrainer
 from saml_ros.core.training.trainer_io import checkpoint_payload, resume_trainer, save_checkpoint
 
 __all__ = [
     "DualVariables",
+    "FeasibilityDiagnosis",
     "FeasibilityReport",
     "History",
+    "LRSchedule",
     "PrimalDualTrainer",
+    "Selection",
     "TrainConfig",
     "TrainingLog",
     "Transitions",
     "checkpoint_payload",
+    "diagnose",
     "evaluate_spec",
+    "make_dual",
     "resume_trainer",
     "save_checkpoint",
+    "select_members",
+    "take_trainer",
 ]

@@ -1,4 +1,9 @@
-"""Hyper-parameters of Algorithm 1 (:class:`TrainConfig`) and the torch optimizers they name."""
+"""Hyper-parameters of a primal-dual run (:class:`TrainConfig`) and the torch optimizers they name.
+
+A run is the paper's Algorithm 1 (``dual_method="paper"``) or one of the dual methods of
+:mod:`saml_ros.core.training.dual` (:data:`DUAL_METHODS`), with learning-rate schedules for the primal and the
+dual step (:mod:`saml_ros.core.training.schedule`). docs/training.md says which method to use when.
+"""
 
 from __future__ import annotations
 
@@ -7,22 +12,36 @@ from typing import Any
 
 import torch
 
+from saml_ros.core.device import resolve_device
+
 #: optimizer names of :attr:`TrainConfig.primal_optimizer` / :attr:`TrainConfig.dual_optimizer`
 OPTIMIZERS = ("adam", "sgd")
 #: engine names of :attr:`TrainConfig.engine` (the classes are in :mod:`saml_ros.core.training.engines`)
 ENGINE_NAMES = ("fast", "plain")
+#: dual methods of :attr:`TrainConfig.dual_method` (the classes are in :mod:`saml_ros.core.training.dual`)
+DUAL_METHODS = ("paper", "nupi", "augmented", "resilient")
+#: learning-rate schedules of :attr:`TrainConfig.primal_schedule` / :attr:`TrainConfig.dual_schedule`; ``"auto"``
+#: is ``"constant"`` for ``dual_method="paper"`` and :data:`AUTO_SCHEDULE` for every other method
+SCHEDULES = ("auto", "constant", "step", "cosine")
+#: what ``"auto"`` means for a method other than the paper's
+AUTO_SCHEDULE = "cosine"
 
 
 @dataclass
 class TrainConfig:
-    """Hyper-parameters of Algorithm 1 (defaults: the paper's double-integrator settings).
+    """Hyper-parameters of a primal-dual run.
+
+    ``TrainConfig()`` is the recommended recipe, chosen by measurement (``bench/bench_dual.py``, docs/training.md):
+    the augmented Lagrangian, Adam 3e-3 / 1e-2 with cosine decay of both rates, batch 128.
+    ``TrainConfig.paper()`` is the paper's Algorithm 1 with the paper's double-integrator settings.
 
     Attributes:
         epochs: passes over a fixed dataset (offline mode).
         batch_size: minibatch size M per ensemble member.
-        primal_lr: alpha_theta.
-        dual_lr: alpha_lambda.
-        primal_optimizer / dual_optimizer: ``"adam"`` (the paper) or ``"sgd"`` (plain Algorithm 1).
+        primal_lr: alpha_theta (the schedule's starting value).
+        dual_lr: alpha_lambda (the schedule's starting value; the controller's step for ``"nupi"``).
+        primal_optimizer / dual_optimizer: ``"adam"`` (the paper) or ``"sgd"`` (plain Algorithm 1); the dual
+            optimizer is not used by ``"nupi"``, which is its own controller.
         log_every: steps between history points (0: once per epoch); values are averaged in between.
         seed: seeds minibatch sampling.
         dtype: ``"float32"`` or ``"float64"`` for parameters and data.
@@ -30,18 +49,51 @@ class TrainConfig:
             forward/backward and flat Adam, :mod:`saml_ros.core.training.engines.fast`; same results up to float
             rounding, falls back to the plain loop where it does not apply) or ``"plain"`` (autograd and
             ``torch.optim``).
+        dual_method: how the multipliers move (:data:`DUAL_METHODS`, :mod:`saml_ros.core.training.dual`):
+            ``"paper"`` (Algorithm 1: projected ascent on g with ``dual_optimizer``), ``"nupi"`` (a PI
+            controller on the relative violation g / eps), ``"augmented"`` (augmented Lagrangian with penalty
+            ``penalty``), ``"resilient"`` (constraints relaxed at price ``relax_cost``).
+        nupi_kp: nuPI's proportional gain K_P (the integral gain is 1, the step ``dual_lr``).
+        nupi_ema: nuPI's smoothing nu of the error signal (0: none), in [0, 1).
+        penalty: augmented Lagrangian's penalty c, in objective units: rho_k = c / eps_k.
+        relax_cost: resilient constraints' price alpha (dimensionless) of relaxing eps_k by u_k:
+            h(u) = alpha f / 2 * sum_k (u_k / eps_k)^2 with f the objective (relaxing eps by a fraction r costs
+            alpha r^2 / 2 times the objective).
+        primal_schedule / dual_schedule: learning-rate schedule (:data:`SCHEDULES`) over the update count:
+            ``"constant"``, ``"step"`` (times ``lr_gamma`` at each of ``lr_drops`` evenly spaced drops) or
+            ``"cosine"`` (cosine decay to ``lr_floor`` times the starting value); ``"auto"``: constant for the
+            paper's method, :data:`AUTO_SCHEDULE` otherwise. Exact formulas: :mod:`saml_ros.core.training.schedule`.
+        schedule_steps: the schedules' horizon T in updates; 0: ``epochs`` times the minibatches per epoch of
+            the dataset being fitted (online training needs T > 0 for a schedule other than constant).
+        lr_gamma: factor of each step-schedule drop, in (0, 1].
+        lr_drops: number of step-schedule drops (at T k / (drops + 1), k = 1..drops), >= 1.
+        lr_floor: the cosine schedule's final learning rate as a fraction of the starting one, in [0, 1].
+        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.device.resolve_device`),
+            so a device that cannot be used fails when the configuration is made, not mid-run.
     """
 
     epochs: int = 200
     batch_size: int = 128
-    primal_lr: float = 1e-3
-    dual_lr: float = 1e-4
+    primal_lr: float = 3e-3
+    dual_lr: float = 1e-2
     primal_optimizer: str = "adam"
     dual_optimizer: str = "adam"
     log_every: int = 0
     seed: int = 0
     dtype: str = "float32"
     engine: str = "fast"
+    dual_method: str = "augmented"
+    nupi_kp: float = 10.0
+    nupi_ema: float = 0.0
+    penalty: float = 0.01
+    relax_cost: float = 100.0
+    primal_schedule: str = "auto"
+    dual_schedule: str = "auto"
+    schedule_steps: int = 0
+    lr_gamma: float = 0.1
+    lr_drops: int = 2
+    lr_floor: float = 0.0
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.primal_optimizer not in OPTIMIZERS or self.dual_optimizer not in OPTIMIZERS:
@@ -54,10 +106,45 @@ class TrainConfig:
             raise ValueError("dtype must be float32 or float64")
         if self.engine not in ENGINE_NAMES:
             raise ValueError(f"engine must be one of {ENGINE_NAMES}")
+        if self.dual_method not in DUAL_METHODS:
+            raise ValueError(f"dual_method must be one of {DUAL_METHODS}, got {self.dual_method!r}")
+        for name in ("primal_schedule", "dual_schedule"):
+            if getattr(self, name) not in SCHEDULES:
+                raise ValueError(f"{name} must be one of {SCHEDULES}, got {getattr(self, name)!r}")
+        checks = [
+            (self.nupi_kp >= 0, "nupi_kp must be >= 0"),
+            (0 <= self.nupi_ema < 1, "nupi_ema must be in [0, 1)"),
+            (self.penalty > 0, "penalty must be > 0"),
+            (self.relax_cost > 0, "relax_cost must be > 0"),
+            (self.schedule_steps >= 0, "schedule_steps must be >= 0"),
+            (0 < self.lr_gamma <= 1, "lr_gamma must be in (0, 1]"),
+            (self.lr_drops >= 1, "lr_drops must be >= 1"),
+            (0 <= self.lr_floor <= 1, "lr_floor must be in [0, 1]"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(msg)
+        resolve_device(self.device)
 
     @property
     def torch_dtype(self) -> torch.dtype:
         return torch.float32 if self.dtype == "float32" else torch.float64
+
+    def schedule(self, which: str) -> str:
+        """The schedule ``"auto"`` resolves to for ``which`` (``"primal"`` or ``"dual"``)."""
+        name = str(getattr(self, f"{which}_schedule"))
+        if name != "auto":
+            return name
+        return "constant" if self.dual_method == "paper" else AUTO_SCHEDULE
+
+    @classmethod
+    def paper(cls, **overrides: Any) -> TrainConfig:
+        """The paper's Algorithm 1 with its double-integrator settings (Adam 1e-3 / 1e-4, batch 128, 200 epochs,
+        constant learning rates); ``overrides`` replace fields."""
+        base: dict[str, Any] = {"epochs": 200, "batch_size": 128, "primal_lr": 1e-3, "dual_lr": 1e-4,
+                                "primal_optimizer": "adam", "dual_optimizer": "adam", "dual_method": "paper",
+                                "primal_schedule": "constant", "dual_schedule": "constant"}
+        return cls(**{**base, **overrides})
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:

@@ -26,10 +26,13 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
 from saml_ros.core.training.config import TrainConfig, make_optimizer
 from saml_ros.core.training.dataset import Transitions
+from saml_ros.core.training.diagnosis import MET, FeasibilityDiagnosis, diagnose
 from saml_ros.core.training.dual import DualVariables
 from saml_ros.core.training.engines import ENGINES, PlainEngine, minibatch_plan, primal_dual_step
 from saml_ros.core.training.evaluate import evaluate_spec
+from saml_ros.core.training.health import HealthConfig, TrainingHealth
 from saml_ros.core.training.history import FeasibilityReport, History, TrainingLog, check_feasibility, progress_bar
+from saml_ros.core.training.schedule import LRSchedule, schedules_for
 
 log = logging.getLogger("saml_ros.trainer")
 
@@ -40,26 +43,41 @@ class PrimalDualTrainer:
     Attributes (what engines read and update, :class:`~saml_ros.core.training.engines.RunState`):
         model, spec, config: the model (moved to ``config``'s dtype), the problem, the hyper-parameters.
         primal_opt: the optimizer of the network parameters.
-        dual: the dual variables (lambda ``(E, K)`` and their optimizer).
+        dual: the dual variables (lambda ``(E, K)``, their method and optimizer; :mod:`~saml_ros.core.training.dual`).
+        schedules: the ``(primal, dual)`` learning-rate schedules (:mod:`~saml_ros.core.training.schedule`); their
+            horizon is ``config.schedule_steps``, or, from :meth:`fit` on, ``config.epochs`` x the data's
+            minibatches per epoch when that is 0 (online without it, ``"auto"`` schedules are constant and
+            an explicit one is None until :meth:`fit`: :meth:`step` then raises ``ValueError``).
         rng: the generator minibatches are drawn from.
         log: the history and the minibatch values since its last row.
+        health: the training-health checks and counters (:mod:`~saml_ros.core.training.health`).
         steps: primal-dual updates done so far; epochs_done: passes over the data of :meth:`fit` so far.
         engine_used: engine of the last :meth:`fit` (``"fast"`` or ``"plain"``), None before.
+        diagnosis: the feasibility diagnosis at the end of the last :meth:`fit` (None before).
     """
 
-    def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None) -> None:
+    def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None,
+                 health: HealthConfig | None = None) -> None:
         self.model = model
         self.spec = spec
         self.config = config or TrainConfig()
         self.model.to(self.config.torch_dtype)
         self.primal_opt = make_optimizer(self.config.primal_optimizer, list(model.net.parameters()),
                                          self.config.primal_lr, maximize=False)
-        self.dual = DualVariables.for_config(self.config, model.n_models, spec.n_constraints)
+        self.dual = DualVariables.for_config(self.config, model.n_models, spec.n_constraints,
+                                             [t.eps for t in spec.constraints])
+        self.schedules: tuple[LRSchedule, LRSchedule] | None = None
+        try:
+            self.schedules = schedules_for(self.config, 0)
+        except ValueError:  # an explicit schedule without schedule_steps: fit() knows the horizon
+            pass
         self.steps = 0
         self.epochs_done = 0.0
         self.log = TrainingLog(spec.constraint_names)
+        self.health = TrainingHealth(health)
         self.rng = torch.Generator().manual_seed(int(self.config.seed))
         self.engine_used: str | None = None
+        self.diagnosis: FeasibilityDiagnosis | None = None
 
     @property
     def lam(self) -> torch.Tensor:
@@ -118,10 +136,12 @@ class PrimalDualTrainer:
         ``callback(self)`` runs after each epoch.
 
         Runs on the engine named by ``config.engine`` (see :class:`TrainConfig`), or on the plain one where that
-        engine does not apply; :attr:`engine_used` says which one ran. At the end, constraints that look
-        infeasible are logged as warnings (:meth:`feasibility`).
+        engine does not apply; :attr:`engine_used` says which one ran. At the end the feasibility diagnosis on
+        ``data`` is kept in :attr:`diagnosis` and every constraint not met is logged as a warning (:meth:`diagnose`).
         """
         epochs = self.config.epochs if epochs is None else epochs
+        self.schedules = schedules_for(self.config, self.config.epochs * minibatch_plan(self.config.batch_size,
+                                                                                         len(data))[1])
         engine = ENGINES[self.config.engine]()
         why = engine.unsupported_reason(self, data)
         if why is not None:
@@ -135,8 +155,10 @@ class PrimalDualTrainer:
         finally:
             if bar is not None:
                 bar.close()
-        for msg in self.feasibility().messages():
-            log.warning(msg)
+        self.diagnosis = self.diagnose(data)
+        for c in self.diagnosis.constraints:
+            if c.verdict != MET:
+                log.warning(c.message)
         return self.history
 
     # ----------------------------------------------------------------------------------- evaluation
@@ -145,6 +167,27 @@ class PrimalDualTrainer:
         """Dataset-level objective ``(E,)``, constraints ``(E, K)`` and Lagrangian ``(E,)`` at the current
         theta and lambda (the quantity the convergence experiment reports)."""
         return evaluate_spec(self.model, self.spec, data, self.lam, chunk)
+
+    def diagnose(self, data: Transitions | None = None) -> FeasibilityDiagnosis:
+        """Per constraint: met, smallest left-hand side, lambda rising, verdict
+        (:mod:`~saml_ros.core.training.diagnosis`); with ``data`` the final constraint values are dataset-level,
+        without it the means of the history's tail."""
+        eps = [t.eps for t in self.spec.constraints]
+        if data is not None:
+            ev = self.evaluate(data)
+            final, f = ev["constraints"], torch.as_tensor(ev["objective"])
+        else:
+            final = None
+            h = self.history
+            f = torch.as_tensor(h.objective[-1]) if h.objective else torch.ones(self.model.n_models)
+        relax = self.dual.relaxation(f).double().numpy()
+        limit = None
+        if type(self.dual.optimizer) is torch.optim.Adam and self.schedules is not None:
+            limit = self.schedules[1].total(self.steps)  # Adam moves lambda by at most about lr per update
+        rho = getattr(self.dual, "rho", None)  # the augmented Lagrangian's penalty (E, K), alike over members
+        rho_k = None if rho is None else rho.reshape(-1, len(eps))[0].double().numpy()
+        return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax, f.double().numpy(), limit,
+                        rho_k)
 
     def feasibility(self, tail: float = 0.25, rel_tol: float = 0.02) -> FeasibilityReport:
         """Flag constraints whose mean g over the last ``tail`` of the history exceeds ``rel_tol * eps``
@@ -166,10 +209,13 @@ class PrimalDualTrainer:
         }
 
     def load_state(self, st: dict[str, Any]) -> None:
-        """Restore what :meth:`state` returned (``rng`` and ``epochs_done`` optional)."""
+        """Restore what :meth:`state` returned (``rng`` and ``epochs_done`` optional; ``dual_opt`` None: lambda only)."""
         self.model.load_state_dict(st["model"])
         self.primal_opt.load_state_dict(st["primal_opt"])
-        self.dual.load_state_dict({"lam": st["lam"], "optimizer": st["dual_opt"]})
+        if st.get("dual_opt") is None:  # keep the fresh optimizer (e.g. the checkpoint's was another method's)
+            self.dual.assign_(st["lam"])
+        else:
+            self.dual.load_state_dict({"lam": st["lam"], "optimizer": st["dual_opt"]})
         self.steps = int(st["steps"])
         self.epochs_done = float(st.get("epochs_done", 0.0))
         if "rng" in st:

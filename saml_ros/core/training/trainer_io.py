@@ -5,22 +5,37 @@ checkpoint that resumes exactly where it left off (:func:`resume_trainer`). The 
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from saml_ros.core.checkpoint import CheckpointStore, arrays_to_torch_state, torch_state_to_arrays
-from saml_ros.core.model_io import LoadedModel, jsonable, model_payload
+from saml_ros.core.model_evidence import DataEvidence
+from saml_ros.core.model_io import LoadedModel, UnhealthyModel, jsonable, model_payload
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.trainer import PrimalDualTrainer
 
+log = logging.getLogger("saml_ros.trainer")
+
 
 def checkpoint_payload(
-    trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None, extra: dict[str, Any] | None = None
+    trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None, extra: dict[str, Any] | None = None,
+    evidence: DataEvidence | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Arrays and meta of a checkpoint holding ``trainer``'s model, lambda and optimizer states (``metrics`` and
-    ``extra`` go into the meta as they are, made JSON-safe)."""
+    ``extra`` go into the meta as they are, made JSON-safe), its health (``meta["health"]``,
+    :meth:`~saml_ros.core.training.health.TrainingHealth.summary`) and the training data's ``evidence`` (probe set
+    and residual statistics, :mod:`saml_ros.core.model_evidence`).
+
+    Raises:
+        saml_ros.core.model_io.UnhealthyModel: a weight, multiplier or optimizer value is NaN or infinite.
+    """
+    health = trainer.health.summary(trainer)
+    if not health["finite"]:
+        raise UnhealthyModel(f"non-finite weights or multipliers (last problem: {health['last_problem'] or '-'}): "
+                             "not written")
     dual = trainer.dual.state_dict()
     arrays: dict[str, np.ndarray] = {"lam": dual["lam"].double().numpy().copy()}
     model_arrays, meta, model_skeleton = model_payload(trainer.model, trainer.spec)
@@ -38,30 +53,55 @@ def checkpoint_payload(
         "epochs": trainer.epochs_done,
         "metrics": jsonable(metrics or {}),
         "skeletons": skeletons,
+        "health": jsonable(health),
     })
+    if evidence is not None:
+        ev_arrays, ev_meta = evidence.to_payload(trainer.model.system.target.names)
+        arrays.update(ev_arrays)
+        meta["evidence"] = ev_meta
     if extra:
         meta.update(jsonable(extra))
     return arrays, meta
 
 
 def save_checkpoint(store: CheckpointStore, trainer: PrimalDualTrainer, metrics: dict[str, Any] | None = None,
-                    extra: dict[str, Any] | None = None) -> tuple[Path, int]:
-    """Write the next versioned checkpoint of ``trainer`` into ``store`` and point ``latest`` at it."""
-    arrays, meta = checkpoint_payload(trainer, metrics, extra)
+                    extra: dict[str, Any] | None = None, evidence: DataEvidence | None = None) -> tuple[Path, int]:
+    """Write the next versioned checkpoint of ``trainer`` into ``store`` and point ``latest`` at it (see
+    :func:`checkpoint_payload`; nothing is written for an unhealthy model)."""
+    arrays, meta = checkpoint_payload(trainer, metrics, extra, evidence)
     return store.save(arrays, meta)
+
+
+def saved_config(meta: dict[str, Any]) -> TrainConfig:
+    """The training config a checkpoint's meta records (one written before dual methods existed ran the paper's
+    method with constant learning rates)."""
+    d = dict(meta.get("train_config", {}))
+    if "dual_method" not in d:
+        d.update(dual_method="paper", primal_schedule="constant", dual_schedule="constant")
+    return TrainConfig.from_dict(d)
 
 
 def resume_trainer(loaded: LoadedModel, config: TrainConfig | None = None) -> PrimalDualTrainer:
     """A trainer of ``loaded``'s model and spec that resumes exactly where the checkpoint left off (weights, lambda,
-    optimizer states, update and epoch counts); ``config`` defaults to the checkpoint's training config."""
-    cfg = config or TrainConfig.from_dict(loaded.meta.get("train_config", {}))
+    optimizer states, update and epoch counts); ``config`` defaults to the checkpoint's training config.
+
+    With a ``config`` of another dual method or dual optimizer than the checkpoint's, lambda is kept and the dual
+    optimizer starts afresh (its state belongs to the other method; logged)."""
+    saved = saved_config(loaded.meta)
+    cfg = config or saved
     tr = PrimalDualTrainer(loaded.model, loaded.spec, cfg)
     sk = loaded.meta["skeletons"]
+    same_dual = (saved.dual_method, saved.dual_optimizer if saved.dual_method != "nupi" else "") == (
+        cfg.dual_method, cfg.dual_optimizer if cfg.dual_method != "nupi" else "")
+    if not same_dual:
+        log.warning("resume: the checkpoint was trained with dual method %r (%s), this run uses %r (%s): lambda is "
+                    "kept, the dual optimizer starts afresh", saved.dual_method, saved.dual_optimizer,
+                    cfg.dual_method, cfg.dual_optimizer)
     tr.load_state({
         "model": loaded.model.state_dict(),
         "lam": loaded.lam,
         "primal_opt": arrays_to_torch_state(loaded.arrays, sk["primal_opt"]),
-        "dual_opt": arrays_to_torch_state(loaded.arrays, sk["dual_opt"]),
+        "dual_opt": arrays_to_torch_state(loaded.arrays, sk["dual_opt"]) if same_dual else None,
         "steps": int(loaded.meta.get("updates", 0)),
         "epochs_done": float(loaded.meta.get("epochs", 0.0)),
     })

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from saml_ros.core.plausibility import Plausibility, parse_overrides
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.quadrotor import Quadrotor
@@ -151,6 +152,8 @@ class SimConfig:
         seed: seed of the start sampler (negative = fresh OS entropy).
         reject_margin: see :class:`CommandValidator`.
         t0_ns: stamp of the first state (ns); lockstep runs use :data:`LOCKSTEP_T0_NS`.
+        plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.plausibility`); a
+            time-stepped simulator restarts the episode when its state leaves them (counted ``diverged``).
     """
 
     mode: str = "realtime"
@@ -162,8 +165,10 @@ class SimConfig:
     seed: int = 0
     reject_margin: float = 0.5
     t0_ns: int = LOCKSTEP_T0_NS
+    plausible_bounds: str = ""
 
     def __post_init__(self) -> None:
+        parse_overrides(self.plausible_bounds)  # ValueError for a malformed mapping
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         for name in ("cmd_timeout", "max_sim_time"):
@@ -521,6 +526,7 @@ class SteppedSim(SimCore):
         if start is not None and model.normalize_start is not None:
             start = model.normalize_start(start)
         self.initial_state = start
+        self.bounds = Plausibility.for_system(system, config.plausible_bounds).state
         self.k = 0  # stamp index: t_k = t0 + k dt
         self.x = np.zeros(system.state.size)
 
@@ -545,6 +551,9 @@ class SteppedSim(SimCore):
         touched = False
         if self.model.constrain is not None:
             x_next, touched = self.model.constrain(x_next)
+        if self.bounds.outside(x_next) is not None:  # beyond any physical state: never published
+            self.counters["diverged"] += 1
+            return self._restart(now_ns)
         out: list[Output] = []
         if touched:
             self.counters["ground_contacts"] += 1

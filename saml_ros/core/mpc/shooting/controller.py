@@ -72,6 +72,9 @@ class ShootingMPC:
         self._plan_x: np.ndarray | None = None
         #: how the shifted warm start fills its last step: "repeat" the previous last control or "default"
         self.tail = "repeat"
+        self._starts_key: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # _clipped_starts' cache
+        self._starts = np.zeros((0, self.horizon, self.m))
+        self._cands: np.ndarray | None = None
 
     # ------------------------------------------------------------------------------ Controller API
     def set_model(self, model: PredictionModel) -> None:
@@ -103,7 +106,7 @@ class ShootingMPC:
         u0, xs0 = self._warm_start(x0, task)
         try:
             plan_u, iters, converged, msg, xs = self._optimize(x0, u0, task, xs0)
-            clipped = np.clip(plan_u, task.u_low, task.u_high)
+            clipped = np.minimum(np.maximum(plan_u, task.u_low), task.u_high)
             # the optimiser's own prediction is the plan's unless clipping moved a control
             plan_x = xs if xs is not None and np.array_equal(clipped, plan_u) else self.rollout(x0, clipped)
             plan_u = clipped
@@ -152,7 +155,7 @@ class ShootingMPC:
         unshifted when x0 is nearer x_0 (a re-solve from the same state); its last step is filled per
         ``self.tail``. It competes with the candidates only if ``task.starts_every_solve`` (otherwise it is
         used as is); ties go to the previous plan, then to the earlier candidate."""
-        starts = np.clip(task.u_starts, task.u_low, task.u_high) if task.u_starts.size else task.u_starts
+        starts = self._clipped_starts(task)
         if self.start == "plain":
             starts = starts[:0]
         if self._plan_u is None or self._plan_x is None:
@@ -162,35 +165,43 @@ class ShootingMPC:
                 return starts[0].copy(), None
             return self._cheapest(x0, starts, task)
         prev_u, prev_x = self._plan_u, self._plan_x
-        shift = 1 if np.linalg.norm(x0 - prev_x[1]) < np.linalg.norm(x0 - prev_x[0]) else 0
-        u = np.empty((self.horizon, self.m))
+        d1, d0 = x0 - prev_x[1], x0 - prev_x[0]
+        shift = 1 if d1 @ d1 < d0 @ d0 else 0
+        compete = task.starts_every_solve and starts.shape[0] > 0
+        # with candidates: the shifted plan is written into row 0 of a buffer whose other rows hold the starts
+        cands = self._cands if compete else None
+        u = cands[0] if cands is not None else np.empty((self.horizon, self.m))
         keep = min(self.horizon, prev_u.shape[0] - shift)
         u[:keep] = prev_u[shift : shift + keep]
         u[keep:] = prev_u[-1] if self.tail == "repeat" else task.u_default
-        u = np.clip(u, task.u_low, task.u_high)
-        if not task.starts_every_solve or starts.shape[0] == 0:
+        np.minimum(np.maximum(u, task.u_low, out=u), task.u_high, out=u)  # np.clip, without its overhead
+        if cands is None:
             return u, None
-        return self._cheapest(x0, np.concatenate((u[None], starts)), task)
+        return self._cheapest(x0, cands, task)
+
+    def _clipped_starts(self, task: ShootingTask) -> np.ndarray:
+        """``task.u_starts`` clipped to the control bounds, computed once per task (``with_target`` keeps the
+        starts and bounds); also keeps ``self._cands`` ``(1 + G, T, m)``: row 0 for the shifted plan, then the
+        clipped starts."""
+        key = (task.u_starts, task.u_low, task.u_high)  # held, so no new array can reuse their ids
+        if self._starts_key is None or any(a is not b for a, b in zip(key, self._starts_key)):
+            starts = np.clip(task.u_starts, task.u_low, task.u_high) if task.u_starts.size else task.u_starts
+            self._starts = starts
+            self._cands = np.concatenate((np.zeros((1, self.horizon, self.m)), starts)) if starts.size else None
+            self._starts_key = key
+        return self._starts
 
     def _cheapest(self, x0: np.ndarray, cands: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, np.ndarray]:
         """The candidate ``(T, m)`` of ``cands`` ``(K, T, m)`` with the lowest start score (the first among
         ties) and its predicted states ``(T+1, n)``."""
         xs = self._rollout_batch(x0, cands)
         i = int(np.argmin(task.start_scores(xs)))
-        return cands[i].copy(), xs[i].copy()
+        return cands[i].copy(), np.ascontiguousarray(xs[i])
 
     def _rollout_batch(self, x0: np.ndarray, cands: np.ndarray) -> np.ndarray:
         """Predicted states ``(K, T+1, n)`` of control sequences ``cands`` ``(K, T, m)`` from ``x0`` ``(n,)``:
-        ONE batched rollout (T calls of ``dyn.step`` on ``(K, n), (K, m)``)."""
-        k, horizon = cands.shape[0], cands.shape[1]
-        xs = np.empty((k, horizon + 1, self.n))
-        xs[:, 0] = x0
-        x = xs[:, 0]
-        step = self.dyn.step
-        for t in range(horizon):
-            x = step(x, cands[:, t])
-            xs[:, t + 1] = x
-        return xs
+        ONE batched rollout (:meth:`NumpyDynamics.rollout_batch`)."""
+        return self.dyn.rollout_batch(x0, cands)
 
     def _fixed_rows(self, x0: np.ndarray, plan_u: np.ndarray, task: ShootingTask) -> np.ndarray:
         """Which of ``task.violations``' rows ``(n_cons,)`` no control can move: the linear rows at t = 1 whose

@@ -15,12 +15,18 @@
   - ``"ipm"``: Mehrotra's predictor-corrector interior point method on the dense normal equations (one
     Cholesky per iteration), pure numpy; the fallback without ``daqp`` and whenever DAQP reports a failure.
 
+* :class:`L1QP`: the exact l1 model of a scalar stage cost (friction), ``min 1/2 d'Hd + g'd + sum_t |r_t + j_t d|
+  + pen' max(G d - h, 0)  s.t.  lo <= d <= hi``, by DAQP with ONE slack per stage (``-s_t <= r_t + j_t d <= s_t``)
+  instead of one per elastic row, in one DAQP workspace (``daqp.Model``) kept between calls and warm-started from
+  the previous active set: 20 instead of 30 variables at T = 10, 7 us instead of 23-35 us per QP.
+
 ``H`` must be symmetric positive definite (the SQP adds a Levenberg-Marquardt term).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _dpotrf
@@ -130,6 +136,66 @@ def solve_qp(
     elif backend not in (None, "ipm"):
         raise ValueError(f"unknown QP backend {backend!r}; use 'daqp' or 'ipm'")
     return _solve_qp_ipm(hess, grad, lo, hi, g_mat, h_vec, penalty, max_iter, tol)
+
+
+class L1QP:
+    """The l1 step model (see the module docstring) for ``n`` controls, ``t`` stage residuals and ``k`` elastic
+    rows, solved by DAQP over ``z = [d (n), s (t), e (k)]``: rows ``j d - s <= -r``, ``-j d - s <= r``,
+    ``G d - e <= h``; bounds ``lo <= d <= hi``, ``e >= 0`` (``s >= |r + j d|`` follows from the rows); cost
+    ``1/2 d'Hd + g'd + sum(s) + pen' e``. The matrices are allocated once and refilled per call; the DAQP
+    workspace is set up once and updated per call, so each solve starts from the previous active set (the
+    optimum is the same: the problem is strictly convex in d, and s is fixed by d)."""
+
+    def __init__(self, n: int, t: int, k: int) -> None:
+        if _daqp is None:
+            raise ValueError("L1QP needs the daqp package (pip install daqp)")
+        self.n, self.t, self.k = n, t, k
+        nz = n + t + k
+        self._h = np.zeros((nz, nz))
+        self._f = np.zeros(nz)
+        self._f[n : n + t] = 1.0
+        self._a = np.zeros((2 * t + k, nz))
+        self._a[:t, n : n + t] = -np.eye(t)
+        self._a[t : 2 * t, n : n + t] = -np.eye(t)
+        self._a[2 * t :, n + t :] = -np.eye(k)
+        self._bu = np.full(nz + 2 * t + k, _INF)
+        self._bl = np.full(nz + 2 * t + k, -_INF)
+        self._bl[n + t : nz] = 0.0
+        self._model: Any = None  # the DAQP workspace, set up on the first solve
+
+    def solve(
+        self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, j: np.ndarray, r: np.ndarray,
+        g_mat: np.ndarray, h_vec: np.ndarray, pen: np.ndarray,
+    ) -> np.ndarray | None:
+        """The step ``d`` ``(n,)`` (clipped to the box), or None if DAQP fails. Shapes: ``hess (n, n)``, ``grad,
+        lo, hi (n,)``, ``j (t, n)``, ``r (t,)``, ``g_mat (k, n)``, ``h_vec, pen (k,)``."""
+        assert _daqp is not None
+        n, t = self.n, self.t
+        nz = self._f.size
+        self._h[:n, :n] = hess
+        self._f[:n] = grad
+        self._f[n + t :] = pen
+        a = self._a
+        a[:t, :n] = j
+        np.negative(j, out=a[t : 2 * t, :n])
+        a[2 * t :, :n] = g_mat
+        bu, bl = self._bu, self._bl
+        bu[:n] = hi
+        bl[:n] = lo
+        np.negative(r, out=bu[nz : nz + t])
+        bu[nz + t : nz + 2 * t] = r
+        bu[nz + 2 * t :] = h_vec
+        if self._model is None:
+            self._model = _daqp.Model()
+            self._model.setup(self._h, self._f, a, bu, bl)
+        else:
+            self._model.update(H=self._h, f=self._f, A=a, bupper=bu, blower=bl)
+        x, _, flag, _ = self._model.solve()
+        if flag != 1:
+            self._model = None  # start the next solve from a fresh workspace
+            return None
+        d = np.maximum(x[:n], lo)
+        return np.minimum(d, hi, out=d)
 
 
 def _solve_qp_daqp(

@@ -21,10 +21,11 @@ import time
 from typing import Any
 
 import numpy as np
+from scipy.linalg.blas import dtrsm as _dtrsm
 
 from saml_ros.core.mpc.dynamics_np import PredictionModel
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
-from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
+from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, L1QP, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
 
@@ -87,7 +88,25 @@ class SQPShootingMPC(ShootingMPC):
         self._fixed = np.zeros(0, dtype=bool)  # constraint rows no control can change (last linearisation)
         nu = self.horizon * self.m
         self._sens = np.zeros((self.horizon + 1, self.n, nu))
+        # small state and horizon (friction: 2 x 10): the sensitivities by one triangular solve (see
+        # _sensitivities); larger ones (quadrotor: 13 x 10) by the recursion, which is faster there
+        self._tri: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        if self.horizon * self.n <= 48:
+            T, n, m = self.horizon, self.n, self.m
+            nt = T * n
+            ia = [((t * n + np.arange(n))[:, None] * nt + ((t - 1) * n + np.arange(n))[None, :]).ravel()
+                  for t in range(1, T)]
+            ib = [((t * n + np.arange(n))[:, None] * (T * m) + (t * m + np.arange(m))[None, :]).ravel()
+                  for t in range(T)]
+            self._tri = (np.eye(nt), np.zeros((nt, T * m)), np.concatenate(ia).astype(np.intp),
+                         np.concatenate(ib).astype(np.intp))  # fmt: skip
         self._eye = np.eye(nu)
+        self._zeros_nu = np.zeros(nu)
+        self._zeros_hess = np.zeros((nu, nu))
+        self._zeros_hess.flags.writeable = False
+        self._no_rows = np.zeros(0)
+        self._no_g = np.zeros((0, nu))
+        self._l1qp: L1QP | None = None  # the l1 model's DAQP buffers (scalar stage cost), made on first use
         #: per-solve counters (iterations, QPs, rollouts, ...) of the last solve, for profiling
         self.stats: dict[str, int] = {}
         #: set to a list to record (iteration, merit, predicted, actual decrease, step, |d|, rho, penalty)
@@ -107,7 +126,7 @@ class SQPShootingMPC(ShootingMPC):
     def _merit(self, xs: np.ndarray, task: ShootingTask, penalty: float) -> tuple[float, np.ndarray, np.ndarray]:
         """Merit (cost, norms smoothed + penalty * violation), residuals ``(T, k)``, constraint values."""
         r = xs[1:, task.res_idx] - task.target
-        c, _ = task.solver_violations(xs)
+        c = task.solver_violations(xs)[0] if task.n_cons else self._no_rows
         if r.shape[1] == 1:
             merit = float(np.abs(r).sum())
         else:
@@ -119,8 +138,18 @@ class SQPShootingMPC(ShootingMPC):
         return merit, r, c
 
     def _sensitivities(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """``S[t] = dx_t/dU`` ``(T+1, n, T m)`` (``S[0] = 0``); columns beyond ``t m`` stay zero."""
+        """``S[t] = dx_t/dU`` ``(T+1, n, T m)`` (``S[0] = 0``); columns beyond ``t m`` stay zero.
+
+        The recursion ``S_{t+1} = A_t S_t + [0 .. B_t .. 0]`` stacked over t is ``(I - L) X = blockdiag(B_t)``
+        with ``X = [S_1; ..; S_T]`` and ``-A_t`` in the block below the diagonal of row t: a unit lower
+        triangular system, one BLAS ``trsm`` for small ``T n`` instead of T matrix products."""
         s, m = self._sens, self.m
+        if self._tri is not None:
+            mat, rhs, ia, ib = self._tri
+            mat.flat[ia] = -a[1:].ravel()
+            rhs.flat[ib] = b.ravel()
+            s[1:] = _dtrsm(1.0, mat, rhs, lower=1, diag=1).reshape(s[1:].shape)
+            return s
         for t in range(self.horizon):
             if t:
                 np.matmul(a[t], s[t, :, : t * m], out=s[t + 1, :, : t * m])
@@ -129,41 +158,70 @@ class SQPShootingMPC(ShootingMPC):
 
     def _subproblem(
         self, sens: np.ndarray, xs: np.ndarray, r: np.ndarray, c: np.ndarray, task: ShootingTask, penalty: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Model of the step d: smooth part ``hess, grad`` and elastic rows ``G d <= h`` priced ``pen``."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """Model of the step d: smooth part ``hess, grad``, elastic rows ``G d <= h`` priced ``pen`` and the
+        curvature scale of the Levenberg-Marquardt term. For a scalar stage residual (exact l1 model) ``hess``
+        is zero and ``G, h`` hold the state-constraint rows only: the stage rows are ``self._l1_rows``."""
         T, k = self.horizon, task.res_idx.size
         jac = sens[1:, task.res_idx, :]  # (T, k, Tm)
-        g_con = task.cons_sign[:, None] * sens[task.cons_t, task.cons_idx, :]
-        if task.att_tol is not None:
-            _, dqv = task.solver_violations(xs)
-            assert dqv is not None
-            g_con = np.vstack((g_con, dqv @ sens[task.horizon, list(task.att_qv), :]))
-        # rows no control can move (e.g. pz_1 = pz_0 + dt vz_0) only add a constant: leave them out
-        reach = np.abs(g_con) @ (self._u_hi - self._u_lo)
-        self._fixed = reach < 0.01 * self.feas_tol
-        if self._fixed.any():
-            keep = ~self._fixed
-            g_con, c = g_con[keep], c[keep]
-        pen_c = np.full(c.size, penalty)
+        if task.n_cons:
+            g_con = task.cons_sign[:, None] * sens[task.cons_t, task.cons_idx, :]
+            if task.att_tol is not None:
+                _, dqv = task.solver_violations(xs)
+                assert dqv is not None
+                g_con = np.vstack((g_con, dqv @ sens[task.horizon, list(task.att_qv), :]))
+            # rows no control can move (e.g. pz_1 = pz_0 + dt vz_0) only add a constant: leave them out
+            reach = np.abs(g_con) @ (self._u_hi - self._u_lo)
+            self._fixed = reach < 0.01 * self.feas_tol
+            if self._fixed.any():
+                keep = ~self._fixed
+                g_con, c = g_con[keep], c[keep]
+        else:
+            g_con = self._no_g
+        pen_c = np.full(c.size, penalty) if c.size else self._no_rows
         if k == 1:
-            # exact l1 model: |r_t + J_t d| through a pair of elastic rows per stage, no smooth part
+            # exact l1 model |r_t + J_t d| (one slack per stage in the QP), no smooth part; the damping scales
+            # with the mean squared sensitivity of the residuals, the curvature a smooth model would have
             j1, r1 = jac[:, 0, :], r[:, 0]
-            g_mat = np.vstack((j1, -j1, g_con))
-            h_vec = np.concatenate((-r1, r1, -c))
-            pen = np.concatenate((np.ones(2 * T), pen_c))
+            self._l1_rows = (j1, r1)
             nu = j1.shape[1]
-            return np.zeros((nu, nu)), np.zeros(nu), g_mat, h_vec, pen
+            scale = max(float(np.einsum("ij,ij->", j1, j1)) / nu, 1e-6)
+            return self._zeros_hess, self._zeros_nu, g_con, -c, pen_c, scale
         f = np.sqrt(np.einsum("ij,ij->i", r, r) + self.eps**2)
         jf = jac.reshape(T * k, -1)
         v = np.einsum("tk,tkj->tj", r, jac)  # J_t' r_t
         grad = (v / f[:, None]).sum(0)
         # generalised Gauss-Newton: J' [(I - radial r r'/f^2) / f] J, the Hessian of the smoothed norm
         hess = (jf.T * np.repeat(1.0 / f, k)) @ jf - (v.T * (self.radial / f**3)) @ v
-        return hess, grad, g_con, -c, pen_c
+        scale = max(float(np.trace(hess)) / hess.shape[0], 1e-6)
+        return hess, grad, g_con, -c, pen_c, scale
+
+    def _l1_step(self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray,
+                 h_vec: np.ndarray, pen: np.ndarray) -> tuple[np.ndarray, float]:
+        """The l1 model's step and its predicted decrease (stage rows ``self._l1_rows``, elastic rows ``G, h``)."""
+        j1, r1 = self._l1_rows
+        d: np.ndarray | None = None
+        if self.qp_backend == "daqp":
+            if self._l1qp is None or (self._l1qp.t, self._l1qp.k) != (r1.size, h_vec.size):
+                self._l1qp = L1QP(j1.shape[1], r1.size, h_vec.size)
+            self.stats["daqp_qp"] += 1
+            d = self._l1qp.solve(hess, grad, lo, hi, j1, r1, g_mat, h_vec, pen)
+        if d is None:  # the numpy fallback (or DAQP failed): the same model as elastic rows, two per stage
+            g_all = np.vstack((j1, -j1, g_mat))
+            h_all = np.concatenate((-r1, r1, h_vec))
+            pen_all = np.concatenate((np.ones(2 * r1.size), pen))
+            self.stats["ipm_qp"] += 1
+            d = solve_qp(hess, grad, lo, hi, g_all, h_all, pen_all, backend="ipm").d
+        pred = float(np.abs(r1).sum() - np.abs(r1 + j1 @ d).sum())
+        if h_vec.size:
+            pred += float(pen @ (np.maximum(-h_vec, 0.0) - np.maximum(g_mat @ d - h_vec, 0.0)))
+        if grad is not self._zeros_nu:
+            pred -= float(grad @ d)
+        return d, pred
 
     def _qp(
         self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray,
-        h_vec: np.ndarray, pen: np.ndarray, stage_rows: bool,
+        h_vec: np.ndarray, pen: np.ndarray,
     ) -> np.ndarray:
         """The QP step. DAQP (when installed): the elastic QP directly (its active-set method handles the
         box-only case as fast as projected Newton). The numpy fallback: projected Newton on the box alone when
@@ -171,17 +229,16 @@ class SQPShootingMPC(ShootingMPC):
         otherwise."""
         if self.qp_backend == "daqp":
             self.stats["daqp_qp"] += 1
-            return solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="daqp", hard_first=not stage_rows).d
-        if not stage_rows and not self._ipm_first:
+            return solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="daqp").d
+        if not self._ipm_first:
             box = solve_box_qp(hess, grad, lo, hi)
             self.stats["box_qp"] += 1
             if box.converged and (not h_vec.size or (g_mat @ box.d - h_vec).max() <= 1e-9):
                 return box.d
         self.stats["ipm_qp"] += 1
         qp = solve_qp(hess, grad, lo, hi, g_mat, h_vec, pen, backend="ipm")
-        if not stage_rows:
-            # stay on the interior point method while a state constraint is (nearly) active
-            self._ipm_first = bool((g_mat @ qp.d - h_vec).max() > -1e-6)
+        # stay on the interior point method while a state constraint is (nearly) active
+        self._ipm_first = bool((g_mat @ qp.d - h_vec).max() > -1e-6)
         return qp.d
 
     def _optimize(
@@ -200,19 +257,22 @@ class SQPShootingMPC(ShootingMPC):
         msg, converged = "max_iter", False
         it = 0
         for it in range(1, self.max_iter + 1):  # noqa: B007
-            _, a, b = self.dyn.step_jac(xs[:-1], u)
+            a, b = self.dyn.jacobians(xs[:-1], u)
             self.stats["jacobians"] += 1
             sens = self._sensitivities(a, b)
-            hess, grad, g_mat, h_vec, pen = self._subproblem(sens, xs, r, c, task, penalty)
+            hess, grad, g_mat, h_vec, pen, scale = self._subproblem(sens, xs, r, c, task, penalty)
             lo, hi = self._u_lo - u.reshape(-1), self._u_hi - u.reshape(-1)
-            scale = max(float(np.trace(hess)) / hess.shape[0], 1e-6)
-            rows0 = float(pen @ np.maximum(-h_vec, 0.0))
+            rows0 = float(pen @ np.maximum(-h_vec, 0.0)) if h_vec.size else 0.0
             accepted = False
             undamped_tried = False
             while True:
-                d = self._qp(hess + (rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec, pen,
-                             stage_rows)
-                pred = -(grad @ d + 0.5 * d @ hess @ d) + rows0 - float(pen @ np.maximum(g_mat @ d - h_vec, 0.0))
+                if stage_rows:  # exact l1 model: no smooth part beyond the damping
+                    d, pred = self._l1_step((rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec,
+                                            pen)
+                else:
+                    d = self._qp(hess + (rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec, pen)
+                    pred = (-(grad @ d + 0.5 * d @ hess @ d) + rows0
+                            - float(pen @ np.maximum(g_mat @ d - h_vec, 0.0)))
                 if pred <= self.tol * (1.0 + abs(merit)):
                     if self.undamped_check and rho > self.rho0 and not undamped_tried:
                         undamped_tried = True

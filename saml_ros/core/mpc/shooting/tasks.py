@@ -72,6 +72,8 @@ class ShootingTask:
 
     def stage_costs(self, xs: np.ndarray) -> np.ndarray:
         """``||x[res_idx] - target||_2`` for each state of ``xs`` ``(..., n)`` -> ``(...)``."""
+        if self.res_idx.size == 1:  # a scalar residual: |r|
+            return np.abs(xs[..., self.res_idx[0]] - self.target[0])
         r = xs[..., self.res_idx] - self.target
         return np.sqrt(np.einsum("...j,...j->...", r, r))
 
@@ -82,7 +84,10 @@ class ShootingTask:
     def start_scores(self, xs: np.ndarray, penalty: float = 100.0) -> np.ndarray:
         """Score of candidate trajectories ``xs`` ``(K, T+1, n)`` -> ``(K,)``: the exact cost plus ``penalty``
         times the summed violation of the paper's constraints (:meth:`cost` and :meth:`violations`, batched)."""
-        return self.stage_costs(xs[:, 1:]).sum(-1) + penalty * np.maximum(self.violations(xs), 0.0).sum(-1)
+        scores = self.stage_costs(xs[:, 1:]).sum(-1)
+        if self.n_cons:
+            scores += penalty * np.maximum(self.violations(xs), 0.0).sum(-1)
+        return scores
 
     def violations(self, xs: np.ndarray) -> np.ndarray:
         """The paper's constraints ``g(x) <= 0`` of a trajectory (> 0 = violated): ``sign * x_t[idx] - bound``

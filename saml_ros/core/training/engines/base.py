@@ -14,7 +14,9 @@ from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import DualVariables
+from saml_ros.core.training.health import TrainingHealth
 from saml_ros.core.training.history import TrainingLog
+from saml_ros.core.training.schedule import LRSchedule
 
 
 class RunState(Protocol):
@@ -28,6 +30,8 @@ class RunState(Protocol):
     dual: DualVariables
     rng: torch.Generator
     log: TrainingLog
+    schedules: tuple[LRSchedule, LRSchedule] | None
+    health: TrainingHealth
     steps: int
     epochs_done: float
 

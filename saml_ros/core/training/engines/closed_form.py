@@ -59,9 +59,17 @@ class StepGroup:
     ny: Tensor | None
 
 
-def group_step_fn(g: TermGroup, n_y: int, single: bool) -> Callable[[Tensor, StepGroup, Tensor, Tensor], Tensor]:
-    """``fn(err, step_group, row, coef) -> dL/dpred contribution`` for one group: writes the group's term
-    values into ``row`` ``(E, T)`` and returns the gradient of ``sum_t coef_t * value_t`` w.r.t. ``pred``.
+#: ``values(err, step_group, row) -> context``: writes a group's term values into ``row`` ``(E, T)``
+GroupValues = Callable[[Tensor, "StepGroup", Tensor], tuple[Tensor, Tensor, Tensor]]
+#: ``grad(context, step_group, coef) -> dL/dpred contribution`` of ``sum_t coef_t * value_t``
+GroupGrad = Callable[[tuple[Tensor, Tensor, Tensor], "StepGroup", Tensor], Tensor]
+
+
+def group_step_fn(g: TermGroup, n_y: int, single: bool) -> tuple[GroupValues, GroupGrad]:
+    """``(values, grad)`` for one group: ``values(err, step_group, row)`` writes the group's term values into
+    ``row`` ``(E, T)`` and returns a context; ``grad(context, step_group, coef)`` returns the gradient of
+    ``sum_t coef_t * value_t`` w.r.t. ``pred``. Every group's values come first, so the coefficients may depend
+    on this minibatch's values (the augmented Lagrangian's do).
 
     Per-sample gradients are the closed forms of autograd's: l2 ``e / ||e||`` (0 at e = 0), squared_l2 ``2 e``,
     l1 ``sign(e)``, huber ``clamp(e, -delta, delta)``, normalized ``e / (||e|| ||y||)``.
@@ -75,7 +83,7 @@ def group_step_fn(g: TermGroup, n_y: int, single: bool) -> Callable[[Tensor, Ste
     col_idx = torch.tensor(cols, dtype=torch.long)
     bmm, div = torch.bmm, torch.div
 
-    def fn(err: Tensor, sg: StepGroup, row: Tensor, coef: Tensor) -> Tensor:
+    def values(err: Tensor, sg: StepGroup, row: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         eg = err if all_fields else err.index_select(-1, fidx)
         nrm = eg  # placeholder for the norms of l2 / normalized
         if loss == "l2":
@@ -95,12 +103,19 @@ def group_step_fn(g: TermGroup, n_y: int, single: bool) -> Callable[[Tensor, Ste
         sums = bmm(lval.transpose(1, 2), sg.mk).squeeze(1)  # (E, Tg)
         if single:
             torch.addcdiv(sg.negeps, sums, sg.den, out=row)
-            cw = div(coef, sg.wden)
         elif contiguous:
             torch.addcdiv(sg.negeps, sums, sg.den, out=row[:, lo:hi])
-            cw = div(coef[:, lo:hi], sg.wden)
         else:
             row[:, col_idx] = torch.addcdiv(sg.negeps, sums, sg.den)
+        return err, eg, nrm
+
+    def grad(ctx: tuple[Tensor, Tensor, Tensor], sg: StepGroup, coef: Tensor) -> Tensor:
+        err, eg, nrm = ctx
+        if single:
+            cw = div(coef, sg.wden)
+        elif contiguous:
+            cw = div(coef[:, lo:hi], sg.wden)
+        else:
             cw = div(coef.index_select(1, col_idx), sg.wden)
         wgt = bmm(sg.mk, cw.unsqueeze(-1))  # (E, B, 1): dL/dl per sample
         if loss == "l2":
@@ -118,4 +133,4 @@ def group_step_fn(g: TermGroup, n_y: int, single: bool) -> Callable[[Tensor, Ste
             return contrib
         return torch.zeros_like(err).index_copy_(-1, fidx, contrib)
 
-    return fn
+    return values, grad

@@ -27,8 +27,13 @@ the plain engine by float rounding only: summation order in matmuls and reductio
 ``phi + (f_hat - y)``, Adam's ``sqrt(bias correction)`` moved out of its denominator and lambda kept as
 ``k * u``. ``test/test_fast_train.py`` bounds the difference (float64: 1e-8 after 240 steps).
 
-Where it does not apply (:func:`unsupported_reason`: another network or optimizer type, AMSGrad, another dual
-method than :class:`~saml_ros.core.training.dual.DualVariables`, ...) the trainer runs the plain engine. The flat
+Every dual method (:data:`FAST_DUALS`: the paper's, nuPI, augmented Lagrangian, resilient) and learning-rate
+schedule runs here with its class's arithmetic: the augmented Lagrangian's weights ``relu(lambda + rho g)`` need
+the minibatch's g, so every group's term values come before any gradient (:func:`group_step_fn`); schedules set
+the flat optimizers' rates per update, and the dual Adam stays merged only when both rates scale alike.
+
+Where it does not apply (:func:`unsupported_reason`: another network or optimizer type, AMSGrad, a dual-variables
+class it does not know, ...) the trainer runs the plain engine. The flat
 storage and flat optimizers are in :mod:`~saml_ros.core.training.engines.flat`, the closed-form spec terms in
 :mod:`~saml_ros.core.training.engines.closed_form`; this module holds the support check and the engine.
 
@@ -45,10 +50,11 @@ from torch import Tensor
 
 from saml_ros.core.models import EnsembleMLP
 from saml_ros.core.training.dataset import Transitions
-from saml_ros.core.training.dual import DualVariables
+from saml_ros.core.training.dual import AugmentedDual, DualVariables, NuPIDual, ResilientDual
 from saml_ros.core.training.engines.base import Engine, RunState, minibatch_plan
 from saml_ros.core.training.engines.closed_form import SUPPORTED_LOSSES, StepGroup, group_step_fn, term_groups
-from saml_ros.core.training.engines.flat import FlatNet, FlatOptimizer, merged_dual_scale
+from saml_ros.core.training.engines.flat import FlatNet, FlatNuPI, FlatOptimizer, merged_dual_scale
+from saml_ros.core.training.nupi import NuPI
 
 # Floats gathered per chunk of epochs (at least one epoch): small enough to stay in cache (~4 MB in float32).
 _CHUNK_FLOATS = 1_000_000
@@ -56,7 +62,10 @@ _CHUNK_FLOATS = 1_000_000
 _prelu_kernel: Callable[[Tensor, Tensor], Tensor] = getattr(
     torch, "_prelu_kernel", torch.ops.aten._prelu_kernel.default
 )
+_Snapshot = tuple[list[Tensor], tuple[int, int, int], Tensor | None]
 _Step = Callable[[Tensor, Tensor, list[StepGroup], Tensor], None]
+#: the dual methods with a flat implementation here (every one of :data:`~saml_ros.core.training.dual.DUAL_CLASSES`)
+FAST_DUALS: tuple[type[DualVariables], ...] = (DualVariables, NuPIDual, AugmentedDual, ResilientDual)
 
 
 # ------------------------------------------------------------------------------------------------- support
@@ -77,12 +86,20 @@ def unsupported_reason(trainer: RunState, data: Transitions) -> str | None:
     why = _optimizer_reason(trainer.primal_opt, maximize=False)
     if why:
         return f"primal optimizer: {why}"
-    if type(trainer.dual) is not DualVariables:
+    if type(trainer.dual) not in FAST_DUALS:
         return f"dual method {type(trainer.dual).__name__} has no fast implementation"
     if trainer.spec.n_constraints:
-        why = _optimizer_reason(trainer.dual.optimizer, maximize=True)
+        dopt = trainer.dual.optimizer
+        if len(dopt.param_groups) != 1 or [id(p) for p in dopt.param_groups[0]["params"]] != [id(trainer.dual.param)]:
+            return "the dual optimizer does not hold exactly lambda in one group"
+        if isinstance(trainer.dual, NuPIDual):
+            why = None if type(dopt) is NuPI and dopt.param_groups[0]["maximize"] else "not an ascending nuPI"
+        else:
+            why = _optimizer_reason(dopt, maximize=True)
         if why:
             return f"dual optimizer: {why}"
+    if trainer.schedules is None:
+        return "a learning-rate schedule without a horizon"
     dt = trainer.config.torch_dtype
     if any(p.dtype != dt for p in params) or data.x.dtype != dt:
         return "model, data and config dtypes differ"
@@ -149,17 +166,29 @@ class FastRun:
         self.T = len(self.terms)
         self.K = self.T - 1
         self.groups = term_groups(self.terms)
-        self.dual = trainer.dual
-        # dual variables merged into the primal flat tensor as u = lambda / k (see merged_dual_scale), or separate
-        self.k_dual = merged_dual_scale(trainer.primal_opt, self.dual.optimizer) if self.K else None
+        self.dual = dual = trainer.dual
+        assert trainer.schedules is not None
+        self.schedules = trainer.schedules
+        # dual variables merged into the primal flat tensor as u = lambda / k (see merged_dual_scale), or separate;
+        # under learning-rate schedules only when both rates scale alike (k then comes from the starting rates)
+        self.k_dual = None
+        ps, ds = self.schedules
+        if self.K and not isinstance(dual, NuPIDual) and ps.same_factors(ds):
+            base = None if ps.constant and ds.constant else (ps.lr0, ds.lr0)
+            self.k_dual = merged_dual_scale(trainer.primal_opt, dual.optimizer, base)
         self.net = FlatNet(model.net, self.dtype, self.K if self.k_dual is not None else 0)
         self.popt = FlatOptimizer(trainer.primal_opt, self.net.flat, maximize=False)
-        # coef = [1, lambda_1..K] per member; lambda is a view
+        # coef = [1, w_1..K] per member: the weights of the constraint estimates in the primal gradient, lambda
+        # itself (a view) except for the augmented Lagrangian, whose weights relu(lambda + rho g) are per step
         self.coef = torch.ones(self.E, self.T, dtype=self.dtype)
-        self.lam = self.coef[:, 1:]
-        self.dopt = None
-        if self.K and self.k_dual is None:
-            self.dopt = FlatOptimizer(self.dual.optimizer, self.lam, maximize=True)
+        self.augmented = isinstance(dual, AugmentedDual)
+        self.lam = torch.zeros(self.E, self.K, dtype=self.dtype) if self.augmented else self.coef[:, 1:]
+        self.dopt: FlatOptimizer | None = None
+        self.dnupi: FlatNuPI | None = None
+        if self.K and isinstance(dual, NuPIDual):
+            self.dnupi = FlatNuPI(dual.optimizer, self.lam)
+        elif self.K and self.k_dual is None:
+            self.dopt = FlatOptimizer(dual.optimizer, self.lam, maximize=True)
         self.residual = model.kind == "residual"
         self._pending: list[Tensor] = []
         self._prepare_sources()
@@ -173,6 +202,8 @@ class FastRun:
         self.lam.copy_(self.dual.value)
         if self.dopt is not None:
             self.dopt.load(self.dual.optimizer, lambda buf: [buf])
+        if self.dnupi is not None:
+            self.dnupi.load(self.dual.optimizer)
         if self.k_dual is not None:
             self.net.extra.copy_(self.lam / self.k_dual)
             st = self.dual.optimizer.state.get(self.dual.param, {})
@@ -188,6 +219,15 @@ class FastRun:
         self.dual.assign_(self.lam)
         if self.dopt is not None:
             self.dopt.store(self.dual.optimizer, lambda buf: [buf])
+        if self.dnupi is not None:
+            self.dnupi.store(self.dual.optimizer)
+        # the optimizers' learning rates: those of the last update, as the plain engine leaves them
+        ps, ds = self.schedules
+        if self.tr.steps and not ps.constant:
+            for group in self.tr.primal_opt.param_groups:
+                group["lr"] = ps.lr(self.tr.steps - 1)
+        if self.tr.steps and not ds.constant:
+            self.dual.set_lr(ds.lr(self.tr.steps - 1))
         if self.k_dual is not None and self.popt.step_count:
             self.dual.optimizer.state[self.dual.param] = {
                 "step": torch.tensor(float(self.popt.step_count), dtype=torch.float32),
@@ -308,8 +348,49 @@ class FastRun:
             return
         rows = self._pending[0] if len(self._pending) == 1 else torch.cat(self._pending)
         self._pending = []
+        skipped = torch.isnan(rows).flatten(1).any(1)  # NaN rows: steps skipped as unhealthy (see _check_block)
+        if bool(skipped.any()):
+            rows = rows[~skipped]
+            if len(rows) == 0:
+                return  # as the plain loop: no row without a healthy step
         tr = self.tr
         tr.log.record(tr.steps, tr.epochs_done, rows[:, :, 0].mean(0), rows[:, :, 1:].mean(0), self.lam)
+
+    # ------------------------------------------------------------------------------ health (training/health.py)
+    def _state_tensors(self) -> list[Tensor]:
+        """The tensors a step changes: flat parameters (and merged dual), optimizer moments, lambda."""
+        ts: list[Tensor] = [self.net.flat, self.popt.m, self.popt.v, self.lam]
+        if self.dopt is not None:
+            ts += [self.dopt.m, self.dopt.v]
+        seen: set[int] = set()
+        return [t for t in ts if not (id(t) in seen or seen.add(id(t)))]  # type: ignore[func-returns-value]
+
+    def _snapshot(self) -> _Snapshot:
+        """The state :meth:`_check_block` puts back: the step tensors, the step counts and nuPI's last error."""
+        nupi = self.dnupi
+        xi = None if nupi is None or nupi.xi is None else nupi.xi.clone()
+        return ([t.clone() for t in self._state_tensors()],
+                (self.popt.step_count, self.dopt.step_count if self.dopt is not None else 0,
+                 nupi.step_count if nupi is not None else 0), xi)
+
+    def _check_block(self, vals: Tensor, a: int, b: int, snap: _Snapshot) -> None:
+        """Health check of steps ``a:b`` (values ``vals[a:b]``); on a problem the state from before them is put
+        back, their values become NaN and they are counted skipped."""
+        health = self.tr.health
+        why = health.check_block(vals[a:b, :, 0], [self.net.flat, self.lam])
+        if why is None:
+            return
+        with torch.no_grad():
+            for dst, src in zip(self._state_tensors(), snap[0]):
+                dst.copy_(src)
+        self.popt.step_count = snap[1][0]
+        if self.dopt is not None:
+            self.dopt.step_count = snap[1][1]
+        if self.dnupi is not None:
+            self.dnupi.step_count, self.dnupi.xi = snap[1][2], snap[2]
+        vals[a:b] = float("nan")
+        health.skip(why, b - a)
+        health.restores += 1
 
     def _make_step(self, bsz: int) -> _Step:
         """``step(z, r, groups, row)``: one primal-dual update on a minibatch of ``bsz`` samples per member, with
@@ -330,9 +411,16 @@ class FastRun:
         dd: list[Tensor] = list(h_view)  # PReLU derivative per hidden layer
         ostd = self.tr.model.out_std
         coef, grad, slopes, lam = self.coef, net.grad, net.slopes, self.lam
-        popt, dopt = self.popt, self.dopt
+        popt, dopt, dnupi = self.popt, self.dopt, self.dnupi
         u, gu, k_dual = net.extra, net.gextra, self.k_dual
-        fn0, *fns = [group_step_fn(g, self.src_r.shape[-1], len(self.groups) == 1) for g in self.groups]
+        fns = [group_step_fn(g, self.src_r.shape[-1], len(self.groups) == 1) for g in self.groups]
+        (val0, grad0), rest = fns[0], fns[1:]
+        # the dual method's arithmetic (the same operations as its class in saml_ros.core.training.dual)
+        dual = self.dual
+        rho = dual.rho if isinstance(dual, AugmentedDual) else None
+        decay = dual.decay if isinstance(dual, ResilientDual) else None  # eps^2 / (alpha f) of the objective f
+        eps = dual.eps
+        w_con = coef[:, 1:]
         one = torch.ones((), dtype=self.dtype)
         bmm, mul, sum_, prelu = torch.bmm, torch.mul, torch.sum, _prelu_kernel
         copysign, clamp_max, neg, addcmul = torch.copysign, torch.clamp_max, torch.neg, torch.addcmul
@@ -349,10 +437,14 @@ class FastRun:
                 h = h_buf[i]
             out = bmm(h, w[-1])
             err = addcmul(r, out, ostd)  # pred - y = phi + (f_hat - y)
-            # spec values (into row) and dL/dpred
-            dpred = fn0(err, sgs[0], row, coef)
-            for fn, sg in zip(fns, sgs[1:]):
-                dpred = dpred + fn(err, sg, row, coef)
+            # spec values (into row), the weights of the constraint estimates, dL/dpred
+            ctx0 = val0(err, sgs[0], row)
+            ctxs = [vf(err, sg, row) for (vf, _), sg in zip(rest, sgs[1:])]
+            if rho is not None:
+                torch.addcmul(lam, rho, row[:, 1:], out=w_con).clamp_(min=0.0)
+            dpred = grad0(ctx0, sgs[0], coef)
+            for (_, gf), ctx, sg in zip(rest, ctxs, sgs[1:]):
+                dpred = dpred + gf(ctx, sg, coef)
             # backward
             g = dpred.mul_(ostd)
             for i in range(n_hidden, 0, -1):
@@ -363,14 +455,27 @@ class FastRun:
             bmm(z.transpose(1, 2), g, out=gw[0])
             # primal step, dual step on the detached minibatch constraint estimates, projection on lambda >= 0
             if k_dual is not None:
-                gu.copy_(row[:, 1:])
+                if rho is not None:
+                    mul(row[:, 1:], rho, out=gu)
+                elif decay is not None:
+                    torch.sub(row[:, 1:], mul(lam, decay(row[:, 0])), out=gu)
+                else:
+                    gu.copy_(row[:, 1:])
                 popt.step(grad)
                 u.clamp_(max=0.0)
                 mul(u, k_dual, out=lam)
             else:
                 popt.step(grad)
-                if dopt is not None:
-                    dopt.step(row[:, 1:])
+                if dnupi is not None:
+                    dnupi.step(torch.div(row[:, 1:], eps))
+                    lam.clamp_(min=0.0)
+                elif dopt is not None:
+                    if rho is not None:
+                        dopt.step(mul(row[:, 1:], rho))
+                    elif decay is not None:
+                        dopt.step(torch.sub(row[:, 1:], mul(lam, decay(row[:, 0]))))
+                    else:
+                        dopt.step(row[:, 1:])
                     lam.clamp_(min=0.0)
 
         return step
@@ -393,10 +498,24 @@ class FastRun:
         next_log = tr.steps + (log_every - tr.steps % log_every)
         inc = 1.0 / per_epoch
         start = lo
+        ps, ds = self.schedules
+        popt = self.popt
+        dual_opt = self.dopt or self.dnupi
+        every = tr.health.config.check_every
+        block, snap = lo, self._snapshot()
         for j in range(lo, hi):
+            if not ps.constant:
+                popt.lr = ps.lr(tr.steps)
+            if not ds.constant and dual_opt is not None:
+                dual_opt.lr = ds.lr(tr.steps)
             step(z_all[j], r_all[j], sg_all[j], rows[j])
             tr.steps += 1
             tr.epochs_done += inc
+            if j + 1 - block >= every or j + 1 == hi or tr.steps == next_log:  # a health check per block
+                self._check_block(vals, block, j + 1, snap)
+                block = j + 1
+                if block < hi:
+                    snap = self._snapshot()
             if tr.steps == next_log:
                 next_log += log_every
                 self._pending.append(vals[start : j + 1])

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from saml_ros.core.models import EnsembleMLP
+from saml_ros.core.training.nupi import nupi_update
 
 
 class FlatOptimizer:
@@ -90,8 +91,40 @@ class FlatOptimizer:
         p.addcdiv_(self.m, den, value=step_size * bc2_sqrt)
 
 
-def merged_dual_scale(primal: torch.optim.Optimizer, dual: torch.optim.Optimizer) -> float | None:
+class FlatNuPI:
+    """The state of a :class:`~saml_ros.core.training.nupi.NuPI` optimizer over one tensor ``param`` (lambda),
+    moved to and from the torch optimizer with :meth:`load` / :meth:`store`; :meth:`step` is its update."""
+
+    def __init__(self, opt: torch.optim.Optimizer, param: Tensor) -> None:
+        g = opt.param_groups[0]
+        self.lr, self.kp, self.nu = float(g["lr"]), float(g["kp"]), float(g["nu"])
+        self.param = param
+        self.xi: Tensor | None = None
+        self.step_count = 0
+
+    def load(self, opt: torch.optim.Optimizer) -> None:
+        st = opt.state.get(opt.param_groups[0]["params"][0], {})
+        self.xi = st["xi"].clone() if "xi" in st else None
+        self.step_count = int(float(st.get("step", 0)))
+
+    def store(self, opt: torch.optim.Optimizer) -> None:
+        if self.xi is None:
+            return
+        opt.state[opt.param_groups[0]["params"][0]] = {
+            "xi": self.xi.clone(), "step": torch.tensor(float(self.step_count))}
+
+    def step(self, error: Tensor) -> None:
+        """One ascending nuPI update of :attr:`param` with ``error``."""
+        self.xi = nupi_update(self.param, error, self.xi, self.lr, self.kp, self.nu, maximize=True)
+        self.step_count += 1
+
+
+def merged_dual_scale(primal: torch.optim.Optimizer, dual: torch.optim.Optimizer,
+                      base_lrs: tuple[float, float] | None = None) -> float | None:
     """``-dual_lr / primal_lr`` when the dual Adam can ride in the primal Adam's flat tensor, else ``None``.
+
+    ``base_lrs``: ``(primal, dual)`` starting rates of learning-rate schedules that scale both alike (the ratio
+    is theirs; the optimizers' current rates are the schedule's of some update).
 
     Adam's update of a parameter is ``lr * m / (sqrt(v) + eps)`` with moments of its gradient, so lambda's
     update equals the primal lr's update of ``u = lambda / k`` with ``k = -dual_lr / primal_lr`` and gradient
@@ -102,7 +135,8 @@ def merged_dual_scale(primal: torch.optim.Optimizer, dual: torch.optim.Optimizer
     if type(primal) is not torch.optim.Adam or type(dual) is not torch.optim.Adam:
         return None
     gp, gd = primal.param_groups[0], dual.param_groups[0]
-    if tuple(gp["betas"]) != tuple(gd["betas"]) or gp["eps"] != gd["eps"] or not (gd["lr"] > 0 and gp["lr"] > 0):
+    lr_p, lr_d = (float(gp["lr"]), float(gd["lr"])) if base_lrs is None else base_lrs
+    if tuple(gp["betas"]) != tuple(gd["betas"]) or gp["eps"] != gd["eps"] or not (lr_d > 0 and lr_p > 0):
         return None
 
     def steps(opt: torch.optim.Optimizer) -> set[int]:
@@ -111,7 +145,7 @@ def merged_dual_scale(primal: torch.optim.Optimizer, dual: torch.optim.Optimizer
 
     if len(steps(primal) | steps(dual)) != 1:
         return None
-    return -float(gd["lr"]) / float(gp["lr"])
+    return -lr_d / lr_p
 
 
 class FlatNet:

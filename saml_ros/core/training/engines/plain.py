@@ -23,23 +23,55 @@ def primal_dual_step(
 ) -> SpecValues:
     """One primal-dual update of ``run`` on a minibatch (``(B, .)`` shared or ``(E, B, .)`` per member).
 
-    Descends on theta along the Lagrangian (members are independent: their Lagrangians are summed), then lets the
-    dual variables ascend on the detached constraint estimates. Returns the detached minibatch spec values
-    *before* the update (also added to ``run.log``).
+    Descends on theta along the dual method's primal loss (members are independent: their losses are summed),
+    then lets the dual variables ascend on the detached constraint estimates; the learning rates follow
+    ``run.schedules`` at update ``run.steps``. Returns the detached minibatch spec values *before* the update
+    (also added to ``run.log``, unless ``run.health`` skipped the step: see :mod:`~saml_ros.core.training.health`).
+
+    Raises:
+        ValueError: ``run.schedules`` is None (a schedule whose horizon is not known yet).
     """
+    apply_schedules(run)
     pred = run.model(x, u, base)
     if masks is None:
         masks = run.spec.masks(x, u, y)
     vals = run.spec.evaluate_with_masks(y, pred, masks)
     loss = run.dual.lagrangian(vals).sum()
-    run.primal_opt.zero_grad(set_to_none=True)
-    loss.backward()
-    run.primal_opt.step()
-    run.dual.step(vals.constraints.detach())
+    health = run.health
+    why = health.check_loss(loss, vals.objective)
+    if why is None:
+        run.primal_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        why = health.check_gradients(list(run.model.net.parameters()))
+    if why is None:
+        health.ensure_snapshot(run)
+        run.primal_opt.step()
+        run.dual.step(vals.constraints.detach(), vals.objective.detach())
+        why = health.check_weights(run)
+        if why is not None:
+            health.restore(run)
     run.steps += 1
     out = SpecValues(vals.objective.detach(), vals.constraints.detach(), vals.region_fraction.detach())
-    run.log.add(out)
+    if why is None:
+        health.healthy(run)
+        run.log.add(out)
+    else:
+        run.primal_opt.zero_grad(set_to_none=True)
+        health.skip(why)
     return out
+
+
+def apply_schedules(run: RunState) -> None:
+    """Set both optimizers' learning rates for update ``run.steps`` (nothing to do for constant schedules)."""
+    if run.schedules is None:
+        raise ValueError("a learning-rate schedule other than constant needs its horizon: set schedule_steps > 0 "
+                         "(the horizon in updates) or train with fit()")
+    primal, dual = run.schedules
+    if not primal.constant:
+        for group in run.primal_opt.param_groups:
+            group["lr"] = primal.lr(run.steps)
+    if not dual.constant:
+        run.dual.set_lr(dual.lr(run.steps))
 
 
 class PlainEngine(Engine):
