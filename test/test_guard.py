@@ -1,8 +1,8 @@
 """The guarded MPC (core.mpc.guard) and the live model monitor (core.model_monitor), ROS-free.
 
 The closed-loop tests fly the quadrotor on the simulator's dynamics (true step + ground contact): a checkpoint the
-real online learner wrote after seeing only hover data is valid but wrong far from it; unguarded it sends
-landings metres off, guarded the loop keeps landing.
+real online learner wrote after seeing only hover data is valid but wrong far from it; unguarded its landings end
+far worse than f_hat's, guarded the loop keeps landing as well as f_hat.
 """
 
 from __future__ import annotations
@@ -246,8 +246,9 @@ def test_a_hover_only_checkpoint_is_caught_by_the_guard_and_the_loop_keeps_landi
     for x0 in starts:
         run = closed_loop(QUAD, base, x0, TASK.steps, goal=TASK.goal, true_step=f)
         final["base"].append(episode_metrics(run.xs, run.success, run.solve_times, TASK)["landing_error"])
-    # the checkpoint is wrong out of its data: flown unguarded, landings end metres from the pad
-    assert max(final["unguarded"]) > 1.0, final
+    # the checkpoint is wrong out of its data: flown unguarded (the tilt bound keeps the vehicle near), its worst
+    # landing is far worse than f_hat's (measured: 0.29 m vs 0.058 m)
+    assert max(final["unguarded"]) > max(2.0 * max(final["base"]), max(final["base"]) + 0.1), final
     # guarded: it is caught (fallbacks and roll backs) and every landing ends near the pad, no worse than f_hat's
     assert counters["guarded"].get("rollbacks", 0) + counters["guarded"].get("fallbacks", 0) >= len(starts)
     assert max(final["guarded"]) < 0.5, final
