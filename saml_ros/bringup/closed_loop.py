@@ -119,7 +119,8 @@ class _Loop:
         """Configure, then activate the managed nodes (learner, MPC) through their lifecycle services."""
         from saml_ros.nodes.lifecycle_client import drive
 
-        managed = [f"{self.namespace}/{NODE_NAMES[c.name]}" for c in started if c.name in ("learner", "mpc")]
+        managed = [f"{self.namespace}/{NODE_NAMES[c.name]}" for c in started
+                   if c.name in ("learner", "learner_ua", "mpc")]
         t0 = time.monotonic()
         errors = drive(monitor.node, lambda t: monitor.executor.spin_once(timeout_sec=t), managed,
                        ["configure", "activate"], self.opts.startup_timeout,
