@@ -114,6 +114,28 @@ def test_bounded_dynamics_clips_phi_and_its_jacobian() -> None:
         np.testing.assert_allclose(np.where(keep, a[:, :, j], 0), np.where(keep, fd, 0), rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError):
         BoundedDynamics(NumpyDynamics(QUAD, None, base=base), bound)
+    a2, b2 = bd.jacobians(x, u)  # the SQP's call
+    np.testing.assert_array_equal(a2, a)
+    np.testing.assert_array_equal(b2, b)
+    us = np.random.default_rng(3).uniform(0.5, 2.0, (6, 10, 4))
+    xs = bd.rollout_batch(x[0], us)  # the start scoring's call
+    np.testing.assert_allclose(xs[2, 3], bd.step1(bd.step1(bd.step1(x[0], us[2, 0]), us[2, 1]), us[2, 2]), rtol=1e-12)
+
+
+def test_a_bounded_learned_model_is_solved_with_and_flown() -> None:
+    """The MPC plans with the bounded model (every solve converges) and, where the members agree, flies it."""
+    calm = random_model(5, 1e-3)
+    ctrl = make_guarded_controller(QUAD, "fast", GuardConfig(max_disagreement=0.1, bound_residual=True),
+                                   **TASK.mpc_options())
+    ctrl.set_model(calm, 3, {"learner": {RESIDUAL_BOUND_KEY: [0.05] * 13}})
+    assert isinstance(ctrl.learned.dyn, BoundedDynamics)
+    x = QUAD.hover_state((1.0, -1.0, 2.0))
+    f = plant(QUAD, TASK.landing_height)  # type: ignore[arg-type]
+    for _ in range(15):
+        res = ctrl.solve(x, TASK.goal)
+        assert res.success and ctrl.last_source == "learned", res.message
+        x = f(x, res.u)
+    assert ctrl.counters["fallbacks"] == 0 and ctrl.counters["bounded"] == 15
 
 
 def test_residual_bound_is_read_from_the_checkpoint_meta() -> None:

@@ -120,6 +120,20 @@ class BoundedDynamics:
         keep = (np.abs(phi) < self.bound)[:, :, None]
         return y + np.clip(phi, -self.bound, self.bound), a + ax * keep, b + au * keep
 
+    def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians of :meth:`step_jac` alone (which fields are clipped needs phi, so it is computed)."""
+        _, a, b = self.step_jac(x, u)
+        return a, b
+
+    def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """Predicted states ``(K, T+1, n)`` of control sequences ``us`` ``(K, T, m)`` from ``x0`` ``(n,)``."""
+        k, horizon = us.shape[0], us.shape[1]
+        xs = np.empty((k, horizon + 1, x0.shape[0]))
+        xs[:, 0] = x0
+        for t in range(horizon):
+            xs[:, t + 1] = self.step(xs[:, t], us[:, t])
+        return xs
+
 
 def residual_bound(meta: dict[str, Any], n_y: int) -> np.ndarray | None:
     """The per-field residual bound ``(n_y,)`` a checkpoint's meta records (``meta["learner"]["residual_bound"]``),
