@@ -18,7 +18,8 @@ error, height error above the floor, settling time, overshoot, horizontal error,
 each learned model's gain with its 95 % CI and the fraction of the headroom it captures, SA vs UA, and the worst
 cases; writes PNGs and ``demo_summary.json`` into the run directory (``--figures`` also copies the PNGs there).
 
-``demo --offline [...]`` is the offline Sufficiently vs Uniformly Accurate comparison on the double integrator.
+``demo --offline [...]`` is the offline Sufficiently vs Uniformly Accurate comparison on the double integrator;
+``demo --aggregate RUN_DIR ...`` pools several demo runs (:mod:`saml_ros.demo.aggregate`).
 """
 
 from __future__ import annotations
@@ -190,6 +191,8 @@ def closed_loop_main(argv: list[str]) -> int:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--offline", action="store_true",
                    help="the offline double-integrator comparison instead (see demo --offline --help)")
+    p.add_argument("--aggregate", action="store_true",
+                   help="pool the demo_summary.json of several run directories instead (demo --aggregate --help)")
     p.add_argument("--sim-time", type=float, default=DEMO_SIM_TIME, help="simulated seconds of the live loop")
     p.add_argument("--eval-starts", type=int, default=DEMO_EVAL_STARTS,
                    help="fresh starts of the paired evaluation from the simulator's sampler (0 = none)")
@@ -213,9 +216,10 @@ def closed_loop_main(argv: list[str]) -> int:
     res = bringup.run(config, bringup.RunOptions(run_dir=args.run_dir, domain_id=args.domain_id,
                                                  progress_period=args.progress_period))
     print()
-    print(bringup.format_summary(res), flush=True)
+    live_text = bringup.format_summary(res)
+    print(live_text, flush=True)
     t_live = time.monotonic() - t0
-    ev = None
+    ev, ev_text = None, ""
     # children that had to be killed after the loop ran its full time still left their checkpoints
     if (args.eval_starts > 0 or args.aggressive_starts > 0) and (res.ok or res.stop_reason == "sim_time"):
         print(f"\ndemo: paired evaluation of base, oracle, SA, UA from {args.eval_starts} standard + "
@@ -224,8 +228,9 @@ def closed_loop_main(argv: list[str]) -> int:
         if ev is None:
             print("demo: the learner wrote no checkpoint: nothing to evaluate")
         else:
-            print(format_evaluation(ev))
-    figs = write_figures(ev, res, res.run_dir / "figures")
+            ev_text = format_evaluation(ev)
+            print(ev_text)
+    figs = res_figs = write_figures(ev, res, res.run_dir / "figures")
     if args.figures is not None:
         args.figures.mkdir(parents=True, exist_ok=True)
         figs = [Path(shutil.copy(f, args.figures / f.name)) for f in figs]
@@ -242,6 +247,12 @@ def closed_loop_main(argv: list[str]) -> int:
                                          "model_last": e.model_last, "t_start": e.t_start} for e in res.episodes]},
                "evaluation": _jsonable(ev), "wall_seconds": total, "live_seconds": t_live}
     (res.run_dir / "demo_summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    md = ["# demo run", "", f"`./dev demo {' '.join(argv)}`: total wall time {total:.0f} s (live loop {t_live:.0f} s)",
+          "", "## live closed loop", "", "```", live_text, "```", "", "## paired evaluation", "", "```",
+          ev_text or "(none)", "```", "", "## figures", ""] + [f"![{f.stem}](figures/{f.name})" for f in
+                                                                res_figs]
+    (res.run_dir / "demo_summary.md").write_text("\n".join(md) + "\n")
+    print(f"demo: results in {res.run_dir / 'demo_summary.json'} and {res.run_dir / 'demo_summary.md'}")
     return 0 if res.ok else 1
 
 
@@ -265,4 +276,9 @@ def main(argv: list[str] | None = None) -> int:
 
         args.remove("--offline")
         return offline_main(args)
+    if "--aggregate" in args:
+        from saml_ros.demo.aggregate import aggregate_main
+
+        args.remove("--aggregate")
+        return aggregate_main(args)
     return closed_loop_main(args)
