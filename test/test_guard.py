@@ -225,7 +225,7 @@ def hover_only_checkpoint(tmp_path: Path, z: float = 0.5, updates: int = 1500, n
     spec = ProblemSpec.for_system(QUAD.paper_spec(), QUAD)
     store = CheckpointStore(tmp_path / "hover")
     learner = OnlineLearner(QUAD, spec, OnlineConfig(train=TrainConfig(batch_size=128), min_transitions=200,
-                                                     n_models=n_models), store=store)
+                                                     n_models=n_models), store=store, resume=False)
     learner.add_batch(np.array(xs), np.array(us), np.array(ys))
     learner.update(updates)
     saved = learner.save_checkpoint()
