@@ -173,6 +173,7 @@ MPC_STATUS_EXTRA: tuple[tuple[str, str, str], ...] = (
                                  "guard.max_disagreement on the learned plan, so far"),
     ("guard_base_solves", "count", "steps planned with f_hat (fallbacks, after a roll back, before any model)"),
     ("guard_rollbacks", "count", "roll backs by the live monitor (to the previous model, else f_hat), so far"),
+    ("guard_clipped_solves", "count", "learned plans flown on which guard.bound_residual clipped phi, so far"),
     ("guard_disagreement", "state units", "ensemble disagreement sigma on the last learned plan checked (NaN: "
                                           "none yet or a single model)"),
     ("monitor_error_model", "squared state units", "live one-step squared error of the model in use, mean over "
@@ -363,7 +364,8 @@ GLOBAL_TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, TELEMETRY_QOS, "every node", "rqt_runtime_monitor, Foxglove",
               "One DiagnosticStatus per node (name = node's full name) with its counters, e.g. "
               "rejected/<reason>, as key/value strings. The MPC's guard adds guard_fallbacks, guard_base_solves, "
-              "guard_rollbacks, guard_bounded_solves, guard_rolled_back_versions (comma-separated), "
+              "guard_rollbacks, guard_bounded_solves, guard_clipped_solves, guard_rolled_back_versions "
+              "(comma-separated), "
               "monitor_error_model and monitor_error_base (level WARN after a roll back).",
               fields=tuple(FieldDoc(n, u, "status[i].values[j].value (string)", f"/<node name>/{n}", d)
                            for n, u, d in DIAGNOSTICS_REASON_DOCS)),

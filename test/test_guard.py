@@ -136,6 +136,10 @@ def test_a_bounded_learned_model_is_solved_with_and_flown() -> None:
         assert res.success and ctrl.last_source == "learned", res.message
         x = f(x, res.u)
     assert ctrl.counters["fallbacks"] == 0 and ctrl.counters["bounded"] == 15
+    assert ctrl.counters["clipped"] == 0  # |phi| ~ 1e-3 never reaches the bound 0.05
+    ctrl.set_model(calm, 4, {"learner": {RESIDUAL_BOUND_KEY: [1e-9] * 13}})  # a bound phi always exceeds
+    ctrl.solve(x, TASK.goal)
+    assert ctrl.counters["clipped"] == 1 and ctrl.values()["guard_clipped_solves"] == 1.0
 
 
 def test_residual_bound_is_read_from_the_checkpoint_meta() -> None:

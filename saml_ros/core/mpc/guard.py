@@ -168,7 +168,7 @@ class GuardedController:
 
     ``counters``: ``solves``, ``solves_base`` (planned with f_hat: fallbacks, after a roll back or without a
     model), ``fallbacks`` (disagreement above the threshold), ``rollbacks``, ``bounded`` (solves whose model has a
-    residual bound). :attr:`tag` is the tag of the model in use (0 = f_hat); :attr:`last_disagreement` the largest
+    residual bound), ``clipped`` (learned plans flown on which the bound clipped phi). :attr:`tag` is the tag of the model in use (0 = f_hat); :attr:`last_disagreement` the largest
     sigma of the last learned plan checked.
     """
 
@@ -278,8 +278,18 @@ class GuardedController:
             res = self.base.solve(x0, goal)
             if np.all(np.isfinite(res.plan_x)):
                 self.learned.set_warm_start(res.plan_u, res.plan_x)
+        elif self._active.bound is not None and self._clipped(res):
+            self.counters["clipped"] += 1
         self.last_source = "learned" if use_learned else "base"
         return res
+
+    def _clipped(self, res: MPCResult) -> bool:
+        """Whether the bound clipped phi anywhere on the learned plan ``res`` flies."""
+        dyn = self.learned.dyn
+        bound = self._active.bound
+        if not isinstance(dyn, BoundedDynamics) or bound is None or not np.all(np.isfinite(res.plan_x)):
+            return False
+        return bool(np.any(np.abs(dyn.mlp.forward(res.plan_x[:-1], res.plan_u)) >= bound))
 
     # ------------------------------------------------------------------------------------------ monitor
     def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> bool:
@@ -313,6 +323,7 @@ class GuardedController:
             "guard_fallbacks": float(c["fallbacks"]),
             "guard_base_solves": float(c["solves_base"]),
             "guard_rollbacks": float(c["rollbacks"]),
+            "guard_clipped_solves": float(c["clipped"]),
             "guard_disagreement": float(self.last_disagreement),
             "monitor_error_model": float(self.monitor.mean_model),
             "monitor_error_base": float(self.monitor.mean_base),

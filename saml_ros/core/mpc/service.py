@@ -310,6 +310,7 @@ class MPCService:
             values["guard_base_solves"] = g.counters["solves_base"]
             values["guard_rollbacks"] = g.counters["rollbacks"]
             values["guard_bounded_solves"] = g.counters["bounded"]
+            values["guard_clipped_solves"] = g.counters["clipped"]
             values["guard_rolled_back_versions"] = ",".join(str(v) for v in sorted(g.banned))
             values["monitor_error_model"] = g.monitor.mean_model
             values["monitor_error_base"] = g.monitor.mean_base
