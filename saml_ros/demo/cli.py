@@ -205,6 +205,8 @@ def closed_loop_main(argv: list[str]) -> int:
     p.add_argument("--figures", type=Path, help="also copy the PNGs into this directory")
     p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's)")
     p.add_argument("--progress-period", type=float, default=10.0, help="wall seconds between progress lines")
+    p.add_argument("--startup-timeout", type=float, default=300.0,
+                   help="wall seconds the nodes may take to come up (a loaded machine: over 90 s was measured)")
     args = p.parse_args(argv)
     t0 = time.monotonic()
     config = demo_config(args.seed, args.sim_time)
@@ -215,7 +217,8 @@ def closed_loop_main(argv: list[str]) -> int:
           f"= {args.sim_time / (steps * 0.1):.0f} landing episodes of {steps * 0.1:g} s; the MPC starts on the base "
           f"model and follows the SA learner's checkpoints", flush=True)
     res = bringup.run(config, bringup.RunOptions(run_dir=args.run_dir, domain_id=args.domain_id,
-                                                 progress_period=args.progress_period))
+                                                 progress_period=args.progress_period,
+                                                 startup_timeout=args.startup_timeout))
     print()
     live_text = bringup.format_summary(res)
     print(live_text, flush=True)
