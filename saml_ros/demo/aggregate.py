@@ -101,7 +101,7 @@ def format_aggregate(agg: dict[str, Any]) -> str:
                   "|---" * (1 + len(arms) + 1 + 2 * len(learned) + ("SA" in arms and "UA" in arms)) + "|"]
         for k, (label, unit) in METRICS.items():
             row = s["metrics"][k]
-            cells = [f"{label} ({unit})"] + [f"{row['mean'][a]:.4f}" for a in arms]
+            cells = [f"{label} ({unit})".replace("|", "\\|")] + [f"{row['mean'][a]:.4f}" for a in arms]
             cells.append(_ci(row["headroom"]) if "headroom" in row else "")
             for a in learned:
                 c = row.get(f"captured/{a}", {})
