@@ -5,15 +5,19 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from saml_ros.core.systems import get_system
+from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.demo.aggregate import aggregate, format_aggregate, load_runs
 from saml_ros.demo.evaluation import Arm, captured, evaluate_arms, paired_diff, summarize
 from saml_ros.demo.landing import LandingTask, aggressive_starts, episode_metrics, standard_starts
 
-QUAD = get_system("quadrotor")
+_QUAD = get_system("quadrotor")
+assert isinstance(_QUAD, Quadrotor)
+QUAD: Quadrotor = _QUAD
 TASK = LandingTask()
 
 
@@ -49,7 +53,7 @@ def test_paired_statistics_and_captured_headroom() -> None:
 
 def test_the_oracle_lands_on_the_pad_and_the_base_model_above_it() -> None:
     """The headroom the demo rests on, in the real MPC on the simulator's dynamics (2 starts, one process)."""
-    starts = standard_starts(QUAD, 2, 4242)  # type: ignore[arg-type]
+    starts = standard_starts(QUAD, 2, 4242)
     res = evaluate_arms([Arm("base", "base"), Arm("oracle", "oracle")], TASK, starts, workers=1)
     s = summarize(res)
     base, oracle = res["base"].metrics, res["oracle"].metrics
@@ -58,11 +62,11 @@ def test_the_oracle_lands_on_the_pad_and_the_base_model_above_it() -> None:
                                                                            oracle["height_error"])
     assert s["metrics"]["landing_error"]["headroom"]["diff"] > 0.01
     assert res["base"].xs.shape == (2, TASK.steps + 1, 13)
-    agg = aggressive_starts(QUAD, 3, 1)  # type: ignore[arg-type]
+    agg = aggressive_starts(QUAD, 3, 1)
     assert np.all(agg[:, 5] <= 0) and np.all(np.abs(agg[:, :2]) <= 4)
 
 
-def _summary(rng: np.random.Generator, n: int, shift: float) -> dict:
+def _summary(rng: np.random.Generator, n: int, shift: float) -> dict[str, Any]:
     per = {}
     base = 0.07 + 0.01 * rng.random(n)
     for arm, v in (("base", base), ("oracle", np.zeros(n)), ("SA", 0.1 * base + shift), ("UA", 0.2 * base)):

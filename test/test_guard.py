@@ -10,7 +10,9 @@ from __future__ import annotations
 import math
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -21,7 +23,7 @@ from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.model_io import load_model
 from saml_ros.core.model_monitor import LiveErrorMonitor, MonitorConfig
 from saml_ros.core.models import DynamicsModel
-from saml_ros.core.mpc import closed_loop, make_controller
+from saml_ros.core.mpc import LoopStep, closed_loop, make_controller
 from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.guard import (
@@ -29,18 +31,23 @@ from saml_ros.core.mpc.guard import (
     BoundedDynamics,
     EnsembleNP,
     GuardConfig,
+    GuardedController,
     make_guarded_controller,
     residual_bound,
 )
 from saml_ros.core.mpc.mlp_np import NumpyMLP
+from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.online import OnlineConfig, OnlineLearner
 from saml_ros.core.online import learner as online_learner
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
+from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.core.training import TrainConfig
 from saml_ros.demo.landing import LandingTask, aggressive_starts, episode_metrics, plant
 
-QUAD = get_system("quadrotor")
+_QUAD = get_system("quadrotor")
+assert isinstance(_QUAD, Quadrotor)
+QUAD: Quadrotor = _QUAD
 TASK = LandingTask()
 DEMO_GUARD = GuardConfig(max_disagreement=0.1, bound_residual=True, rollback=True)
 
@@ -93,7 +100,9 @@ def test_ensemble_np_is_every_member_and_its_disagreement() -> None:
 
 def test_bounded_dynamics_clips_phi_and_its_jacobian() -> None:
     model = random_model(1, 2.0)
-    dyn = NumpyDynamics(QUAD, model, base=make_controller(QUAD).base_np)
+    plain = make_controller(QUAD)
+    assert isinstance(plain, ShootingMPC)
+    dyn = NumpyDynamics(QUAD, model, base=plain.base_np)
     x, u = QUAD.sample_inputs(40, np.random.default_rng(2))
     bound = np.full(13, 0.05)
     bd = BoundedDynamics(dyn, bound)
@@ -130,7 +139,7 @@ def test_a_bounded_learned_model_is_solved_with_and_flown() -> None:
     ctrl.set_model(calm, 3, {"learner": {RESIDUAL_BOUND_KEY: [0.05] * 13}})
     assert isinstance(ctrl.learned.dyn, BoundedDynamics)
     x = QUAD.hover_state((1.0, -1.0, 2.0))
-    f = plant(QUAD, TASK.landing_height)  # type: ignore[arg-type]
+    f = plant(QUAD, TASK.landing_height)
     for _ in range(15):
         res = ctrl.solve(x, TASK.goal)
         assert res.success and ctrl.last_source == "learned", res.message
@@ -146,8 +155,10 @@ def test_residual_bound_is_read_from_the_checkpoint_meta() -> None:
     assert RESIDUAL_BOUND_KEY == online_learner.RESIDUAL_BOUND_KEY
     b = [0.1] * 13
     np.testing.assert_array_equal(residual_bound({"learner": {RESIDUAL_BOUND_KEY: b}}, 13), b)
-    for bad in ({}, {"learner": {}}, {"learner": {RESIDUAL_BOUND_KEY: [0.1] * 4}},
-                {"learner": {RESIDUAL_BOUND_KEY: [0.0] * 13}}, {"learner": {RESIDUAL_BOUND_KEY: [math.nan] * 13}}):
+    bads: list[dict[str, Any]] = [{}, {"learner": {}}, {"learner": {RESIDUAL_BOUND_KEY: [0.1] * 4}},
+                                  {"learner": {RESIDUAL_BOUND_KEY: [0.0] * 13}},
+                                  {"learner": {RESIDUAL_BOUND_KEY: [math.nan] * 13}}]
+    for bad in bads:
         assert residual_bound(bad, 13) is None
 
 
@@ -173,9 +184,10 @@ def test_guard_plans_with_f_hat_where_the_members_disagree() -> None:
 
 
 def test_rollback_goes_to_the_previous_model_then_to_f_hat_and_never_reuses_a_version() -> None:
-    f = plant(QUAD, TASK.landing_height)  # type: ignore[arg-type]
+    f = plant(QUAD, TASK.landing_height)
     ctrl = make_guarded_controller(QUAD, "fast", GuardConfig(rollback=True), **TASK.mpc_options())
-    good, bad = random_model(1, 1e-5, seed=1), random_model(1, 2.0, seed=2)
+    good: DynamicsModel = random_model(1, 1e-5, seed=1)
+    bad: DynamicsModel = random_model(1, 2.0, seed=2)
 
     def fly(steps: int, x0: np.ndarray) -> list[bool]:
         rolled = []
@@ -211,13 +223,13 @@ def test_rollback_goes_to_the_previous_model_then_to_f_hat_and_never_reuses_a_ve
 def hover_only_checkpoint(tmp_path: Path, z: float = 0.5, updates: int = 1500, n_models: int = 5) -> Path:
     """The online learner (an ``n_models``-member SA ensemble) fed only hovering at ``z`` m (motor noise 0.3 N):
     its checkpoint, the next version in ``tmp_path / "hover"``."""
-    f = plant(QUAD, TASK.landing_height)  # type: ignore[arg-type]
+    f = plant(QUAD, TASK.landing_height)
     rng = np.random.default_rng(0)
     ctrl = make_controller(QUAD, None, **TASK.mpc_options())
     xs, us, ys = [], [], []
     for _ in range(20):
         p = np.array([rng.uniform(-2, 2), rng.uniform(-2, 2), z])
-        x = QUAD.hover_state(p)
+        x = QUAD.hover_state(p.tolist())
         ctrl.reset()
         for _ in range(30):
             u = np.clip(ctrl.solve(x, p).u + rng.normal(0, 0.3, 4), 0.0, 10.0)
@@ -257,9 +269,18 @@ def test_online_learner_trains_an_ensemble_and_records_the_residual_bound(tmp_pa
 
 
 # ------------------------------------------------------------------------------------------ closed loop
+def observer(ctrl: GuardedController) -> Callable[[LoopStep], None]:
+    """``closed_loop``'s ``on_step``: show the guard every flown transition (as the MPC node does)."""
+
+    def on_step(s: LoopStep) -> None:
+        ctrl.observe(s.x, s.result.u, s.x_next)
+
+    return on_step
+
+
 def test_a_hover_only_checkpoint_is_caught_by_the_guard_and_the_loop_keeps_landing(tmp_path: Path) -> None:
     loaded = load_model(hover_only_checkpoint(tmp_path), expect=QUAD)
-    f = plant(QUAD, TASK.landing_height)  # type: ignore[arg-type]
+    f = plant(QUAD, TASK.landing_height)
     starts = aggressive_starts(QUAD, 4, 999)  # far and fast: nothing like hovering
     final: dict[str, list[float]] = {"unguarded": [], "guarded": [], "base": []}
     counters = {}
@@ -268,8 +289,7 @@ def test_a_hover_only_checkpoint_is_caught_by_the_guard_and_the_loop_keeps_landi
         for x0 in starts:
             ctrl.reset_models()
             ctrl.set_model(loaded.model, loaded.version, loaded.meta)
-            run = closed_loop(QUAD, ctrl, x0, TASK.steps, goal=TASK.goal, true_step=f,
-                              on_step=lambda s, c=ctrl: c.observe(s.x, s.result.u, s.x_next))
+            run = closed_loop(QUAD, ctrl, x0, TASK.steps, goal=TASK.goal, true_step=f, on_step=observer(ctrl))
             final[name].append(episode_metrics(run.xs, run.success, run.solve_times, TASK)["landing_error"])
         counters[name] = dict(ctrl.counters)
     base = make_controller(QUAD, None, **TASK.mpc_options())
@@ -311,7 +331,7 @@ def test_mpc_node_guards_a_hover_only_checkpoint_rolls_back_on_status_and_keeps_
     landing."""
     from test_mpc_node import DT_NS, T0_NS, MPCProcess, Probe
 
-    f = plant(QUAD, TASK.landing_height)  # type: ignore[arg-type]
+    f = plant(QUAD, TASK.landing_height)
     hover_only_checkpoint(tmp_path)  # version 1 in tmp_path / "hover", loaded before the first solve
     params = {"system": "quadrotor", "run_dir": str(tmp_path / "hover"), "poll_period": 0.1,
               "goal.position": "[0.0, 0.0, 0.2]", "task.tilt_max": 0.2, "guard.max_disagreement": 0.1,
