@@ -86,3 +86,11 @@ def system_from_definition(definition: dict[str, Any], where: str = "") -> FileS
 
     label = where or f"stored definition of {definition.get('name')!r}"
     return FileSystem(parse_definition(definition, label), label, resolve=resolve_base_model)
+
+
+def load_robot_param(path: str, param: str = "system_file") -> FileSystem:
+    """:func:`load_system_file` for a node's parameter ``param``: ``ValueError`` naming it and the problem."""
+    try:
+        return load_system_file(path)
+    except SystemFileError as exc:
+        raise ValueError(f"parameter '{param}': {exc}") from None

@@ -76,7 +76,7 @@ def save_events(path: Path, events: list[dict]) -> None:
         width = next((len(r) for r in rows if r is not None), 0)
         arrays[key] = np.array([r if r is not None else np.full(width, np.nan) for r in rows]).reshape(len(rows), width)
         arrays["has_" + key] = np.array([r is not None for r in rows])
-    np.savez(path, **arrays)
+    np.savez(path, **arrays)  # type: ignore[arg-type]
 
 
 def load_events(path: Path) -> list[dict]:

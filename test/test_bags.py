@@ -337,6 +337,7 @@ def test_bag_info_reports_transitions_and_paper_spec_regions(friction_bag: tuple
     spec = ProblemSpec.for_system(system.paper_spec(), system)
     masks = spec.masks(torch.as_tensor(ex), torch.as_tensor(eu), torch.as_tensor(ey))[1:]
     for term, mask in zip(spec.constraints, masks, strict=True):
+        assert mask is not None
         assert info["regions"][term.name] == pytest.approx(float(mask.double().mean()))
     png = (tmp_path / "err.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000

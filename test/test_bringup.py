@@ -170,8 +170,9 @@ def test_closed_loop_learns_switches_models_and_stops_on_sigint(ros_env: RosDoma
     finally:
         proc.stop()
     out = proc.output()
-    before, after = map(float, re.search(r"model error \(near_origin, learner/model_error\): base model (\S+) -> "
-                                         r"(\S+) after", out).groups())
+    found = re.search(r"model error \(near_origin, learner/model_error\): base model (\S+) -> (\S+) after", out)
+    assert found, out
+    before, after = map(float, found.groups())
     assert after < before, out
     versions = re.search(r"MPC models used: (\d+) \((\d+) -> (\d+)\)", out)
     assert versions is not None and int(versions.group(2)) == 0 and int(versions.group(3)) >= 2, out
@@ -190,7 +191,9 @@ def test_bringup_stops_after_the_simulated_time_and_on_sigterm(ros_env: RosDomai
         proc.stop()
     out = proc.output()
     assert "stopped by sim_time" in out and "children exited cleanly" in out
-    sim = float(re.search(r"summary \(friction\): (\S+) s simulated", out).group(1))
+    found = re.search(r"summary \(friction\): (\S+) s simulated", out)
+    assert found, out
+    sim = float(found.group(1))
     assert 3.0 <= sim < 4.0
     assert "record" in child_pids(out)
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]

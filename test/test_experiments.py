@@ -148,20 +148,22 @@ def test_calibrated_friction_profile_meets_the_paper_bounds() -> None:
         starts,
     )
 
-    system = get_system("friction", profile="periodic")
+    system: Any = get_system("friction", profile="periodic")
     s = FrictionSettings(seeds=(0, 1))
     with compute_settings():
         _, cmp = train_paper_comparison(system, s.seeds, s.n_train, s.n_test, s.hidden, s.epochs, Timer(), False)
         x0s = starts(60, s.start_seed)
+        arms: tuple[tuple[str, Any], ...] = (("base", None), ("oracle", "oracle"))
         res = {label: {k: v[None] for k, v in evaluate_controller(system, model, "fast", x0s, s.steps,
                                                                   s.horizon).items()
-                       if isinstance(v, np.ndarray)} for label, model in (("base", None), ("oracle", "oracle"))}
+                       if isinstance(v, np.ndarray)}
+               for label, model in arms}
     res["uniform"] = res["sufficient"] = res["base"]  # only the headroom is checked here
-    cal = calibration(model_error_data(cmp), control_stats(res), system)  # type: ignore[arg-type]
+    cal = calibration(model_error_data(cmp), control_stats(res), system)
     for key, c in cal.items():
         assert c["met"], f"{key} = {c['value']:.3f} outside {CALIBRATION[key]}"
     # the profile it replaces as the experiment's default does not: its headroom is below 10 %
-    sticky = get_system("friction", profile="sticky_patch")
+    sticky: Any = get_system("friction", profile="sticky_patch")
     with compute_settings():
         ends = [evaluate_controller(sticky, m, "fast", x0s, s.steps, s.horizon)["raw"] for m in (None, "oracle")]
     assert (ends[0].mean() - ends[1].mean()) / ends[0].mean() < 0.10
@@ -270,7 +272,7 @@ def test_paddle_trials_are_paired_and_count_failures_as_defined() -> None:
     trials = make_trials(3, 11)
     out = {}
     for arm, model in (("oracle", "oracle"), ("base", None)):
-        ctrl = make_controller(world.system, model, s.solver)
+        ctrl = make_controller(world.system, model, s.solver)  # type: ignore[arg-type]
         checks = TrialChecks()
         out[arm] = [run_trial(world, ctrl, t, s, checks) for t in trials]
         assert checks.max_box_violation == 0.0 and checks.solves == sum(r.bounces + (not r.completed)

@@ -80,7 +80,7 @@ def _assert_same(plain: PrimalDualTrainer, fast: PrimalDualTrainer, rtol: float,
     assert plain.steps == fast.steps and plain.epochs_done == fast.epochs_done
     torch.testing.assert_close(plain.rng.get_state(), fast.rng.get_state(), rtol=0, atol=0)
     for (name, a), b in zip(plain.model.named_parameters(), fast.model.parameters()):
-        torch.testing.assert_close(b, a, rtol=rtol, atol=atol, msg=lambda m, n=name: f"{n}: {m}")
+        torch.testing.assert_close(b, a, rtol=rtol, atol=atol, msg=lambda m, n=name: f"{n}: {m}")  # type: ignore[misc]
     torch.testing.assert_close(fast.lam, plain.lam, rtol=rtol, atol=atol)
     for opt_p, opt_f in ((plain.primal_opt, fast.primal_opt), (plain.dual.optimizer, fast.dual.optimizer)):
         sp, sf = opt_p.state_dict()["state"], opt_f.state_dict()["state"]
@@ -95,7 +95,7 @@ def _assert_same(plain: PrimalDualTrainer, fast: PrimalDualTrainer, rtol: float,
 
 
 @pytest.mark.parametrize("name", sorted(SPECS))
-def test_fast_equals_plain_for_every_loss_and_mean(name):
+def test_fast_equals_plain_for_every_loss_and_mean(name: Any) -> None:
     """~250 steps of Adam (the paper's optimizer) in float64: same weights, lambdas, optimizer state, history."""
     cfg = TrainConfig.paper(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
                             log_every=7)
@@ -114,7 +114,7 @@ def test_fast_equals_plain_for_every_loss_and_mean(name):
     ["ensemble_shared", "ensemble_per_member", "full_model", "sgd", "adam_primal_sgd_dual", "dual_adam_own_betas",
      "linear_model"],
 )
-def test_fast_equals_plain_for_models_and_optimizers(variant):
+def test_fast_equals_plain_for_models_and_optimizers(variant: Any) -> None:
     """Ensembles, full models, no hidden layer, and every optimizer pairing: the dual Adam merged into the
     primal flat tensor (the default), a separate dual Adam (other betas), SGD."""
     kw: dict[str, Any] = {}
@@ -142,7 +142,7 @@ def test_fast_equals_plain_for_models_and_optimizers(variant):
     _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
 
 
-def test_float32_paper_setting_matches_to_rounding():
+def test_float32_paper_setting_matches_to_rounding() -> None:
     """The default dtype: 300 steps of the paper's friction problem (4-2 net, Adam 1e-3 / dual Adam).
 
     float32 rounding (about 6e-8 relative per operation) enters every step and Adam rescales each gradient
@@ -157,7 +157,7 @@ def test_float32_paper_setting_matches_to_rounding():
     _assert_same(plain, fast, rtol=1e-4, atol=1e-5)
 
 
-def test_heldout_metrics_match_after_a_full_short_training():
+def test_heldout_metrics_match_after_a_full_short_training() -> None:
     """The convergence experiment's setting (noise sigma = 0.2 on v, 8-4 nets, 3 datasets as one ensemble),
     trained to the end in float32 with each engine: held-out objective, constraint and per-region errors agree
     to 1e-4 (they are ~0.2 and differ between seeds by ~1e-2)."""
@@ -181,7 +181,7 @@ def test_heldout_metrics_match_after_a_full_short_training():
     assert np.ptp(plain.objective) > 1e-3  # the seeds differ far more than the engines
 
 
-def test_unsupported_settings_fall_back_to_the_plain_loop():
+def test_unsupported_settings_fall_back_to_the_plain_loop() -> None:
     """AMSGrad has no fast implementation: fit() must run the plain loop, with plain results."""
     cfg = TrainConfig.paper(epochs=3, batch_size=16, dual_lr=1e-2, dtype="float64")
     reference, fast, dr, df = _pair(SPECS["paper"], replace(cfg, engine="plain"))
@@ -206,7 +206,7 @@ def test_unsupported_settings_fall_back_to_the_plain_loop():
     assert diff > 1e-6  # AMSGrad changed the result: the fallback did run it
 
 
-def test_engines_can_be_mixed_and_resumed():
+def test_engines_can_be_mixed_and_resumed() -> None:
     """Optimizer state goes through the torch optimizers: fast, then plain, then fast again (with values from
     online steps pending in between) equals plain all the way; a callback sees the current model."""
     cfg = TrainConfig.paper(epochs=2, batch_size=16, dual_lr=5e-2, dtype="float64", seed=4, log_every=5)
@@ -252,7 +252,7 @@ METHODS: dict[str, dict[str, Any]] = {
 
 @pytest.mark.parametrize("method", sorted(METHODS))
 @pytest.mark.parametrize("spec_name", ["paper", "mixed"])
-def test_fast_equals_plain_for_every_dual_method(method, spec_name):
+def test_fast_equals_plain_for_every_dual_method(method: Any, spec_name: Any) -> None:
     """Every dual method in flat form: ~180 steps in float64 with the same bounds as the paper's method (lambda, the
     dual optimizer's state, the history); the methods do move lambda differently from the paper's."""
     cfg = TrainConfig.paper(**{"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
@@ -271,7 +271,7 @@ def test_fast_equals_plain_for_every_dual_method(method, spec_name):
 @pytest.mark.parametrize("schedules", [("cosine", "cosine"), ("step", "step"), ("cosine", "constant"),
                                        ("constant", "step")])
 @pytest.mark.parametrize("method", ["paper", "nupi", "augmented"])
-def test_fast_equals_plain_under_learning_rate_schedules(schedules, method):
+def test_fast_equals_plain_under_learning_rate_schedules(schedules: Any, method: Any) -> None:
     """Schedules in both engines: the same rates per update (equal schedules keep the dual Adam merged into the
     primal flat tensor, different ones do not), a horizon of the run's own length, and the optimizers' final
     learning rates are the last update's."""
@@ -287,6 +287,7 @@ def test_fast_equals_plain_under_learning_rate_schedules(schedules, method):
     _assert_same(plain, fast, rtol=1e-7, atol=1e-8)
     steps = plain.steps
     for tr in (plain, fast):
+        assert tr.schedules is not None
         ps, ds = tr.schedules
         assert ps.horizon == steps  # epochs x minibatches per epoch
         assert tr.primal_opt.param_groups[0]["lr"] == ps.lr(steps - 1)

@@ -109,7 +109,7 @@ def test_foxglove_layout_references_only_schema_fields(system: str) -> None:
     if odometry:
         (panel,) = three_d
         assert set(panel["config"]["topics"]) and set(panel["config"]["topics"]) <= odometry
-        assert panel["config"]["followTf"] == get_schema(system).state.frame_id  # type: ignore[attr-defined]
+        assert panel["config"]["followTf"] == get_schema(system).state.frame_id
     else:
         assert not three_d
 

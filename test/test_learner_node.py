@@ -204,7 +204,7 @@ class RosSide:
     def wait_received(self, ns: str, timeout: float = 20.0) -> None:
         for kind in ("state", "applied_cmd"):
             n = self.sent.get((ns, kind), 0)
-            self.wait(lambda k=kind, n=n: self.counter(f"{ns}/received/{k}") >= n, timeout,
+            self.wait(lambda k=kind, n=n: self.counter(f"{ns}/received/{k}") >= n, timeout,  # type: ignore[misc]
                       f"{ns} to receive {n} {kind}")
 
 
@@ -297,7 +297,8 @@ def test_transitions_are_paired_exactly_per_namespace(shared: tuple[Learner, Ros
             j += 5
     for ns, n in (("/exact_a", 150), ("/exact_b", 120)):
         tester.wait_received(ns)
-        tester.wait(lambda ns=ns, n=n: tester.counter(f"{ns}/paired") == n, 5.0, f"{ns}/paired == {n}")
+        tester.wait(lambda ns=ns, n=n: tester.counter(f"{ns}/paired") == n, 5.0,  # type: ignore[misc]
+                    f"{ns}/paired == {n}")
     for ns in ("/exact_a", "/exact_b"):
         for reason in ("duplicate", "out_of_order", "late", "unpaired", "nan", "shape"):
             assert tester.counter(f"{ns}/rejected/{reason}") == 0

@@ -64,7 +64,7 @@ class Loop:
         for msg in reversed(list(self.diags)):
             for entry in diagnostics_from_msg(msg)[0]:
                 if entry.name == fqn:
-                    return entry.values
+                    return dict(entry.values)
         return {}
 
     def next_diagnostics(self, fqn: str) -> dict[str, str]:
@@ -189,5 +189,7 @@ def test_shutdown_transition_ends_the_process(loop: Loop) -> None:
     assert loop.change(LEARNER, "shutdown") and loop.change(MPC, "shutdown")
     assert loop.learner.wait(15.0) == 0 and loop.mpc.wait(15.0) == 0
     assert "cleanup: checkpoint version" in loop.learner.output()  # the deactivation had saved everything
-    assert "shutdown: final checkpoint version" in loop.learner.output().rsplit("resumed from", 1)[-1]
+    # the final state is on disk: written now, or by a periodic checkpoint that happened to be the last update
+    tail = loop.learner.output().rsplit("resumed from", 1)[-1]
+    assert re.search(r"shutdown: (final checkpoint version \d+|checkpoint version \d+ is current)", tail), tail
     assert "Traceback" not in loop.learner.output() + loop.mpc.output()

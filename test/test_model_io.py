@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
@@ -14,7 +17,7 @@ from saml_ros.core.systems import get_system
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions, resume_trainer, save_checkpoint
 
 
-def _trained(tmp_path, steps_epochs=2):
+def _trained(tmp_path: Path, steps_epochs: Any = 2) -> Any:
     system = get_system("friction")
     spec = ProblemSpec.for_system(system.paper_spec(), system)
     x, u, y = system.make_dataset(512, np.random.default_rng(0))
@@ -26,7 +29,7 @@ def _trained(tmp_path, steps_epochs=2):
     return system, spec, tr, data
 
 
-def test_round_trip_predictions_and_metadata(tmp_path):
+def test_round_trip_predictions_and_metadata(tmp_path: Path) -> None:
     system, spec, tr, data = _trained(tmp_path)
     store = CheckpointStore(tmp_path / "run")
     path, version = save_checkpoint(store, tr, metrics={"objective": 0.1})
@@ -41,7 +44,7 @@ def test_round_trip_predictions_and_metadata(tmp_path):
     assert loaded.meta["updates"] == tr.steps and loaded.meta["metrics"]["objective"] == 0.1
 
 
-def test_resume_continues_exactly(tmp_path):
+def test_resume_continues_exactly(tmp_path: Path) -> None:
     system, spec, tr, data = _trained(tmp_path)
     store = CheckpointStore(tmp_path / "run")
     path, _ = save_checkpoint(store, tr)
@@ -57,7 +60,7 @@ def test_resume_continues_exactly(tmp_path):
     assert resumed.steps == tr.steps
 
 
-def test_schema_mismatch_and_wrong_system_refused(tmp_path):
+def test_schema_mismatch_and_wrong_system_refused(tmp_path: Path) -> None:
     system, spec, tr, data = _trained(tmp_path)
     store = CheckpointStore(tmp_path / "run")
     path, _ = save_checkpoint(store, tr)
@@ -75,7 +78,7 @@ def test_schema_mismatch_and_wrong_system_refused(tmp_path):
         load_model(bad)
 
 
-def test_truncated_model_checkpoint_refused(tmp_path):
+def test_truncated_model_checkpoint_refused(tmp_path: Path) -> None:
     system, spec, tr, data = _trained(tmp_path)
     path, _ = save_checkpoint(CheckpointStore(tmp_path / "run"), tr)
     blob = path.read_bytes()

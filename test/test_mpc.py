@@ -326,7 +326,7 @@ def test_paddle_hits_target_under_the_model() -> None:
         res = ctrl.solve(x, goal)
         assert res.success, res.message
         v_post = model.predict_np(x, res.u)  # check independently with the torch model
-        land = landing_point(torch.as_tensor(x[None, :3]), torch.as_tensor(v_post[None]), system.g).numpy()[0]
+        land = landing_point(torch.as_tensor(x[None, :3]), torch.as_tensor(v_post[None]), system.g).numpy()[0]  # type: ignore[attr-defined]
         assert np.linalg.norm(land - goal.target_xy) < 0.03
         assert abs(res.cost - np.linalg.norm(land - goal.target_xy)) < 1e-9
         speed = np.linalg.norm(x[3:6] - res.u[:3])

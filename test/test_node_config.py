@@ -7,6 +7,7 @@ import logging
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -79,7 +80,7 @@ def test_mpc_service_answers_states_rejects_duplicates_and_falls_back_to_the_saf
     service = MPCService(MPCConfig.from_params({"system": "quadrotor"}), lambda u, s: sent.append((u, s)), LOG)
     service.start()
     try:
-        quad = service.system
+        quad: Any = service.system
         answer = service.receive(quad.hover_state((0.5, 0.0, 1.0)), 1_000_000_000, time.perf_counter())
         assert answer is not None and answer[0] == 1_000_000_000 and answer[1]["success"] == 1.0
         u, stamp = sent[-1]

@@ -80,7 +80,7 @@ def _start_all(dom: RosDomain, tmp: Path, tag: str) -> list[Started]:
 
 def _wait_up(nodes: list[Started], run_dir: Path) -> None:
     for n in nodes:
-        wait_for(lambda n=n: n.ready in n.proc.output() or not n.proc.alive(), timeout=120,
+        wait_for(lambda n=n: bool(n.ready in n.proc.output() or not n.proc.alive()), timeout=120,  # type: ignore[misc]
                  what=f"{n.name} to come up")
         assert n.proc.alive(), f"{n.name} exited during start-up:\n{n.proc.output()}"
     # the learner checkpoints every second once training runs: wait for one, so the final one is a real save

@@ -18,7 +18,7 @@ from saml_ros.offline.pipelines import compare
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_sufficient_beats_uniform_inside_region_and_loses_outside():
+def test_sufficient_beats_uniform_inside_region_and_loses_outside() -> None:
     """A short version of the paper's double-integrator experiment (5k samples, 30 epochs, a faster dual
     step than the paper's 1e-4 so the multiplier becomes active within the budget); the full run is
     `./dev demo --offline` (docs/results.md)."""
@@ -34,7 +34,7 @@ def test_sufficient_beats_uniform_inside_region_and_loses_outside():
     assert "| Sufficiently Accurate |" in cmp.table()
 
 
-def test_train_cli_writes_a_usable_checkpoint_and_report(tmp_path):
+def test_train_cli_writes_a_usable_checkpoint_and_report(tmp_path: Path) -> None:
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--samples", "2000",
@@ -53,7 +53,7 @@ def test_train_cli_writes_a_usable_checkpoint_and_report(tmp_path):
     assert np.isfinite(loaded.model.predict_np(x, np.ones((1, 1)))).all()
 
 
-def test_train_cli_dual_method_restarts_and_feasibility_report(tmp_path):
+def test_train_cli_dual_method_restarts_and_feasibility_report(tmp_path: Path) -> None:
     """--dual-method / --train pick the method and its parameters; --restarts keeps one member per seed chosen on
     the held-out split; the feasibility verdict is printed and in metrics.json. A bound of 0.2 m/s is met by the
     4-2 net in 20 epochs; the checkpoint holds the 2 kept members."""
@@ -88,7 +88,7 @@ def test_train_cli_dual_method_restarts_and_feasibility_report(tmp_path):
     assert bad.returncode == 2 and "--train expects FIELD=VALUE" in bad.stderr
 
 
-def test_train_cli_rejects_a_bad_spec_without_writing(tmp_path):
+def test_train_cli_rejects_a_bad_spec_without_writing(tmp_path: Path) -> None:
     spec = tmp_path / "bad.yaml"
     spec.write_text("objective: {loss: l2}\nconstraints:\n  - {eps: 0.1, region: {box: {x.q: [0, 1]}}}\n")
     out = tmp_path / "run"

@@ -23,6 +23,7 @@ from saml_ros.core.mpc.dynamics_np import (
 from saml_ros.core.mpc.factory import true_model_np
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
 from saml_ros.core.systems.friction import FRICTION_PROFILES, FrictionDoubleIntegrator
+from saml_ros.core.systems.quadrotor import Quadrotor
 
 
 def autograd_jac(system: object, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -67,6 +68,7 @@ def test_oracle_twin_equals_true_step_and_autograd(name: str, params: dict[str, 
 
 def test_quadrotor_oracle_jacobian_at_the_level_attitude_and_near_the_ground() -> None:
     system = get_system("quadrotor")
+    assert isinstance(system, Quadrotor)
     rng = np.random.default_rng(1)
     x = np.stack([system.hover_state((rng.uniform(-1, 1), rng.uniform(-1, 1), z)) for z in (0.15, 0.5, 1.2, 2.0)])
     x[:, 3:6] = rng.uniform(-1, 1, (4, 3))
@@ -87,7 +89,7 @@ def test_controllers_plan_with_the_oracle_and_keep_it(name: str) -> None:
     ctrl = make_controller(system, ORACLE, "fast")
     dyn = ctrl.dyn  # type: ignore[attr-defined]
     assert isinstance(dyn, NumpyDynamics) and dyn.kind == ORACLE and dyn.mlp is None
-    ctrl.set_model(ORACLE)
+    ctrl.set_model(ORACLE)  # type: ignore[arg-type]
     assert ctrl.dyn.kind == ORACLE  # type: ignore[attr-defined]
     ctrl.set_model(None)
     assert ctrl.dyn.kind == "base"  # type: ignore[attr-defined]
@@ -144,7 +146,7 @@ def test_paddle_oracle_lands_the_true_impact_map_on_target() -> None:
 
     system = get_system("paddle_ball")
     rng = np.random.default_rng(2)
-    errs = {"oracle": [], "base": []}
+    errs: dict[str, list[float]] = {"oracle": [], "base": []}
     for _ in range(10):
         x0 = np.array([*rng.uniform(-0.5, 0.5, 2), 0.0, *rng.uniform(-0.5, 0.5, 2), rng.uniform(-5, -3)])
         goal = paddle_goal(target_xy=x0[:2] + rng.uniform(-0.3, 0.3, 2), v_rel=(4.0, 6.0))

@@ -172,8 +172,8 @@ def test_colcon_build_installs_every_executable(tmp_path: Path) -> None:
             assert all(f.is_relative_to(share) for f in result.files), result.files
             for node in result.nodes:
                 assert (prefix / "lib" / "saml_ros" / node.executable).is_file(), node.executable
-                for src in node.params:
-                    assert src.path is None or (src.path.is_file() and src.path.is_relative_to(share)), src.path
+                for psrc in node.params:
+                    assert psrc.path is None or (psrc.path.is_file() and psrc.path.is_relative_to(share)), psrc.path
 
     site = next((prefix / "lib").glob("python3*/site-packages"))
     for pkg in ("saml_ros", "msg_schemas", "sim_nodes"):
@@ -184,8 +184,8 @@ def test_colcon_build_installs_every_executable(tmp_path: Path) -> None:
     # the console scripts point at exactly the table in saml_ros/executables.py
     entry_points = configparser.ConfigParser(delimiters=("=",))
     entry_points.read(next(site.glob("saml_ros-*.egg-info")) / "entry_points.txt")
-    installed = {k: v.replace(" ", "") for k, v in entry_points["console_scripts"].items()}
-    assert installed == EXECUTABLES
+    console = {k: v.replace(" ", "") for k, v in entry_points["console_scripts"].items()}
+    assert console == EXECUTABLES
 
     # ament_index finds the package, and the installed Python package imports from the install space
     probe = (

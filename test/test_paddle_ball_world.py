@@ -192,7 +192,8 @@ def test_tracking_error_perturbs_the_realised_paddle_but_not_the_learned_command
     u_cmd = PaddleBallWorld(seed=0).validate_command(u)[0]
     exact = PaddleBallWorld(seed=3)
     noisy = PaddleBallWorld(seed=3, velocity_noise=0.1, normal_noise=0.03)
-    dv, dn = [], []
+    dv: list[float] = []
+    dn: list[float] = []
     for w, out in ((exact, None), (noisy, (dv, dn))):
         for k in range(40):
             w.reset(np.array([0.0, 0.0, 0.8]), np.array([0.2 * math.sin(k), 0.2 * math.cos(k), 0.0]))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -12,11 +14,11 @@ DT = 100_000_000  # 0.1 s in ns
 T0 = 5 * 10**9
 
 
-def next_cfg(**kw: int) -> PairingConfig:
+def next_cfg(**kw: Any) -> PairingConfig:
     return PairingConfig(mode="next", n_x=2, n_u=1, n_y=2, dt_ns=DT, **kw)
 
 
-def same_cfg(**kw: int) -> PairingConfig:
+def same_cfg(**kw: Any) -> PairingConfig:
     return PairingConfig(mode="same", n_x=6, n_u=6, n_y=3, **kw)
 
 
@@ -362,10 +364,10 @@ def test_same_stamp_mode_pairs_three_messages_in_any_order() -> None:
     p = StampPairer(same_cfg())
     trs = feed(p, ev)
     assert [t.stamp_ns for t in trs] == stamps
-    for t, k in zip(trs, range(n)):
-        np.testing.assert_array_equal(t.x, xs[k])
-        np.testing.assert_array_equal(t.u, us[k])
-        np.testing.assert_array_equal(t.y, ys[k])
+    for tr, k in zip(trs, range(n)):
+        np.testing.assert_array_equal(tr.x, xs[k])
+        np.testing.assert_array_equal(tr.u, us[k])
+        np.testing.assert_array_equal(tr.y, ys[k])
     assert p.counts["duplicate"] == 1 and p.counts["paired"] == n
 
 

@@ -11,6 +11,7 @@ import logging
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -123,7 +124,7 @@ def _service(system: str, **params: object) -> tuple[MPCService, list[tuple[np.n
 
 def test_mpc_answers_an_implausible_state_with_the_safe_command_and_never_plans_from_it() -> None:
     service, sent = _service("quadrotor")
-    quad = service.system
+    quad: Any = service.system
     stamp, values = service.control_step(quad.hover_state((0.0, 0.0, 2e4)), 10**9, time.perf_counter())
     np.testing.assert_array_equal(sent[-1][0], quad.safe_control())
     assert sent[-1][1] == stamp == 10**9 and values["safe"] == 1.0 and values["safe_commands"] == 1.0
@@ -132,7 +133,8 @@ def test_mpc_answers_an_implausible_state_with_the_safe_command_and_never_plans_
     assert diag["rejected/bounds"] == 1 and diag["safe_commands/bounds"] == 1 and diag["safe_commands"] == 1
     assert service.recent_probe() is None  # the acceptance check never probes with it
     _, values = service.control_step(quad.hover_state((0.5, 0.0, 1.0)), 11 * 10**8, time.perf_counter())
-    assert values["safe"] == 0.0 and values["success"] == 1.0 and service.recent_probe()[0].shape == (1, 13)
+    probe = service.recent_probe()
+    assert values["safe"] == 0.0 and values["success"] == 1.0 and probe is not None and probe[0].shape == (1, 13)
 
 
 def _trap_model(system_name: str, field: str, above: float, weight: float, dtype: torch.dtype) -> DynamicsModel:
@@ -188,7 +190,7 @@ def test_safe_on_infeasible_also_answers_a_constraint_violating_plan_with_the_sa
 # ------------------------------------------------------------------------------------------ the simulator
 def test_a_stepped_simulator_never_publishes_an_implausible_state() -> None:
     system = get_system("friction")
-    sim = build_stepped_sim(system, SimConfig(mode="lockstep", initial_state=(995.0, 99.0)), publish_clock=False)
+    sim: Any = build_stepped_sim(system, SimConfig(mode="lockstep", initial_state=(995.0, 99.0)), publish_clock=False)
     out = sim.begin(0)
     assert out[-1][0] == STATE and out[-1][1][0] == 995.0
     out = sim.on_cmd(np.array([10.0]), sim.awaiting, 1)  # p -> 1004.9 m: beyond the plausible 1000 m

@@ -79,8 +79,8 @@ def stream(n_states: int, state_period: int = DT, jitter: float = 0.0, cmd_perio
         events.append((int(s) + 2 * MS, "state", int(s), truth(int(s))))  # arrives 2 ms after its stamp
     switches = list(range(T0 - 100 * MS + cmd_phase, int(stamps[-1]), cmd_period))
     values = [float(v) for v in np.round(rng.uniform(-1, 1, len(switches)), 3)]
-    for s, v in zip(switches, values, strict=True):
-        events.append((s + 1 * MS, "applied_cmd", s, np.array([v])))
+    for sw, v in zip(switches, values, strict=True):
+        events.append((sw + 1 * MS, "applied_cmd", sw, np.array([v])))
     return events, switches, values
 
 

@@ -296,13 +296,13 @@ def test_coerce_param_accepts_yaml_spellings_and_names_bad_ones() -> None:
 
 # ---------------------------------------------------------------------------------------- paddle ball
 @pytest.fixture(scope="module")
-def ball_world():  # type: ignore[no-untyped-def]
+def ball_world() -> Any:
     from saml_ros.core.worlds.paddle_world import PaddleBallWorld
 
     return PaddleBallWorld(seed=0)
 
 
-def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world) -> None:  # type: ignore[no-untyped-def]
+def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world: Any) -> None:
     from saml_ros.core.worlds.paddle_sim import PaddleBallSim
     from saml_ros.core.worlds.sim_core import FLIGHT, TARGET
 
@@ -332,7 +332,7 @@ def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world) ->
     assert triples >= 3 and sim.counters["steps"] == triples
 
 
-def test_paddle_ball_realtime_bounces_on_the_safe_default_and_restarts_lost_balls(ball_world) -> None:  # type: ignore[no-untyped-def]
+def test_paddle_ball_realtime_bounces_on_the_safe_default_and_restarts_lost_balls(ball_world: Any) -> None:
     from saml_ros.core.worlds.paddle_sim import PaddleBallSim
     from saml_ros.core.worlds.sim_core import TARGET
 

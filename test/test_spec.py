@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -15,7 +17,7 @@ CONTROL = make_layout("control", [("u", "m/s^2")])
 TARGET = STATE
 
 
-def compile_(d):
+def compile_(d: Any) -> Any:
     return ProblemSpec.from_dict(d, STATE, CONTROL, TARGET)
 
 
@@ -60,13 +62,13 @@ NORMALIZED = {
         ("objective: l2", "expected a mapping"),
     ],
 )
-def test_validation_names_the_problem(bad, needle):
+def test_validation_names_the_problem(bad: Any, needle: Any) -> None:
     with pytest.raises(SpecError) as e:
         compile_(bad)
     assert needle in str(e.value)
 
 
-def test_paper_examples_compile_and_round_trip():
+def test_paper_examples_compile_and_round_trip() -> None:
     for d in (SELECTIVE, NORMALIZED):
         s = compile_(d)
         again = compile_(s.to_dict())
@@ -76,7 +78,7 @@ def test_paper_examples_compile_and_round_trip():
     assert s.uniform().n_constraints == 0
 
 
-def test_regions():
+def test_regions() -> None:
     s = compile_(SELECTIVE)
     x = torch.tensor([[0.1, 0.4], [0.6, 0.0], [-0.5, -0.5], [0.0, 0.51]])
     u = torch.zeros(4, 1)
@@ -91,7 +93,7 @@ def test_regions():
     assert comp.objective.region.mask(x, u, x).tolist() == [True, True, False, False]
 
 
-def test_losses_and_estimators():
+def test_losses_and_estimators() -> None:
     s = compile_({
         "objective": {"loss": "l1"},
         "constraints": [
@@ -119,7 +121,7 @@ def test_losses_and_estimators():
     assert v.lagrangian(lam).item() == pytest.approx(4.5 + 4.5)
 
 
-def test_conditional_constraint_with_empty_region_contributes_nothing():
+def test_conditional_constraint_with_empty_region_contributes_nothing() -> None:
     s = compile_(SELECTIVE)
     x = torch.full((3, 2), 2.0)
     pred = torch.zeros(1, 3, 2, requires_grad=True)
@@ -130,7 +132,7 @@ def test_conditional_constraint_with_empty_region_contributes_nothing():
     assert math.isfinite(v.objective.item())
 
 
-def test_yaml_file_errors_name_the_file(tmp_path):
+def test_yaml_file_errors_name_the_file(tmp_path: Path) -> None:
     f = tmp_path / "spec.yaml"
     f.write_text("objective: {loss: l2}\nconstraints:\n  - {eps: 0.1, region: {box: {x.vx: [0, 1]}}}\n")
 
@@ -145,7 +147,7 @@ def test_yaml_file_errors_name_the_file(tmp_path):
         ProblemSpec.from_yaml(f, Sys())
 
 
-def test_shipped_spec_files_are_the_papers():
+def test_shipped_spec_files_are_the_papers() -> None:
     from pathlib import Path
 
     from saml_ros.core.systems import SYSTEM_NAMES, get_system

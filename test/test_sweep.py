@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -101,7 +102,7 @@ def test_same_numbers_in_process_and_on_local_ray(tmp_path: Path) -> None:
     from saml_ros.experiments.convergence import ConvergenceSettings, run
     from saml_ros.offline.parallel import ray_session
 
-    grid = {"eps": [0.02, 0.05], "seed": [0, 1]}
+    grid: dict[str, list[Any]] = {"eps": [0.02, 0.05], "seed": [0, 1]}
     setup = _setup(task=Task(starts=2, steps=8, horizon=5))
     conv = ConvergenceSettings(nets=((2, 1), (4, 2)), sizes=(100, 200), n_datasets=2, epochs=3, n_pstar=20_000,
                                n_test=1000)

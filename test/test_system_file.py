@@ -187,7 +187,7 @@ def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
 
 
 @pytest.fixture
-def user_module(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+def user_module(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
     (tmp_path / "my_robot_models.py").write_text(textwrap.dedent("""
         import torch
 
@@ -267,7 +267,7 @@ def test_builtin_base_models() -> None:
     cv = axes_system({"builtin": "constant_velocity", "params": {"axes": [{"position": "p", "velocity": "v"}]}})
     np.testing.assert_allclose(cv.base_step_np(x, u), np.c_[x[:, 0] + x[:, 1] * dt, x[:, 1]])
     assert np.all(axes_system({"builtin": "zero"}).base_step_np(x, u) == 0)
-    np.testing.assert_array_equal(axes_system("hold").base_step_np(x, u), x)
+    np.testing.assert_array_equal(axes_system("hold").base_step_np(x, u), x)  # type: ignore[arg-type]
     with pytest.raises(SystemFileError, match=r"field 'a' has unit 'm/s\^2'|needs 'm/s'"):
         axes_system({"builtin": "constant_velocity", "params": {"axes": [{"position": "p", "velocity": "p"}]}})
     # linear: fitted on data, then stored with the definition and rebuilt exactly
@@ -339,7 +339,7 @@ def test_a_loaded_robot_is_a_registry_entry(tmp_path: Path) -> None:
     assert get_schema("diff_drive").state_topic == "odom"
     assert get_entry("diff_drive").make_system().schema_hash() == s.schema_hash()
     with pytest.raises(ValueError, match="no MPC task for it"):
-        make_controller(s, "fast")
+        make_controller(s, "fast")  # type: ignore[arg-type]
     unregister_system("diff_drive")
     rebuilt = get_system("diff_drive", **s.params())  # the registry loader: from the stored definition alone
     assert rebuilt.schema_hash() == s.schema_hash() and get_entry("diff_drive") is not None

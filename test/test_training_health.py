@@ -42,9 +42,10 @@ def _state(tr: PrimalDualTrainer) -> list[torch.Tensor]:
     return [p.detach().clone() for p in tr.model.net.parameters()] + [tr.lam.clone()]
 
 
-def _batch(seed: int, scale: float = 1.0) -> tuple[torch.Tensor, ...]:
+def _batch(seed: int, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     x, u, y = _data(128, seed)
-    return tuple(torch.as_tensor(a, dtype=torch.float32) for a in (x, u, y * scale))
+    return (torch.as_tensor(x, dtype=torch.float32), torch.as_tensor(u, dtype=torch.float32),
+            torch.as_tensor(y * scale, dtype=torch.float32))
 
 
 def test_a_non_finite_minibatch_is_skipped_and_changes_nothing() -> None:

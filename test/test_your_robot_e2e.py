@@ -100,7 +100,7 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
             t = telemetry[-1]
             return t["training"] == 1 and t["updates"] >= 1000 and t[key] < 0.5 * base_err
 
-        wait_for(lambda: learned() or not learner.alive(), timeout=45, what="the in-region error to halve")
+        wait_for(lambda: learned() or not learner.alive(), timeout=120, what="the in-region error to halve")
         assert learner.alive(), learner.output()
         last = telemetry[-1]
     finally:

@@ -183,6 +183,9 @@ def extract_transitions(
         config: exact-stamp pairing rule and limits (default: the learner's rule for the system: resampling
             (:mod:`saml_ros.core.resampling`) for a robot from a system file, where an unstamped message's
             receipt time is its log time, else exact stamps).
+
+    One function on purpose (longer than 80 lines): one streaming pass over the bags' messages in log order
+    feeds the per-namespace pairers; splitting it would pass that state around.
     """
     sysobj = _system_of(system)
     schema = schema_of(sysobj)

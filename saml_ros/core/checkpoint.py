@@ -122,6 +122,9 @@ def read_checkpoint(path: Path | str) -> tuple[dict[str, np.ndarray], dict[str, 
             foreign ZIP such as a ``torch.save`` file, missing/invalid ``meta.json``, wrong format name,
             unsupported format version, unexpected or missing members, object/pickled or non-numeric
             arrays, checksum mismatch).
+
+    One function on purpose (longer than 80 lines): the checks run in the order the file is read, each naming
+    its failure, and the open file is needed by all of them.
     """
     path = Path(path)
 

@@ -20,7 +20,7 @@ from msg_schemas.names import join_topic, normalize_namespace
 from saml_ros.core.params import Param, check, read_params
 
 if TYPE_CHECKING:
-    from msg_schemas.base import SystemSchema
+    from msg_schemas.base import QosSpec, SystemSchema
     from saml_ros.core.online import LearnerSetup, TrainingProcess
     from saml_ros.core.online.process import DecoderFactory
     from saml_ros.core.plausibility import Plausibility
@@ -271,6 +271,15 @@ class LearnerConfig:
         if schema.target_pairing == "same":
             kinds.append(("target", schema.target_topic, schema.target.msg_type))
         return [(ns, kind, join_topic(ns, name), msg_type) for ns in self.namespaces for kind, name, msg_type in kinds]
+
+    def channel_traits(self, schema: SystemSchema) -> tuple[list[bool], list[QosSpec]]:
+        """Per :meth:`channels` entry: whether its messages carry no header (a robot's ``cmd_vel``: stamped on
+        receipt) and the topic's QoS (a robot's system file may make it best effort)."""
+        kinds = {"state": (schema.state_topic, schema.state), "applied_cmd": (schema.applied_cmd_topic, schema.control),
+                 "target": (schema.target_topic, schema.target)}
+        chans = self.channels(schema)
+        unstamped = [getattr(kinds[kind][1], "stamped", True) is False for _, kind, _, _ in chans]
+        return unstamped, [schema.topic(kinds[kind][0]).qos for _, kind, _, _ in chans]
 
     def start_training(self, system: System, spec: ProblemSpec, schema: SystemSchema, run_dir: str,
                        decoder: DecoderFactory, *, paused: bool = False, launched: Any = None,

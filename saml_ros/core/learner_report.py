@@ -170,3 +170,16 @@ def stopped_message(final: Saved | None, updates: float, paired: int, min_transi
         return False, f"{step}: checkpoint version {version} is current ({done} updates)"
     return False, (f"{step}: no checkpoint written, training never started ({paired}/{min_transitions} "
                    "transitions)")
+
+
+def training_diagnostics(trainer: TrainingProcess, p: LearnerConfig, spec: ProblemSpec,
+                         channels: Sequence[ChannelCount], lifecycle: str, invalid_transitions: int,
+                         active: bool) -> tuple[int, str, dict[str, Any]]:
+    """:func:`learner_diagnostics` of a running training process, with the node's lifecycle state
+    (``lifecycle``, prefixed to the message while not ``active``) and its refused transitions."""
+    level, message, values = learner_diagnostics(
+        trainer.counts(), trainer.status, process_counters(trainer), trainer.source_counts, p.namespaces, channels,
+        [(t.name, t.eps) for t in spec.constraints], p.health_error_after)
+    values["lifecycle"] = lifecycle
+    values["invalid_transitions"] = invalid_transitions
+    return level, (message if active else f"{lifecycle}: {message}"), values

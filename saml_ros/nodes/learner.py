@@ -1,54 +1,42 @@
 """Online learner node (``ros2 run saml_ros learner``): pairs simulator / robot data and trains the model live.
 
-Wiring over :class:`saml_ros.core.online.TrainingProcess` (docs/learner.md), parameters from
-:class:`saml_ros.core.learner_config.LearnerConfig`:
-
-* subscribes, per namespace in ``namespaces``, to ``state``, ``applied_cmd`` (and ``post_impact`` for the paddle
-  ball) taking the *serialized* messages (``raw=True``), which the callbacks only count and queue; a niced
-  training process decodes (:func:`make_decoder`) and pairs them (bad input counted under ``rejected/<reason>``),
-  trains (replay buffer, primal-dual steps) and checkpoints every ``checkpoint_period`` s, never competing with
-  ingest for the GIL;
-* publishes ``learner/model_error`` at ``telemetry_rate``, ``learner/checkpoint`` (transient local) after every
-  checkpoint and ``/diagnostics``;
-* a managed node (docs/learner.md, "Lifecycle"): ``configure`` reads the parameters and the spec and starts the
-  training process paused (resumed from the newest checkpoint), ``activate`` subscribes and trains,
-  ``deactivate`` unsubscribes and pauses after one checkpoint, ``cleanup`` ends the training process. With
-  ``autostart`` (default) it walks configure and activate itself and a configuration error exits 2;
-* on SIGINT / SIGTERM (or ``shutdown``) writes a final checkpoint and exits 0.
-
-torch is imported only once :func:`main` has started the training interpreter (both import it at once, which
-halves the start-up). Usage::
+Wiring over :class:`saml_ros.core.online.TrainingProcess` with :class:`saml_ros.core.learner_config.LearnerConfig`
+(docs/learner.md): it subscribes to each namespace's ``state``, ``applied_cmd`` (and the paddle ball's
+``post_impact``) as serialized messages (:mod:`saml_ros.nodes.raw_ingest`); a niced training process decodes,
+pairs (bad input counted under ``rejected/<reason>``), trains and checkpoints every ``checkpoint_period`` s; the
+node publishes ``learner/model_error``, ``learner/checkpoint`` (transient local) and ``/diagnostics``. A managed
+node ("Lifecycle" in docs/learner.md; ``autostart`` walks configure and activate, a configuration error exits 2);
+SIGINT / SIGTERM (or ``shutdown``) write a final checkpoint and exit 0. torch is imported only once :func:`main`
+has started the training interpreter (both import it at once, which halves the start-up). Usage::
 
     ros2 run saml_ros learner --ros-args -r __ns:=/friction -p system:=friction --params-file config/learner.yaml
 """
-
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.qos import HistoryPolicy
 
 import msg_schemas.telemetry as tele
-from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, QosSpec, get_schema
+from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, get_schema
 from msg_schemas.decode import make_decoder
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.learner_config import LearnerConfig, learner_params
 from saml_ros.core.learner_report import (
     configured_message,
-    learner_diagnostics,
     paused_message,
-    process_counters,
     stopped_message,
+    training_diagnostics,
 )
 from saml_ros.core.lifecycle import TransitionRefused
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import current_values, declare_params, probe_system
+from saml_ros.nodes.raw_ingest import subscribe_raw
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, log_at, process_main, shutdown, wants_help
 
 if TYPE_CHECKING:
@@ -61,17 +49,6 @@ NODE_NAME = "learner"
 
 class ConfigError(Exception):
     """An unrecoverable configuration problem; the message says which parameter and why."""
-
-
-def load_robot(path: str) -> Any:
-    """The robot of system file ``path``, registered under its name; ValueError naming the problem."""
-    from saml_ros.core.systems.system_file import SystemFileError
-    from saml_ros.user_code import load_system_file
-
-    try:
-        return load_system_file(path)
-    except SystemFileError as exc:
-        raise ValueError(f"parameter 'system_file': {exc}") from None
 
 
 class LearnerNode(ManagedNode):
@@ -97,7 +74,9 @@ class LearnerNode(ManagedNode):
         try:
             values = current_values(self, self._table)
             if values.get("system_file"):
-                values["system"] = load_robot(values["system_file"]).name
+                from saml_ros.user_code import load_robot_param
+
+                values["system"] = load_robot_param(values["system_file"]).name
             self.p = p = LearnerConfig.from_params(values, self.get_namespace())
             self.system = p.make_system()
             self.spec = p.load_spec(self.system)
@@ -110,12 +89,7 @@ class LearnerNode(ManagedNode):
         except OSError as exc:
             raise TransitionRefused(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
         self.channels = p.channels(self.schema)
-        sc = self.schema
-        kinds = {"state": (sc.state_topic, sc.state), "applied_cmd": (sc.applied_cmd_topic, sc.control),
-                 "target": (sc.target_topic, sc.target)}
-        #: channels whose messages have no header (a robot's cmd_vel): stamped with their receive time
-        self.unstamped = [getattr(kinds[kind][1], "stamped", True) is False for _, kind, _, _ in self.channels]
-        self.channel_qos = [sc.topic(kinds[kind][0]).qos for _, kind, _, _ in self.channels]
+        self.unstamped, self.channel_qos = p.channel_traits(self.schema)  # no header: stamped on receipt
         self.received = [0] * len(self.channels)
         launched, self._launched = self._launched, None
         try:  # imports torch (the training interpreter is importing it meanwhile)
@@ -181,47 +155,14 @@ class LearnerNode(ManagedNode):
         ]
 
     def _subscribe(self) -> None:
-        # raw=True: the callback gets the serialized message, decoded in the training process; building Python
-        # message objects here is most of a bare subscriber's per-message cost
-        # KEEP_ALL: a burst that outruns the callbacks (e.g. while the training process imports torch) waits in
-        # the reader queue instead of overwriting older transitions; reliable writers are slowed, not dropped
-        def data_qos(spec: QosSpec) -> Any:  # the topic's QoS (a robot's file may make it best effort)
-            qos = spec.to_rclpy()
-            qos.history = HistoryPolicy.KEEP_ALL
-            return qos
-
-        self._subs = [
-            self.create_subscription(RCLPY.cls(msg_type), topic, self._make_callback(ch),
-                                     data_qos(self.channel_qos[ch]), callback_group=self.data_group, raw=True)
-            for ch, (_, _, topic, msg_type) in enumerate(self.channels)
-        ]
+        assert self.trainer is not None
+        self._subs = subscribe_raw(self, self.channels, self.channel_qos, self.unstamped, self.trainer.submit_raw,
+                                   self.received, self.data_group)
 
     def _unsubscribe(self) -> None:
         for sub in self._subs:
             self.destroy_subscription(sub)
         self._subs = []
-
-    # ---------------------------------------------------------------------------------------------- ingest
-    def _make_callback(self, channel: int) -> Callable[..., None]:
-        assert self.trainer is not None
-        submit, received = self.trainer.submit_raw, self.received
-
-        def callback(data: bytes) -> None:
-            received[channel] += 1
-            submit(channel, data)
-
-        if not self.unstamped[channel]:
-            return callback
-        clock = self.get_clock()
-        sim_time = bool(self.get_parameter("use_sim_time").value)
-
-        def stamp_on_receipt(data: bytes, info: Any) -> None:
-            # the middleware's receive time (the system clock, like the robot's stamps) unless on simulated time
-            t = int(info["received_timestamp"]) if not sim_time and info else clock.now().nanoseconds
-            received[channel] += 1
-            submit(channel, (data, t))
-
-        return stamp_on_receipt
 
     # ---------------------------------------------------------------------------------------------- training
     def _child_log(self, level: int, text: str) -> None:
@@ -267,14 +208,8 @@ class LearnerNode(ManagedNode):
             return
         channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count() if self._subs else 0)
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
-        level, message, values = learner_diagnostics(tr.counts(), tr.status, process_counters(tr), tr.source_counts,
-                                                     self.p.namespaces, channels,
-                                                     [(t.name, t.eps) for t in self.spec.constraints],
-                                                     self.p.health_error_after)
-        values["lifecycle"] = self.state_label
-        values["invalid_transitions"] = self.invalid_transitions
-        if not self.active:
-            message = f"{self.state_label}: {message}"
+        level, message, values = training_diagnostics(tr, self.p, self.spec, channels, self.state_label,
+                                                      self.invalid_transitions, self.active)
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 

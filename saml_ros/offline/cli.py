@@ -113,73 +113,112 @@ def load_spec(system: Any, path: Path | None, uniform: bool) -> ProblemSpec:
     return spec.uniform() if uniform else spec
 
 
+class _Refused(Exception):
+    """A bad command line or input: printed as ``train: <message>``, exit status 2."""
+
+
+def _load_system(args: argparse.Namespace) -> Any:
+    """The system of ``--system`` or ``--system-file`` (a robot: registered, and it needs ``--bag``)."""
+    if args.system_file is None:
+        return get_system(args.system)
+    from saml_ros.core.systems.system_file import SystemFileError
+    from saml_ros.user_code import load_system_file
+
+    try:
+        system = load_system_file(args.system_file)  # registers the robot
+    except SystemFileError as exc:
+        raise _Refused(str(exc)) from None
+    if not args.bag:
+        raise _Refused(f"{system.name} comes from a system file and has no simulator in saml_ros: give its "
+                       "recordings with --bag")
+    if args.hidden is None:
+        args.hidden = list(system.paper_hidden)
+    return system
+
+
+Arrays = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _training_data(args: argparse.Namespace, system: Any, seeds: list[int], n_train: int,
+                   noise: dict[str, float]) -> tuple[Arrays, Arrays, str]:
+    """``(train (x, u, y), held-out (x, u, y), description)``: from ``--bag`` (a fifth held out, shuffled with
+    the seed) or generated from the paper's sampling distribution per seed."""
+    if not args.bag:
+        x, u, y = generate_datasets(system, n_train, seeds, noise)
+        test = system.make_dataset(args.test_samples, np.random.default_rng(10_000 + args.seed), noise)
+        return (x, u, y), test, f"{n_train} generated transitions per seed (paper sampling distribution)"
+    from saml_ros.bags.transitions import transitions_from_bags
+
+    try:
+        x, u, y = transitions_from_bags(args.bag, system)
+    except Exception as exc:  # bag errors carry a message naming the bag and the problem
+        raise _Refused(str(exc)) from None
+    source = f"{len(x)} transitions from {len(args.bag)} bag(s)"
+    perm = np.random.default_rng(10_000 + args.seed).permutation(len(x))
+    n_test = max(1, len(x) // 5) if len(x) >= 10 else 0
+    test_idx, train_idx = perm[:n_test], perm[n_test:]
+    if len(train_idx) < 2:
+        raise _Refused(f"only {len(train_idx)} training transitions in the bag(s); need at least 2")
+    return ((x[train_idx], u[train_idx], y[train_idx]), (x[test_idx], u[test_idx], y[test_idx]), source)
+
+
+def _test_metrics(result: Any, spec: ProblemSpec, test: Arrays) -> tuple[dict[str, Any], Any]:
+    """The held-out metrics of ``metrics.json`` and the evaluation they come from."""
+    xt, ut, yt = test
+    ev = evaluate_models(result.model, spec, xt, ut, yt)
+    return {
+        "n": int(len(xt)),
+        "objective": ev.objective.tolist(),
+        "constraints": dict(zip(spec.constraint_names, ev.constraints.T.tolist())),
+        "regions": {r.name: {"inside": r.inside.tolist(), "outside": r.outside.tolist(),
+                             "overall": r.overall.tolist(), "frac_inside": r.frac_inside}
+                    for r in ev.regions},
+    }, ev
+
+
+def _print_summary(result: Any, metrics: dict[str, Any], ev: Any) -> None:
+    """The run's closing lines: time, held-out errors per region, lambda, selection, feasibility verdicts."""
+    print(f"train: done in {result.train_seconds:.1f} s ({result.trainer.steps} updates)")
+    if ev is not None:
+        print(f"train: held-out objective {mean_std(np.asarray(metrics['test']['objective']))}")
+        for r in ev.regions:
+            print(f"train: constraint '{r.name}': error inside {mean_std(r.inside)}, "
+                  f"outside {mean_std(r.outside)} ({100 * r.frac_inside:.1f}% of test data inside)")
+    print(f"train: lambda = {np.round(result.trainer.lam.numpy(), 4).tolist()}")
+    if result.selection is not None:
+        for line in result.selection.describe():
+            print(f"train: {line}")
+    for c in result.trainer.diagnosis.constraints:
+        print(f"train: feasibility [{c.verdict}] {c.message}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
-    system: Any
-    if args.system_file is not None:
-        from saml_ros.core.systems.system_file import SystemFileError
-        from saml_ros.user_code import load_system_file
+    try:
+        return _train(args)
+    except _Refused as exc:
+        print(f"train: {exc}", file=sys.stderr)
+        return 2
 
-        try:
-            system = load_system_file(args.system_file)  # registers the robot
-        except SystemFileError as exc:
-            print(f"train: {exc}", file=sys.stderr)
-            return 2
-        if not args.bag:
-            print(f"train: {system.name} comes from a system file and has no simulator in saml_ros: give its "
-                  "recordings with --bag", file=sys.stderr)
-            return 2
-        if args.hidden is None:
-            args.hidden = list(system.paper_hidden)
-    else:
-        system = get_system(args.system)
+
+def _train(args: argparse.Namespace) -> int:
+    system = _load_system(args)
     try:
         resolve_device(args.device)
         spec = load_spec(system, args.spec, args.uniform)
         noise = _parse_noise(args.noise)
         for name in noise:
             system.target.index(name)
-    except (SpecError, KeyError, OSError, DeviceError) as exc:
-        print(f"train: {exc}", file=sys.stderr)
-        return 2
-    entry = get_entry(system.name)  # the paper's dataset size and epochs
-    epochs = args.epochs if args.epochs is not None else entry.paper_epochs
+        entry = get_entry(system.name)  # the paper's dataset size and epochs
+        epochs = args.epochs if args.epochs is not None else entry.paper_epochs
+        config = train_config(args, epochs)
+    except (SpecError, KeyError, OSError, DeviceError, ValueError) as exc:
+        raise _Refused(str(exc)) from None
     n_train = args.samples or entry.paper_samples
     seeds = list(range(args.seed, args.seed + max(1, args.seeds)))
-    try:
-        config = train_config(args, epochs)
-    except ValueError as exc:
-        print(f"train: {exc}", file=sys.stderr)
-        return 2
     out = args.out or Path("runs") / f"train-{system.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-
-    if args.bag:
-        try:
-            from saml_ros.bags.transitions import transitions_from_bags
-        except ImportError:
-            print("train: training from bags needs saml_ros.bags.transitions (not available in this build)",
-                  file=sys.stderr)
-            return 2
-        try:
-            x, u, y = transitions_from_bags(args.bag, system)
-        except Exception as exc:  # bag errors carry a message naming the bag and the problem
-            print(f"train: {exc}", file=sys.stderr)
-            return 2
-        source = f"{len(x)} transitions from {len(args.bag)} bag(s)"
-        rng = np.random.default_rng(10_000 + args.seed)
-        perm = rng.permutation(len(x))
-        n_test = max(1, len(x) // 5) if len(x) >= 10 else 0
-        test_idx, train_idx = perm[:n_test], perm[n_test:]
-        xt, ut, yt = x[test_idx], u[test_idx], y[test_idx]
-        x, u, y = x[train_idx], u[train_idx], y[train_idx]
-        if len(x) < 2:
-            print(f"train: only {len(x)} training transitions in the bag(s); need at least 2", file=sys.stderr)
-            return 2
-    else:
-        x, u, y = generate_datasets(system, n_train, seeds, noise)
-        source = f"{n_train} generated transitions per seed (paper sampling distribution)"
-        xt, ut, yt = system.make_dataset(args.test_samples, np.random.default_rng(10_000 + args.seed), noise)
+    (x, u, y), test, source = _training_data(args, system, seeds, n_train, noise)
 
     print(f"train: {system.name}, {args.kind} model {list(args.hidden or system.paper_hidden)}, "
           f"spec '{spec.raw.get('name')}': {spec.describe()}")
@@ -193,8 +232,7 @@ def main(argv: list[str] | None = None) -> int:
                               progress=not args.no_progress, desc=f"{system.name} {spec.raw.get('name')}",
                               restarts=args.restarts, holdout=args.holdout)
     except ValueError as exc:
-        print(f"train: {exc}", file=sys.stderr)
-        return 2
+        raise _Refused(str(exc)) from None
     metrics: dict[str, Any] = {"train_seconds": result.train_seconds, "n_train": result.n_train,
                                "updates": result.trainer.steps, "seeds": seeds, "source": source,
                                "train_config": dict(config.__dict__)}
@@ -203,16 +241,9 @@ def main(argv: list[str] | None = None) -> int:
                                 "chosen": result.selection.chosen, "feasible": result.selection.feasible,
                                 "heldout_objective": result.selection.objective.tolist(),
                                 "heldout_constraints": result.selection.constraints.tolist()}
-    if len(xt):
-        ev = evaluate_models(result.model, spec, xt, ut, yt)
-        metrics["test"] = {
-            "n": int(len(xt)),
-            "objective": ev.objective.tolist(),
-            "constraints": dict(zip(spec.constraint_names, ev.constraints.T.tolist())),
-            "regions": {r.name: {"inside": r.inside.tolist(), "outside": r.outside.tolist(),
-                                 "overall": r.overall.tolist(), "frac_inside": r.frac_inside}
-                        for r in ev.regions},
-        }
+    ev = None
+    if len(test[0]):
+        metrics["test"], ev = _test_metrics(result, spec, test)
     diag = result.trainer.diagnosis
     assert diag is not None
     metrics["feasibility"] = diag.to_dict()
@@ -226,19 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))
     fig = plot_training_curves({spec.raw.get("name", "run"): result.history}, out / "training_curves.png",
                                title=f"{system.name}: {spec.describe()}")
-
-    print(f"train: done in {result.train_seconds:.1f} s ({result.trainer.steps} updates)")
-    if "test" in metrics:
-        print(f"train: held-out objective {mean_std(np.asarray(metrics['test']['objective']))}")
-        for r in ev.regions:
-            print(f"train: constraint '{r.name}': error inside {mean_std(r.inside)}, "
-                  f"outside {mean_std(r.outside)} ({100 * r.frac_inside:.1f}% of test data inside)")
-    print(f"train: lambda = {np.round(result.trainer.lam.numpy(), 4).tolist()}")
-    if result.selection is not None:
-        for line in result.selection.describe():
-            print(f"train: {line}")
-    for c in diag.constraints:
-        print(f"train: feasibility [{c.verdict}] {c.message}")
+    _print_summary(result, metrics, ev)
     print(f"train: checkpoint {ckpt} (version {version}); curves {fig}; metrics {out / 'metrics.json'}")
     return 0
 

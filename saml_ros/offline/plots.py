@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from saml_ros.offline.pipelines import Comparison
 
 
-def _plt():  # type: ignore[no-untyped-def]
+def _plt() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -28,7 +28,7 @@ def _plt():  # type: ignore[no-untyped-def]
     return plt
 
 
-def _band(ax, x: np.ndarray, y: np.ndarray, label: str, color: str | None = None) -> None:  # type: ignore[no-untyped-def]
+def _band(ax: Any, x: np.ndarray, y: np.ndarray, label: str, color: str | None = None) -> None:
     """Mean over ensemble members (last axis) with a min-max band."""
     y = y.reshape(len(x), -1)
     line, = ax.plot(x, y.mean(1), label=label, color=color)

@@ -15,6 +15,7 @@ from saml_ros.core.checkpoint import CheckpointStore, arrays_to_torch_state, tor
 from saml_ros.core.model_evidence import DataEvidence
 from saml_ros.core.model_io import LoadedModel, UnhealthyModel, jsonable, model_payload
 from saml_ros.core.training.config import TrainConfig
+from saml_ros.core.training.schedule import schedules_for
 from saml_ros.core.training.trainer import PrimalDualTrainer
 
 log = logging.getLogger("saml_ros.trainer")
@@ -51,6 +52,8 @@ def checkpoint_payload(
         "constraint_names": trainer.spec.constraint_names,
         "updates": trainer.steps,
         "epochs": trainer.epochs_done,
+        # the learning-rate schedules' horizon T in updates (fit() sets it from the data; 0: none)
+        "schedule_horizon": trainer.schedules[0].horizon if trainer.schedules is not None else 0,
         "metrics": jsonable(metrics or {}),
         "skeletons": skeletons,
         "health": jsonable(health),
@@ -83,7 +86,8 @@ def saved_config(meta: dict[str, Any]) -> TrainConfig:
 
 def resume_trainer(loaded: LoadedModel, config: TrainConfig | None = None) -> PrimalDualTrainer:
     """A trainer of ``loaded``'s model and spec that resumes exactly where the checkpoint left off (weights, lambda,
-    optimizer states, update and epoch counts); ``config`` defaults to the checkpoint's training config.
+    optimizer states, update and epoch counts, and, without ``config``, the learning-rate schedules' horizon);
+    ``config`` defaults to the checkpoint's training config.
 
     With a ``config`` of another dual method or dual optimizer than the checkpoint's, lambda is kept and the dual
     optimizer starts afresh (its state belongs to the other method; logged)."""
@@ -105,4 +109,7 @@ def resume_trainer(loaded: LoadedModel, config: TrainConfig | None = None) -> Pr
         "steps": int(loaded.meta.get("updates", 0)),
         "epochs_done": float(loaded.meta.get("epochs", 0.0)),
     })
+    horizon = int(loaded.meta.get("schedule_horizon", 0))
+    if horizon > 0 and config is None:  # the same schedules as the run that wrote it
+        tr.schedules = schedules_for(cfg, horizon)
     return tr
