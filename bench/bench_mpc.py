@@ -12,7 +12,11 @@ states, on one core (``torch.set_num_threads(1)``). Printed, all measured in thi
    the quadrotor's avoidable violations only: ``pz_1`` is fixed by the current state), and the ratios
    fast / slsqp of the rate and of the mean cost.
 2. **closed loop** (the 100 Hz target): the fast controller alone, warm-started, on the true system: mean, p95
-   and max solve time, rate, and the closed-loop stage cost.
+   and max solve time, rate, and the closed-loop stage cost. The quadrotor also flies the same starts with the
+   demo's guarded MPC (``quadrotor+guard``: a 5-member ensemble of the same training, ensemble disagreement 0.1,
+   bounded residual, live monitor with roll back; each step's time includes the guard's checks and the monitor's
+   scoring) and with the same ensemble unguarded (``quadrotor+ensemble``), start by start in turn; the ratio
+   guarded / plain rate is printed.
 
 Wall-clock times depend on what else runs on the machine; the ratios are measured back to back.
 """
@@ -197,6 +201,7 @@ class Case:
     ref_every: tuple[int, int] = (1, 1)
     precise: bool = False
     target_hz: float | None = None
+    guard: bool = False  #: also fly the starts with the demo's guarded MPC (quadrotor)
     #: one-shot MPC: (n, seed) -> (state, goal) problems
     problems: Callable[[int, int], list[tuple[np.ndarray, Any]]] | None = None
 
@@ -204,7 +209,8 @@ class Case:
 #: the bench's cases (a data table: the training budgets and start states of the measurements in docs/mpc.md)
 CASES: dict[str, Case] = {
     "friction": Case(15000, 20, starts=friction_starts, steps=30),
-    "quadrotor": Case(10000, 150, starts=quadrotor_starts, steps=50, ref_every=(3, 5), precise=True, target_hz=100.0),
+    "quadrotor": Case(10000, 150, starts=quadrotor_starts, steps=50, ref_every=(3, 5), precise=True, target_hz=100.0,
+                      guard=True),
     "paddle_ball": Case(10000, 10, problems=paddle_problems),
 }
 SYSTEMS = tuple(CASES)
@@ -248,9 +254,62 @@ def report(system: System, model: DynamicsModel, case: Case, results: dict[str, 
         print(f"{name} target >= {case.target_hz:.0f} Hz (mean solve <= {1e3 / case.target_hz:.0f} ms wall): "
               f"{'yes' if loop_hz >= case.target_hz else 'NO'} ({loop_hz:.0f} Hz wall, "
               f"{1 / loops[name]['cpu']:.0f} Hz by CPU time)")
+        g, e = loops.get(f"{name}+guard"), loops.get(f"{name}+ensemble")
+        if g is not None and e is not None:
+            g_hz, e_hz = 1 / g["mean"], 1 / e["mean"]
+            print(f"{name} with the guard on: {g_hz:.0f} Hz wall ({1 / g['cpu']:.0f} Hz by CPU time); the same "
+                  f"ensemble unguarded {e_hz:.0f} Hz ({1 / e['cpu']:.0f} Hz by CPU time): guarded / plain rate "
+                  f"{g_hz / e_hz:.2f} wall, {e['cpu'] / g['cpu']:.2f} CPU; target >= {case.target_hz:.0f} Hz: "
+                  f"{'yes' if g_hz >= case.target_hz else 'NO'}; guard: {g['counters'].get('fallbacks', 0)} "
+                  f"fallbacks, {g['counters'].get('rollbacks', 0)} roll backs in {g['n']} steps")
         out = closed_loop(system, make_controller(system, model), starts[0], case.steps)
         print(f"{name} landing from {starts[0][:3].tolist()}: final position "
               f"{np.round(out.xs[-1, :3], 3).tolist()}")
+
+
+def guarded_loops(system: System, case: Case, starts: list[np.ndarray], seed: int) -> dict[str, dict[str, Any]]:
+    """The starts flown (true system) with a 5-member ensemble trained like the quick model (its residual bound
+    recorded as the online learner does), by the plain fast MPC (``+ensemble``) and by the demo's guarded MPC
+    (``+guard``), alternating start by start so both see the same machine load; per step the wall / CPU time of
+    the solve (guarded: + the monitor's scoring), and the guard's counters."""
+    from saml_ros.core.mpc.guard import RESIDUAL_BOUND_KEY, GuardConfig, make_guarded_controller
+
+    rng = np.random.default_rng(seed)
+    x, u, y = system.make_dataset(case.samples, rng)
+    model = DynamicsModel(system, n_models=5, seed=seed)
+    model.fit_normalization(x, u, y)
+    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    cfg = TrainConfig.paper(epochs=case.epochs, batch_size=128, primal_lr=3e-3, seed=seed)
+    PrimalDualTrainer(model, spec, cfg).fit(Transitions(model, spec, x, u, y))
+    bound = np.maximum(1.5 * np.abs(y - system.base_step_np(x, u)).max(0), 1e-3)
+    guarded = make_guarded_controller(system, "fast", GuardConfig(max_disagreement=0.1, bound_residual=True,
+                                                                  rollback=True))
+    guarded.set_model(model, 1, {"learner": {RESIDUAL_BOUND_KEY: bound.tolist()}})
+    plain = make_controller(system, model, "fast")
+    times: dict[str, tuple[list[float], list[float]]] = {"+ensemble": ([], []), "+guard": ([], [])}
+    stage = dict.fromkeys(times, 0.0)
+    for x0 in starts:
+        for label, ctrl in (("+ensemble", plain), ("+guard", guarded)):
+            ctrl.reset()
+            xk = np.array(x0, dtype=np.float64)
+            wall, cpu = times[label]
+            for _ in range(case.steps):
+                t0, c0 = time.perf_counter(), time.process_time()
+                res = ctrl.solve(xk)
+                xn = system.true_step_np(xk, res.u)
+                if ctrl is guarded:
+                    guarded.observe(xk, res.u, xn)
+                wall.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
+                stage[label] += float(ctrl.task.stage_costs(xn[None])[0])  # type: ignore[attr-defined]
+                xk = xn
+    out = {}
+    for label, (wall, cpu) in times.items():
+        t = np.array(wall)
+        out[f"{system.name}{label}"] = {"mean": t.mean(), "p95": np.percentile(t, 95), "max": t.max(), "n": t.size,
+                                        "cpu": float(np.mean(cpu)), "stage": stage[label] / len(starts)}
+    out[f"{system.name}+guard"]["counters"] = dict(guarded.counters)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -293,6 +352,8 @@ def main(argv: list[str] | None = None) -> int:
         problems, loops[name] = shooting_problems(system, model, starts, case.steps)
         results[name] = compare_shooting(system, model, problems, ref_every=case.ref_every[args.quick],
                                          precise=case.precise)
+        if case.guard:
+            loops |= guarded_loops(system, case, starts, args.model_seed)
     if case.problems is not None:
         n_problems = args.paddle_problems or (40 if args.quick else 200)
         results[name] = compare_one_shot(system, model, case.problems(n_problems, args.paddle_seed))

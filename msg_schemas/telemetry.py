@@ -168,6 +168,21 @@ MPC_STATUS_EXTRA: tuple[tuple[str, str, str], ...] = (
     ("checkpoints_refused", "count", "checkpoints refused, so far (reasons on /diagnostics)"),
     ("checkpoints_gated", "count", "valid checkpoints held back by gate.*, so far"),
     ("solves", "count", "control steps, so far"),
+    # only when a guard.* remedy is on
+    ("guard_fallbacks", "count", "steps planned with f_hat because the ensemble disagreed by more than "
+                                 "guard.max_disagreement on the learned plan, so far"),
+    ("guard_base_solves", "count", "steps planned with f_hat (fallbacks, after a roll back, before any model)"),
+    ("guard_rollbacks", "count", "roll backs by the live monitor (to the previous model, else f_hat), so far"),
+    ("guard_clipped_solves", "count", "learned plans flown on which guard.bound_residual clipped phi, so far"),
+    ("guard_disagreement", "state units", "ensemble disagreement sigma on the last learned plan checked (NaN: "
+                                          "none yet or a single model)"),
+    ("monitor_error_model", "squared state units", "live one-step squared error of the model in use, mean over "
+                                                   "the monitor's window (NaN: empty, e.g. on f_hat)"),
+    ("monitor_error_base", "squared state units", "the same for the base model f_hat on the same transitions"),
+    ("live_error_model", "squared state units", "one-step squared error of the model in use on the last live "
+                                                "transition (previous state, command sent, this state)"),
+    ("live_error_base", "squared state units", "the same for f_hat"),
+    ("model_source", "1", "1 = this step was planned with the learned model, 0 = with f_hat"),
 )
 MPC_STATUS_NAMES: tuple[str, ...] = tuple(n for n, _, _ in MPC_STATUS_FIELDS)
 
@@ -325,6 +340,8 @@ DIAGNOSTICS_REASON_DOCS: tuple[tuple[str, str, str], ...] = (
     ("feasibility/<k>", "1", "learner: met, not converged, likely infeasible or pending, for constraint k (text, "
      "not plottable; docs/training.md); it sets the level: met OK, not converged WARN, likely infeasible ERROR"),
     ("reachable/<k>", "loss", "learner: the left-hand side g_k + eps_k the model reaches now"),
+    ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback) to the previous model, else "
+     "f_hat; guard_rolled_back_versions lists the versions never used again"),
 )
 
 
@@ -346,7 +363,10 @@ TELEMETRY_TOPICS: tuple[TopicSpec, ...] = (
 GLOBAL_TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, TELEMETRY_QOS, "every node", "rqt_runtime_monitor, Foxglove",
               "One DiagnosticStatus per node (name = node's full name) with its counters, e.g. "
-              "rejected/<reason>, as key/value strings.",
+              "rejected/<reason>, as key/value strings. The MPC's guard adds guard_fallbacks, guard_base_solves, "
+              "guard_rollbacks, guard_bounded_solves, guard_clipped_solves, guard_rolled_back_versions "
+              "(comma-separated), "
+              "monitor_error_model and monitor_error_base (level WARN after a roll back).",
               fields=tuple(FieldDoc(n, u, "status[i].values[j].value (string)", f"/<node name>/{n}", d)
                            for n, u, d in DIAGNOSTICS_REASON_DOCS)),
     TopicSpec(CLOCK_TOPIC, CLOCK, CLOCK_QOS, "the simulator running in lockstep", "every node (use_sim_time)",

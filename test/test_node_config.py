@@ -30,7 +30,7 @@ def names(params: list[Param]) -> list[str]:
 def test_mpc_parameter_table_has_goal_and_task_parameters_from_the_registry() -> None:
     table = MPCConfig.params("quadrotor")
     assert names(table)[: len(PARAMS)] == names(list(PARAMS))
-    assert names(table)[len(PARAMS):] == ["goal.position", "task.min_height", "task.qw_tol"]
+    assert names(table)[len(PARAMS):] == ["goal.position", "task.min_height", "task.qw_tol", "task.tilt_max"]
     assert table[0].default == "quadrotor" and all(p.description for p in table)
     assert names(MPCConfig.params("paddle_ball"))[len(PARAMS):] == [
         "goal.target_xy", "goal.roll_min", "goal.roll_max", "goal.pitch_min", "goal.pitch_max", "goal.v_rel_min",
@@ -42,7 +42,7 @@ def test_mpc_config_defaults_and_controller_options() -> None:
     assert c.solver == "fast" and c.horizon == 10 and c.mode == "lockstep" and c.rate_hz == 20.0
     assert math.isinf(c.gate_max_constraint) and c.gate_min_updates == 0
     np.testing.assert_array_equal(c.goal, [1.0, 2.0, 0.5])
-    assert c.controller_options() == {"min_height": 0.2, "qw_tol": 0.05, "horizon": 10}
+    assert c.controller_options() == {"min_height": 0.2, "qw_tol": 0.05, "tilt_max": math.inf, "horizon": 10}
     assert c.deadline_s(0.1) == 0.1
     assert MPCConfig.from_params({"system": "quadrotor", "mode": "realtime", "rate_hz": 50.0}).deadline_s(0.1) == 0.02
     assert MPCConfig.from_params({"system": "friction", "deadline_ms": 5.0}).deadline_s(0.1) == 0.005

@@ -29,7 +29,10 @@ if TYPE_CHECKING:
 
 #: ROS node name of each child (bringup waits for them to appear before it stops them); the simulator's is its
 #: registry entry's ``sim_node``
-NODE_NAMES = {"learner": "learner", "mpc": "mpc", "record": "record"}
+NODE_NAMES = {"learner": "learner", "mpc": "mpc", "record": "record", "learner_ua": "learner_ua"}
+#: ROS arguments of the optional Uniformly Accurate learner: its own node name and telemetry / checkpoint topics
+UA_REMAPS = ("-r", "__node:=learner_ua", "-r", "learner/model_error:=learner_ua/model_error",
+             "-r", "learner/checkpoint:=learner_ua/checkpoint")
 
 
 @dataclass
@@ -92,6 +95,10 @@ class _Loop:
         if self.opts.learner:
             started.append(procs.start("learner", node_argv("learner", ns, self.files["learner"]), env,
                                        logs / "learner.log"))
+            if "learner_ua" in self.files:
+                (run_dir / "checkpoints_ua").mkdir(exist_ok=True)
+                started.append(procs.start("learner_ua", node_argv("learner", ns, self.files["learner_ua"])
+                                           + list(UA_REMAPS), env, logs / "learner_ua.log"))
         started.append(procs.start("mpc", node_argv("mpc", ns, self.files["mpc"]), env, logs / "mpc.log"))
         record = self.opts.record or self.config.get("record")
         if record:
@@ -112,7 +119,8 @@ class _Loop:
         """Configure, then activate the managed nodes (learner, MPC) through their lifecycle services."""
         from saml_ros.nodes.lifecycle_client import drive
 
-        managed = [f"{self.namespace}/{NODE_NAMES[c.name]}" for c in started if c.name in ("learner", "mpc")]
+        managed = [f"{self.namespace}/{NODE_NAMES[c.name]}" for c in started
+                   if c.name in ("learner", "learner_ua", "mpc")]
         t0 = time.monotonic()
         errors = drive(monitor.node, lambda t: monitor.executor.spin_once(timeout_sec=t), managed,
                        ["configure", "activate"], self.opts.startup_timeout,
@@ -126,7 +134,8 @@ class _Loop:
 
     def start_simulator(self, monitor: Monitor, started: list[Child], t_wall0: float) -> None:
         """Wait until the consumers listen (no state is answered by nobody), then start the simulator."""
-        want = 1 + (1 if self.opts.learner else 0) + 1  # mpc, learner, this monitor
+        n_learners = (1 + ("learner_ua" in self.files)) if self.opts.learner else 0
+        want = 1 + n_learners + 1  # mpc, learners, this monitor
         deadline = time.monotonic() + self.opts.startup_timeout
         while "reason" not in self.stop and monitor.subscribers("state") < want:
             monitor.executor.spin_once(timeout_sec=0.1)
@@ -140,7 +149,7 @@ class _Loop:
         # (lockstep) until every consumer is matched: no transition is lost to a late subscriber
         recording = any(c.name == "record" for c in started)
         waits = ["-p", f"min_state_subscribers:={want + (1 if recording else 0)}",
-                 "-p", f"min_applied_cmd_subscribers:={(1 if self.opts.learner else 0) + (1 if recording else 0)}"]
+                 "-p", f"min_applied_cmd_subscribers:={n_learners + (1 if recording else 0)}"]
         sim = self.procs.start("sim", node_argv(self.entry.sim_node, self.namespace, self.files["sim"]) + waits,
                                self.env, self.logs / "sim.log")
         self.say(f"[bringup] consumers ready after {time.monotonic() - t_wall0:.1f} s; started {self.entry.sim_node} "

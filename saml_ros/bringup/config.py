@@ -4,6 +4,11 @@ parameter file of each node.
 A configuration is a mapping with ``system``, ``sim_time`` (s of simulated time, 0 = until stopped), optionally
 ``record`` (a bag directory), and the node sections ``sim``, ``learner``, ``mpc`` of ROS parameters. A system's
 defaults are its registry entry's ``bringup``; ``config/bringup_quadrotor.yaml`` holds the quadrotor's.
+
+The optional section ``learner_ua`` starts a second learner on the same stream that trains the Uniformly Accurate
+baseline (the ``learner`` parameters, then these, with ``uniform: true``): node ``learner_ua``, topics
+``learner_ua/model_error`` and ``learner_ua/checkpoint``, checkpoints in ``<run dir>/checkpoints_ua``. The MPC
+follows only the first (Sufficiently Accurate) learner.
 """
 
 from __future__ import annotations
@@ -17,8 +22,10 @@ import yaml
 
 from saml_ros.core.systems import get_entry
 
-#: the node sections of a configuration
-NODE_SECTIONS = ("sim", "learner", "mpc")
+#: the node sections of a configuration (``learner_ua`` optional)
+NODE_SECTIONS = ("sim", "learner", "mpc", "learner_ua")
+#: the run directory's checkpoint folders of the learner and of the optional UA learner
+CHECKPOINTS, CHECKPOINTS_UA = "checkpoints", "checkpoints_ua"
 #: the system a configuration without one runs
 DEFAULT_SYSTEM = "quadrotor"
 
@@ -87,9 +94,14 @@ def node_params(config: Mapping[str, Any], run_dir: Path) -> dict[str, dict[str,
     system = config["system"]
     lockstep = config["sim"].get("mode", "lockstep") == "lockstep"
     sim = dict(config["sim"])
-    learner = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["learner"], "autostart": False}
-    mpc = {"system": system, "run_dir": str(run_dir / "checkpoints"), **config["mpc"], "autostart": False}
+    learner = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["learner"], "autostart": False}
+    mpc = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["mpc"], "autostart": False}
+    out = {"sim": sim, "learner": learner, "mpc": mpc}
+    if config.get("learner_ua") is not None:
+        out["learner_ua"] = {**learner, "run_dir": str(run_dir / CHECKPOINTS_UA), **config["learner_ua"],
+                             "uniform": True}
     if lockstep:
-        learner.setdefault("use_sim_time", True)
-        mpc.setdefault("use_sim_time", True)
-    return {"sim": sim, "learner": learner, "mpc": mpc}
+        for name in ("learner", "mpc", "learner_ua"):
+            if name in out:
+                out[name].setdefault("use_sim_time", True)
+    return out

@@ -71,9 +71,10 @@ class Monitor:
 
     def _on_status(self, msg: Any) -> None:
         try:
-            values, _ = mpc_status_from_msg(msg)
+            values, stamp = mpc_status_from_msg(msg)
         except Exception:  # noqa: BLE001
             return
+        self.result.add_status(stamp, values)
         version = int(values["model_version"])
         if not self.result.model_versions or self.result.model_versions[-1] != version:
             self.result.model_versions.append(version)
@@ -106,7 +107,9 @@ class Monitor:
         e_in = err.get(f"error_in/{k}", math.nan) if k else math.nan
         last_ep = r.episodes[-1] if r.episodes else None
         solve = np.median(r.solve_ms[-50:]) if r.solve_ms else math.nan
+        guard = (f", fallbacks {r.guard['guard_fallbacks']:.0f}, roll backs {r.guard['guard_rollbacks']:.0f}"
+                 if "guard_rollbacks" in r.guard else "")
         return (f"[bringup] t_sim {r.sim_time:7.1f} s | episodes {len(r.episodes):3d}"
                 f"{f' (last error {last_ep.error:.3f} m)' if last_ep else ''} | learner updates "
                 f"{err.get('updates', 0):.0f}, error_in {e_in:.4g} | MPC model v{self.model_version}, "
-                f"solve {solve:.1f} ms, refused {r.checkpoints_refused}")
+                f"solve {solve:.1f} ms, refused {r.checkpoints_refused}{guard}")

@@ -125,6 +125,19 @@ class BringupResult:
     deadline_misses: int = 0
     states: int = 0
     ok: bool = False  #: every child exited cleanly and the run was not cut short by a failure
+    #: the newest ``guard_*`` counters of ``mpc/status`` (empty when the MPC runs unguarded)
+    guard: dict[str, float] = field(default_factory=dict)
+    #: one row per ``mpc/status``: (t s of simulated time, model version, live one-step squared errors of the model
+    #: in use and of f_hat on the last transition, 1 if planned with the learned model); the live error picture's data
+    status_log: list[tuple[float, int, float, float, float]] = field(default_factory=list)
+
+    def add_status(self, stamp_ns: int, values: Mapping[str, float]) -> None:
+        """Record one ``mpc/status`` message (see :attr:`status_log`, :attr:`guard`)."""
+        self.guard.update({k: v for k, v in values.items() if k.startswith("guard_")})
+        self.status_log.append((stamp_ns * 1e-9, int(values.get("model_version", 0)),
+                                float(values.get("live_error_model", math.nan)),
+                                float(values.get("live_error_base", math.nan)),
+                                float(values.get("model_source", math.nan))))
 
     def error_before_after(self, k: int = 3) -> tuple[float, float]:
         """In-region error of the base model and of the newest model (NaN if unknown).
@@ -178,6 +191,11 @@ def format_summary(res: BringupResult, n_last: int = 5) -> str:
     lines.append(f"  MPC models used: {len(versions)} ({versions[0] if versions else '-'} -> "
                  f"{versions[-1] if versions else '-'}); checkpoints announced {res.checkpoints_announced}, "
                  f"refused {res.checkpoints_refused}")
+    if res.guard:
+        g = res.guard
+        lines.append(f"  MPC guard: {g.get('guard_fallbacks', 0):.0f} steps on f_hat because the ensemble disagreed, "
+                     f"{g.get('guard_base_solves', 0):.0f} steps on f_hat in all, "
+                     f"{g.get('guard_rollbacks', 0):.0f} roll back(s) by the live monitor")
     if res.step_ms:
         s = np.asarray(res.step_ms)
         lines.append(f"  MPC control step: median {np.median(s):.2f} ms, p99 {np.percentile(s, 99):.2f} ms, "

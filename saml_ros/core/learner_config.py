@@ -69,6 +69,9 @@ _HEAD: tuple[Param, ...] = (
     Param("spec_file", "", "problem spec YAML (docs/spec.md); empty = the paper's spec"),
     Param("model.kind", "residual", "'residual' (f_hat + network) or 'full' (network only)"),
     Param("model.hidden", [], "hidden layer sizes; empty = the paper's sizes for the system", item_type=int),
+    Param("model.ensemble", 1, "ensemble members trained side by side (own initialisation and minibatches, one "
+                               "buffer); > 1 lets the MPC's guard use their disagreement (guard.max_disagreement)"),
+    Param("uniform", False, "train the Uniformly Accurate baseline: the spec's objective without its constraints"),
 )
 _TAIL: tuple[Param, ...] = (
     Param("buffer.capacity", 100_000, "replay buffer capacity (transitions)"),
@@ -146,6 +149,8 @@ class LearnerConfig:
     training_niceness: int
     train_threads: int
     system_file: str = ""
+    model_ensemble: int = 1
+    uniform: bool = False
     plausible_bounds: str = ""
     health_explode_ratio: float = 1e4
     health_max_weight: float = 1e6
@@ -177,6 +182,7 @@ class LearnerConfig:
             check(p[name] >= 0, name, ">= 0", p[name])
         check(p["checkpoint_keep"] >= 1, "checkpoint_keep", ">= 1", p["checkpoint_keep"])
         check(p["pairing.window"] >= 2, "pairing.window", ">= 2", p["pairing.window"])
+        check(1 <= p["model.ensemble"] <= 64, "model.ensemble", "in 1..64", p["model.ensemble"])
         check(0 <= p["training_niceness"] <= 19, "training_niceness", "in 0..19", p["training_niceness"])
         nss = [normalize_namespace(n) for n in p["namespaces"]] or [normalize_namespace(node_namespace)]
         check(len(set(nss)) == len(nss), "namespaces", "a list without repetitions", nss)
@@ -190,7 +196,8 @@ class LearnerConfig:
             resume=p["resume"], telemetry_rate=p["telemetry_rate"], telemetry_window=p["telemetry_window"],
             diagnostics_rate=p["diagnostics_rate"], dt=p["dt"], pairing_window=p["pairing.window"],
             pairing_tolerance=p["pairing.tolerance"], training_niceness=p["training_niceness"],
-            train_threads=p["train_threads"], system_file=p["system_file"], plausible_bounds=p["plausible_bounds"],
+            train_threads=p["train_threads"], system_file=p["system_file"], model_ensemble=p["model.ensemble"],
+            uniform=p["uniform"], plausible_bounds=p["plausible_bounds"],
             health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
             health_error_after=p["health.error_after"],
         )
@@ -241,14 +248,16 @@ class LearnerConfig:
             raise ValueError(f"parameter 'system' / 'dt': {exc}") from None
 
     def load_spec(self, system: System) -> ProblemSpec:
-        """``spec_file``'s problem, or the system's paper spec when it is empty; ``ValueError`` naming
-        ``spec_file``."""
+        """``spec_file``'s problem, or the system's paper spec when it is empty, without its constraints when
+        ``uniform``; ``ValueError`` naming ``spec_file``."""
         from saml_ros.core.spec import ProblemSpec, SpecError
 
         try:
             if self.spec_file:
-                return ProblemSpec.from_yaml(self.spec_file, system)
-            return ProblemSpec.for_system(system.paper_spec(), system)
+                spec = ProblemSpec.from_yaml(self.spec_file, system)
+            else:
+                spec = ProblemSpec.for_system(system.paper_spec(), system)
+            return spec.uniform() if self.uniform else spec
         except FileNotFoundError:
             raise ValueError(f"parameter 'spec_file': no such file {self.spec_file!r}") from None
         except (SpecError, OSError) as exc:
@@ -322,8 +331,8 @@ class LearnerConfig:
                 kind=self.model_kind, hidden=tuple(self.model_hidden) or None, train=self.train_config(),
                 buffer_capacity=self.buffer_capacity, buffer_policy=self.buffer_policy,
                 min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
-                checkpoint_keep=self.checkpoint_keep, plausible_bounds=self.plausible_bounds,
-                health=self.health_config(),
+                checkpoint_keep=self.checkpoint_keep, n_models=self.model_ensemble,
+                plausible_bounds=self.plausible_bounds, health=self.health_config(),
             )
             own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
             pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(

@@ -177,14 +177,18 @@ class MPCNode(ManagedNode):
         values["invalid_transitions"] = self.invalid_transitions
         refused = values["checkpoints_refused"]
         version = self.service.model_version
+        rollbacks = self.service.counters["rollbacks"]
         safe = values["safe_commands"]
-        level = WARN if refused or safe or self.service.counters["solver_errors"] else OK
+        level = WARN if refused or safe or rollbacks or self.service.counters["solver_errors"] else OK
         message = (f"model version {version}; {values['solves']} solves" if "solves" in values
                    else f"model version {version}; waiting for states")
         if safe:
             message += f"; {safe} safe command(s) sent"
         if refused:
             message += f"; {refused} checkpoint(s) refused, last: {values['last_refusal']}"
+        if rollbacks:
+            message += (f"; {rollbacks} roll back(s) by the live monitor (versions "
+                        f"{values.get('guard_rolled_back_versions', '')} not used again)")
         if state != "active":
             message = f"{state}: {message}"
         entry = DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)

@@ -14,7 +14,9 @@ from typing import Any
 
 import yaml
 
+from saml_ros.core.model_monitor import MonitorConfig
 from saml_ros.core.mpc.factory import SOLVERS
+from saml_ros.core.mpc.guard import GuardConfig
 from saml_ros.core.params import Param, check, read_params
 from saml_ros.core.plausibility import parse_overrides
 from saml_ros.core.systems.registry import get_entry
@@ -41,6 +43,17 @@ PARAMS: tuple[Param, ...] = (
                                            "(E[l | region] - eps, learner's live window) exceed this; inf = take "
                                            "every valid checkpoint", finite=False),
     Param("gate.min_updates", 0, "hold back checkpoints with fewer learner updates than this"),
+    Param("guard.max_disagreement", math.inf, "plan a step with the base model f_hat when the checkpoint's "
+                                              "ensemble disagrees by more than this (state units, RMS over "
+                                              "members) on the plan; inf = off", finite=False),
+    Param("guard.bound_residual", False, "clip the learned residual to the bound the learner recorded in the "
+                                         "checkpoint (1.5 x the largest residual in its buffer, per field)"),
+    Param("guard.rollback", False, "live monitor: roll back to the previous model, else f_hat, when the active "
+                                   "model's live one-step error exceeds f_hat's (see guard.window ... guard.margin)"),
+    Param("guard.window", 5, "live transitions the monitor averages the one-step squared errors over"),
+    Param("guard.min_samples", 3, "transitions in the window before the monitor may roll back"),
+    Param("guard.ratio", 1.0, "roll back when mean error(model) > ratio * mean error(f_hat) + margin"),
+    Param("guard.margin", 0.01, "see guard.ratio (squared state units, summed over the target fields)"),
     Param("plausible_bounds", "", "overrides of the system's plausible ranges as a YAML mapping, e.g. "
                                   "'{x.pz: [-1.0, 2000.0]}' (fields x.<state>, u.<control>, next.<target>; .inf = "
                                   "open); a state outside is answered with the safe command (rejected/bounds)"),
@@ -94,6 +107,7 @@ class MPCConfig:
     gate_min_updates: int
     goal: Any
     task: dict[str, Any]
+    guard: GuardConfig = GuardConfig()
     plausible_bounds: str = ""
     accept_residual_factor: float = 4.0
     safe_on_infeasible: bool = False
@@ -134,6 +148,18 @@ class MPCConfig:
         check(p["deadline_ms"] >= 0, "deadline_ms", ">= 0", p["deadline_ms"])
         check(p["member"] >= 0, "member", ">= 0", p["member"])
         check(p["horizon"] >= 1 or not entry.mpc_horizon, "horizon", ">= 1", p["horizon"])
+        check(p["guard.max_disagreement"] > 0, "guard.max_disagreement", "> 0 (inf = off)",
+              p["guard.max_disagreement"])
+        try:
+            guard = GuardConfig(
+                max_disagreement=p["guard.max_disagreement"], bound_residual=p["guard.bound_residual"],
+                rollback=p["guard.rollback"],
+                monitor=MonitorConfig(window=p["guard.window"], min_samples=p["guard.min_samples"],
+                                      ratio=p["guard.ratio"], margin=p["guard.margin"]))
+        except ValueError as exc:
+            raise ValueError(f"parameters 'guard.*': {exc}") from None
+        check(not guard.enabled or entry.mpc_task is not None, "guard.*", "off for a one-shot MPC (paddle_ball)",
+              "on")
         check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
         try:
             parse_overrides(p["plausible_bounds"])
@@ -146,7 +172,7 @@ class MPCConfig:
             diagnostics_rate=p["diagnostics_rate"], gate_max_constraint=p["gate.max_constraint"],
             gate_min_updates=p["gate.min_updates"],
             goal=entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params}),
-            task={t.name: p[f"task.{t.name}"] for t in entry.task_params},
+            task={t.name: p[f"task.{t.name}"] for t in entry.task_params}, guard=guard,
             plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
             safe_on_infeasible=p["safe_on_infeasible"],
         )

@@ -22,7 +22,11 @@ The node decodes messages and publishes; everything in between is here and unit-
   ``safe_commands/<reason>`` (:data:`~msg_schemas.telemetry.SAFE_COMMAND_REASONS`) and flagged ``safe = 1`` on
   ``mpc/status``; a finite plan that violates a constraint is otherwise sent and counted ``solves_failed``;
 * counters (``solves``, ``solves_failed``, ``solver_errors``, ``safe_commands``, ``deadline_misses``, ``swaps``,
-  ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`.
+  ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`;
+* with any ``guard.*`` remedy on, the controller is a :class:`~saml_ros.core.mpc.guard.GuardedController`: each
+  control step first shows it the live transition that just happened (previous state, the command sent, this
+  state; not across a stamp jump) and a roll back changes the model in use (``rollbacks``, logged); its counters
+  go on ``mpc/status`` and ``/diagnostics`` (``guard_*``, ``monitor_error_*``).
 """
 
 from __future__ import annotations
@@ -41,8 +45,9 @@ from msg_schemas.telemetry import SAFE_COMMAND_REASONS
 from saml_ros.core.model_acceptance import AcceptanceConfig, Probe, acceptance_hook
 from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, checkpoint_gate
 from saml_ros.core.mpc.config import MPCConfig
-from saml_ros.core.mpc.contract import MPCResult
+from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import make_controller
+from saml_ros.core.mpc.guard import GuardedController, make_guarded_controller
 from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.systems.registry import get_entry
 
@@ -62,8 +67,16 @@ class MPCService:
         self.send = send
         self.logger = logger
         self.system = get_entry(config.system).make_system()
-        self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
-                                          **config.controller_options())
+        self.guarded: GuardedController | None = None
+        if config.guard.enabled:
+            self.guarded = make_guarded_controller(self.system, config.solver, config.guard, member=config.member,
+                                                   **config.controller_options())
+            self.controller: Controller = self.guarded
+        else:
+            self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
+                                              **config.controller_options())
+        self._last_sent: tuple[np.ndarray, np.ndarray] | None = None  # (state, command) of the last step
+        self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
         self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
         self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
         self.u_safe = np.clip(self.system.safe_control(), self.u_low, self.u_high)
@@ -134,13 +147,17 @@ class MPCService:
     def control_step(self, x: np.ndarray, stamp: int, t_start: float) -> Answer:
         """Swap in a ready model, solve for state ``x`` (stamp ns), send the clipped command, return the status
         values (``t_start``: ``time.perf_counter()`` when the step's clock started)."""
+        jumped = self.last_stamp is None
         if self.last_stamp is not None:
             dt_ns = stamp - self.last_stamp
             # a reset, a new episode or a restarted simulator: the warm start is meaningless
             if dt_ns < 0 or (self.system.dt > 0 and dt_ns > 1.5e9 * self.system.dt):
                 self.controller.reset()
                 self.counters["warm_start_resets"] += 1
+                jumped = True
         self.last_stamp = stamp
+        if self.guarded is not None and self._last_sent is not None and not jumped:
+            self._observe(*self._last_sent, x)
         swap_ms = 0.0
         ready = self.watcher.take()
         if ready is not None:
@@ -150,6 +167,8 @@ class MPCService:
         u, values = self._answer(x, stamp)
         u = np.clip(u, self.u_low, self.u_high)
         self.send(u, stamp)
+        # the live monitor scores transitions from solved commands only (a safe command says nothing of the model)
+        self._last_sent = None if values["safe"] else (np.array(x, dtype=np.float64), u)
         if not values["safe"]:
             with self._recent_lock:
                 self._recent.append((np.array(x, dtype=np.float64), u))
@@ -171,7 +190,30 @@ class MPCService:
             "solves": float(self.counters["solves"]),
             "safe_commands": float(self.counters["safe_commands"]),
         }
+        if self.guarded is not None:
+            values |= self.guarded.values()
+            values["model_source"] = 1.0 if self.guarded.last_source == "learned" else 0.0
         return stamp, values
+
+    def _observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> None:
+        """Show the guard the live transition ``(x, u) -> x_next``; on a roll back switch the model in use."""
+        assert self.guarded is not None
+        old = self.model_version
+        try:
+            rolled = self.guarded.observe(x, u, x_next)
+        except Exception as exc:  # noqa: BLE001 - the monitor must never stop the control loop
+            self.counters["monitor_errors"] += 1
+            self.warn_throttled("monitor", f"live monitor raised {type(exc).__name__}: {exc}")
+            return
+        if rolled:
+            self.counters["rollbacks"] += 1
+            self.model_version = self.guarded.tag
+            self.model_path = self._paths.get(self.model_version, "")
+            m = self.guarded.monitor
+            self.logger.warning(
+                f"rolled back from model version {old} to {self.model_version or 'the base model f_hat'}: its live "
+                f"one-step error {m.last_model:.4g} (window mean above f_hat's {m.mean_base:.4g} + margin); "
+                f"version {old} is not used again")
 
     def recent_probe(self) -> Probe | None:
         """The recent states answered with a solved (not safe) command, and those commands: the acceptance
@@ -226,7 +268,11 @@ class MPCService:
 
     def swap(self, ready: ReadyModel) -> None:
         """Plan with the model ``ready`` from now on."""
-        self.controller.set_model(ready.loaded.model)
+        if self.guarded is not None:
+            self.guarded.set_model(ready.loaded.model, ready.version, ready.loaded.meta)
+            self._paths[ready.version] = str(ready.path)
+        else:
+            self.controller.set_model(ready.loaded.model)
         old, self.model_version, self.model_path = self.model_version, ready.version, str(ready.path)
         self.counters["swaps"] += 1
         self.logger.info(f"model version {old} -> {ready.version} ({ready.path.name})")
@@ -258,6 +304,16 @@ class MPCService:
         values["checkpoints_gated"] = stats["gated"]
         values["last_gated"] = stats["last_gated"]
         values["max_step_ms_during_swap"] = round(self.step_ms_max_swap, 3)
+        if self.guarded is not None:
+            g = self.guarded
+            values["guard_fallbacks"] = g.counters["fallbacks"]
+            values["guard_base_solves"] = g.counters["solves_base"]
+            values["guard_rollbacks"] = g.counters["rollbacks"]
+            values["guard_bounded_solves"] = g.counters["bounded"]
+            values["guard_clipped_solves"] = g.counters["clipped"]
+            values["guard_rolled_back_versions"] = ",".join(str(v) for v in sorted(g.banned))
+            values["monitor_error_model"] = g.monitor.mean_model
+            values["monitor_error_base"] = g.monitor.mean_base
         return values
 
 

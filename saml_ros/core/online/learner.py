@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from saml_ros.core.buffer import Policy, ReplayBuffer
 from saml_ros.core.checkpoint import CheckpointStore
@@ -48,6 +49,12 @@ log = logging.getLogger("saml_ros.online")
 
 #: history rows the trainer keeps in memory (older rows are dropped; online training never ends)
 HISTORY_ROWS = 1000
+#: the checkpoint's recorded residual bound: this times the largest residual in the buffer, per field ...
+RESIDUAL_MARGIN = 1.5
+#: ... and at least this (state units): fields whose residual is exactly 0 (e.g. positions) keep a little room
+RESIDUAL_FLOOR = 1e-3
+#: the ``meta["learner"]`` key it is recorded under (read by :func:`saml_ros.core.mpc.guard.residual_bound`)
+RESIDUAL_BOUND_KEY = "residual_bound"
 
 
 @dataclass
@@ -64,6 +71,7 @@ class OnlineConfig:
             ``min_transitions``); training also pauses while the buffer holds fewer (e.g. right after a resume).
         telemetry_window: most recent transitions the live model error is computed on.
         checkpoint_keep: checkpoint files kept in the run directory (older ones are pruned).
+        n_models: ensemble members (each its own initialisation and minibatches from the one buffer).
         plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.plausibility`) for
             already-paired batches (each source's pairing config carries its own).
         health: the training-health limits (:mod:`saml_ros.core.training.health`).
@@ -77,6 +85,7 @@ class OnlineConfig:
     min_transitions: int = 1000
     telemetry_window: int = 1000
     checkpoint_keep: int = 5
+    n_models: int = 1
     plausible_bounds: str = ""
     health: HealthConfig = field(default_factory=HealthConfig)
 
@@ -95,6 +104,8 @@ class OnlineConfig:
             )
         if self.buffer_policy not in ("fifo", "reservoir"):
             raise ValueError(f"buffer policy must be 'fifo' or 'reservoir', got {self.buffer_policy!r}")
+        if self.n_models < 1:
+            raise ValueError(f"n_models must be >= 1, got {self.n_models}")
         if self.telemetry_window < 1 or self.checkpoint_keep < 1:
             raise ValueError("telemetry_window and checkpoint_keep must be >= 1")
         schedules_for(self.train, 0)  # online training has no epochs: a schedule needs train.schedule_steps
@@ -133,7 +144,7 @@ class OnlineLearner:
         n_x, n_u, n_y = system.state.size, system.control.size, system.target.size
         policy: Policy = "reservoir" if cfg.buffer_policy == "reservoir" else "fifo"
         self.buffer = ReplayBuffer(cfg.buffer_capacity, n_x, n_u, n_y, policy, seed=cfg.train.seed)
-        self.model = DynamicsModel(system, cfg.hidden, cfg.kind, n_models=1, seed=cfg.train.seed)
+        self.model = DynamicsModel(system, cfg.hidden, cfg.kind, n_models=cfg.n_models, seed=cfg.train.seed)
         self.model.to(cfg.train.torch_dtype)
         self.trainer: PrimalDualTrainer | None = None
         self._updates: OnlineUpdates | None = None
@@ -217,10 +228,30 @@ class OnlineLearner:
             if self.trainer is None:
                 self._start_training()
             assert self.trainer is not None
-            if self._updates is None or self._updates.trainer is not self.trainer:
-                self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS)
-            self._updates.run(n_steps, self.buffer, self._rng, self._averages)
+            if self.config.n_models > 1:  # an ensemble: every member its own minibatch, (E, B, .), plain steps
+                self._update_members(n_steps)
+            else:
+                if self._updates is None or self._updates.trainer is not self.trainer:
+                    self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS)
+                self._updates.run(n_steps, self.buffer, self._rng, self._averages)
             return n_steps
+
+    def _update_members(self, n_steps: int) -> None:
+        """``n_steps`` plain updates of an ensemble, each member on its own minibatch ``(E, B, .)`` (the fast
+        online path draws one minibatch for all members)."""
+        tr = self.trainer
+        assert tr is not None
+        bsz, dt = self.config.train.batch_size, self.config.train.torch_dtype
+        e = self.config.n_models
+        for _ in range(n_steps):
+            xb, ub, yb = (a.reshape(e, bsz, -1) for a in self.buffer.sample(bsz * e, self._rng))
+            healthy = tr.health.healthy_steps
+            vals = tr.step(torch.from_numpy(xb).to(dt), torch.from_numpy(ub).to(dt), torch.from_numpy(yb).to(dt))
+            if tr.health.healthy_steps > healthy:  # a skipped step's values are not the model's
+                self._averages.add(vals)
+            if tr.steps % (self.config.train.log_every or 100) == 0:
+                tr.log_point()
+                tr.history.keep_last(HISTORY_ROWS)
 
     def _start_training(self) -> None:
         m = self.config.min_transitions
@@ -305,6 +336,9 @@ class OnlineLearner:
                 "buffer_size": len(self.buffer),
                 **dict(extra or {}),
             }
+            bound = self.residual_bound()
+            if bound is not None:
+                info[RESIDUAL_BOUND_KEY] = bound.tolist()
             metrics = {k: v for k, v in self._metrics.items() if isinstance(v, float)}
             try:
                 path, version = save_checkpoint(self.store, self.trainer, metrics, {"learner": info}, evidence)
@@ -319,6 +353,16 @@ class OnlineLearner:
             self._saved_at = self._clock()
             self.checkpoints_written += 1
             return path, version
+
+    def residual_bound(self, margin: float = RESIDUAL_MARGIN, floor: float = RESIDUAL_FLOOR) -> np.ndarray | None:
+        """Per target field, ``margin`` times the largest ``|y - f_hat(x, u)|`` in the buffer (at least ``floor``):
+        how large the residual ever was in the data, which the MPC's guard may clip phi to (``guard.bound_residual``,
+        :mod:`saml_ros.core.mpc.guard`). ``(n_y,)``; None for a full model or an empty buffer."""
+        if self.config.kind != "residual" or len(self.buffer) == 0:
+            return None
+        rows = self.buffer.arrays()
+        resid = np.abs(rows.y - self.system.base_step_np(rows.x, rows.u))
+        return np.maximum(margin * resid.max(0), floor)
 
     def _resume(self, store: CheckpointStore) -> None:
         """Adopt the newest valid checkpoint of ``store`` (see :func:`~saml_ros.core.online.resume.resume_newest`)."""

@@ -7,6 +7,7 @@ called (so building the entries imports neither torch, MuJoCo nor the MPC). :mod
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -182,6 +183,8 @@ QUADROTOR = SystemEntry(
     task_params=(
         Param("min_height", 0.2, "lowest allowed height of the centre of mass over the horizon (m)"),
         Param("qw_tol", 0.05, "attitude at the end of the horizon: |qw_T - 1| <= qw_tol"),
+        Param("tilt_max", math.inf, "attitude at every step: |qx_t|, |qy_t| <= tilt_max (quaternion components; "
+                                    "0.2 = about 23 degrees); inf = no such rows (the paper's problem)", finite=False),
     ),
     mpc_task=_quadrotor_task,
     base_model_np=_quadrotor_base_np,
@@ -197,8 +200,10 @@ QUADROTOR = SystemEntry(
         "sim_time": 300.0,
         "sim": {"mode": "lockstep", "episode_steps": 50, "seed": 0, "lockstep_timeout": 5.0},
         "learner": {"min_transitions": 200, "checkpoint_period": 5.0, "updates_per_second": 0.0,
-                    "training_niceness": 0, "train.batch_size": 128},
-        "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5, "gate.max_constraint": 0.002},
+                    "training_niceness": 0, "train.batch_size": 128, "model.ensemble": 5},
+        "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5, "gate.max_constraint": 0.002,
+                "goal.position": [0.0, 0.0, 0.2], "task.tilt_max": 0.2,
+                "guard.max_disagreement": 0.1, "guard.bound_residual": True, "guard.rollback": True},
     },
     experiment="quadrotor",
     spec_file="specs/quadrotor.yaml",

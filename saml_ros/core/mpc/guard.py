@@ -1,0 +1,346 @@
+"""Safe use of learned models in the shooting MPC (ROS-free): :class:`GuardedController`.
+
+A learned residual phi is only trustworthy where it has data. Three remedies, each optional
+(:class:`GuardConfig`), all counted:
+
+* **ensemble disagreement** (an out-of-distribution signal): the members of the checkpoint's ensemble were trained
+  from different initialisations and minibatches on the same data; where they disagree the data did not pin
+  phi down. The disagreement of a predicted state is ``sigma = sqrt(mean_k ||phi_k - mean_k phi_k||^2)``
+  (state units; :class:`EnsembleNP`). When the plan the learned model would fly from here (its previous plan
+  shifted, then the new plan) reaches a state with ``sigma > max_disagreement``, this step is planned with f_hat
+  alone (``fallbacks``), warm-started from the learned plan;
+* **a bounded residual**: ``phi`` clipped per target field to ``+-bound``, the largest residual
+  ``|y - f_hat(x, u)|`` in the learner's buffer times a margin (the learner records it in the checkpoint's meta,
+  ``learner.residual_bound``): outside its data a network can extrapolate to any size, the physics cannot
+  (:class:`BoundedDynamics`);
+* **a live monitor with roll back** (:class:`~saml_ros.core.model_monitor.LiveErrorMonitor`): every live
+  transition :meth:`GuardedController.observe` is given scores the active model and f_hat; when the active model
+  is worse, the controller rolls back to the previous model (if it had one that was not rolled back itself),
+  otherwise to f_hat, and that model version is never used again (``rollbacks``).
+
+The unguarded MPC is the same controller with every remedy off.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from saml_ros.core.model_monitor import LiveErrorMonitor, MonitorConfig
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.contract import MPCResult
+from saml_ros.core.mpc.dynamics_np import Jac3, NumpyDynamics
+from saml_ros.core.mpc.mlp_np import NumpyMLP
+from saml_ros.core.mpc.shooting.controller import ShootingMPC
+from saml_ros.core.systems.base import System
+
+#: the ``meta["learner"]`` key of a checkpoint's per-field residual bound (list of n_y floats)
+RESIDUAL_BOUND_KEY = "residual_bound"
+
+
+@dataclass(frozen=True)
+class GuardConfig:
+    """Which remedies :class:`GuardedController` applies (see the module docstring).
+
+    Attributes:
+        max_disagreement: ensemble disagreement sigma (state units) above which a step is planned with f_hat;
+            ``inf`` = off (also off for a single model).
+        bound_residual: clip phi to the checkpoint's recorded residual bound (off when it records none).
+        rollback: run the live monitor and roll back (``monitor`` says when).
+        monitor: the monitor's window and threshold.
+    """
+
+    max_disagreement: float = math.inf
+    bound_residual: bool = False
+    rollback: bool = False
+    monitor: MonitorConfig = MonitorConfig()
+
+    def __post_init__(self) -> None:
+        if not self.max_disagreement > 0:
+            raise ValueError(f"guard: max_disagreement must be > 0 (inf = off), got {self.max_disagreement}")
+
+    @property
+    def enabled(self) -> bool:
+        return math.isfinite(self.max_disagreement) or self.bound_residual or self.rollback
+
+
+class EnsembleNP:
+    """phi of every member of an ensemble in one batched pass: ``(B, n_x), (B, n_u) -> (E, B, n_y)``."""
+
+    def __init__(self, model: DynamicsModel) -> None:
+        members = [NumpyMLP(model, i) for i in range(model.n_models)]
+        self.n_models = len(members)
+        self.w_x = np.stack([m.w_x for m in members])  # (E, n_x, d)
+        self.w_u = np.stack([m.w_u for m in members])
+        self.weights = [np.stack([m.weights[i] for m in members]) for i in range(1, len(members[0].weights))]
+        self.biases = [np.stack([m.biases[i] for m in members])[:, None, :] for i in range(len(members[0].biases))]
+        self.slopes = np.array([m.slopes for m in members]).reshape(self.n_models, -1)  # (E, L-1)
+
+    def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        h = x @ self.w_x + u @ self.w_u + self.biases[0]
+        for i, w in enumerate(self.weights):
+            a = self.slopes[:, i][:, None, None]
+            h = np.where(h >= 0.0, h, a * h) @ w + self.biases[i + 1]
+        return h
+
+    def disagreement(self, x: np.ndarray, u: np.ndarray, bound: np.ndarray | None = None) -> np.ndarray:
+        """sigma ``(B,)``: RMS over members of ``||phi_k - mean_k phi_k||`` (phi clipped to ``+-bound`` if given)."""
+        phi = self.forward(x, u)
+        if bound is not None:
+            phi = np.clip(phi, -bound, bound)
+        d = phi - phi.mean(0, keepdims=True)
+        return np.sqrt(np.einsum("ebj,ebj->b", d, d) / self.n_models)
+
+
+class BoundedDynamics:
+    """``f_hat + clip(phi, -bound, bound)`` (per target field) of a residual :class:`NumpyDynamics`; the
+    Jacobian of a clipped output is f_hat's. Same interface as :class:`NumpyDynamics`."""
+
+    def __init__(self, dyn: NumpyDynamics, bound: np.ndarray) -> None:
+        if dyn.kind != "residual" or dyn.base is None or dyn.mlp is None:
+            raise ValueError(f"a residual bound needs a residual model, got kind {dyn.kind!r}")
+        self.system = dyn.system
+        self.kind = "residual"
+        self.base, self.mlp = dyn.base, dyn.mlp
+        self.bound = np.asarray(bound, dtype=np.float64)
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.base.step(x, u) + np.clip(self.mlp.forward(x, u), -self.bound, self.bound)
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.base.step1(x, u) + np.clip(self.mlp.forward(x, u), -self.bound, self.bound)
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        y, a, b = self.base.step_jac(x, u)
+        phi, ax, au = self.mlp.forward_jac(x, u)
+        keep = (np.abs(phi) < self.bound)[:, :, None]
+        return y + np.clip(phi, -self.bound, self.bound), a + ax * keep, b + au * keep
+
+    def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Jacobians of :meth:`step_jac` alone (which fields are clipped needs phi, so it is computed)."""
+        _, a, b = self.step_jac(x, u)
+        return a, b
+
+    def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """Predicted states ``(K, T+1, n)`` of control sequences ``us`` ``(K, T, m)`` from ``x0`` ``(n,)``."""
+        k, horizon = us.shape[0], us.shape[1]
+        xs = np.empty((k, horizon + 1, x0.shape[0]))
+        xs[:, 0] = x0
+        for t in range(horizon):
+            xs[:, t + 1] = self.step(xs[:, t], us[:, t])
+        return xs
+
+
+def residual_bound(meta: dict[str, Any], n_y: int) -> np.ndarray | None:
+    """The per-field residual bound ``(n_y,)`` a checkpoint's meta records (``meta["learner"]["residual_bound"]``),
+    or None when it records none (or a malformed one)."""
+    learner = meta.get("learner") if isinstance(meta, dict) else None
+    raw = learner.get(RESIDUAL_BOUND_KEY) if isinstance(learner, dict) else None
+    if raw is None:
+        return None
+    b = np.asarray(raw, dtype=np.float64).reshape(-1)
+    if b.shape != (n_y,) or not np.all(np.isfinite(b)) or np.any(b <= 0):
+        return None
+    return b
+
+
+@dataclass
+class _Active:
+    """A model the guarded controller plans with: the model, its tag (checkpoint version), bound, ensemble."""
+
+    model: DynamicsModel | None
+    tag: int
+    bound: np.ndarray | None
+    ensemble: EnsembleNP | None
+
+
+class GuardedController:
+    """The MPC with the guards of :class:`GuardConfig` around a learned-model controller (see the module docstring).
+
+    Args:
+        learned: the controller that plans with the learned model (its model is set by :meth:`set_model`).
+        base: a controller of the same problem planning with f_hat alone (fallback and roll-back target).
+        config: the remedies.
+
+    ``counters``: ``solves``, ``solves_base`` (planned with f_hat: fallbacks, after a roll back or without a
+    model), ``fallbacks`` (disagreement above the threshold), ``rollbacks``, ``bounded`` (solves whose model has a
+    residual bound), ``clipped`` (learned plans flown on which the bound clipped phi). :attr:`tag` is the tag of the model in use (0 = f_hat); :attr:`last_disagreement` the largest
+    sigma of the last learned plan checked.
+    """
+
+    def __init__(self, learned: ShootingMPC, base: ShootingMPC, config: GuardConfig) -> None:
+        if learned.horizon != base.horizon or learned.system is not base.system:
+            raise ValueError("guarded MPC: the learned and the base controller must solve the same problem")
+        self.learned, self.base = learned, base
+        self.config = config
+        self.system: System = learned.system
+        self.horizon = learned.horizon
+        self.monitor = LiveErrorMonitor(config.monitor)
+        self.counters: Counter[str] = Counter()
+        self._active = _Active(None, 0, None, None)
+        self._previous: _Active | None = None
+        self._banned: set[int] = set()
+        self.last_disagreement = math.nan
+        self.last_source = "base"
+        #: squared one-step errors of the model in use and of f_hat on the last live transition observed
+        self.live_error_model = math.nan
+        self.live_error_base = math.nan
+
+    # ------------------------------------------------------------------------------------------ models
+    @property
+    def task(self) -> Any:
+        return self.learned.task
+
+    @property
+    def tag(self) -> int:
+        """Tag (checkpoint version) of the model in use; 0 = f_hat."""
+        return self._active.tag
+
+    @property
+    def model(self) -> DynamicsModel | None:
+        return self._active.model
+
+    @property
+    def banned(self) -> frozenset[int]:
+        """Tags rolled back (never used again)."""
+        return frozenset(self._banned)
+
+    def set_model(self, model: DynamicsModel | None, tag: int = 0, meta: dict[str, Any] | None = None) -> None:
+        """Plan with ``model`` (tag ``tag``, e.g. its checkpoint version; ``meta`` its checkpoint meta, where the
+        residual bound is read) from the next solve on; the model in use becomes the roll-back target."""
+        if self._active.model is not None and self._active.tag not in self._banned:
+            self._previous = self._active
+        self._activate(self._make_active(model, tag, meta or {}))
+
+    def _make_active(self, model: DynamicsModel | None, tag: int, meta: dict[str, Any]) -> _Active:
+        if model is None:
+            return _Active(None, 0, None, None)
+        bound = residual_bound(meta, self.system.target.size) if self.config.bound_residual else None
+        if model.kind != "residual":
+            bound = None
+        ens = EnsembleNP(model) if model.n_models > 1 and math.isfinite(self.config.max_disagreement) else None
+        return _Active(model, tag, bound, ens)
+
+    def _activate(self, act: _Active) -> None:
+        self._active = act
+        self.learned.set_model(act.model)
+        if act.bound is not None:
+            self.learned.dyn = BoundedDynamics(self.learned.dyn, act.bound)  # type: ignore[assignment]
+        self.monitor.reset()
+
+    def reset(self) -> None:
+        """Drop both warm starts (the model in use and the roll-back state are kept)."""
+        self.learned.reset()
+        self.base.reset()
+
+    def reset_models(self) -> None:
+        """Back to f_hat with no history and no banned tags (a fresh evaluation run)."""
+        self._previous = None
+        self._banned.clear()
+        self._activate(_Active(None, 0, None, None))
+
+    # ------------------------------------------------------------------------------------------ solve
+    def _too_uncertain(self, plan_x: np.ndarray, plan_u: np.ndarray) -> bool:
+        ens = self._active.ensemble
+        if ens is None:
+            return False
+        if not np.all(np.isfinite(plan_x)):
+            return True
+        sigma = float(ens.disagreement(plan_x[:-1], plan_u, self._active.bound).max())
+        self.last_disagreement = sigma
+        return sigma > self.config.max_disagreement
+
+    def solve(self, x0: np.ndarray, goal: Any | None = None) -> MPCResult:
+        self.counters["solves"] += 1
+        if self._active.bound is not None:
+            self.counters["bounded"] += 1
+        use_learned = self._active.model is not None
+        if use_learned and self._active.ensemble is not None:
+            prev = self.learned.warm_start_plan()
+            if prev is not None and self._too_uncertain(prev[1], prev[0]):
+                use_learned = False
+                self.counters["fallbacks"] += 1
+        if use_learned:
+            res = self.learned.solve(x0, goal)
+            if self._active.ensemble is not None and self._too_uncertain(res.plan_x, res.plan_u):
+                self.counters["fallbacks"] += 1
+                if np.all(np.isfinite(res.plan_x)):
+                    self.base.set_warm_start(res.plan_u, res.plan_x)
+                use_learned = False
+            elif np.all(np.isfinite(res.plan_x)):
+                self.base.set_warm_start(res.plan_u, res.plan_x)
+        if not use_learned:
+            self.counters["solves_base"] += 1
+            res = self.base.solve(x0, goal)
+            if np.all(np.isfinite(res.plan_x)):
+                self.learned.set_warm_start(res.plan_u, res.plan_x)
+        elif self._active.bound is not None and self._clipped(res):
+            self.counters["clipped"] += 1
+        self.last_source = "learned" if use_learned else "base"
+        return res
+
+    def _clipped(self, res: MPCResult) -> bool:
+        """Whether the bound clipped phi anywhere on the learned plan ``res`` flies."""
+        dyn = self.learned.dyn
+        bound = self._active.bound
+        if not isinstance(dyn, BoundedDynamics) or bound is None or not np.all(np.isfinite(res.plan_x)):
+            return False
+        return bool(np.any(np.abs(dyn.mlp.forward(res.plan_x[:-1], res.plan_u)) >= bound))
+
+    # ------------------------------------------------------------------------------------------ monitor
+    def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> bool:
+        """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n,)``): scores the model in use and f_hat on it
+        (:attr:`live_error_model`, :attr:`live_error_base`); with ``rollback`` on, True when it made the controller
+        roll back (to the previous model or f_hat; the rolled-back tag is banned)."""
+        y = np.asarray(x_next, dtype=np.float64)
+        x = np.asarray(x, dtype=np.float64)
+        u = np.asarray(u, dtype=np.float64)
+        if not np.all(np.isfinite(y)) or not np.all(np.isfinite(x)):
+            return False
+        e_base = y - self.base.dyn.step1(x, u)
+        self.live_error_base = float(e_base @ e_base)
+        if self._active.model is None:
+            self.live_error_model = self.live_error_base
+            return False
+        e_model = y - self.learned.dyn.step1(x, u)
+        self.live_error_model = float(e_model @ e_model)
+        if not self.config.rollback or not self.monitor.add(self.live_error_model, self.live_error_base):
+            return False
+        self.counters["rollbacks"] += 1
+        self._banned.add(self._active.tag)
+        prev, self._previous = self._previous, None
+        self._activate(prev if prev is not None and prev.tag not in self._banned else _Active(None, 0, None, None))
+        return True
+
+    def values(self) -> dict[str, float]:
+        """The guard's counters and the monitor's window means, for ``mpc/status`` (floats)."""
+        c = self.counters
+        return {
+            "guard_fallbacks": float(c["fallbacks"]),
+            "guard_base_solves": float(c["solves_base"]),
+            "guard_rollbacks": float(c["rollbacks"]),
+            "guard_clipped_solves": float(c["clipped"]),
+            "guard_disagreement": float(self.last_disagreement),
+            "monitor_error_model": float(self.monitor.mean_model),
+            "monitor_error_base": float(self.monitor.mean_base),
+            "live_error_model": self.live_error_model,
+            "live_error_base": self.live_error_base,
+        }
+
+
+def make_guarded_controller(system: System, solver: str = "fast", config: GuardConfig | None = None,
+                            **options: Any) -> GuardedController:
+    """A :class:`GuardedController` of two :func:`~saml_ros.core.mpc.factory.make_controller` controllers of the
+    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat."""
+    from saml_ros.core.mpc.factory import make_controller
+
+    learned = make_controller(system, None, solver, **options)
+    base_opts = {k: v for k, v in options.items() if k != "member"}
+    base = make_controller(system, None, solver, **base_opts)
+    if not isinstance(learned, ShootingMPC) or not isinstance(base, ShootingMPC):
+        raise ValueError(f"guarded MPC: only the shooting MPC (friction, quadrotor) can be guarded, not {system.name}")
+    return GuardedController(learned, base, config or GuardConfig())
