@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from saml_ros.core.params import Param
+from saml_ros.core.systems import default_params
 from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS, SimConfig
 
 #: parameters of every simulator node (a binding may override a default by listing the same name)
@@ -70,6 +71,42 @@ class SimBinding:
         own = {p.name: p for p in self.params}
         out = [own.pop(p.name, p) for p in COMMON_PARAMS]
         return out + list(own.values())
+
+    def param_table(self) -> list[Param]:
+        """:meth:`all_params` and the system's constructor parameters as ``system.<name>`` (their defaults)."""
+        defaults = default_params(self.system)
+        return self.all_params() + [Param(f"system.{name}", as_param_default(defaults[name]), text)
+                                    for name, text in self.system_params]
+
+    def usage(self) -> str:
+        """The node's ``--help`` text: how to run it and every parameter with its default."""
+        lines = [f"usage: {self.node_name} [--ros-args [-p NAME:=VALUE] [--params-file config/{self.node_name}"
+                 f".yaml] [-r __ns:=/{self.system}]]", "", "parameters:"]
+        lines += [f"  {p.name} (default {p.default!r}): {p.description}" for p in self.param_table()]
+        return "\n".join(lines)
+
+
+def as_param_default(value: Any) -> Any:
+    """A system constructor default as a ROS parameter value (tuples -> lists, nested lists flattened)."""
+    if isinstance(value, tuple | list):
+        flat: list[float] = []
+        for v in value:
+            flat.extend(as_param_default(v) if isinstance(v, tuple | list) else [float(v)])
+        return flat
+    return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+def check_params(p: dict[str, Any]) -> None:
+    """Raise ``ValueError`` naming the first parameter of ``p`` out of range."""
+    from saml_ros.nodes.runtime import EXECUTORS
+
+    if p["executor"] not in EXECUTORS:
+        raise ValueError(f"parameter 'executor' must be one of {list(EXECUTORS)}, got {p['executor']!r}")
+    for name in ("rate_hz", "diagnostics_period", "lockstep_timeout"):
+        if not p[name] > 0:
+            raise ValueError(f"parameter {name!r} must be > 0, got {p[name]}")
+    if p["start_delay"] < 0:
+        raise ValueError(f"parameter 'start_delay' must be >= 0, got {p['start_delay']}")
 
 
 def config_from_params(p: dict[str, Any], t0_ns: int = LOCKSTEP_T0_NS) -> SimConfig:

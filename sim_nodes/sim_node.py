@@ -19,51 +19,39 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 import rclpy
 import rclpy.parameter
 import torch
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
-from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.task import Future
-from rosgraph_msgs.msg import Clock as ClockMsg
 from std_srvs.srv import Trigger
 
-from msg_schemas import CLOCK_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError
+from msg_schemas import DATA_QOS, RCLPY, SchemaError
 from msg_schemas.telemetry import (
-    CLOCK_TOPIC,
-    DIAGNOSTICS_TOPIC,
     OK,
     WARN,
     DiagnosticEntry,
-    clock_to_msg,
     diagnostics_to_msg,
 )
-from saml_ros.core.params import Param, coerce_param
-from saml_ros.core.systems import default_params, get_entry
+from saml_ros.core.params import coerce_param
+from saml_ros.core.systems import get_entry
 from saml_ros.core.worlds.sim_core import (
-    APPLIED,
-    CLOCK,
-    FLIGHT,
     LOCKSTEP_T0_NS,
-    STATE,
-    TARGET,
     Output,
 )
 from saml_ros.nodes.runtime import (
-    EXECUTORS,
     catch_stop_signals,
     exit_process,
     init_rclpy,
     shutdown,
     spin_until_stopped,
 )
-from sim_nodes.binding import SimBinding, config_from_params
+from sim_nodes.binding import SimBinding, check_params, config_from_params
+from sim_nodes.emitters import make_emitters
 
 #: exit code for invalid parameters (as argparse's usage errors)
 USAGE_ERROR = 2
@@ -71,16 +59,6 @@ USAGE_ERROR = 2
 FINISH_GRACE_S = 0.5
 #: counters whose increase turns the diagnostics level to WARN
 _WARN_PREFIXES = ("rejected/", "lockstep_misses", "cmd_timeouts", "diverged", "failures")
-
-
-def _as_param_default(value: Any) -> Any:
-    """A system constructor default as a ROS parameter value (tuples -> lists, nested lists flattened)."""
-    if isinstance(value, tuple | list):
-        flat: list[float] = []
-        for v in value:
-            flat.extend(_as_param_default(v) if isinstance(v, tuple | list) else [float(v)])
-        return flat
-    return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
 
 
 class SimNode(Node):
@@ -107,39 +85,12 @@ class SimNode(Node):
         self._last_diag: dict[str, Any] = {}
         self._last_diag_time = time.monotonic()
 
-        data_qos = DATA_QOS.to_rclpy()
-        # Publishers skip rclpy's default QoS-event handlers: each one is an extra entity in every executor
-        # wait, and reliable + volatile offers are compatible with every volatile subscriber. (The cmd
-        # subscription keeps them: a best-effort cmd publisher would be incompatible, and says so.)
-        lean = PublisherEventCallbacks(use_default_callbacks=False)
-        state_cls = RCLPY.cls(self.schema.state.msg_type)
-        control_cls = RCLPY.cls(self.schema.control.msg_type)
-        self._emit: dict[str, Callable[[np.ndarray | None, int], None]] = {}
-        state_pub = self.create_publisher(state_cls, self.schema.state_topic, data_qos, event_callbacks=lean)
-        self.state_pub = state_pub
-        applied_pub = self.create_publisher(control_cls, self.schema.applied_cmd_topic, data_qos,
-                                            event_callbacks=lean)
-        self.applied_pub = applied_pub
-        self._emit[STATE] = lambda x, t: state_pub.publish(self.schema.state_to_msg(x, t))
-        self._emit[APPLIED] = lambda u, t: applied_pub.publish(self.schema.control_to_msg(u, t))
-        if self.schema.target_topic != self.schema.state_topic:
-            target_pub = self.create_publisher(RCLPY.cls(self.schema.target.msg_type), self.schema.target_topic,
-                                               data_qos, event_callbacks=lean)
-            self._emit[TARGET] = lambda y, t: target_pub.publish(self.schema.target_to_msg(y, t))
-        flight = next((t for t in self.schema.topics if t.name == "flight"), None)
-        if flight is not None and flight.codec is not None:
-            codec, label = flight.codec, f"{self.schema.system}/flight"
-            flight_pub = self.create_publisher(RCLPY.cls(flight.msg_type), flight.name, flight.qos.to_rclpy(),
-                                               event_callbacks=lean)
-            self._emit[FLIGHT] = lambda x, t: flight_pub.publish(codec.to_msg(x, t, topic=label))
-        if p["publish_clock"]:
-            clock_pub = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS.to_rclpy(), event_callbacks=lean)
-            self._emit[CLOCK] = lambda _, t: clock_pub.publish(clock_to_msg(t))
-        else:
-            self._emit[CLOCK] = lambda _, t: None
-        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy(),
-                                              event_callbacks=lean)
-        self.cmd_sub = self.create_subscription(control_cls, self.schema.cmd_topic, self._on_cmd, data_qos)
+        emitters = make_emitters(self, self.schema, bool(p["publish_clock"]))
+        self._emit = emitters.emit
+        self.state_pub, self.applied_pub, self.diag_pub = emitters.state_pub, emitters.applied_pub, emitters.diag_pub
+        # the cmd subscription keeps rclpy's QoS-event handlers (a best-effort cmd publisher is reported)
+        self.cmd_sub = self.create_subscription(RCLPY.cls(self.schema.control.msg_type), self.schema.cmd_topic,
+                                                self._on_cmd, DATA_QOS.to_rclpy())
         self.create_service(Trigger, "~/reset", self._on_reset)
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -157,24 +108,13 @@ class SimNode(Node):
 
     # ---------------------------------------------------------------------------------------- parameters
     def _declare_parameters(self) -> dict[str, Any]:
-        b = self.binding
-        params = b.all_params()
-        defaults = default_params(b.system)
-        for name, text in b.system_params:
-            params.append(Param(f"system.{name}", _as_param_default(defaults[name]), text))
         descriptor_cls = RCLPY.cls("rcl_interfaces/msg/ParameterDescriptor")
         out: dict[str, Any] = {}
-        for spec in params:
+        for spec in self.binding.param_table():
             descriptor = descriptor_cls(description=spec.description, dynamic_typing=True)
             value = self.declare_parameter(spec.name, spec.default, descriptor).value
             out[spec.name] = coerce_param(spec.name, value, spec.default, spec.item_type)
-        if out["executor"] not in EXECUTORS:
-            raise ValueError(f"parameter 'executor' must be one of {list(EXECUTORS)}, got {out['executor']!r}")
-        for name in ("rate_hz", "diagnostics_period", "lockstep_timeout"):
-            if not out[name] > 0:
-                raise ValueError(f"parameter {name!r} must be > 0, got {out[name]}")
-        if out["start_delay"] < 0:
-            raise ValueError(f"parameter 'start_delay' must be >= 0, got {out['start_delay']}")
+        check_params(out)
         return out
 
     # ---------------------------------------------------------------------------------------- publishing
@@ -261,17 +201,6 @@ class SimNode(Node):
         self.diag_pub.publish(diagnostics_to_msg([entry], self.core.sim_now_ns()))
 
 
-def _usage(binding: SimBinding) -> str:
-    lines = [f"usage: {binding.node_name} [--ros-args [-p NAME:=VALUE] [--params-file config/{binding.node_name}"
-             f".yaml] [-r __ns:=/{binding.system}]]", "", "parameters:"]
-    defaults = default_params(binding.system)
-    for p in binding.all_params():
-        lines.append(f"  {p.name} (default {p.default!r}): {p.description}")
-    for name, text in binding.system_params:
-        lines.append(f"  system.{name} (default {_as_param_default(defaults[name])!r}): {text}")
-    return "\n".join(lines)
-
-
 def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
     """Run the simulator node of ``binding`` until SIGINT / SIGTERM or ``max_sim_time`` (exit code 0).
 
@@ -284,7 +213,7 @@ def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
     args = [binding.node_name, *(sys.argv[1:] if argv is None else argv)]
     ros_start = args.index("--ros-args") if "--ros-args" in args else len(args)
     if any(a in ("-h", "--help") for a in args[1:ros_start]):
-        print(_usage(binding))
+        print(binding.usage())
         return 0
     torch.set_num_threads(1)  # one small state per step: extra threads only contend for the 2 cores
     init_rclpy(args)
