@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.buffer import Policy, ReplayBuffer
 from saml_ros.core.checkpoint import CheckpointStore
@@ -228,30 +227,10 @@ class OnlineLearner:
             if self.trainer is None:
                 self._start_training()
             assert self.trainer is not None
-            if self.config.n_models > 1:  # an ensemble: every member its own minibatch, (E, B, .), plain steps
-                self._update_members(n_steps)
-            else:
-                if self._updates is None or self._updates.trainer is not self.trainer:
-                    self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS)
-                self._updates.run(n_steps, self.buffer, self._rng, self._averages)
+            if self._updates is None or self._updates.trainer is not self.trainer:
+                self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS, self.config.n_models)
+            self._updates.run(n_steps, self.buffer, self._rng, self._averages)
             return n_steps
-
-    def _update_members(self, n_steps: int) -> None:
-        """``n_steps`` plain updates of an ensemble, each member on its own minibatch ``(E, B, .)`` (the fast
-        online path draws one minibatch for all members)."""
-        tr = self.trainer
-        assert tr is not None
-        bsz, dt = self.config.train.batch_size, self.config.train.torch_dtype
-        e = self.config.n_models
-        for _ in range(n_steps):
-            xb, ub, yb = (a.reshape(e, bsz, -1) for a in self.buffer.sample(bsz * e, self._rng))
-            healthy = tr.health.healthy_steps
-            vals = tr.step(torch.from_numpy(xb).to(dt), torch.from_numpy(ub).to(dt), torch.from_numpy(yb).to(dt))
-            if tr.health.healthy_steps > healthy:  # a skipped step's values are not the model's
-                self._averages.add(vals)
-            if tr.steps % (self.config.train.log_every or 100) == 0:
-                tr.log_point()
-                tr.history.keep_last(HISTORY_ROWS)
 
     def _start_training(self) -> None:
         m = self.config.min_transitions

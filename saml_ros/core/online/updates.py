@@ -30,17 +30,21 @@ class OnlineUpdates:
     Args:
         trainer: the trainer (its config's ``batch_size``, ``log_every`` (0: 100) and ``engine``).
         history_rows: history rows kept (older ones are dropped: online training never ends).
+        members: ensemble members that each get their own minibatch, ``(E, B, .)`` (plain steps: the fast path
+            draws one minibatch for all members); 1: one minibatch ``(B, .)``.
     """
 
-    def __init__(self, trainer: PrimalDualTrainer, history_rows: int) -> None:
+    def __init__(self, trainer: PrimalDualTrainer, history_rows: int, members: int = 1) -> None:
         self.trainer = trainer
         cfg = trainer.config
         self.batch_size = cfg.batch_size
         self.log_every = cfg.log_every or 100
         self.history_rows = history_rows
+        self.members = members
         self.stream: StreamRun | None = None
         #: why the plain step runs (None: the fast path runs)
-        self.plain_reason: str | None = "engine 'plain' configured" if cfg.engine == "plain" else None
+        self.plain_reason: str | None = ("engine 'plain' configured" if cfg.engine == "plain" else
+                                         "a minibatch per ensemble member" if members > 1 else None)
         self._checked = self.plain_reason is not None
 
     @property
@@ -51,8 +55,9 @@ class OnlineUpdates:
     def run(self, n: int, buffer: ReplayBuffer, rng: np.random.Generator, averages: StepAverages) -> None:
         """``n`` updates on minibatches drawn from ``buffer`` with ``rng``; each healthy step's values (member 0)
         go into ``averages``."""
-        tr, bsz = self.trainer, self.batch_size
-        x, u, y = (a.reshape(n, bsz, a.shape[-1]) for a in buffer.sample(n * bsz, rng))
+        tr, bsz, e = self.trainer, self.batch_size, self.members
+        shape = (n, bsz) if e == 1 else (n, e, bsz)
+        x, u, y = (a.reshape(*shape, a.shape[-1]) for a in buffer.sample(n * e * bsz, rng))
         if not self._checked:
             self._checked = True
             like = Transitions(tr.model, tr.spec, x[0, :2], u[0, :2], y[0, :2])
