@@ -1,7 +1,7 @@
 """``./dev experiment NAME [--quick] [--out DIR] [--seeds S ...] [--set FIELD=VALUE ...]`` (``ros2 run saml_ros
 experiment``).
 
-Runs one of the paper's experiments (or ``all`` of them, one after the other) and writes ``results.md``,
+Runs one of the paper's experiments (or ``all`` of them, ``--jobs`` at once, each in its own process) and writes ``results.md``,
 ``results.json`` and PNG figures into ``--out`` (default ``results/NAME``; for ``all``, ``--out`` is the parent
 directory). ``claims`` collects the claims of the experiments already run under ``--out`` (default ``results``)
 into ``--out/claims.md`` without running anything. ``--quick`` runs a reduced version (about a minute each); ``--set`` overrides a field of the
@@ -15,10 +15,12 @@ import argparse
 import logging
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from saml_ros.experiments import EXPERIMENT_NAMES
+from saml_ros.experiments.run_all import default_jobs
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -43,6 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray", help="run the independent units (convergence: the grid cells) on Ray: local, auto or "
                                  "a cluster address (same numbers as in-process; other experiments run in-process)")
     p.add_argument("--ray-cpus", type=int, help="CPUs of a --ray local instance (default: all)")
+    p.add_argument("--jobs", type=int, help="'all': experiments run at once, each in its own process (default: "
+                                            "the cores available; 1: one after the other in this process)")
     return p
 
 
@@ -102,15 +106,16 @@ def run_experiment(name: str, settings: Any, out: Path, progress: bool = True, r
     return result
 
 
-def collect_claims(parent: Path) -> tuple[list[Any], list[str]]:
-    """The claims stored in ``parent/<name>/results.json`` of every experiment run there, and those names."""
+def collect_claims(parent: Path, names: Sequence[str] = EXPERIMENT_NAMES) -> tuple[list[Any], list[str]]:
+    """The claims stored in ``parent/<name>/results.json`` of every experiment of ``names`` run there, and those
+    names."""
     import json
 
     from saml_ros.experiments.headroom import Claim
 
     claims: list[Any] = []
     found: list[str] = []
-    for name in EXPERIMENT_NAMES:
+    for name in names:
         path = parent / name / "results.json"
         if path.exists():
             found.append(name)
@@ -155,6 +160,19 @@ def main(argv: list[str] | None = None) -> int:
         if not set(names) & set(RAY_EXPERIMENTS):
             print(f"experiment: --ray applies to {', '.join(RAY_EXPERIMENTS)} only", file=sys.stderr)
             return 2
+    if args.jobs is not None and args.jobs < 1:
+        print("experiment: --jobs must be >= 1", file=sys.stderr)
+        return 2
+    if args.name == "all":
+        for name in names:  # a bad --set fails here, before anything runs
+            try:
+                settings_for(name, args.quick, args.seeds, args.overrides)
+            except ValueError as exc:
+                print(f"experiment: {exc}", file=sys.stderr)
+                return 2
+        jobs = args.jobs or default_jobs()
+        if jobs > 1:
+            return run_all_parallel(args, names, min(jobs, len(names)))
     found: list[Any] = []
     cpu0, t_all = time.process_time(), time.perf_counter()
     for name in names:
@@ -182,6 +200,31 @@ def main(argv: list[str] | None = None) -> int:
                                           f"{' --quick' if args.quick else ''}`)",
                            f"All experiments: {time.perf_counter() - t_all:.1f} s wall, "
                            f"{time.process_time() - cpu0:.1f} s CPU."))
+    return 0
+
+
+def run_all_parallel(args: argparse.Namespace, names: list[str], jobs: int) -> int:
+    """``all`` with ``jobs`` experiments at once (:mod:`.run_all`), then ``claims.md`` from their results."""
+    from saml_ros.experiments.run_all import run_parallel
+
+    parent = args.out or Path("results")
+    options = (["--quick"] if args.quick else []) + (["--seeds", *map(str, args.seeds)] if args.seeds else [])
+    for item in args.overrides:
+        options += ["--set", item]
+    if args.ray:
+        options += ["--ray", args.ray] + (["--ray-cpus", str(args.ray_cpus)] if args.ray_cpus else [])
+    t_all = time.perf_counter()
+    print(f"experiment all{' (quick)' if args.quick else ''}: {len(names)} experiments, {jobs} at once -> {parent}",
+          flush=True)
+    failed, cpu = run_parallel(names, parent, options, jobs)
+    claims, _ = collect_claims(parent, [n for n in names if n not in failed])
+    print(write_claims(parent, claims, "Claims of the paper, one line each (`./dev experiment all"
+                                          f"{' --quick' if args.quick else ''}`)",
+                       f"All experiments: {time.perf_counter() - t_all:.1f} s wall, {cpu:.1f} s CPU "
+                       f"({jobs} at once)."))
+    if failed:
+        print(f"experiment all: {', '.join(failed)} failed (see their run.log)", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -1,0 +1,97 @@
+"""``experiment all`` on several cores: each experiment in its own process, longest first.
+
+The experiments are independent and every runner is single-threaded (:func:`.common.compute_settings`), so on a
+machine with J cores ``all`` runs J of them at once. Each child is ``python -m saml_ros.experiments.cli NAME
+--out PARENT/NAME ...`` with the parent's options; its output goes to ``PARENT/NAME/run.log`` and is printed when
+it ends. The order (longest first, by the CPU times measured in docs/experiments.md) keeps the two lanes of a
+2-core machine about equally long.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+#: measured CPU seconds of each full experiment (docs/experiments.md, "Run time"); only the order matters
+CPU_SECONDS: dict[str, float] = {"paddle_ball": 500.0, "quadrotor": 410.0, "friction": 240.0, "convergence": 90.0}
+
+
+@dataclass
+class Child:
+    """One running experiment."""
+
+    name: str
+    proc: subprocess.Popen[bytes]
+    log: Path
+    t0: float
+
+
+def default_jobs() -> int:
+    """Cores this process may use (``os.sched_getaffinity`` where it exists)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def child_command(name: str, out: Path, options: list[str]) -> list[str]:
+    """The command line of the child that runs experiment ``name`` into ``out``."""
+    return [sys.executable, "-m", "saml_ros.experiments.cli", name, "--out", str(out), "--no-progress", *options]
+
+
+def run_parallel(names: list[str], parent: Path, options: list[str], jobs: int) -> tuple[list[str], float]:
+    """Run experiments ``names`` into ``parent/<name>`` with at most ``jobs`` at once.
+
+    Returns the names that failed (non-zero exit; their log's tail is printed) and the children's CPU seconds.
+    """
+    pending = sorted(names, key=lambda n: -CPU_SECONDS.get(n, 0.0))
+    running: list[Child] = []
+    failed: list[str] = []
+    cpu0 = _children_cpu()
+    try:
+        _loop(pending, running, failed, parent, options, jobs)
+    finally:
+        for child in running:  # interrupted: no orphaned experiments
+            child.proc.terminate()
+            child.proc.wait()
+    return failed, _children_cpu() - cpu0
+
+
+def _loop(pending: list[str], running: list[Child], failed: list[str], parent: Path, options: list[str],
+          jobs: int) -> None:
+    while pending or running:
+        while pending and len(running) < jobs:
+            name = pending.pop(0)
+            out = parent / name
+            out.mkdir(parents=True, exist_ok=True)
+            log = out / "run.log"
+            with log.open("wb") as fh:
+                proc = subprocess.Popen(child_command(name, out, options), stdout=fh, stderr=subprocess.STDOUT)
+            running.append(Child(name, proc, log, time.perf_counter()))
+            print(f"experiment {name} -> {out} (running: {', '.join(c.name for c in running)}; log {log})",
+                  flush=True)
+        time.sleep(0.5)
+        for child in [c for c in running if c.proc.poll() is not None]:
+            running.remove(child)
+            text = child.log.read_text(errors="replace")
+            wall = time.perf_counter() - child.t0
+            if child.proc.returncode != 0:
+                failed.append(child.name)
+                tail = "\n".join(text.splitlines()[-30:])
+                print(f"experiment {child.name}: FAILED (exit {child.proc.returncode}) after {wall:.0f} s; the end "
+                      f"of {child.log}:\n{tail}", file=sys.stderr, flush=True)
+            else:
+                results = child.log.parent / "results.md"
+                print(results.read_text() if results.exists() else text, flush=True)
+                print(f"experiment {child.name}: done in {wall:.1f} s wall; results in {child.log.parent}",
+                      flush=True)
+
+
+def _children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
