@@ -72,6 +72,23 @@ def test_uniform_baseline_ignores_constraint(toy_system: Any) -> None:
     assert float(tr.model.predict_np(np.ones(1), np.zeros(1))[0]) == pytest.approx(0.5, abs=5e-3)
 
 
+@pytest.mark.parametrize("method", ["paper", "nupi", "augmented", "resilient"])
+@pytest.mark.parametrize("engine", ["plain", "fast"])
+def test_every_dual_method_trains_a_spec_without_constraints(toy_system: Any, method: str, engine: str) -> None:
+    """A UA spec (no constraints) under each dual method: the run ends, with an empty diagnosis, at the
+    unconstrained optimum (the augmented Lagrangian's penalty once failed on zero constraints at the end)."""
+    cfg = TrainConfig(epochs=300, batch_size=200, primal_lr=0.05, dual_method=method, engine=engine,
+                      dtype="float64")
+    spec = ProblemSpec.for_system(CONVEX_SPEC, toy_system).uniform()
+    model = DynamicsModel(toy_system, hidden=(), kind="full")
+    x, u, y = _two_groups()
+    model.fit_normalization(x, u, y)
+    tr = PrimalDualTrainer(model, spec, cfg)
+    tr.fit(Transitions(model, spec, x, u, y))
+    assert tr.diagnosis is not None and tr.diagnosis.constraints == []
+    assert float(tr.model.predict_np(np.ones(1), np.zeros(1))[0]) == pytest.approx(0.5, abs=1e-2)
+
+
 INFEASIBLE_SPEC = {**CONVEX_SPEC, "constraints": list(CONVEX_SPEC["constraints"]) + [
     {"name": "zeros", "loss": "squared_l2", "eps": 0.04, "region": {"box": {"next.y": [None, 0.5]}}},
 ]}

@@ -185,7 +185,7 @@ class PrimalDualTrainer:
         if type(self.dual.optimizer) is torch.optim.Adam and self.schedules is not None:
             limit = self.schedules[1].total(self.steps)  # Adam moves lambda by at most about lr per update
         rho = getattr(self.dual, "rho", None)  # the augmented Lagrangian's penalty (E, K), alike over members
-        rho_k = None if rho is None else rho.reshape(-1, len(eps))[0].double().numpy()
+        rho_k = None if rho is None or not eps else rho.reshape(-1, len(eps))[0].double().numpy()
         return diagnose(self.history, eps, self.steps, self.model.hidden, final, relax, f.double().numpy(), limit,
                         rho_k)
 
