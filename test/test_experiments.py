@@ -348,3 +348,19 @@ def test_paddle_training_check_compares_sa_and_ua_on_sas_objective() -> None:
         assert sa.shape == ua.shape == (2,) and np.all(np.isfinite(sa)) and np.all(ua > 0)
         assert o["per_seed_ok"] == (sa <= ua).tolist()
         assert np.asarray(o["uniform"]["constraint"]).shape == (2,)
+
+
+def test_all_runs_each_experiment_in_its_own_process_and_reports_failures(tmp_path: Path) -> None:
+    """``experiment all``'s parallel runner: real child processes, two at once; one child completes and writes its
+    results, the other fails (friction has no field ``nets``) and is reported with its log, not hidden."""
+    from saml_ros.experiments.run_all import run_parallel
+
+    tiny = {"nets": "((2, 1),)", "sizes": "(100,)", "n_datasets": "2", "epochs": "2", "n_pstar": "20000",
+            "n_test": "500"}
+    options = [a for k, v in tiny.items() for a in ("--set", f"{k}={v}")]
+    failed, cpu = run_parallel(["convergence", "friction"], tmp_path, options, jobs=2)
+    assert failed == ["friction"]
+    saved = json.loads((tmp_path / "convergence" / "results.json").read_text())
+    assert len(saved["cells"]) == 1 and saved["claims"]
+    assert "expected FIELD=VALUE" in (tmp_path / "friction" / "run.log").read_text()
+    assert cpu > 0.0

@@ -31,7 +31,7 @@ every model gets the same offsets, trial by trial.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -66,7 +66,7 @@ from saml_ros.experiments.common import (
 )
 from saml_ros.experiments.headroom import Claim, claims_table, headroom, seed_test, verdict
 from saml_ros.experiments.plan_checks import bound_violation
-from saml_ros.offline.pipelines import TrainedModels, train_models
+from saml_ros.offline.pipelines import TrainedModels, finetune_models, train_models
 from saml_ros.offline.plots import save_figure
 
 PAPER = {("full", "uniform"): ("20.8%", "0.3136"), ("full", "sufficient"): ("0.8%", "0.2124"),
@@ -101,6 +101,10 @@ class PaddleSettings:
     #: ``lr_schedule``) or ``"default"`` (``TrainConfig()``, the recommended augmented-Lagrangian recipe of
     #: docs/training.md, with this experiment's epochs and batch size; ``lr_schedule`` is not used)
     recipe: str = "paper"
+    #: SA's initialisation: ``"scratch"`` (the paper: a fresh net, like UA's) or ``"uniform"`` (UA's trained
+    #: weights, then ``sa_finetune_epochs`` passes under SA's spec with the same recipe)
+    sa_init: str = "scratch"
+    sa_finetune_epochs: int = 200
     #: paddle tracking error in data collection and trials: std of the paddle velocity (m/s) and normal (rad)
     velocity_noise: float = 0.1
     normal_noise: float = 0.03
@@ -224,6 +228,28 @@ def train_config(s: PaddleSettings) -> TrainConfig:
     return TrainConfig.paper(epochs=s.epochs, batch_size=128, primal_lr=1e-3, dual_lr=1e-3, **options)
 
 
+def train_all(s: PaddleSettings, system: PaddleBall, specs: dict[str, ProblemSpec], x: np.ndarray, u: np.ndarray,
+              y: np.ndarray, progress: bool) -> dict[tuple[str, str], TrainedModels]:
+    """Both kinds under both specs (``specs``: ``"sufficient"``, ``"uniform"``), one ensemble of ``s.seeds`` each;
+    with ``s.sa_init == "uniform"`` SA starts from UA's trained models (:func:`finetune_models`)."""
+    if s.sa_init not in ("scratch", "uniform"):
+        raise ValueError(f"paddle_ball: sa_init must be 'scratch' or 'uniform', got {s.sa_init!r}")
+    config = train_config(s)
+    trained: dict[tuple[str, str], TrainedModels] = {}
+    with quiet_trainer_warnings():
+        for kind in s.kinds:
+            ua = train_models(system, specs["uniform"], x, u, y, config, list(s.seeds), s.hidden, kind, progress,
+                              f"{kind} uniform")
+            if s.sa_init == "uniform":
+                sa = finetune_models(ua, specs["sufficient"], x, u, y, replace(config, epochs=s.sa_finetune_epochs),
+                                     progress, f"{kind} sufficient (from uniform)")
+            else:
+                sa = train_models(system, specs["sufficient"], x, u, y, config, list(s.seeds), s.hidden, kind,
+                                  progress, f"{kind} sufficient")
+            trained[(kind, "sufficient")], trained[(kind, "uniform")] = sa, ua
+    return trained
+
+
 def validation_errors(model: Any, system: PaddleBall, x: np.ndarray, u: np.ndarray,
                       y: np.ndarray) -> dict[str, Any]:
     """Per member: l2 error ``(E, N)``, mean l2, normalised error on fast balls, l2 on slow balls (< 0.1 m/s)."""
@@ -272,13 +298,8 @@ def run(settings: PaddleSettings, out: Path, progress: bool = True) -> dict[str,
     with timer("collect"):
         x, u, y, stats = collect(s, s.n_impacts, s.data_seed)
         xv, uv, yv, _ = collect(s, s.n_val, s.data_seed + 1000)
-    config = train_config(s)
-    trained: dict[tuple[str, str], TrainedModels] = {}
-    with timer("train"), quiet_trainer_warnings(), flush_denormals():
-        for kind in s.kinds:
-            for label, spec in specs.items():
-                trained[(kind, label)] = train_models(system, spec, x, u, y, config, list(s.seeds), s.hidden, kind,
-                                                      progress, f"{kind} {label}")
+    with timer("train"), flush_denormals():
+        trained = train_all(s, system, specs, x, u, y, progress)
     own = own_objective_check(trained, specs["sufficient"], x, u, y)
     val = {f"{k}/{lab}": validation_errors(tm.model, system, xv, uv, yv) for (k, lab), tm in trained.items()}
     val["base"] = validation_errors(None, system, xv, uv, yv)
@@ -395,6 +416,8 @@ def markdown(data: dict[str, Any], s: PaddleSettings, timer: Timer) -> str:
         f"both; nets {list(s.hidden)}, {s.epochs} epochs, "
         + (f"Adam from 1e-3 (primal schedule `{s.lr_schedule}`), " if s.recipe == "paper" else
            "the recommended recipe `TrainConfig()` (augmented Lagrangian, Adam 3e-3 / 1e-2, cosine), ")
+        + ("" if s.sa_init == "scratch" else
+           f"SA initialised with UA's trained models and fine-tuned for {s.sa_finetune_epochs} epochs, ")
         + f"seeds {list(s.seeds)}. {s.n_trials} trials of {s.n_bounces} consecutive bounces per model and seed "
         f"(solver `{s.solver}`, roll / pitch in {list(s.roll)} rad, later targets within ±{s.target_step} m of "
         f"the impact point, |v_rel| >= {s.v_rel_min[0]} m/s); models of the first {min(s.mpc_seeds, len(s.seeds))} "
@@ -509,12 +532,7 @@ def training_check(settings: PaddleSettings) -> dict[str, Any]:
              "uniform": ProblemSpec.for_system(uniform_spec(), system)}
     x, u, y, _ = collect(s, s.n_impacts, s.data_seed)
     t0 = time.process_time()
-    trained: dict[tuple[str, str], TrainedModels] = {}
-    with quiet_trainer_warnings():
-        for kind in s.kinds:
-            for label, spec in specs.items():
-                trained[(kind, label)] = train_models(system, spec, x, u, y, train_config(s), list(s.seeds),
-                                                      s.hidden, kind, False, f"{kind} {label}")
+    trained = train_all(s, system, specs, x, u, y, False)
     return {"own_objective": own_objective_check(trained, specs["sufficient"], x, u, y),
             "train_cpu_seconds": time.process_time() - t0}
 
@@ -523,7 +541,6 @@ def main(argv: list[str] | None = None) -> int:
     """``./dev python -m saml_ros.experiments.paddle_ball [--epochs N] [--schedule S] [--seeds ...]``: the training
     check alone (SA vs UA on SA's objective and constraint, training data), one line per kind."""
     import argparse
-    from dataclasses import replace
 
     ap = argparse.ArgumentParser(description=main.__doc__)
     ap.add_argument("--epochs", type=int, default=PaddleSettings.epochs)
@@ -531,12 +548,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--recipe", default=PaddleSettings.recipe, choices=("paper", "default"),
                     help="training recipe (see PaddleSettings.recipe)")
+    ap.add_argument("--sa-init", default=PaddleSettings.sa_init, choices=("scratch", "uniform"),
+                    help="SA from a fresh net or from UA's trained one (see PaddleSettings.sa_init)")
+    ap.add_argument("--sa-finetune-epochs", type=int, default=PaddleSettings.sa_finetune_epochs)
     args = ap.parse_args(argv)
     s = replace(PaddleSettings(), epochs=args.epochs, lr_schedule=args.schedule, seeds=tuple(args.seeds),
-                recipe=args.recipe)
+                recipe=args.recipe, sa_init=args.sa_init, sa_finetune_epochs=args.sa_finetune_epochs)
     res = training_check(s)
     for kind, o in res["own_objective"].items():
-        print(f"{kind}, {s.epochs} epochs, {s.recipe} recipe, {s.lr_schedule}: SA objective {np.round(o['sufficient']['objective'], 4)}, "
+        print(f"{kind}, {s.epochs} epochs, {s.recipe} recipe, {s.lr_schedule}, SA from {s.sa_init}: SA objective {np.round(o['sufficient']['objective'], 4)}, "
               f"UA {np.round(o['uniform']['objective'], 4)}; SA g {np.round(o['sufficient']['constraint'], 4)}, UA g "
               f"{np.round(o['uniform']['constraint'], 4)}; SA <= UA per seed {o['per_seed_ok']}")
     print(f"training: {res['train_cpu_seconds']:.0f} s CPU")

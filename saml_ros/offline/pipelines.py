@@ -6,6 +6,7 @@ ROS-free; used by the ``train`` CLI, the demo and the experiment runners.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Sequence
@@ -111,6 +112,19 @@ def train_models(
     kept.diagnosis = kept.diagnose(Transitions(kept.model, spec, *(a[sel.chosen] if a.ndim == 3 else a
                                                                     for a in (x, u, y))))
     return TrainedModels(spec, kept.model, kept, seeds, seconds, len(data), sel)
+
+
+def finetune_models(start: TrainedModels, spec: ProblemSpec, x: np.ndarray, u: np.ndarray, y: np.ndarray,
+                    config: TrainConfig, progress: bool = False, desc: str = "fine-tuning") -> TrainedModels:
+    """Train a copy of ``start``'s ensemble (its weights and normalisation; fresh optimizers and multipliers) under
+    ``spec`` for ``config.epochs`` passes over ``x, u, y``; ``start`` is left as it was."""
+    model = copy.deepcopy(start.model)
+    cfg = TrainConfig(**{**config.__dict__, "seed": start.seeds[0]})
+    trainer = PrimalDualTrainer(model, spec, cfg)
+    data = Transitions(model, spec, x, u, y)
+    t0 = time.perf_counter()
+    trainer.fit(data, progress=progress, desc=desc)
+    return TrainedModels(spec, model, trainer, list(start.seeds), time.perf_counter() - t0, len(data))
 
 
 @dataclass
