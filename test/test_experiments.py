@@ -312,6 +312,10 @@ def test_paddle_trials_are_paired_and_count_failures_as_defined() -> None:
     assert sum(r.completed for r in out["oracle"]) >= 2
     # f_hat alone loses balls
     assert sum(r.bounces for r in out["base"]) < sum(r.bounces for r in out["oracle"])
+    # paired: the oracle again, after the base model's trials, gets the same tracking errors, hence the same result
+    again = run_trial(world, make_controller(world.system, "oracle", s.solver), trials[0], s, TrialChecks())
+    assert again.bounces == out["oracle"][0].bounces
+    np.testing.assert_array_equal(again.errors, out["oracle"][0].errors)
 
 
 def test_single_threaded_runner_decorator_pins_one_thread_and_restores() -> None:

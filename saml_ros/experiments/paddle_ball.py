@@ -178,6 +178,7 @@ def run_trial(world: PaddleBallWorld, ctrl: Controller, trial: Trial, s: PaddleS
     """Reset the world to the trial's drop and bounce the ball ``s.n_bounces`` times with ``ctrl``."""
     system = world.system
     rng = np.random.default_rng(list(trial.seed))
+    world.reseed_tracking([*trial.seed, 1])  # the k-th impact of this trial: the same tracking error for every model
     world.reset(trial.apex, trial.velocity)
     ctrl.reset()
 

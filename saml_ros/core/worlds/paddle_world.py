@@ -19,7 +19,7 @@ overwritten every step with the planned position *and velocity*, so contacts see
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -550,6 +550,11 @@ class PaddleBallWorld:
         self._plan = self._make_plan(self.time, start=start, t_min=0.0)
         self._apply_plan()
         mujoco.mj_forward(self.model, self.data)
+
+    def reseed_tracking(self, seed: int | Sequence[int]) -> None:
+        """Restart the tracking-error stream from ``seed``: the k-th impact after this call gets the same
+        realised-command error whatever ran before (pairs trials across models)."""
+        self.tracking_rng = np.random.default_rng(seed)
 
     def reset_random(self, rng: np.random.Generator | None = None) -> None:
         """Reset to a random bounce: the ball at the apex of a flight whose impact state is drawn like
