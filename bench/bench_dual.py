@@ -74,15 +74,24 @@ PROBLEMS: dict[str, Problem] = {
 }
 
 
-def recipes(restarts: int) -> dict[str, tuple[TrainConfig | None, int]]:
-    """Recipe name -> (config with the problem's settings still to fill in, restarts); None: the paper's config."""
+#: the first hidden layer's initial PReLU slope of the "|h| start" recipes (DynamicsModel's prelu_init)
+ABS_SLOPE = -1.0
+
+
+def recipes(restarts: int, abs_restarts: int) -> dict[str, tuple[TrainConfig | None, int, float]]:
+    """Recipe name -> (config with the problem's settings still to fill in, restarts, first PReLU slope at
+    initialisation); None: the paper's config."""
     default = TrainConfig()
-    out: dict[str, tuple[TrainConfig | None, int]] = {"UA": (None, 1), "paper": (None, 1)}
+    out: dict[str, tuple[TrainConfig | None, int, float]] = {"UA": (None, 1, 0.25), "paper": (None, 1, 0.25)}
     for method in ("nupi", "augmented", "resilient"):
         cfg = default if method == default.dual_method else method_config(method)
-        out[method + (" (default)" if method == default.dual_method else "")] = (cfg, 1)
+        out[method + (" (default)" if method == default.dual_method else "")] = (cfg, 1, 0.25)
     if restarts > 1:
-        out[f"default + {restarts} restarts"] = (default, restarts)
+        out[f"default + {restarts} restarts"] = (default, restarts, 0.25)
+    if abs_restarts > 0:
+        out["default, |h| start"] = (default, 1, ABS_SLOPE)
+    if abs_restarts > 1:
+        out[f"default + {abs_restarts} restarts, |h| start"] = (default, abs_restarts, ABS_SLOPE)
     return out
 
 
@@ -106,7 +115,7 @@ class Row:
 
 def run_recipe(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarray, ...], test: tuple[np.ndarray, ...],
                seeds: list[int], recipe: str, cfg: TrainConfig | None, restarts: int, epochs: int,
-               hidden: tuple[int, ...] | None = None) -> Row:
+               hidden: tuple[int, ...] | None = None, prelu_init: float = 0.25) -> Row:
     x, u, y = data
     plr, dlr = p.paper_lrs
     uniform = recipe == "UA"
@@ -115,7 +124,8 @@ def run_recipe(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarr
     else:
         cfg = replace(cfg, epochs=epochs)
     use_spec = spec.uniform() if uniform else spec
-    res: TrainedModels = train_models(sysm, use_spec, x, u, y, cfg, seeds, hidden, "residual", restarts=restarts)
+    res: TrainedModels = train_models(sysm, use_spec, x, u, y, cfg, seeds, hidden, "residual", restarts=restarts,
+                                      prelu_init=prelu_init)
     ev = evaluate_spec(res.model, spec, Transitions(res.model, spec, x, u, y))
     eps = np.array([t.eps for t in spec.constraints])
     rel = ev["constraints"] / eps
@@ -168,7 +178,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--problems", nargs="+", choices=sorted(PROBLEMS), default=list(PROBLEMS))
     ap.add_argument("--restarts", type=int, default=3, help="initialisations per seed of the restarts recipe")
     ap.add_argument("--restarts-on", nargs="*", choices=sorted(PROBLEMS), default=["friction"],
-                    help="problems that also run the restarts recipe")
+                    help="problems that also run the restarts recipes")
+    ap.add_argument("--abs-restarts", type=int, default=12,
+                    help="initialisations per seed of the '|h| start' restarts recipe (first PReLU slope -1; 0: "
+                         "neither |h| recipe), on the problems of --restarts-on")
     ap.add_argument("--recipes", nargs="+", help="only these recipes (names as printed)")
     ap.add_argument("--friction", action="append", default=[], metavar="KEY=VALUE",
                     help="parameter of the friction system, e.g. a friction profile once the system has one")
@@ -209,11 +222,12 @@ def main(argv: list[str] | None = None) -> int:
         epochs = max(1, p.epochs // 5) if args.quick else p.epochs
         data = generate_datasets(sysm, n, seeds)
         test = sysm.make_dataset(20000, np.random.default_rng(10_000))
-        for recipe, (cfg, restarts) in recipes(args.restarts if name in args.restarts_on else 1).items():
+        on = name in args.restarts_on
+        for recipe, (cfg, restarts, slope) in recipes(args.restarts if on else 1, args.abs_restarts if on else 0).items():
             if args.recipes and recipe not in args.recipes:
                 continue
             t0 = time.perf_counter()
-            row = run_recipe(p, sysm, spec, data, test, seeds, recipe, cfg, restarts, epochs, nets.get(name))
+            row = run_recipe(p, sysm, spec, data, test, seeds, recipe, cfg, restarts, epochs, nets.get(name), slope)
             rows.append(row)
             print(f"  {name:9s} {recipe:24s} feasible {int(row.feasible.sum())}/{n_seeds}, objective "
                   f"{fmt_dist(row.objective)}, in-region {fmt_dist(row.in_region)}, verdicts "

@@ -65,7 +65,7 @@ def test_train_cli_dual_method_restarts_and_feasibility_report(tmp_path: Path) -
         [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--spec", str(spec),
          "--samples", "2000", "--epochs", "20", "--seeds", "2", "--restarts", "3", "--dual-method", "resilient",
          "--train", "relax_cost=500", "--train", "primal_schedule=step", "--test-samples", "1000", "--out",
-         str(out), "--no-progress"],
+         str(out), "--no-progress", "--prelu-init", "-1"],
         cwd=ROOT, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr
@@ -81,6 +81,10 @@ def test_train_cli_dual_method_restarts_and_feasibility_report(tmp_path: Path) -
     assert feas["lhs_min"] < 0.2
     loaded = load_model(out / "ckpt-000001.saml", expect=get_system("friction"))
     assert loaded.model.n_models == 2
+    # --prelu-init -1: the first PReLU started as |h| (learned since, so near -1, not at PyTorch's 0.25)
+    assert metrics["prelu_init"] == -1.0
+    first, second = (s.detach().numpy().ravel() for s in loaded.model.net.slopes)
+    assert np.all(first < -0.5) and np.all(np.abs(second - 0.25) < 0.5), (first, second)
     bad = subprocess.run(
         [sys.executable, "-m", "saml_ros.executables", "train", "--system", "friction", "--train", "nupi_gain=1",
          "--out", str(tmp_path / "bad")], cwd=ROOT, capture_output=True, text=True, timeout=120,

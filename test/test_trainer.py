@@ -89,6 +89,20 @@ def test_every_dual_method_trains_a_spec_without_constraints(toy_system: Any, me
     assert float(tr.model.predict_np(np.ones(1), np.zeros(1))[0]) == pytest.approx(0.5, abs=1e-2)
 
 
+def test_prelu_init_sets_only_the_first_hidden_layers_starting_slope() -> None:
+    from saml_ros.core.systems import get_system
+
+    system = get_system("friction")
+    model = DynamicsModel(system, hidden=(4, 2), n_models=3, seed=1, prelu_init=-1.0)
+    default = DynamicsModel(system, hidden=(4, 2), n_models=3, seed=1)
+    assert torch.all(model.net.slopes[0] == -1.0) and torch.all(model.net.slopes[1] == 0.25)
+    assert torch.all(default.net.slopes[0] == 0.25)
+    for a, b in zip(model.net.weights, default.net.weights):  # the same weights: only the slope differs
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="first_slope"):
+        DynamicsModel(system, hidden=(4, 2), prelu_init=float("nan"))
+
+
 INFEASIBLE_SPEC = {**CONVEX_SPEC, "constraints": list(CONVEX_SPEC["constraints"]) + [
     {"name": "zeros", "loss": "squared_l2", "eps": 0.04, "region": {"box": {"next.y": [None, 0.5]}}},
 ]}

@@ -25,7 +25,8 @@ class EnsembleMLP(nn.Module):
 
     Weights are stored stacked: ``weights[l]`` has shape ``(E, d_in, d_out)``, ``biases[l]``
     ``(E, 1, d_out)``, PReLU slopes ``(E, 1, 1)`` (one learnable slope per layer, as ``nn.PReLU()``).
-    Hidden layers use PyTorch's ``nn.Linear`` default initialisation; the output layer starts at zero.
+    Hidden layers use PyTorch's ``nn.Linear`` default initialisation; the output layer starts at zero; the PReLU
+    slopes start at 0.25 (``nn.PReLU``'s default), the first hidden layer's at ``first_slope``.
     """
 
     def __init__(
@@ -35,8 +36,11 @@ class EnsembleMLP(nn.Module):
         hidden: Sequence[int],
         out_dim: int,
         generator: torch.Generator | None = None,
+        first_slope: float = 0.25,
     ) -> None:
         super().__init__()
+        if not math.isfinite(first_slope):
+            raise ValueError(f"first_slope must be finite, got {first_slope}")
         if n_models < 1 or in_dim < 1 or out_dim < 1 or any(h < 1 for h in hidden):
             raise ValueError(f"bad MLP shape: E={n_models}, {in_dim} -> {list(hidden)} -> {out_dim}")
         self.n_models, self.in_dim, self.out_dim = n_models, in_dim, out_dim
@@ -53,7 +57,7 @@ class EnsembleMLP(nn.Module):
                 bound = 1.0 / math.sqrt(a)
                 w.uniform_(-bound, bound, generator=generator)
                 bias.uniform_(-bound, bound, generator=generator)
-                self.slopes.append(nn.Parameter(torch.full((n_models, 1, 1), 0.25)))
+                self.slopes.append(nn.Parameter(torch.full((n_models, 1, 1), first_slope if i == 0 else 0.25)))
             self.weights.append(nn.Parameter(w))
             self.biases.append(nn.Parameter(bias))
 
@@ -85,6 +89,11 @@ class DynamicsModel(nn.Module):
     data with :meth:`fit_normalization` and stored with the weights.
 
     Buffers: ``in_mean``, ``in_std`` ``(E, 1, n_x + n_u)``; ``out_std`` ``(E, 1, n_y)``.
+
+    ``prelu_init``: the first hidden layer's initial PReLU slope (0.25, PyTorch's default; -1 starts it as
+    ``|h|``, an even feature of the inputs, which finds the good optima of sign-symmetric residuals such as
+    Coulomb friction far more often: docs/training.md, "Restarts and selection"). Only the initialisation: the
+    slope is learned, and a checkpoint stores it.
     """
 
     def __init__(
@@ -94,6 +103,7 @@ class DynamicsModel(nn.Module):
         kind: str = "residual",
         n_models: int = 1,
         seed: int | None = None,
+        prelu_init: float = 0.25,
     ) -> None:
         super().__init__()
         if kind not in MODEL_KINDS:
@@ -104,7 +114,7 @@ class DynamicsModel(nn.Module):
         n_in = system.state.size + system.control.size
         n_out = system.target.size
         gen = None if seed is None else torch.Generator().manual_seed(int(seed))
-        self.net = EnsembleMLP(n_models, n_in, self.hidden, n_out, generator=gen)
+        self.net = EnsembleMLP(n_models, n_in, self.hidden, n_out, generator=gen, first_slope=prelu_init)
         self.register_buffer("in_mean", torch.zeros(n_models, 1, n_in))
         self.register_buffer("in_std", torch.ones(n_models, 1, n_in))
         self.register_buffer("out_std", torch.ones(n_models, 1, n_out))

@@ -64,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train this many initialisations per seed and keep the best feasible one on a held-out "
                         "split (docs/training.md)")
     p.add_argument("--holdout", type=float, default=0.2, help="fraction of each seed's data held out for --restarts")
+    p.add_argument("--prelu-init", type=float, default=0.25,
+                   help="initial PReLU slope of the first hidden layer (0.25: PyTorch's; -1: |h|, for sign-symmetric "
+                        "residuals such as Coulomb friction; docs/training.md)")
     p.add_argument("--seed", type=int, default=0, help="first seed")
     p.add_argument("--seeds", type=int, default=1, help="train this many seeds at once (one ensemble)")
     p.add_argument("--out", type=Path, help="output run directory (default: runs/train-<system>-<time>)")
@@ -230,10 +233,11 @@ def _train(args: argparse.Namespace) -> int:
     try:
         result = train_models(system, spec, x, u, y, config, seeds, args.hidden, args.kind,
                               progress=not args.no_progress, desc=f"{system.name} {spec.raw.get('name')}",
-                              restarts=args.restarts, holdout=args.holdout)
+                              restarts=args.restarts, holdout=args.holdout, prelu_init=args.prelu_init)
     except ValueError as exc:
         raise _Refused(str(exc)) from None
     metrics: dict[str, Any] = {"train_seconds": result.train_seconds, "n_train": result.n_train,
+                               "prelu_init": args.prelu_init,
                                "updates": result.trainer.steps, "seeds": seeds, "source": source,
                                "train_config": dict(config.__dict__)}
     if result.selection is not None:

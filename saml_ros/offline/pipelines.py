@@ -66,13 +66,15 @@ def train_models(
     desc: str = "training",
     restarts: int = 1,
     holdout: float = 0.2,
+    prelu_init: float = 0.25,
 ) -> TrainedModels:
     """Train ``len(seeds)`` models at once. ``x, u, y`` are ``(N, .)`` (shared) or ``(E, N, .)`` (one per seed).
 
     ``restarts > 1``: each seed trains ``restarts`` members from different initialisations (restart r of seed s is
     initialised with seed ``s + 100003 r``; r = 0 is the seed's own) on the first ``1 - holdout`` of its data, and
     keeps the best feasible one on the rest (:func:`~saml_ros.core.training.selection.select_members`); all
-    ``len(seeds) * restarts`` members train as one ensemble.
+    ``len(seeds) * restarts`` members train as one ensemble. ``prelu_init``: the first hidden layer's initial
+    PReLU slope (:class:`~saml_ros.core.models.DynamicsModel`).
     """
     seeds = list(seeds)
     if restarts < 1 or not 0 < holdout < 1:
@@ -89,11 +91,11 @@ def train_models(
         y, yh = y[..., :n_fit, :], y[..., n_fit:, :]
         if x.ndim == 3:  # one dataset per seed: the same one for each of its restarts
             x, u, y, xh, uh, yh = (np.repeat(a, restarts, axis=0) for a in (x, u, y, xh, uh, yh))
-    model = DynamicsModel(system, hidden, kind, n_models=len(inits), seed=inits[0])
+    model = DynamicsModel(system, hidden, kind, n_models=len(inits), seed=inits[0], prelu_init=prelu_init)
     if len(inits) > 1:  # distinct initialisations per seed
         with torch.no_grad():
             for i, s in enumerate(inits):
-                one = DynamicsModel(system, hidden, kind, n_models=1, seed=s)
+                one = DynamicsModel(system, hidden, kind, n_models=1, seed=s, prelu_init=prelu_init)
                 for p_all, p_one in zip(model.net.parameters(), one.net.parameters()):
                     p_all[i].copy_(p_one[0])
     model.fit_normalization(x, u, y)
