@@ -203,6 +203,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="another net for a problem, e.g. quadrotor=64-64 (does a larger net meet the bound?)")
     ap.add_argument("--epochs", action="append", default=[], metavar="PROBLEM=N",
                     help="other epochs for a problem, e.g. paddle=300 (default: the problem's, see PROBLEMS)")
+    ap.add_argument("--shared-data", action="store_true",
+                    help="every seed trains on the same dataset (that of the first seed): seeds then differ only by "
+                         "initialisation and minibatch order")
     ap.add_argument("--json", type=Path, help="also write every number into this file")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -231,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
         problems[k] = replace(problems.get(k, PROBLEMS[k]), epochs=int(v),
                               note=PROBLEMS[k].note.replace(f"{PROBLEMS[k].epochs} epochs", f"{v} epochs"))
     problems = {k: v for k, v in problems.items() if k in args.problems}
-    print(f"bench_dual: {n_seeds} seeds per problem, problems {list(problems)}, restarts {args.restarts} on "
+    print(("bench_dual: one dataset shared by every seed; " if args.shared_data else "bench_dual: ")
+          + f"{n_seeds} seeds per problem, problems {list(problems)}, restarts {args.restarts} on "
           f"{args.restarts_on}" + (" (--quick)" if args.quick else ""), flush=True)
     print(f"default recipe: {TrainConfig()}", flush=True)
     rows: list[Row] = []
@@ -243,7 +247,9 @@ def main(argv: list[str] | None = None) -> int:
         eps[name] = spec.constraints[0].eps
         n = p.n_train // 4 if args.quick else p.n_train
         epochs = max(1, p.epochs // 5) if args.quick else p.epochs
-        data = generate_datasets(sysm, n, seeds)
+        data = generate_datasets(sysm, n, seeds[:1] if args.shared_data else seeds)
+        if args.shared_data:
+            data = tuple(a[0] for a in data)  # (N, .): one dataset, shared by every member
         test = sysm.make_dataset(20000, np.random.default_rng(10_000))
         on = name in args.restarts_on
         for recipe, (cfg, restarts, slope) in recipes(args.restarts if on else 1, args.abs_restarts if on else 0).items():
