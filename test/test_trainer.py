@@ -60,14 +60,16 @@ def test_convex_problem_converges_to_optimum_and_multiplier(toy_system: Any, pri
     assert tr.feasibility().ok
 
 
+def _fit_uniform(system: Any, cfg: TrainConfig) -> tuple[PrimalDualTrainer, ProblemSpec]:
+    """CONVEX_SPEC without its constraint (the UA baseline), fitted on the two groups with ``cfg``."""
+    tr, data, spec = _trainer(system, {**CONVEX_SPEC, "constraints": []}, cfg)
+    tr.fit(data)
+    return tr, spec
+
+
 def test_uniform_baseline_ignores_constraint(toy_system: Any) -> None:
     cfg = TrainConfig.paper(epochs=2000, batch_size=200, primal_lr=0.05, primal_optimizer="sgd", dtype="float64")
-    spec = ProblemSpec.for_system(CONVEX_SPEC, toy_system).uniform()
-    model = DynamicsModel(toy_system, hidden=(), kind="full")
-    x, u, y = _two_groups()
-    model.fit_normalization(x, u, y)
-    tr = PrimalDualTrainer(model, spec, cfg)
-    tr.fit(Transitions(model, spec, x, u, y))
+    tr, spec = _fit_uniform(toy_system, cfg)
     assert spec.n_constraints == 0
     assert float(tr.model.predict_np(np.ones(1), np.zeros(1))[0]) == pytest.approx(0.5, abs=5e-3)
 
@@ -79,12 +81,7 @@ def test_every_dual_method_trains_a_spec_without_constraints(toy_system: Any, me
     unconstrained optimum (the augmented Lagrangian's penalty once failed on zero constraints at the end)."""
     cfg = TrainConfig(epochs=300, batch_size=200, primal_lr=0.05, dual_method=method, engine=engine,
                       dtype="float64")
-    spec = ProblemSpec.for_system(CONVEX_SPEC, toy_system).uniform()
-    model = DynamicsModel(toy_system, hidden=(), kind="full")
-    x, u, y = _two_groups()
-    model.fit_normalization(x, u, y)
-    tr = PrimalDualTrainer(model, spec, cfg)
-    tr.fit(Transitions(model, spec, x, u, y))
+    tr, _ = _fit_uniform(toy_system, cfg)
     assert tr.diagnosis is not None and tr.diagnosis.constraints == []
     assert float(tr.model.predict_np(np.ones(1), np.zeros(1))[0]) == pytest.approx(0.5, abs=1e-2)
 
