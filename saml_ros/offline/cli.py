@@ -187,7 +187,7 @@ def _print_summary(result: Any, metrics: dict[str, Any], ev: Any) -> None:
         for r in ev.regions:
             print(f"train: constraint '{r.name}': error inside {mean_std(r.inside)}, "
                   f"outside {mean_std(r.outside)} ({100 * r.frac_inside:.1f}% of test data inside)")
-    print(f"train: lambda = {np.round(result.trainer.lam.numpy(), 4).tolist()}")
+    print(f"train: lambda = {np.round(result.trainer.lam.double().numpy() + 0.0, 4).tolist()}")  # + 0.0: no "-0.0"
     if result.selection is not None:
         for line in result.selection.describe():
             print(f"train: {line}")

@@ -261,7 +261,7 @@ def _message(c: ConstraintDiagnosis) -> str:
     who = f"{n} member{'s' if n > 1 else ''}"
     worst = max(m.g for m in ms) / c.eps
     rising = [i for i, m in enumerate(ms) if m.lam_rising]
-    lam = f"lambda {min(m.lam for m in ms):.3g}" + (f"-{max(m.lam for m in ms):.3g}" if n > 1 else "")
+    lam = f"lambda {min(m.lam for m in ms) + 0.0:.3g}" + (f"-{max(m.lam for m in ms) + 0.0:.3g}" if n > 1 else "")
     lam += f", still rising for {len(rising)}/{n}" if rising else ", not rising"
     head = f"constraint '{c.name}' (eps = {c.eps:.4g})"
     if c.verdict == MET:
