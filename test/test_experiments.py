@@ -354,7 +354,8 @@ def test_paddle_training_check_compares_sa_and_ua_on_sas_objective() -> None:
         assert np.asarray(o["uniform"]["constraint"]).shape == (2,)
 
 
-def test_all_runs_each_experiment_in_its_own_process_and_reports_failures(tmp_path: Path) -> None:
+def test_all_runs_each_experiment_in_its_own_process_and_reports_failures(tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
     """``experiment all``'s parallel runner: real child processes, two at once; one child completes and writes its
     results, the other fails (friction has no field ``nets``) and is reported with its log, not hidden."""
     from saml_ros.experiments.run_all import run_parallel
@@ -362,9 +363,10 @@ def test_all_runs_each_experiment_in_its_own_process_and_reports_failures(tmp_pa
     tiny = {"nets": "((2, 1),)", "sizes": "(100,)", "n_datasets": "2", "epochs": "2", "n_pstar": "20000",
             "n_test": "500"}
     options = [a for k, v in tiny.items() for a in ("--set", f"{k}={v}")]
-    failed, cpu = run_parallel(["convergence", "friction"], tmp_path, options, jobs=2)
+    failed, cpu = run_parallel(["convergence", "friction"], tmp_path, options, jobs=2, status_every=0.5)
     assert failed == ["friction"]
     saved = json.loads((tmp_path / "convergence" / "results.json").read_text())
     assert len(saved["cells"]) == 1 and saved["claims"]
     assert "expected FIELD=VALUE" in (tmp_path / "friction" / "run.log").read_text()
     assert cpu > 0.0
+    assert "experiment all: " in capsys.readouterr().out  # the status line while they ran

@@ -17,8 +17,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-#: measured CPU seconds of each full experiment (docs/experiments.md, "Run time"); only the order matters
-CPU_SECONDS: dict[str, float] = {"paddle_ball": 500.0, "quadrotor": 410.0, "friction": 240.0, "convergence": 90.0}
+#: measured CPU seconds of each full experiment (docs/experiments.md, "Run time"): the order, and the rough
+#: estimate of the time left in the status lines
+CPU_SECONDS: dict[str, float] = {"paddle_ball": 250.0, "quadrotor": 290.0, "friction": 175.0, "convergence": 130.0}
 
 
 @dataclass
@@ -44,17 +45,19 @@ def child_command(name: str, out: Path, options: list[str]) -> list[str]:
     return [sys.executable, "-m", "saml_ros.experiments.cli", name, "--out", str(out), "--no-progress", *options]
 
 
-def run_parallel(names: list[str], parent: Path, options: list[str], jobs: int) -> tuple[list[str], float]:
-    """Run experiments ``names`` into ``parent/<name>`` with at most ``jobs`` at once.
+def run_parallel(names: list[str], parent: Path, options: list[str], jobs: int,
+                 status_every: float = 60.0) -> tuple[list[str], float]:
+    """Run experiments ``names`` into ``parent/<name>`` with at most ``jobs`` at once; every ``status_every``
+    seconds (0: never) a line says what runs, for how long, and roughly how long it has left.
 
     Returns the names that failed (non-zero exit; their log's tail is printed) and the children's CPU seconds.
     """
-    pending = sorted(names, key=lambda n: -CPU_SECONDS.get(n, 0.0))
+    pending = sorted(names, key=lambda n: -CPU_SECONDS.get(n, 0.0))  # longest first
     running: list[Child] = []
     failed: list[str] = []
     cpu0 = _children_cpu()
     try:
-        _loop(pending, running, failed, parent, options, jobs)
+        _loop(pending, running, failed, parent, options, jobs, status_every)
     finally:
         for child in running:  # interrupted: no orphaned experiments
             child.proc.terminate()
@@ -63,7 +66,8 @@ def run_parallel(names: list[str], parent: Path, options: list[str], jobs: int) 
 
 
 def _loop(pending: list[str], running: list[Child], failed: list[str], parent: Path, options: list[str],
-          jobs: int) -> None:
+          jobs: int, status_every: float) -> None:
+    t0 = last_status = time.perf_counter()
     while pending or running:
         while pending and len(running) < jobs:
             name = pending.pop(0)
@@ -76,6 +80,10 @@ def _loop(pending: list[str], running: list[Child], failed: list[str], parent: P
             print(f"experiment {name} -> {out} (running: {', '.join(c.name for c in running)}; log {log})",
                   flush=True)
         time.sleep(0.5)
+        now = time.perf_counter()
+        if status_every > 0 and now - last_status >= status_every:
+            last_status = now
+            print(f"experiment all: {now - t0:.0f} s; " + status_line(running, pending, now), flush=True)
         for child in [c for c in running if c.proc.poll() is not None]:
             running.remove(child)
             text = child.log.read_text(errors="replace")
@@ -90,6 +98,16 @@ def _loop(pending: list[str], running: list[Child], failed: list[str], parent: P
                 print(results.read_text() if results.exists() else text, flush=True)
                 print(f"experiment {child.name}: done in {wall:.1f} s wall; results in {child.log.parent}",
                       flush=True)
+
+
+def status_line(running: list[Child], pending: list[str], now: float) -> str:
+    """``running: quadrotor 120 s (about 170 s left), ...; waiting: friction`` (estimates from
+    :data:`CPU_SECONDS`)."""
+    parts = []
+    for c in running:
+        left = CPU_SECONDS.get(c.name, 0.0) - (now - c.t0)
+        parts.append(f"{c.name} {now - c.t0:.0f} s" + (f" (about {left:.0f} s left)" if left > 0 else ""))
+    return "running: " + ", ".join(parts) + (f"; waiting: {', '.join(pending)}" if pending else "")
 
 
 def _children_cpu() -> float:
