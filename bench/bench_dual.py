@@ -178,7 +178,8 @@ def table(rows: list[Row], problems: dict[str, Problem], eps: dict[str, float], 
                  f"{r.verdicts.count(MET)} / {r.verdicts.count(NOT_CONVERGED)} / {r.verdicts.count(INFEASIBLE)}")
             feas = f"{int(r.feasible.sum())}/{n_seeds}"
             nb = f"{near}/{n_seeds}"
-            lines.append(f"| {r.recipe} | {feas} | {nb} | {same}/{n_seeds} | {held}/{n_seeds} | {fmt_dist(r.objective)} | {fmt_dist(r.in_region)} | {v} | "
+            name = r.recipe.replace("|", "\\|")  # a markdown cell
+            lines.append(f"| {name} | {feas} | {nb} | {same}/{n_seeds} | {held}/{n_seeds} | {fmt_dist(r.objective)} | {fmt_dist(r.in_region)} | {v} | "
                          f"{np.median(r.lam):.3g} | {r.seconds:.0f} |")
         lines.append("")
     return "\n".join(lines)
