@@ -203,7 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hidden", action="append", default=[], metavar="PROBLEM=H1-H2",
                     help="another net for a problem, e.g. quadrotor=64-64 (does a larger net meet the bound?)")
     ap.add_argument("--epochs", action="append", default=[], metavar="PROBLEM=N",
-                    help="other epochs for a problem, e.g. paddle=300 (default: the problem's, see PROBLEMS)")
+                    help="other epochs for a problem, e.g. paddle=300 (default: the problem's, see PROBLEMS; divided by 5 "
+                         "under --quick, like the defaults)")
     ap.add_argument("--shared-data", action="store_true",
                     help="every seed trains on the same dataset (that of the first seed): seeds then differ only by "
                          "initialisation and minibatch order")

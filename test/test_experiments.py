@@ -363,10 +363,23 @@ def test_all_runs_each_experiment_in_its_own_process_and_reports_failures(tmp_pa
     tiny = {"nets": "((2, 1),)", "sizes": "(100,)", "n_datasets": "2", "epochs": "2", "n_pstar": "20000",
             "n_test": "500"}
     options = [a for k, v in tiny.items() for a in ("--set", f"{k}={v}")]
+    (tmp_path / "friction").mkdir()
+    (tmp_path / "friction" / "results.json").write_text('{"claims": [{"stale": 1}]}')  # an earlier run's
     failed, cpu = run_parallel(["convergence", "friction"], tmp_path, options, jobs=2, status_every=0.5)
     assert failed == ["friction"]
     saved = json.loads((tmp_path / "convergence" / "results.json").read_text())
     assert len(saved["cells"]) == 1 and saved["claims"]
     assert "expected FIELD=VALUE" in (tmp_path / "friction" / "run.log").read_text()
+    assert not (tmp_path / "friction" / "results.json").exists()  # no stale results beside a failed run
     assert cpu > 0.0
     assert "experiment all: " in capsys.readouterr().out  # the status line while they ran
+
+
+def test_all_gives_each_child_its_options_and_ray_only_to_convergence() -> None:
+    args = cli.build_parser().parse_args(["all", "--quick", "--seeds", "3", "4", "--set", "epochs=2", "--ray", "local",
+                                          "--ray-cpus", "2"])
+    opts = cli.child_options(args, list(EXPERIMENT_NAMES))
+    common = ["--quick", "--seeds", "3", "4", "--set", "epochs=2"]
+    assert opts["convergence"] == [*common, "--ray", "local", "--ray-cpus", "2"]
+    for name in set(EXPERIMENT_NAMES) - {"convergence"}:
+        assert opts[name] == common  # they would refuse --ray (exit 2)

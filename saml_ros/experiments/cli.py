@@ -203,16 +203,22 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def child_options(args: argparse.Namespace, names: list[str]) -> dict[str, list[str]]:
+    """Each child's options under ``all``: ``--quick``, ``--seeds`` and every ``--set`` for all; ``--ray`` and
+    ``--ray-cpus`` only for :data:`RAY_EXPERIMENTS` (the others refuse them)."""
+    common = (["--quick"] if args.quick else []) + (["--seeds", *map(str, args.seeds)] if args.seeds else [])
+    for item in args.overrides:
+        common += ["--set", item]
+    ray = (["--ray", args.ray] + (["--ray-cpus", str(args.ray_cpus)] if args.ray_cpus else [])) if args.ray else []
+    return {n: common + (ray if n in RAY_EXPERIMENTS else []) for n in names}
+
+
 def run_all_parallel(args: argparse.Namespace, names: list[str], jobs: int) -> int:
     """``all`` with ``jobs`` experiments at once (:mod:`.run_all`), then ``claims.md`` from their results."""
     from saml_ros.experiments.run_all import run_parallel
 
     parent = args.out or Path("results")
-    options = (["--quick"] if args.quick else []) + (["--seeds", *map(str, args.seeds)] if args.seeds else [])
-    for item in args.overrides:
-        options += ["--set", item]
-    if args.ray:
-        options += ["--ray", args.ray] + (["--ray-cpus", str(args.ray_cpus)] if args.ray_cpus else [])
+    options = child_options(args, names)
     t_all = time.perf_counter()
     print(f"experiment all{' (quick)' if args.quick else ''}: {len(names)} experiments, {jobs} at once -> {parent}",
           flush=True)

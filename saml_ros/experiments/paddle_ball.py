@@ -12,8 +12,9 @@ Models: 128-128 PReLU, input ``[x^-, u]``, output the post-impact ball velocity;
 ``residual`` (on the base model with the wrong restitution and no paddle-normal bias). Sufficiently Accurate =
 the paper's normalised objective (``PaddleBall.paper_spec``: E[||e|| / ||v+||] over ||v+|| >= 0.1 m/s, s.t.
 E[||e|| | ||v+|| < 0.1] <= 0.1 m/s); Uniformly Accurate = the paper's unconstrained problem, the plain l2 error
-over all impacts (:func:`uniform_spec`). Adam with an initial learning rate of 1e-3 (the paper's) for the primal
-and the dual variables, the primal rate decayed by ``lr_schedule``.
+over all impacts (:func:`uniform_spec`). Recipe ``"paper"`` (the default): Adam with an initial learning rate of
+1e-3 (the paper's) for the primal and the dual variables, the primal rate decayed by ``lr_schedule``;
+``"default"``: ``TrainConfig()``. ``sa_init="uniform"`` starts SA from UA's trained nets.
 
 Control trials (paper eq. ball_paddle_opt, repeated): a ball is dropped so that it reaches the impact plane at
 px, py ~ U[-1, 1] m with vx, vy ~ U[-1, 1], vz ~ U[-6, -2] m/s, and the controller must bounce it ``n_bounces``
@@ -24,8 +25,9 @@ m/s (fully random targets every bounce are infeasible even for the oracle: a bal
 speed cannot be sent back across the paddle's reach within roll / pitch +-0.4 rad). Failure = the ball is not kept
 bouncing for all ``n_bounces`` (the world loses it, the paddle meets it while it rises, an impact is not the
 planned one, the ball is not sent up or comes down out of reach). Landing error = distance of the ball's next
-crossing of the impact plane to the bounce's target. The trial's random draws come from its own generator, so
-every model gets the same offsets, trial by trial.
+crossing of the impact plane to the bounce's target. The trial's random draws come from its own generator, and
+the world's tracking-error stream restarts from the trial's seed, so every model gets the same offsets, speed
+bands and tracking errors, trial by trial.
 """
 
 from __future__ import annotations

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import resource
+import signal
 import subprocess
 import sys
 import time
@@ -40,33 +41,47 @@ def default_jobs() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+#: the children's environment: one BLAS / OpenMP thread each (torch is pinned by the runners themselves)
+CHILD_THREADS = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
 def child_command(name: str, out: Path, options: list[str]) -> list[str]:
     """The command line of the child that runs experiment ``name`` into ``out``."""
     return [sys.executable, "-m", "saml_ros.experiments.cli", name, "--out", str(out), "--no-progress", *options]
 
 
-def run_parallel(names: list[str], parent: Path, options: list[str], jobs: int,
+def run_parallel(names: list[str], parent: Path, options: list[str] | dict[str, list[str]], jobs: int,
                  status_every: float = 60.0) -> tuple[list[str], float]:
     """Run experiments ``names`` into ``parent/<name>`` with at most ``jobs`` at once; every ``status_every``
-    seconds (0: never) a line says what runs, for how long, and roughly how long it has left.
+    seconds (0: never) a line says what runs, for how long, and roughly how long it has left. ``options``: the
+    children's extra command-line options, the same for all or per name. A child's earlier ``results.json`` and
+    ``results.md`` are removed before it starts (a failed run leaves none to be mistaken for its results); on
+    SIGTERM or Ctrl-C the running children are terminated.
 
     Returns the names that failed (non-zero exit; their log's tail is printed) and the children's CPU seconds.
     """
+    per_name = options if isinstance(options, dict) else {n: list(options) for n in names}
     pending = sorted(names, key=lambda n: -CPU_SECONDS.get(n, 0.0))  # longest first
     running: list[Child] = []
     failed: list[str] = []
     cpu0 = _children_cpu()
+    previous = signal.signal(signal.SIGTERM, _raise_exit)
     try:
-        _loop(pending, running, failed, parent, options, jobs, status_every)
+        _loop(pending, running, failed, parent, per_name, jobs, status_every)
     finally:
         for child in running:  # interrupted: no orphaned experiments
             child.proc.terminate()
             child.proc.wait()
+        signal.signal(signal.SIGTERM, previous)
     return failed, _children_cpu() - cpu0
 
 
-def _loop(pending: list[str], running: list[Child], failed: list[str], parent: Path, options: list[str],
-          jobs: int, status_every: float) -> None:
+def _raise_exit(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
+def _loop(pending: list[str], running: list[Child], failed: list[str], parent: Path,
+          options: dict[str, list[str]], jobs: int, status_every: float) -> None:
     t0 = last_status = time.perf_counter()
     while pending or running:
         while pending and len(running) < jobs:
@@ -74,9 +89,12 @@ def _loop(pending: list[str], running: list[Child], failed: list[str], parent: P
             out = parent / name
             out.mkdir(parents=True, exist_ok=True)
             log = out / "run.log"
+            for stale in ("results.json", "results.md"):
+                (out / stale).unlink(missing_ok=True)
             with log.open("wb") as fh:
-                proc = subprocess.Popen(child_command(name, out, options), stdout=fh, stderr=subprocess.STDOUT)
-            running.append(Child(name, proc, log, time.perf_counter()))
+                running.append(Child(name, subprocess.Popen(
+                    child_command(name, out, options.get(name, [])), stdout=fh, stderr=subprocess.STDOUT,
+                    env={**os.environ, **CHILD_THREADS}), log, time.perf_counter()))
             print(f"experiment {name} -> {out} (running: {', '.join(c.name for c in running)}; log {log})",
                   flush=True)
         time.sleep(0.5)
