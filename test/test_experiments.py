@@ -383,3 +383,40 @@ def test_all_gives_each_child_its_options_and_ray_only_to_convergence() -> None:
     assert opts["convergence"] == [*common, "--ray", "local", "--ray-cpus", "2"]
     for name in set(EXPERIMENT_NAMES) - {"convergence"}:
         assert opts[name] == common  # they would refuse --ray (exit 2)
+
+
+def test_all_terminates_its_children_on_sigterm(tmp_path: Path) -> None:
+    """SIGTERM to ``experiment all`` (a CI cancel, ``timeout``) ends the running experiments too."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    def children() -> list[int]:
+        found = []
+        for pid in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                cmd = (Path("/proc") / pid / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if str(tmp_path).encode() in b" ".join(cmd) and b"saml_ros.experiments.cli" in cmd:
+                found.append(int(pid))
+        return found
+
+    parent = subprocess.Popen([sys.executable, "-m", "saml_ros.experiments.cli", "all", "--quick", "--jobs", "2",
+                               "--out", str(tmp_path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60.0
+        while len([p for p in children() if p != parent.pid]) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len([p for p in children() if p != parent.pid]) == 2, "two experiments should be running"
+        parent.send_signal(signal.SIGTERM)
+        assert parent.wait(timeout=30) != 0
+        deadline = time.monotonic() + 10.0
+        while children() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert children() == []
+    finally:
+        if parent.poll() is None:
+            parent.kill()
