@@ -262,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(f"  {name:9s} {recipe:24s} feasible {int(row.feasible.sum())}/{n_seeds}, objective "
                   f"{fmt_dist(row.objective)}, in-region {fmt_dist(row.in_region)}, verdicts "
-                  f"{row.verdicts}, {time.perf_counter() - t0:.0f} s", flush=True)
+                  f"{row.verdicts}, smallest final left-hand side {row.reachable:.3g}, {time.perf_counter() - t0:.0f} s",
+                  flush=True)
     print()
     print(table(rows, problems, eps, n_seeds, nets))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
