@@ -41,7 +41,7 @@ from typing import IO, Any
 import numpy as np
 
 from bench import learner_training
-from bench.ros_procs import claimed_domain
+from bench.ros_procs import claimed_domain, friction_publisher
 
 REPO = Path(__file__).resolve().parents[1]
 NS = "/friction"
@@ -51,22 +51,8 @@ DT_NS = 100_000_000
 # --------------------------------------------------------------------------------------------- children
 def run_publisher() -> int:
     """Child: on stdin ``burst RATE N SEGMENT`` publish N transitions at RATE/s, then print ``done SECONDS``."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    from msg_schemas import DATA_QOS, get_schema
-    from saml_ros.core.systems import get_system
-
-    schema, system = get_schema("friction"), get_system("friction")
-    rclpy.init()
-    node = rclpy.create_node("bench_publisher")
-    qos = DATA_QOS.to_rclpy()
-    jt = type(schema.state_to_msg(np.zeros(2), 0))
-    pub_s = node.create_publisher(jt, f"{NS}/state", qos)
-    pub_c = node.create_publisher(jt, f"{NS}/applied_cmd", qos)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    pub = friction_publisher("bench_publisher", NS)
+    schema, system, pub_s, pub_c = pub.schema, pub.system, pub.state, pub.applied
     rng = np.random.default_rng(0)
     print("ready", flush=True)
     for line in sys.stdin:
@@ -74,13 +60,7 @@ def run_publisher() -> int:
         if not parts:
             continue
         if parts[0] == "wait":  # wait for n matched subscriptions on both topics
-            want = int(parts[1])
-            deadline = time.monotonic() + 30
-            while (pub_s.get_subscription_count() < want or pub_c.get_subscription_count() < want) and (
-                time.monotonic() < deadline
-            ):
-                time.sleep(0.05)
-            print(f"matched {pub_s.get_subscription_count()}", flush=True)
+            print(f"matched {pub.wait_matched(int(parts[1]), 30.0)}", flush=True)
             continue
         if parts[0] != "burst":
             break
@@ -108,9 +88,7 @@ def run_publisher() -> int:
                     time.sleep(due - now - 0.001)
             pub.publish(msg)
         print(f"done {time.perf_counter() - start:.4f}", flush=True)
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown()
+    pub.close()
     return 0
 
 

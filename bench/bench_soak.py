@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from bench.bench_learner import Child, LearnerCounts, settle
-from bench.ros_procs import claimed_domain, interrupt
+from bench.ros_procs import claimed_domain, friction_publisher, interrupt
 from msg_schemas import DATA_QOS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,32 +49,14 @@ EPISODE = 100
 def run_publisher() -> int:
     """Child: on stdin ``stream RATE SECONDS`` publish friction episodes at RATE transitions/s for SECONDS, then
     print ``done TRANSITIONS MESSAGES SECONDS``; ``wait N`` waits for N matched subscriptions per topic."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    from msg_schemas import DATA_QOS, get_schema
-    from saml_ros.core.systems import get_system
-
-    schema, system = get_schema("friction"), get_system("friction")
-    rclpy.init()
-    node = rclpy.create_node("soak_publisher")
-    qos = DATA_QOS.to_rclpy()
-    jt = type(schema.state_to_msg(np.zeros(2), 0))
-    pub_s = node.create_publisher(jt, f"{NS}/state", qos)
-    pub_c = node.create_publisher(jt, f"{NS}/applied_cmd", qos)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    pub = friction_publisher("soak_publisher", NS)
+    schema, system, pub_s, pub_c = pub.schema, pub.system, pub.state, pub.applied
     rng = np.random.default_rng(0)
     print("ready", flush=True)
     for line in sys.stdin:
         parts = line.split()
         if parts and parts[0] == "wait":
-            deadline = time.monotonic() + 60
-            while min(pub_s.get_subscription_count(), pub_c.get_subscription_count()) < int(parts[1]) and \
-                    time.monotonic() < deadline:
-                time.sleep(0.05)
-            print(f"matched {pub_s.get_subscription_count()}", flush=True)
+            print(f"matched {pub.wait_matched(int(parts[1]), 60.0)}", flush=True)
             continue
         if not parts or parts[0] != "stream":
             break
@@ -99,9 +81,7 @@ def run_publisher() -> int:
                         time.sleep(min(due - now, 0.002))
             t_ns += 2 * DT_NS  # the next episode starts 2 dt after the last state
         print(f"done {n_tr} {n_msg} {time.perf_counter() - start:.3f}", flush=True)
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown()
+    pub.close()
     return 0
 
 
