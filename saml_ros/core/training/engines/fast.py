@@ -388,6 +388,15 @@ class FastRun:
         seen: set[int] = set()
         return [t for t in ts if not (id(t) in seen or seen.add(id(t)))]  # type: ignore[func-returns-value]
 
+    def _rates(self, t: int) -> None:
+        """Set update ``t``'s primal and dual learning rates from the schedules (constant ones are left alone)."""
+        ps, ds = self.schedules
+        if not ps.constant:
+            self.popt.lr = ps.lr(t)
+        dual_opt = self.dopt or self.dnupi
+        if not ds.constant and dual_opt is not None:
+            dual_opt.lr = ds.lr(t)
+
     def _snapshot(self) -> _Snapshot:
         """The state :meth:`_check_block` puts back: the step tensors, the step counts and nuPI's last error."""
         nupi = self.dnupi
@@ -532,16 +541,11 @@ class FastRun:
         next_log = tr.steps + (log_every - tr.steps % log_every)
         inc = 1.0 / per_epoch
         start = lo
-        ps, ds = self.schedules
-        popt = self.popt
-        dual_opt = self.dopt or self.dnupi
+        rates = self._rates
         every = tr.health.config.check_every
         block, snap = lo, self._snapshot()
         for j in range(lo, hi):
-            if not ps.constant:
-                popt.lr = ps.lr(tr.steps)
-            if not ds.constant and dual_opt is not None:
-                dual_opt.lr = ds.lr(tr.steps)
+            rates(tr.steps)
             step(z_all[j], r_all[j], sg_all[j], rows[j])
             tr.steps += 1
             tr.epochs_done += inc

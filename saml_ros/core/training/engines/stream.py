@@ -114,17 +114,12 @@ class StreamRun(FastRun):
         rows = vals.unbind(0)
         self.load_state()
         self._pending += self._pending_from_log()  # values of plain steps taken in between
-        ps, ds = self.schedules
-        popt, dual_opt = self.popt, self.dopt or self.dnupi
         every, log_every = tr.health.config.check_every, self.log_every
-        step = self._step
+        step, rates = self._step, self._rates
         start = block = 0
         snap = self._snapshot()
         for j in range(s):
-            if not ps.constant:
-                popt.lr = ps.lr(tr.steps)
-            if not ds.constant and dual_opt is not None:
-                dual_opt.lr = ds.lr(tr.steps)
+            rates(tr.steps)
             step(z_all[j], r_all[j], sg_all[j], rows[j])
             tr.steps += 1
             logs = tr.steps % log_every == 0
