@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -80,6 +81,23 @@ def training_rate(system_name: str, threads: int, flush_denormal: bool, seconds:
     return Rate((u1 - u0) / (t1 - t0), ready.threads)
 
 
+def _problem(system_name: str) -> tuple[Any, Any, Any, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """What the in-process measurements share: one torch thread and subnormals flushed (the training process's
+    settings), the system, its paper spec, the training process's configuration and :data:`N_DATA` transitions
+    of the true dynamics."""
+    from saml_ros.core.online import OnlineConfig
+    from saml_ros.core.online.child import apply_compute_settings
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.systems import get_system
+
+    apply_compute_settings(1, True)
+    system = get_system(system_name)
+    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    cfg = OnlineConfig(min_transitions=MIN_TRANSITIONS, buffer_capacity=N_DATA)
+    x, u = system.sample_inputs(N_DATA, np.random.default_rng(0))
+    return system, spec, cfg, (x, u, system.true_step_np(x, u))
+
+
 def offline_rate(system_name: str, seconds: float) -> float:
     """Steps per second of the offline engine (``fit``) on the training process's network, spec, configuration
     and data (:func:`training_rate`), in this process with one torch thread and subnormals flushed."""
@@ -88,20 +106,11 @@ def offline_rate(system_name: str, seconds: float) -> float:
     import torch
 
     from saml_ros.core.models import DynamicsModel
-    from saml_ros.core.online import OnlineConfig
-    from saml_ros.core.online.child import apply_compute_settings
-    from saml_ros.core.spec import ProblemSpec
-    from saml_ros.core.systems import get_system
     from saml_ros.core.training import PrimalDualTrainer
     from saml_ros.core.training.dataset import Transitions
 
     threads = torch.get_num_threads()
-    apply_compute_settings(1, True)
-    system = get_system(system_name)
-    spec = ProblemSpec.for_system(system.paper_spec(), system)
-    cfg = OnlineConfig(min_transitions=MIN_TRANSITIONS, buffer_capacity=N_DATA)
-    x, u = system.sample_inputs(N_DATA, np.random.default_rng(0))
-    y = system.true_step_np(x, u)
+    system, spec, cfg, (x, u, y) = _problem(system_name)
     model = DynamicsModel(system, cfg.hidden, cfg.kind, n_models=1, seed=cfg.train.seed)
     model.to(cfg.train.torch_dtype)
     model.fit_normalization(x[:MIN_TRANSITIONS], u[:MIN_TRANSITIONS], y[:MIN_TRANSITIONS])
@@ -130,20 +139,12 @@ def cpu_shares(system_name: str, seconds: float, chunks: Sequence[int] = (10, 50
 
     import torch
 
-    from saml_ros.core.online import OnlineConfig, OnlineLearner
-    from saml_ros.core.online.child import apply_compute_settings
-    from saml_ros.core.spec import ProblemSpec
-    from saml_ros.core.systems import get_system
+    from saml_ros.core.online import OnlineLearner
     from saml_ros.core.training import PrimalDualTrainer
     from saml_ros.core.training.dataset import Transitions
 
     threads = torch.get_num_threads()
-    apply_compute_settings(1, True)
-    system = get_system(system_name)
-    spec = ProblemSpec.for_system(system.paper_spec(), system)
-    cfg = OnlineConfig(min_transitions=MIN_TRANSITIONS, buffer_capacity=N_DATA)
-    x, u = system.sample_inputs(N_DATA, np.random.default_rng(0))
-    y = system.true_step_np(x, u)
+    system, spec, cfg, (x, u, y) = _problem(system_name)
     learner = OnlineLearner(system, spec, cfg)
     learner.add_batch(x, u, y)
     learner.update(1)
