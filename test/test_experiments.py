@@ -60,6 +60,8 @@ def test_cli_parses_every_experiment_and_applies_seeds() -> None:
     assert cli.settings_for("convergence", False, [7]).seed == 7
     assert cli.settings_for("paddle_ball", True, None).n_trials < cli.settings_for("paddle_ball", False, None).n_trials
     assert cli.main(["friction", "--seeds", "1", "1"]) == 2
+    assert cli.main(["paddle_ball", "--quick", "--set", "sa_init=bogus"]) == 2  # refused before anything runs
+    assert cli.main(["all", "--quick", "--set", "recipe=bogus"]) == 2
 
 
 def test_claims_command_rebuilds_the_table_from_stored_results(tmp_path: Path,

@@ -96,7 +96,7 @@ def test_prelu_init_sets_only_the_first_hidden_layers_starting_slope() -> None:
     assert torch.all(default.net.slopes[0] == 0.25)
     for a, b in zip(model.net.weights, default.net.weights):  # the same weights: only the slope differs
         assert torch.equal(a, b)
-    with pytest.raises(ValueError, match="first_slope"):
+    with pytest.raises(ValueError, match="prelu_init"):
         DynamicsModel(system, hidden=(4, 2), prelu_init=float("nan"))
 
 

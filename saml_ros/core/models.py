@@ -106,6 +106,9 @@ class DynamicsModel(nn.Module):
         prelu_init: float = 0.25,
     ) -> None:
         super().__init__()
+        if not math.isfinite(prelu_init):
+            raise ValueError(f"prelu_init (the first hidden layer's starting PReLU slope) must be finite, "
+                             f"got {prelu_init}")
         if kind not in MODEL_KINDS:
             raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
         self.system = system

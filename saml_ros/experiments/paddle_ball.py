@@ -125,6 +125,12 @@ class PaddleSettings:
     timestep: float = 0.002
     extra: dict[str, Any] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        if self.recipe not in ("paper", "default"):
+            raise ValueError(f"paddle_ball: recipe must be 'paper' or 'default', got {self.recipe!r}")
+        if self.sa_init not in ("scratch", "uniform"):
+            raise ValueError(f"paddle_ball: sa_init must be 'scratch' or 'uniform', got {self.sa_init!r}")
+
     @classmethod
     def quick(cls, seeds: tuple[int, ...] = (0, 1)) -> PaddleSettings:
         """About a minute: 400 impacts, 150 epochs, 6 trials of 10 bounces."""
@@ -223,8 +229,6 @@ def train_config(s: PaddleSettings) -> TrainConfig:
     ``s.lr_schedule``; ``"default"``: ``TrainConfig()`` with the experiment's epochs and batch size."""
     if s.recipe == "default":
         return TrainConfig(epochs=s.epochs, batch_size=128)
-    if s.recipe != "paper":
-        raise ValueError(f"paddle_ball: recipe must be 'paper' or 'default', got {s.recipe!r}")
     options: dict[str, Any] = {}
     if s.lr_schedule != "constant":
         options["primal_schedule"] = s.lr_schedule
@@ -235,8 +239,6 @@ def train_all(s: PaddleSettings, system: PaddleBall, specs: dict[str, ProblemSpe
               y: np.ndarray, progress: bool) -> dict[tuple[str, str], TrainedModels]:
     """Both kinds under both specs (``specs``: ``"sufficient"``, ``"uniform"``), one ensemble of ``s.seeds`` each;
     with ``s.sa_init == "uniform"`` SA starts from UA's trained models (:func:`finetune_models`)."""
-    if s.sa_init not in ("scratch", "uniform"):
-        raise ValueError(f"paddle_ball: sa_init must be 'scratch' or 'uniform', got {s.sa_init!r}")
     config = train_config(s)
     trained: dict[tuple[str, str], TrainedModels] = {}
     with quiet_trainer_warnings():
