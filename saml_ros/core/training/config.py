@@ -17,7 +17,7 @@ from saml_ros.core.device import resolve_device
 #: optimizer names of :attr:`TrainConfig.primal_optimizer` / :attr:`TrainConfig.dual_optimizer`
 OPTIMIZERS = ("adam", "sgd")
 #: engine names of :attr:`TrainConfig.engine` (the classes are in :mod:`saml_ros.core.training.engines`)
-ENGINE_NAMES = ("fast", "plain")
+ENGINE_NAMES = ("fast", "fast_torch", "plain")
 #: dual methods of :attr:`TrainConfig.dual_method` (the classes are in :mod:`saml_ros.core.training.dual`)
 DUAL_METHODS = ("paper", "nupi", "augmented", "resilient")
 #: learning-rate schedules of :attr:`TrainConfig.primal_schedule` / :attr:`TrainConfig.dual_schedule`; ``"auto"``
@@ -46,9 +46,11 @@ class TrainConfig:
         seed: seeds minibatch sampling.
         dtype: ``"float32"`` or ``"float64"`` for parameters and data.
         engine: how :meth:`~saml_ros.core.training.PrimalDualTrainer.fit` runs: ``"fast"`` (hand-written
-            forward/backward and flat Adam, :mod:`saml_ros.core.training.engines.fast`; same results up to float
-            rounding, falls back to the plain loop where it does not apply) or ``"plain"`` (autograd and
-            ``torch.optim``).
+            forward/backward and flat Adam, :mod:`saml_ros.core.training.engines.fast`, its steps in the fused C++
+            kernel of :mod:`saml_ros.core.training.engines.fused` where that is built and not switched off with
+            ``SAML_FUSED_KERNEL=0``; same results up to float rounding, falls back to the plain loop where it does
+            not apply), ``"fast_torch"`` (the fast engine's torch path, never the kernel) or ``"plain"``
+            (autograd and ``torch.optim``).
         dual_method: how the multipliers move (:data:`DUAL_METHODS`, :mod:`saml_ros.core.training.dual`):
             ``"paper"`` (Algorithm 1: projected ascent on g with ``dual_optimizer``), ``"nupi"`` (a PI
             controller on the relative violation g / eps), ``"augmented"`` (augmented Lagrangian with penalty

@@ -263,17 +263,22 @@ class TrainingHealth:
         block's steps healthy."""
         obj = objectives.sum(-1)
         worst, mean = torch.stack((obj.max(), obj.mean())).tolist()
+        return self.check_block_values(worst, mean, len(obj), max_abs(weights))
+
+    def check_block_values(self, worst: float, mean: float, n: int, biggest: float) -> str | None:
+        """:meth:`check_block` on floats: the largest and the mean over the block's ``n`` steps of the members'
+        summed minibatch objective, and the largest weight magnitude after them (NaN: non-finite)."""
         if not math.isfinite(worst):
-            return self._problem("loss", f"non-finite minibatch objective in the last {len(obj)} steps")
+            return self._problem("loss", f"non-finite minibatch objective in the last {n} steps")
         if self._loss.exploding(worst, self.config):
             return self._problem("loss", f"exploding minibatch objective {worst:.4g} (running mean "
                                          f"{self._loss.value:.4g})")
-        why = self._weights_problem(max_abs(weights))
+        why = self._weights_problem(biggest)
         if why is not None:
             return why
         cfg = self.config
         self._loss.add(mean, cfg.warmup, cfg.smoothing)
-        self.healthy_steps += len(obj)
+        self.healthy_steps += n
         self.streak = 0
         return None
 

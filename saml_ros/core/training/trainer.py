@@ -53,6 +53,8 @@ class PrimalDualTrainer:
         health: the training-health checks and counters (:mod:`~saml_ros.core.training.health`).
         steps: primal-dual updates done so far; epochs_done: passes over the data of :meth:`fit` so far.
         engine_used: engine of the last :meth:`fit` (``"fast"`` or ``"plain"``), None before.
+        kernel_used: True when the last :meth:`fit` ran its steps in the fused C++ kernel
+            (:mod:`~saml_ros.core.training.engines.fused`; ``engine_used`` is then ``"fast"``).
         diagnosis: the feasibility diagnosis at the end of the last :meth:`fit` (None before).
     """
 
@@ -77,6 +79,7 @@ class PrimalDualTrainer:
         self.health = TrainingHealth(health)
         self.rng = torch.Generator().manual_seed(int(self.config.seed))
         self.engine_used: str | None = None
+        self.kernel_used = False
         self.diagnosis: FeasibilityDiagnosis | None = None
 
     @property
@@ -148,10 +151,12 @@ class PrimalDualTrainer:
             log.info("%s training engine not used (%s): running the plain loop", engine.name, why)
             engine = PlainEngine()
         self.engine_used = engine.name
+        self.kernel_used = False
         bar = progress_bar(epochs * minibatch_plan(self.config.batch_size, len(data))[1], desc) if progress else None
         on_epoch = None if callback is None else (lambda: callback(self))
         try:
             engine.fit(self, data, epochs, bar, on_epoch)
+            self.kernel_used = bool(getattr(engine, "kernel_used", False))
         finally:
             if bar is not None:
                 bar.close()

@@ -1,0 +1,387 @@
+"""The fused training kernel: blocks of the fast engine's primal-dual steps in one C++ call.
+
+The fast engine (:mod:`~saml_ros.core.training.engines.fast`) computes a step with ~43 small tensor operations;
+at the paper's sizes that is dispatch-bound (a 16-8 net reaches a few per cent of the one-thread arithmetic
+ceiling). ``kernels/fused_step.cpp`` does the same step (gather of the minibatch, forward, spec values,
+closed-form loss gradient, backward, Adam / SGD of the flat parameters, the dual method's update of the
+multipliers, for every ensemble member) as plain C++ loops over the fast engine's flat tensors, for a block
+of steps per call; the health check runs on the block's outputs (:meth:`TrainingHealth.check_block_values`).
+
+* :func:`load_kernel` compiles it once per machine with :func:`torch.utils.cpp_extension.load`
+  (``-O3 -march=native``) into ``~/.cache/saml_ros/fused_kernel/<name>`` (``$SAML_KERNEL_CACHE`` or
+  ``$XDG_CACHE_HOME/saml_ros`` instead of ``~/.cache/saml_ros``), where the name holds a hash of the source,
+  the torch version, the compiler flags and this CPU's model and flags: a build from another CPU or torch is
+  never loaded. A build that fails leaves :func:`kernel_reason` / :func:`build_error` and one warning, and
+  training runs the torch path.
+* ``SAML_FUSED_KERNEL=0`` (:func:`switched_off`) or ``TrainConfig(engine="fast_torch")`` run the torch path.
+* :class:`FusedEngine` is ``TrainConfig.engine="fast"``: the kernel where it loaded and applies
+  (:func:`kernel_unsupported_reason`), else the fast engine's torch path; ``trainer.kernel_used`` says which.
+
+The results are the fast engine's up to float rounding (summation order in the matmuls and reductions):
+``test/test_fused_kernel.py`` bounds them with ``test/test_fast_train.py``'s tolerances against the torch path
+and the plain engine. This module is the only one that imports the kernel; :mod:`.fast` does not know it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import platform
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from saml_ros.core.training.dataset import Transitions
+from saml_ros.core.training.dual import AugmentedDual, NuPIDual, ResilientDual
+from saml_ros.core.training.engines.base import RunState, minibatch_plan
+from saml_ros.core.training.engines.fast import FastEngine, FastRun
+
+log = logging.getLogger("saml_ros.trainer")
+
+#: the kernel's source (package data: setup.py installs it with the package)
+KERNEL_SOURCE = Path(__file__).resolve().parent / "kernels" / "fused_step.cpp"
+#: ``SAML_FUSED_KERNEL=0`` runs the torch path
+SWITCH_ENV = "SAML_FUSED_KERNEL"
+#: the compiler flags (part of the build's name)
+CFLAGS = ("-O3", "-march=native", "-std=c++17")
+_LOSS_CODES = {"l2": 0, "squared_l2": 1, "l1": 2, "huber": 3, "normalized": 4}
+
+
+class _KernelState:
+    def __init__(self) -> None:
+        self.tried = False
+        self.module: Any = None
+        self.reason: str | None = None
+        self.error: str | None = None
+        self.seconds: float | None = None
+        self.cached = False
+        self.warned = False
+
+
+_STATE = _KernelState()
+
+
+def switched_off() -> bool:
+    """True when ``SAML_FUSED_KERNEL`` is ``0`` / ``false`` / ``off`` / ``no``: training runs the torch path."""
+    return os.environ.get(SWITCH_ENV, "1").strip().lower() in ("0", "false", "off", "no")
+
+
+def _cpu_id() -> str:
+    """This CPU's model name and feature flags (what ``-march=native`` compiles for)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return f"{platform.machine()} {platform.processor()}"
+    keep = [ln for ln in text.splitlines() if ln.split(":")[0].strip() in ("model name", "flags", "Features")]
+    return "\n".join(sorted(set(keep)))
+
+
+def build_name(source: Path = KERNEL_SOURCE) -> str:
+    """The extension's name: ``saml_fused_step_<hash>`` of the source, torch version, flags and CPU."""
+    h = hashlib.sha256()
+    for part in (source.read_bytes(), torch.__version__.encode(), " ".join(CFLAGS).encode(), _cpu_id().encode(),
+                 sys.version.encode()):
+        h.update(part)
+        h.update(b"\0")
+    return f"saml_fused_step_{h.hexdigest()[:16]}"
+
+
+def cache_root() -> Path:
+    """Where builds go: ``$SAML_KERNEL_CACHE``, else ``$XDG_CACHE_HOME/saml_ros`` or ``~/.cache/saml_ros``."""
+    env = os.environ.get("SAML_KERNEL_CACHE")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "saml_ros" / "fused_kernel"
+
+
+def _ensure_ninja_on_path() -> None:
+    """torch's builder runs ``ninja``: the PyPI wheel's binary lives beside this Python (a venv not activated)."""
+    dirs = [str(Path(sys.executable).parent)]
+    try:
+        import ninja  # type: ignore[import-not-found,unused-ignore]
+
+        dirs.insert(0, str(ninja.BIN_DIR))
+    except Exception:  # noqa: BLE001 - the wheel is optional when ninja is installed system-wide
+        pass
+    path = os.environ.get("PATH", "").split(os.pathsep)
+    missing = [d for d in dirs if d not in path]
+    if missing:
+        os.environ["PATH"] = os.pathsep.join([*missing, *path])
+
+
+def load_kernel(source: Path | None = None, verbose: bool = False) -> Any:
+    """The compiled kernel module (built on the first call on this machine, then loaded from the cache), or
+    ``None`` when it is switched off or cannot be built (:func:`kernel_reason`, :func:`build_error`; one warning
+    per process). The result is cached for the process; ``source`` (tests) builds another copy of the source."""
+    if switched_off():
+        return None
+    if source is None and _STATE.tried:
+        return _STATE.module
+    state = _STATE if source is None else _KernelState()
+    state.tried = True
+    src = KERNEL_SOURCE if source is None else Path(source)
+    try:
+        name = build_name(src)
+        build_dir = cache_root() / name
+        build_dir.mkdir(parents=True, exist_ok=True)
+        state.cached = any(build_dir.glob(f"{name}*.so"))
+        _ensure_ninja_on_path()
+        from torch.utils.cpp_extension import load
+
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mod = load(name=name, sources=[str(src)], extra_cflags=list(CFLAGS), build_directory=str(build_dir),
+                       verbose=verbose)
+        state.seconds = None if state.cached else time.perf_counter() - t0
+        if not hasattr(mod, "FusedKernel"):
+            raise RuntimeError("the built module has no FusedKernel")
+        state.module, state.reason, state.error = mod, None, None
+    except Exception as exc:  # noqa: BLE001 - any build or load problem means: the torch path
+        state.module = None
+        state.error = f"{type(exc).__name__}: {exc}"
+        first = str(exc).strip().splitlines()
+        state.reason = f"build failed: {type(exc).__name__}: {first[0] if first else ''}"[:300]
+        if not _STATE.warned:
+            _STATE.warned = True
+            warnings.warn(f"saml_ros fused training kernel not available ({state.reason}); training runs the "
+                          "torch path", RuntimeWarning, stacklevel=2)
+    if source is not None:
+        _STATE.reason, _STATE.error = state.reason, state.error
+    return state.module
+
+
+def kernel_reason() -> str | None:
+    """Why the kernel is not used (``None`` when it loaded): switched off, not loaded yet, or the build failure."""
+    if switched_off():
+        return f"switched off ({SWITCH_ENV}=0)"
+    if not _STATE.tried:
+        return "not loaded yet"
+    return _STATE.reason
+
+
+def build_error() -> str | None:
+    """The full error of a failed build or load (``None`` otherwise)."""
+    return _STATE.error
+
+
+def build_seconds() -> float | None:
+    """Seconds this process spent compiling the kernel (``None``: loaded from the cache, or not loaded)."""
+    return _STATE.seconds
+
+
+def kernel_cached() -> bool:
+    """True when :func:`load_kernel` found a build in the cache."""
+    return _STATE.cached
+
+
+def kernel_unsupported_reason(run: RunState, data: Transitions) -> str | None:
+    """Why the kernel cannot run ``run`` on ``data`` (beyond :func:`~.fast.unsupported_reason`), or ``None``."""
+    dt = run.config.torch_dtype
+    if dt not in (torch.float32, torch.float64):
+        return f"dtype {dt}"
+    if any(p.device.type != "cpu" for p in run.model.net.parameters()) or data.x.device.type != "cpu":
+        return "tensors not on the CPU"
+    return None
+
+
+# ------------------------------------------------------------------------------------------------- engine
+class FusedEngine(FastEngine):
+    """``TrainConfig.engine="fast"``: the fast engine with its steps in the fused kernel where it loaded and
+    applies, else its torch path; :attr:`kernel_used` says which ran (the trainer copies it)."""
+
+    name = "fast"
+
+    def __init__(self) -> None:
+        self.kernel_used = False
+        self.kernel_reason: str | None = None
+
+    def fit(self, run: RunState, data: Transitions, epochs: int, bar: Any = None,
+            on_epoch: Callable[[], None] | None = None) -> None:
+        mod = load_kernel()
+        why = kernel_reason() if mod is None else kernel_unsupported_reason(run, data)
+        self.kernel_reason = why
+        if why is not None:
+            log.debug("fused training kernel not used (%s): the fast engine's torch path", why)
+            self.kernel_used = False
+            FastRun(run, data).fit(epochs, bar, on_epoch)
+            return
+        self.kernel_used = True
+        FusedRun(run, data, mod).fit(epochs, bar, on_epoch)
+
+
+class FusedRun(FastRun):
+    """One :meth:`Engine.fit` on the fused kernel: the fast engine's flat state and sources, stepped by
+    ``kernels/fused_step.cpp`` in blocks of ``health.check_every`` steps (see the module docstring)."""
+
+    def __init__(self, trainer: RunState, data: Transitions, module: Any) -> None:
+        super().__init__(trainer, data)
+        self.module = module
+        rows = self.src_r.shape[0]
+        # every term's mask column and ||y|| (1 where unused), in term order
+        self.src_mask = torch.ones(rows, self.T, dtype=self.dtype)
+        self.src_nyt = torch.ones(rows, self.T, dtype=self.dtype)
+        for g, m, ny in zip(self.groups, self.src_masks, self.src_ny):
+            self.src_mask[:, g.cols] = m
+            if ny is not None:
+                self.src_nyt[:, g.cols] = ny
+        self.counts = torch.zeros(4, dtype=torch.int64)
+        self.xi = torch.zeros(self.E, max(self.K, 1), dtype=self.dtype)
+        self.stats = torch.zeros(3, dtype=torch.float64)
+
+    def _kernel(self, bsz: int) -> Any:
+        """The C++ object over this run's tensors (their storage is shared: it steps them in place)."""
+        net, popt, dual = self.net, self.popt, self.dual
+        empty = torch.empty(0, dtype=self.dtype)
+        if not self.K:
+            dkind = 0
+        elif self.k_dual is not None:
+            dkind = 1
+        elif self.dnupi is not None:
+            dkind = 4
+        else:
+            assert self.dopt is not None
+            dkind = 2 if self.dopt.kind == "adam" else 3
+        method = 1 if isinstance(dual, NuPIDual) else 2 if isinstance(dual, AugmentedDual) else \
+            3 if isinstance(dual, ResilientDual) else 0
+        adam = popt.kind == "adam"
+        dadam = self.dopt is not None and self.dopt.kind == "adam"
+        ostd = self.tr.model.out_std.detach().to(self.dtype).reshape(self.E, -1).contiguous()
+        self._ostd = ostd
+        tensors = [net.flat, net.grad, popt.m if adam else empty, popt.v if adam else empty, self.lam,
+                   self.dopt.m if dadam else empty, self.dopt.v if dadam else empty, self.xi,
+                   self.src_z.contiguous(), self.src_r.contiguous(), self.src_mask, self.src_nyt, ostd, self.counts]
+        ints = [self.E, bsz, self.n, net.n_layers, *net.dims, self.T, self.src_r.shape[1], int(self.data.per_member),
+                int(self.z_per_member), 0 if adam else 1, dkind, method, net.n_extra]
+        for t in self.terms:
+            ints += [_LOSS_CODES[t.loss], int(t.region is not None and t.mean == "conditional"), len(t.fields),
+                     *[int(f) for f in t.fields]]
+        d = self.dopt
+        dbls = [popt.beta1, popt.beta2, popt.eps, d.beta1 if d else 0.0, d.beta2 if d else 0.0, d.eps if d else 0.0,
+                float(self.k_dual or 0.0), self.dnupi.kp if self.dnupi else 0.0, self.dnupi.nu if self.dnupi else 0.0]
+        for t in self.terms:
+            dbls += [float(t.eps), float(t.huber_delta) if t.loss == "huber" else 0.0]
+        rho = getattr(dual, "rho", None)
+        eps2 = getattr(dual, "eps2", None)
+        for k in range(self.K):
+            dbls += [float(rho[k]) if rho is not None else 0.0, float(eps2[k]) if eps2 is not None else 0.0,
+                     float(dual.eps[k])]
+        return self.module.FusedKernel(tensors, ints, dbls)
+
+    # ------------------------------------------------------------------------------ counters <-> flat optimizers
+    def _to_kernel(self) -> None:
+        nupi = self.dnupi
+        self.counts[0] = self.popt.step_count
+        self.counts[1] = self.dopt.step_count if self.dopt is not None else 0
+        self.counts[2] = nupi.step_count if nupi is not None else 0
+        self.counts[3] = int(nupi is not None and nupi.xi is not None)
+        if nupi is not None and nupi.xi is not None:
+            self.xi.copy_(nupi.xi)
+
+    def _from_kernel(self) -> None:
+        c = self.counts.tolist()
+        self.popt.step_count = c[0]
+        if self.dopt is not None:
+            self.dopt.step_count = c[1]
+        if self.dnupi is not None:
+            self.dnupi.step_count = c[2]
+            self.dnupi.xi = self.xi.clone() if c[3] else None
+
+    def _lrs(self, t0: int, s: int) -> Tensor:
+        """``(s, 2)`` float64: the primal and dual learning rates of updates ``t0 .. t0 + s - 1``."""
+        ps, ds = self.schedules
+        out = torch.empty(s, 2, dtype=torch.float64)
+        dual_opt = self.dopt or self.dnupi
+        if ps.constant:
+            out[:, 0] = self.popt.lr
+        else:
+            out[:, 0] = torch.tensor([ps.lr(t) for t in range(t0, t0 + s)], dtype=torch.float64)
+        if ds.constant or dual_opt is None:
+            out[:, 1] = dual_opt.lr if dual_opt is not None else 0.0
+        else:
+            out[:, 1] = torch.tensor([ds.lr(t) for t in range(t0, t0 + s)], dtype=torch.float64)
+        return out
+
+    # ------------------------------------------------------------------------------ training
+    def fit(self, epochs: int, bar: Any = None, on_epoch: Callable[[], None] | None = None) -> None:
+        """``epochs`` passes, with the contract of :meth:`Engine.fit` (history, counters, generator)."""
+        tr = self.tr
+        n, e = self.n, self.E
+        bsz, per_epoch = minibatch_plan(tr.config.batch_size, n)
+        log_every = tr.config.log_every or per_epoch
+        tr.model.train()
+        self.load_state()
+        self._pending = self._pending_from_log()
+        kern = self._kernel(bsz)
+        self._to_kernel()
+        # as FastRun.fit: several epochs drawn at once (rand(Q, E, N) consumes the generator like Q rand(E, N))
+        per_ints = per_epoch * e * bsz
+        chunk = 1 if on_epoch is not None else max(1, min(epochs, 1_000_000 // max(1, per_ints)))
+        done = 0
+        while done < epochs:
+            q = min(chunk, epochs - done)
+            perm = torch.argsort(torch.rand(q, e, n, generator=tr.rng), dim=-1)
+            idx = perm[..., : per_epoch * bsz].reshape(q, e, per_epoch, bsz).transpose(1, 2)
+            idx = idx.reshape(q * per_epoch, e, bsz).contiguous()
+            vals = torch.empty(q * per_epoch, e, self.T, dtype=self.dtype)
+            kern.set_chunk(idx, vals, self._lrs(tr.steps, q * per_epoch))
+            for k in range(q):
+                self._run_kernel(kern, vals, k * per_epoch, (k + 1) * per_epoch, per_epoch, log_every, bar)
+                tr.epochs_done = round(tr.epochs_done, 9)
+                if on_epoch is not None:
+                    self._from_kernel()
+                    self.store_state()
+                    on_epoch()
+                    self.load_state()
+                    self._to_kernel()
+            done += q
+        self._from_kernel()
+        self._log_point()
+        self.store_state()
+
+    def _run_kernel(self, kern: Any, vals: Tensor, lo: int, hi: int, per_epoch: int, log_every: int,
+                    bar: Any) -> None:
+        """Steps ``lo:hi`` of the chunk in blocks: one kernel call and one health check per block (a block ends
+        after ``check_every`` steps, at a log point and at ``hi``)."""
+        tr = self.tr
+        health = tr.health
+        every = health.config.check_every
+        next_log = tr.steps + (log_every - tr.steps % log_every)
+        inc = 1.0 / per_epoch
+        start = j = lo
+        stats = self.stats
+        while j < hi:
+            b = min(hi, j + every, j + (next_log - tr.steps))
+            kern.snapshot()
+            kern.run(j, b, stats)
+            n = b - j
+            tr.steps += n
+            for _ in range(n):  # the same float sum as one increment per step
+                tr.epochs_done += inc
+            worst, mean, biggest = stats.tolist()
+            why = health.check_block_values(worst, mean, n, biggest)
+            if why is not None:
+                kern.restore()
+                vals[j:b] = float("nan")
+                health.skip(why, n)
+                health.restores += 1
+            j = b
+            if tr.steps == next_log:
+                next_log += log_every
+                self._pending.append(vals[start:j])
+                start = j
+                self._log_point()
+                if bar is not None:
+                    bar.set_postfix_str(tr.log.postfix(), refresh=False)
+        if start < hi:
+            self._pending.append(vals[start:hi])
+        if bar is not None:
+            bar.update(hi - lo)
