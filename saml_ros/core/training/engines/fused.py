@@ -50,7 +50,7 @@ KERNEL_SOURCE = Path(__file__).resolve().parent / "kernels" / "fused_step.cpp"
 #: ``SAML_FUSED_KERNEL=0`` runs the torch path
 SWITCH_ENV = "SAML_FUSED_KERNEL"
 #: the compiler flags (part of the build's name)
-CFLAGS = ("-O3", "-march=native", "-std=c++17")
+CFLAGS = ("-O3", "-march=native", "-fno-math-errno", "-std=c++17")
 _LOSS_CODES = {"l2": 0, "squared_l2": 1, "l1": 2, "huber": 3, "normalized": 4}
 
 

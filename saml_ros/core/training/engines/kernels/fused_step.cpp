@@ -27,6 +27,15 @@ enum DualOpt : int64_t { D_NONE = 0, D_MERGED = 1, D_ADAM = 2, D_SGD = 3, D_NUPI
 // which dual method's arithmetic: the paper's, nuPI, augmented Lagrangian, resilient
 enum DualMethod : int64_t { M_PAPER = 0, M_NUPI = 1, M_AUGMENTED = 2, M_RESILIENT = 3 };
 
+// the native vector width -march=native gives (the matmul's register blocks are two such vectors wide)
+#if defined(__AVX512F__)
+constexpr int64_t VEC_BYTES = 64;
+#elif defined(__AVX__)
+constexpr int64_t VEC_BYTES = 32;
+#else
+constexpr int64_t VEC_BYTES = 16;
+#endif
+
 constexpr double TINY = 1e-30;   // closed_form._TINY
 constexpr double F_MIN = 1e-12;  // ResilientDual.F_MIN
 
@@ -179,74 +188,63 @@ class FusedKernel {
     return ts_[i].numel() ? ts_[i].data_ptr<S>() : nullptr;
   }
 
-  // C (rows x n) = A (rows x k, row stride lda) * W (k x n); rows blocked by 4 so a row of W feeds four
+  // C (rows x np, row stride ldc) = A (rows x k; element (r, kk) at A[r * rs + kk * cs]) * Wp (k x np, padded
+  // with zeros to a multiple of NB = two native vectors of S). Register blocking: 4 rows x NB columns of C stay in
+  // eight vector accumulators (GCC vector extensions of the target's native width) while kk runs.
   template <typename S>
-  static void matmul(const S* A, int64_t lda, int64_t rows, int64_t k, const S* W, int64_t n, S* C) {
-    int64_t r = 0;
-    for (; r + 4 <= rows; r += 4) {
-      S* c0 = C + r * n;
-      S* c1 = c0 + n;
-      S* c2 = c1 + n;
-      S* c3 = c2 + n;
-      const S* a0 = A + r * lda;
-      const S* a1 = a0 + lda;
-      const S* a2 = a1 + lda;
-      const S* a3 = a2 + lda;
-      for (int64_t j = 0; j < n; ++j) c0[j] = c1[j] = c2[j] = c3[j] = S(0);
-      for (int64_t kk = 0; kk < k; ++kk) {
-        const S* w = W + kk * n;
-        const S h0 = a0[kk], h1 = a1[kk], h2 = a2[kk], h3 = a3[kk];
-        for (int64_t j = 0; j < n; ++j) {
-          const S wj = w[j];
-          c0[j] += h0 * wj;
-          c1[j] += h1 * wj;
-          c2[j] += h2 * wj;
-          c3[j] += h3 * wj;
+  static void gemm(int64_t rows, int64_t k, const S* A, int64_t rs, int64_t cs, const S* Wp, int64_t np, S* C,
+                   int64_t ldc) {
+    typedef S V __attribute__((vector_size(VEC_BYTES), aligned(sizeof(S))));
+    constexpr int64_t W1 = VEC_BYTES / sizeof(S);  // one vector
+    for (int64_t j0 = 0; j0 < np; j0 += 2 * W1) {
+      int64_t r = 0;
+      for (; r + 4 <= rows; r += 4) {
+        V c00 = {}, c01 = {}, c10 = {}, c11 = {}, c20 = {}, c21 = {}, c30 = {}, c31 = {};
+        const S* a0 = A + r * rs;
+        const S* a1 = a0 + rs;
+        const S* a2 = a1 + rs;
+        const S* a3 = a2 + rs;
+        const S* w = Wp + j0;
+        for (int64_t kk = 0; kk < k; ++kk, w += np) {
+          const V w0 = *reinterpret_cast<const V*>(w);
+          const V w1 = *reinterpret_cast<const V*>(w + W1);
+          const int64_t o = kk * cs;
+          const S x0 = a0[o], x1 = a1[o], x2 = a2[o], x3 = a3[o];
+          c00 += x0 * w0;
+          c01 += x0 * w1;
+          c10 += x1 * w0;
+          c11 += x1 * w1;
+          c20 += x2 * w0;
+          c21 += x2 * w1;
+          c30 += x3 * w0;
+          c31 += x3 * w1;
         }
+        S* o0 = C + r * ldc + j0;
+        *reinterpret_cast<V*>(o0) = c00;
+        *reinterpret_cast<V*>(o0 + W1) = c01;
+        *reinterpret_cast<V*>(o0 + ldc) = c10;
+        *reinterpret_cast<V*>(o0 + ldc + W1) = c11;
+        *reinterpret_cast<V*>(o0 + 2 * ldc) = c20;
+        *reinterpret_cast<V*>(o0 + 2 * ldc + W1) = c21;
+        *reinterpret_cast<V*>(o0 + 3 * ldc) = c30;
+        *reinterpret_cast<V*>(o0 + 3 * ldc + W1) = c31;
       }
-    }
-    for (; r < rows; ++r) {
-      S* c0 = C + r * n;
-      const S* a0 = A + r * lda;
-      for (int64_t j = 0; j < n; ++j) c0[j] = S(0);
-      for (int64_t kk = 0; kk < k; ++kk) {
-        const S* w = W + kk * n;
-        const S h0 = a0[kk];
-        for (int64_t j = 0; j < n; ++j) c0[j] += h0 * w[j];
+      for (; r < rows; ++r) {
+        V c0 = {}, c1 = {};
+        const S* a0 = A + r * rs;
+        const S* w = Wp + j0;
+        for (int64_t kk = 0; kk < k; ++kk, w += np) {
+          const S x0 = a0[kk * cs];
+          c0 += x0 * *reinterpret_cast<const V*>(w);
+          c1 += x0 * *reinterpret_cast<const V*>(w + W1);
+        }
+        *reinterpret_cast<V*>(C + r * ldc + j0) = c0;
+        *reinterpret_cast<V*>(C + r * ldc + j0 + W1) = c1;
       }
     }
   }
 
-  // G (k x n) = A^T (A: rows x k, stride lda) * D (rows x n)
-  template <typename S>
-  static void matmul_tn(const S* A, int64_t lda, int64_t rows, int64_t k, const S* D, int64_t n, S* G) {
-    for (int64_t i = 0; i < k * n; ++i) G[i] = S(0);
-    int64_t r = 0;
-    for (; r + 4 <= rows; r += 4) {
-      const S* a0 = A + r * lda;
-      const S* a1 = a0 + lda;
-      const S* a2 = a1 + lda;
-      const S* a3 = a2 + lda;
-      const S* d0 = D + r * n;
-      const S* d1 = d0 + n;
-      const S* d2 = d1 + n;
-      const S* d3 = d2 + n;
-      for (int64_t kk = 0; kk < k; ++kk) {
-        S* g = G + kk * n;
-        const S h0 = a0[kk], h1 = a1[kk], h2 = a2[kk], h3 = a3[kk];
-        for (int64_t j = 0; j < n; ++j) g[j] += h0 * d0[j] + h1 * d1[j] + h2 * d2[j] + h3 * d3[j];
-      }
-    }
-    for (; r < rows; ++r) {
-      const S* a0 = A + r * lda;
-      const S* d0 = D + r * n;
-      for (int64_t kk = 0; kk < k; ++kk) {
-        S* g = G + kk * n;
-        const S h0 = a0[kk];
-        for (int64_t j = 0; j < n; ++j) g[j] += h0 * d0[j];
-      }
-    }
-  }
+  static int64_t padded(int64_t n, int64_t nb) { return (n + nb - 1) / nb * nb; }
 
   template <typename S>
   std::vector<S>& scratch();
@@ -275,9 +273,14 @@ class FusedKernel {
     const double* lrs = lrs_.data_ptr<double>();
     double* stats = stats_t.data_ptr<double>();
     const int64_t dz = dims_[0] + 1;
+    const int64_t n_chunk = idx_.size(0);
 
-    // scratch: per layer input H[i] (B x (d_i + 1), ones column last), AN / D per hidden layer (B x d_{i+1}),
-    // out / err / dpred (B x NY), gradient buffers G, GH (B x max_d), WT (max_d x max_d), per-term loss (B)
+    // scratch (padded widths np(d) = d rounded up to NB; padding columns hold zeros or values times zero):
+    // per layer input H[i] (B x (d_i + 1), ones column last), per hidden layer AN = min(a, 0) and the PReLU
+    // derivative D (B x np), the pre-activation A, the output OUT (B x np(NY)), err / dpred (B x NY), gradient
+    // buffers G, GH (B x np_max), the packed weights WP and the weight gradient CG ((max_d + 1) x np_max)
+    constexpr int64_t NB = 2 * VEC_BYTES / sizeof(S);
+    const int64_t np_max = padded(max_d_, NB);
     std::vector<int64_t> h_off(L + 1), an_off(L), d_off(L);
     int64_t tot = 0;
     for (int64_t i = 0; i < L; ++i) {
@@ -286,30 +289,32 @@ class FusedKernel {
     }
     for (int64_t i = 0; i + 1 < L; ++i) {
       an_off[i] = tot;
-      tot += B * dims_[i + 1];
+      tot += B * padded(dims_[i + 1], NB);
       d_off[i] = tot;
-      tot += B * dims_[i + 1];
+      tot += B * padded(dims_[i + 1], NB);
     }
+    const int64_t a_off = tot;
+    tot += B * np_max;
     const int64_t out_off = tot;
-    tot += B * NY;
+    tot += B * np_max;
     const int64_t err_off = tot;
     tot += B * NY;
     const int64_t dp_off = tot;
     tot += B * NY;
     const int64_t g_off = tot;
-    tot += B * max_d_;
+    tot += B * np_max;
     const int64_t gh_off = tot;
-    tot += B * max_d_;
-    const int64_t wt_off = tot;
-    tot += max_d_ * max_d_;
+    tot += B * np_max;
+    const int64_t wp_off = tot;
+    tot += (max_d_ + 1) * np_max;
+    const int64_t cg_off = tot;
+    tot += (max_d_ + 1) * np_max;
     const int64_t lv_off = tot;
     tot += B * T;
-    const int64_t mk_off = tot;
-    tot += B * T;
-    const int64_t ny_off = tot;
-    tot += B * T;
+    const int64_t acc_off = tot;
+    tot += np_max;
     std::vector<S>& buf = scratch<S>();
-    if ((int64_t)buf.size() < tot) buf.assign(tot, S(0));
+    if ((int64_t)buf.size() < tot + NB) buf.assign(tot + NB, S(0));
     S* bs = buf.data();
     // the ones columns of the hidden activations
     for (int64_t i = 1; i < L; ++i) {
@@ -317,6 +322,7 @@ class FusedKernel {
       const int64_t w = dims_[i] + 1;
       for (int64_t b = 0; b < B; ++b) h[b * w + dims_[i]] = S(1);
     }
+    std::vector<int64_t> rows_d(B);
     std::vector<S> row(T), coef(T), cw(T), gdual(K > 0 ? K : 1), lam_old(K > 0 ? K : 1);
     std::vector<int64_t> cnt(T);
     double worst = -std::numeric_limits<double>::infinity(), total = 0.0;
@@ -330,56 +336,87 @@ class FusedKernel {
         const int64_t* ie = idx + e * B;
         const int64_t zoff = z_per_member_ ? e * n_ : 0;
         const int64_t doff = per_member_ ? e * n_ : 0;
-        // gather z, f_hat - y, masks and ||y||
+        // gather z and f_hat - y (masks and ||y|| are read in place)
         S* h0 = bs + h_off[0];
         for (int64_t b = 0; b < B; ++b) {
-          std::memcpy(h0 + b * dz, src_z + (ie[b] + zoff) * dz, sizeof(S) * dz);
+          const S* src = src_z + (ie[b] + zoff) * dz;
+          S* dst = h0 + b * dz;
+          for (int64_t c = 0; c < dz; ++c) dst[c] = src[c];
         }
         S* err = bs + err_off;
-        S* mk = bs + mk_off;
-        S* nyb = bs + ny_off;
         for (int64_t b = 0; b < B; ++b) {
           const int64_t rr = ie[b] + doff;
-          std::memcpy(err + b * NY, src_r + rr * NY, sizeof(S) * NY);
-          std::memcpy(mk + b * T, src_mask + rr * T, sizeof(S) * T);
-          std::memcpy(nyb + b * T, src_ny + rr * T, sizeof(S) * T);
+          rows_d[b] = rr;
+          const S* src = src_r + rr * NY;
+          S* dst = err + b * NY;
+          for (int64_t f = 0; f < NY; ++f) dst[f] = src[f];
+        }
+        // prefetch the next minibatch's rows (random rows of the sources: cache misses that now overlap with
+        // this member's arithmetic)
+        {
+          const int64_t nxt = s * E + e + 1;
+          if (nxt < n_chunk * E) {
+            const int64_t* in = idx_all + nxt * B;
+            const int64_t ne = nxt % E;
+            const int64_t nz = z_per_member_ ? ne * n_ : 0, nd = per_member_ ? ne * n_ : 0;
+            for (int64_t b = 0; b < B; ++b) {
+              const char* pz = reinterpret_cast<const char*>(src_z + (in[b] + nz) * dz);
+              __builtin_prefetch(pz);
+              __builtin_prefetch(pz + sizeof(S) * (dz - 1));
+              const char* pr = reinterpret_cast<const char*>(src_r + (in[b] + nd) * NY);
+              __builtin_prefetch(pr);
+              __builtin_prefetch(pr + sizeof(S) * (NY - 1));
+              __builtin_prefetch(src_mask + (in[b] + nd) * T);
+            }
+          }
         }
         // forward
+        S* wp = bs + wp_off;
         for (int64_t i = 0; i < L; ++i) {
-          const int64_t din = dims_[i] + 1, dout = dims_[i + 1];
+          const int64_t din = dims_[i] + 1, dout = dims_[i + 1], np = padded(dout, NB);
           const S* W = flat + w_off_[i] + e * din * dout;
-          S* hin = bs + h_off[i];
+          for (int64_t r = 0; r < din; ++r) {
+            S* wr = wp + r * np;
+            const S* src = W + r * dout;
+            for (int64_t c = 0; c < dout; ++c) wr[c] = src[c];
+            for (int64_t c = dout; c < np; ++c) wr[c] = S(0);
+          }
+          const S* hin = bs + h_off[i];
           if (i + 1 < L) {
-            // the pre-activation a into the G buffer (free during the forward pass), then PReLU
-            matmul<S>(hin, din, B, din, W, dout, bs + g_off);
+            S* av = bs + a_off;
+            gemm<S>(B, din, hin, din, 1, wp, np, av, np);
+            // PReLU: h = a * d with d = 1 where a >= 0 (the plain model's tie rule), else the slope
             const S slope = flat[s_off_ + i * E + e];
             S* an = bs + an_off[i];
             S* dd = bs + d_off[i];
+#pragma GCC ivdep
+            for (int64_t t = 0; t < B * np; ++t) {
+              const S x = av[t];
+              an[t] = x > S(0) ? S(0) : x;
+              dd[t] = x >= S(0) ? S(1) : slope;
+            }
             S* hout = bs + h_off[i + 1];
             const int64_t wo = dout + 1;
-            const S* av = bs + g_off;
             for (int64_t b = 0; b < B; ++b) {
-              const S* ar = av + b * dout;
-              S* anr = an + b * dout;
-              S* dr = dd + b * dout;
+              const S* ar = av + b * np;
+              const S* dr = dd + b * np;
               S* hr = hout + b * wo;
-              for (int64_t j = 0; j < dout; ++j) {
-                const S x = ar[j];
-                const S d = std::signbit(x) ? slope : S(1);
-                anr[j] = x > S(0) ? S(0) : x;
-                dr[j] = d;
-                hr[j] = x * d;
-              }
+#pragma GCC ivdep
+              for (int64_t j = 0; j < dout; ++j) hr[j] = ar[j] * dr[j];
             }
           } else {
-            matmul<S>(hin, din, B, din, W, dout, bs + out_off);
+            gemm<S>(B, din, hin, din, 1, wp, np, bs + out_off, np);
           }
         }
         // err = (f_hat - y) + out * ostd
         const S* os = ostd + e * NY;
         const S* out = bs + out_off;
+        const int64_t np_y = padded(NY, NB);
         for (int64_t b = 0; b < B; ++b) {
-          for (int64_t f = 0; f < NY; ++f) err[b * NY + f] = err[b * NY + f] + out[b * NY + f] * os[f];
+          S* er = err + b * NY;
+          const S* orow = out + b * np_y;
+#pragma GCC ivdep
+          for (int64_t f = 0; f < NY; ++f) er[f] = er[f] + orow[f] * os[f];
         }
         // spec values: per-sample loss per term, masked sums, denominators
         S* lv = bs + lv_off;
@@ -396,7 +433,7 @@ class FusedKernel {
                 S acc = S(0);
                 for (int64_t f : fl) acc += eb[f] * eb[f];
                 l = std::sqrt(acc);
-                if (loss_[j] == NORMALIZED) l = l / nyb[b * T + j];
+                if (loss_[j] == NORMALIZED) l = l / src_ny[rows_d[b] * T + j];
                 break;
               }
               case SQUARED_L2:
@@ -412,7 +449,7 @@ class FusedKernel {
                 }
             }
             lv[b * T + j] = l;
-            const S m = mk[b * T + j];
+            const S m = src_mask[rows_d[b] * T + j];
             sum += l * m;
             count += m;
           }
@@ -448,7 +485,7 @@ class FusedKernel {
           const S delta = S(delta_[j]);
           const S c = cw[j];
           for (int64_t b = 0; b < B; ++b) {
-            const S wgt = mk[b * T + j] * c;
+            const S wgt = src_mask[rows_d[b] * T + j] * c;
             const S* eb = err + b * NY;
             S* db = dp + b * NY;
             switch (loss_[j]) {
@@ -456,7 +493,7 @@ class FusedKernel {
               case NORMALIZED: {
                 S fac;
                 if (loss_[j] == NORMALIZED) {  // e / (||e|| ||y||): the per-sample value was ||e|| / ||y||
-                  const S ny = nyb[b * T + j];
+                  const S ny = src_ny[rows_d[b] * T + j];
                   S acc = S(0);
                   for (int64_t f : fl) acc += eb[f] * eb[f];
                   fac = wgt / ny / std::max(std::sqrt(acc), S(TINY));
@@ -485,32 +522,53 @@ class FusedKernel {
             }
           }
         }
-        // backward
+        // backward: G (B x np(d_out)) is dL/da of layer i, padding columns zero
         S* g = bs + g_off;
         for (int64_t b = 0; b < B; ++b) {
-          for (int64_t f = 0; f < NY; ++f) g[b * NY + f] = dp[b * NY + f] * os[f];
+          S* gr = g + b * np_y;
+          const S* dr = dp + b * NY;
+          for (int64_t f = 0; f < NY; ++f) gr[f] = dr[f] * os[f];
+          for (int64_t f = NY; f < np_y; ++f) gr[f] = S(0);
         }
+        S* cg = bs + cg_off;
         for (int64_t i = L - 1; i >= 0; --i) {
-          const int64_t din = dims_[i] + 1, dout = dims_[i + 1];
-          S* gw = grad + w_off_[i] + e * din * dout;
+          const int64_t din = dims_[i] + 1, dout = dims_[i + 1], np = padded(dout, NB);
+          // dW (with the bias row) = H^T G
           const S* hin = bs + h_off[i];
-          matmul_tn<S>(hin, din, B, din, g, dout, gw);
+          gemm<S>(din, B, hin, 1, din, g, np, cg, np);
+          S* gw = grad + w_off_[i] + e * din * dout;
+          for (int64_t r = 0; r < din; ++r) {
+            const S* src = cg + r * np;
+            S* dst = gw + r * dout;
+            for (int64_t c = 0; c < dout; ++c) dst[c] = src[c];
+          }
           if (i == 0) break;
-          // gh = g W^T (without the bias row), through WT (dout x (din - 1))
+          // GH = G W^T (without the bias row), with W^T packed (dout x np(dprev))
           const S* W = flat + w_off_[i] + e * din * dout;
-          S* wt = bs + wt_off;
-          const int64_t dprev = din - 1;
-          for (int64_t a = 0; a < dprev; ++a)
-            for (int64_t c = 0; c < dout; ++c) wt[c * dprev + a] = W[a * dout + c];
+          const int64_t dprev = din - 1, npp = padded(dprev, NB);
+          for (int64_t c = 0; c < dout; ++c) {
+            S* wr = wp + c * npp;
+            for (int64_t a = 0; a < dprev; ++a) wr[a] = W[a * dout + c];
+            for (int64_t a = dprev; a < npp; ++a) wr[a] = S(0);
+          }
           S* gh = bs + gh_off;
-          matmul<S>(g, dout, B, dout, wt, dprev, gh);
-          // slope gradient and g <- gh * d
+          gemm<S>(B, dout, g, np, 1, wp, npp, gh, npp);
+          // slope gradient sum(GH * AN) (per-column partial sums: a vectorised loop), then G <- GH * D
           const S* an = bs + an_off[i - 1];
           const S* dd = bs + d_off[i - 1];
+          S* acc = bs + acc_off;
+          for (int64_t c = 0; c < npp; ++c) acc[c] = S(0);
+          for (int64_t b = 0; b < B; ++b) {
+            const S* ghr = gh + b * npp;
+            const S* anr = an + b * npp;
+#pragma GCC ivdep
+            for (int64_t c = 0; c < npp; ++c) acc[c] += ghr[c] * anr[c];
+          }
           S gs = S(0);
-          for (int64_t t = 0; t < B * dprev; ++t) gs += gh[t] * an[t];
+          for (int64_t c = 0; c < dprev; ++c) gs += acc[c];
           grad[s_off_ + (i - 1) * E + e] = gs;
-          for (int64_t t = 0; t < B * dprev; ++t) g[t] = gh[t] * dd[t];
+#pragma GCC ivdep
+          for (int64_t t = 0; t < B * npp; ++t) g[t] = gh[t] * dd[t];
         }
         // the dual's gradient (what lambda ascends on) from this step's values, lambda before the update
         for (int64_t k = 0; k < K; ++k) {
@@ -549,6 +607,7 @@ class FusedKernel {
         const double bc2s = std::pow(bc2, 0.5);
         const S w1 = S(1.0 - b1_), b2 = S(b2_), w2 = S(1.0 - b2_);
         const S epsb = S(peps_ * bc2s), val = S(step_size * bc2s);
+#pragma GCC ivdep
         for (int64_t i = 0; i < P_; ++i) {
           const S gi = grad[i];
           const S mi = lerp_<S>(pm[i], gi, w1);
@@ -559,6 +618,7 @@ class FusedKernel {
         }
       } else {
         const S a = S(-lr_p);
+#pragma GCC ivdep
         for (int64_t i = 0; i < P_; ++i) flat[i] = flat[i] + a * grad[i];
       }
       // dual step and projection
