@@ -32,7 +32,9 @@ setup(
     packages=find_packages(
         include=["saml_ros", "saml_ros.*", "sim_nodes", "sim_nodes.*", "msg_schemas", "msg_schemas.*"]
     ),
-    package_data={"saml_ros.core.worlds": ["assets/*.xml"]},
+    package_data={"saml_ros.core.worlds": ["assets/*.xml"],
+                  # the fused training kernel's source, compiled on first use (saml_ros/core/training/engines/fused.py)
+                  "saml_ros.core.training.engines": ["kernels/*.cpp"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

@@ -385,3 +385,20 @@ class FusedRun(FastRun):
             self._pending.append(vals[start:hi])
         if bar is not None:
             bar.update(hi - lo)
+
+
+def main() -> int:
+    """``python -m saml_ros.core.training.engines.fused``: build or load the kernel and say which (``./dev test``
+    runs this before pytest, so no test pays for the compile)."""
+    mod = load_kernel()
+    if mod is not None:
+        secs = build_seconds()
+        how = "cached" if secs is None else f"built in {secs:.0f} s"
+        print(f"[dev] fused training kernel: ready ({how})", flush=True)
+    else:
+        print(f"[dev] fused training kernel: not built ({kernel_reason()}) - torch path", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

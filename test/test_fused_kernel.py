@@ -1,0 +1,245 @@
+"""The fused C++ training kernel (saml_ros/core/training/engines/fused.py) computes the fast engine's steps.
+
+Every comparison runs the kernel, the fast engine's torch path (``engine="fast_torch"``) and the plain engine from the
+same initial weights, data and seed, so all see the same minibatches; the tolerances are test_fast_train.py's
+(float64: 1e-7 relative / 1e-8 absolute after a few hundred Adam steps; float32 after 300 steps: 1e-4 / 1e-5; a real
+difference in the algorithm shows at 1e-3 or more). The module is skipped where the kernel cannot be built.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from test_fast_train import FRICTION, METHODS, SPECS, _assert_same, _data
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.spec import ProblemSpec
+from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training.engines import fused
+
+if fused.load_kernel() is None:
+    pytest.skip(f"the fused training kernel is not available here: {fused.kernel_reason()}", allow_module_level=True)
+
+F64 = {"rtol": 1e-7, "atol": 1e-8}
+
+
+def _trainers(spec_dict: dict[str, Any], cfg: TrainConfig, engines: tuple[str, ...] = ("plain", "fast_torch", "fast"),
+              n: int = 240, hidden: tuple[int, ...] = (4, 2), e: int = 1, per_member: bool = False,
+              kind: str = "residual") -> list[tuple[PrimalDualTrainer, Transitions]]:
+    """Identical trainers, one per engine, and their datasets."""
+    spec = ProblemSpec.for_system(spec_dict, FRICTION)
+    x, u, y = _data(n, list(range(e)) if per_member else None)
+    out = []
+    for engine in engines:
+        model = DynamicsModel(FRICTION, hidden, kind, n_models=e, seed=7)
+        model.fit_normalization(x, u, y)
+        tr = PrimalDualTrainer(model, spec, replace(cfg, engine=engine))
+        out.append((tr, Transitions(model, spec, x, u, y)))
+    return out
+
+
+def _fit_all(runs: list[tuple[PrimalDualTrainer, Transitions]]) -> list[PrimalDualTrainer]:
+    for tr, data in runs:
+        tr.fit(data)
+    return [tr for tr, _ in runs]
+
+
+def _check(plain: PrimalDualTrainer, torch_path: PrimalDualTrainer, kernel: PrimalDualTrainer, rtol: float,
+           atol: float) -> None:
+    """The kernel ran, and agrees with the torch path and with the plain engine."""
+    assert kernel.kernel_used and not torch_path.kernel_used and not plain.kernel_used
+    assert torch_path.engine_used == kernel.engine_used == "fast"
+    _assert_same(plain, kernel, rtol=rtol, atol=atol)
+    torch_path.engine_used = "plain"  # _assert_same checks the engine names of its pair
+    _assert_same(torch_path, kernel, rtol=rtol, atol=atol)
+
+
+def _paper64(**kw: Any) -> TrainConfig:
+    base: dict[str, Any] = {"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
+                            "seed": 5, "log_every": 7}
+    return TrainConfig.paper(**{**base, **kw})
+
+
+@pytest.mark.parametrize("name", sorted(SPECS))
+def test_kernel_equals_torch_path_and_plain_for_every_loss_and_mean(name: str) -> None:
+    plain, torch_path, kernel = _fit_all(_trainers(SPECS[name], _paper64()))
+    if name != "uniform":
+        assert plain.history.as_arrays()["lambdas"].max() > 0
+    _check(plain, torch_path, kernel, **F64)
+
+
+@pytest.mark.parametrize("hidden", [(), (5,), (4, 2), (8, 4, 2), (24, 3), (40, 17)])
+@pytest.mark.parametrize("e", [1, 3])
+def test_kernel_for_every_depth_width_and_ensemble_size(hidden: tuple[int, ...], e: int) -> None:
+    """No hidden layer, one to three hidden layers, widths below, at and above one register block (16 floats),
+    shared data and an ensemble."""
+    runs = _trainers(SPECS["mixed"], _paper64(epochs=4), hidden=hidden, e=e)
+    _check(*_fit_all(runs), **F64)
+
+
+@pytest.mark.parametrize("variant", ["per_member", "full_model", "sgd", "adam_primal_sgd_dual", "dual_adam_own_betas",
+                                     "batch_not_multiple_of_4"])
+def test_kernel_for_models_and_optimizers(variant: str) -> None:
+    kw: dict[str, Any] = {}
+    cfg = _paper64(batch_size=16)
+    if variant == "per_member":
+        kw = {"e": 4, "per_member": True}
+    elif variant == "full_model":
+        kw = {"kind": "full", "hidden": (8, 4)}
+    elif variant == "sgd":
+        cfg = replace(cfg, primal_optimizer="sgd", dual_optimizer="sgd", primal_lr=0.05)
+    elif variant == "adam_primal_sgd_dual":
+        cfg = replace(cfg, dual_optimizer="sgd", dual_lr=1.0)
+    elif variant == "batch_not_multiple_of_4":
+        cfg = replace(cfg, batch_size=11)
+    runs = _trainers(SPECS["paper"], cfg, **kw)
+    if variant == "dual_adam_own_betas":
+        for tr, _ in runs:
+            tr.dual.optimizer.param_groups[0]["betas"] = (0.8, 0.99)
+    _check(*_fit_all(runs), **F64)
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+@pytest.mark.parametrize("spec_name", ["paper", "mixed"])
+def test_kernel_for_every_dual_method(method: str, spec_name: str) -> None:
+    runs = _trainers(SPECS[spec_name], _paper64(**METHODS[method]))
+    plain, torch_path, kernel = _fit_all(runs)
+    assert plain.history.as_arrays()["lambdas"].max() > 0
+    _check(plain, torch_path, kernel, **F64)
+
+
+@pytest.mark.parametrize("schedules", [("cosine", "cosine"), ("step", "step"), ("cosine", "constant"),
+                                       ("constant", "step")])
+@pytest.mark.parametrize("method", ["paper", "nupi", "augmented", "resilient"])
+def test_kernel_under_learning_rate_schedules(schedules: tuple[str, str], method: str) -> None:
+    primal, dual = schedules
+    cfg = _paper64(primal_schedule=primal, dual_schedule=dual, lr_floor=0.1, lr_drops=3,
+                   **({} if method == "paper" else METHODS[method]))
+    plain, torch_path, kernel = _fit_all(_trainers(SPECS["paper"], cfg))
+    _check(plain, torch_path, kernel, **F64)
+    ps, ds = kernel.schedules  # type: ignore[misc]
+    assert kernel.primal_opt.param_groups[0]["lr"] == ps.lr(kernel.steps - 1)
+    assert kernel.dual.lr == ds.lr(kernel.steps - 1)
+
+
+def test_kernel_float32_paper_setting_matches_to_rounding() -> None:
+    """The default dtype, 300 steps of the paper's friction problem: test_fast_train.py's float32 bounds."""
+    cfg = TrainConfig.paper(epochs=10, batch_size=100, dual_lr=1e-2, seed=1)
+    plain, torch_path, kernel = _fit_all(_trainers(SPECS["paper"], cfg, n=3000))
+    assert kernel.steps == 300
+    _check(plain, torch_path, kernel, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("method", ["augmented", "resilient", "nupi"])
+def test_kernel_float32_ensemble_with_every_loss(method: str) -> None:
+    """float32, an ensemble of 3 on per-member data, the mixed spec (l1, l2, squared_l2 groups) and a 16-8 net."""
+    cfg = TrainConfig(epochs=6, batch_size=32, seed=3, **{k: v for k, v in METHODS[method].items()})
+    runs = _trainers(SPECS["mixed"], cfg, n=1000, hidden=(16, 8), e=3, per_member=True)
+    _check(*_fit_all(runs), rtol=1e-4, atol=1e-5)
+
+
+def test_kernel_with_callbacks_logging_and_resume() -> None:
+    """A callback after each epoch sees the current model; fits resume (the kernel, then the torch path, then the
+    kernel again) exactly as the plain engine does; online steps in between are logged at the next point."""
+    cfg = _paper64(epochs=2, batch_size=16, log_every=5)
+    (plain, dp), (_, _), (kern, dk) = _trainers(SPECS["paper"], cfg)
+    seen: dict[str, list[float]] = {"plain": [], "fast": []}
+
+    def probe(tr: PrimalDualTrainer) -> None:
+        seen[tr.config.engine].append(float(tr.evaluate(dk)["lagrangian"][0]))
+
+    plain.fit(dp, callback=probe)
+    kern.fit(dk, callback=probe)
+    assert kern.kernel_used and len(seen["fast"]) == 2
+    np.testing.assert_allclose(seen["fast"], seen["plain"], rtol=1e-9)
+    x, u, y = (torch.as_tensor(a[:16]) for a in _data(16, None))
+    for tr in (plain, kern):
+        tr.step(x, u, y)
+    kern.config = replace(cfg, engine="fast_torch")
+    plain.fit(dp)
+    kern.fit(dk)
+    assert not kern.kernel_used
+    kern.config = replace(cfg, engine="fast")
+    plain.fit(dp)
+    kern.fit(dk)
+    assert kern.kernel_used
+    _assert_same(plain, kern, **F64)
+
+
+def test_kernel_health_check_skips_a_bad_block_like_the_torch_path() -> None:
+    """A non-finite target in the data: the kernel's block check puts the state back and counts the block's steps
+    skipped, exactly as the torch path does (same counters, finite weights, same result)."""
+    cfg = _paper64(epochs=3, batch_size=16)
+    runs = _trainers(SPECS["paper"], cfg, engines=("fast_torch", "fast"))
+    for _, data in runs:
+        data.base[5] = float("inf")  # f_hat of one sample: every minibatch with it is unhealthy
+    torch_path, kernel = _fit_all(runs)
+    assert kernel.kernel_used
+    assert torch_path.health.skipped == kernel.health.skipped and sum(kernel.health.skipped.values()) > 0
+    assert torch_path.health.restores == kernel.health.restores
+    assert torch_path.health.healthy_steps == kernel.health.healthy_steps
+    for a, b in zip(torch_path.model.parameters(), kernel.model.parameters()):
+        assert torch.isfinite(b).all()
+        torch.testing.assert_close(b, a, **F64)
+
+
+def test_switch_off_and_fast_torch_run_the_torch_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``SAML_FUSED_KERNEL=0`` and ``engine="fast_torch"`` both run the torch path, bit for bit."""
+    cfg = _paper64(epochs=2)
+    (ref, dr), (off, do) = _trainers(SPECS["mixed"], cfg, engines=("fast_torch", "fast"))
+    ref.fit(dr)
+    monkeypatch.setenv(fused.SWITCH_ENV, "0")
+    assert fused.switched_off() and fused.load_kernel() is None
+    assert "switched off" in str(fused.kernel_reason())
+    off.fit(do)
+    assert not ref.kernel_used and not off.kernel_used and off.engine_used == "fast"
+    for a, b in zip(ref.model.parameters(), off.model.parameters()):
+        assert torch.equal(a, b)
+    monkeypatch.setenv(fused.SWITCH_ENV, "1")
+    assert not fused.switched_off() and fused.load_kernel() is not None
+
+
+def test_a_failing_build_falls_back_to_the_torch_path_with_one_warning(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    broken = tmp_path / "fused_step.cpp"
+    broken.write_text('#include "no_such_header_saml.h"\n' + fused.KERNEL_SOURCE.read_text())
+    monkeypatch.setenv("SAML_KERNEL_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(fused, "KERNEL_SOURCE", broken)
+    monkeypatch.setattr(fused, "_STATE", fused._KernelState())
+    cfg = _paper64(epochs=2)
+    (ref, dr), (tr, dt) = _trainers(SPECS["paper"], cfg, engines=("fast_torch", "fast"))
+    ref.fit(dr)
+    with pytest.warns(RuntimeWarning, match="fused training kernel not available"):
+        tr.fit(dt)
+    assert not tr.kernel_used and tr.engine_used == "fast"
+    assert fused.load_kernel() is None
+    assert "build failed" in str(fused.kernel_reason()) and fused.build_error()
+    for a, b in zip(ref.model.parameters(), tr.model.parameters()):
+        assert torch.equal(a, b)
+    with warnings.catch_warnings():  # one warning per process: a second fit is quiet
+        warnings.simplefilter("error")
+        tr.fit(dt)
+
+
+def test_build_name_depends_on_source_torch_and_cpu(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A cached build is only ever loaded by the same source, torch version, flags and CPU."""
+    name = fused.build_name()
+    assert name.startswith("saml_fused_step_")
+    other = tmp_path / "fused_step.cpp"
+    other.write_text(fused.KERNEL_SOURCE.read_text() + "\n// changed\n")
+    assert fused.build_name(other) != name
+    cpu_id = fused._cpu_id
+    monkeypatch.setattr(fused, "_cpu_id", lambda: "model name: another cpu\nflags: sse2")
+    assert fused.build_name() != name
+    monkeypatch.setattr(fused, "_cpu_id", cpu_id)
+    monkeypatch.setattr(torch, "__version__", "0.0.0")
+    assert fused.build_name() != name
+    monkeypatch.delenv("SAML_KERNEL_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert fused.cache_root() == tmp_path / "saml_ros" / "fused_kernel"
