@@ -243,3 +243,21 @@ def test_build_name_depends_on_source_torch_and_cpu(tmp_path: Path, monkeypatch:
     monkeypatch.delenv("SAML_KERNEL_CACHE", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert fused.cache_root() == tmp_path / "saml_ros" / "fused_kernel"
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_the_kernels_end_of_fit_evaluation_is_evaluate_spec(dtype: str) -> None:
+    """The diagnosis at the end of a kernel fit uses the kernel's own pass over the data: the same values as
+    ``trainer.evaluate`` (every loss and region kind of the mixed spec, an ensemble on per-member data)."""
+    cfg = _paper64(epochs=2, dtype=dtype, dual_method="augmented", penalty=0.5)
+    ((tr, data),) = _trainers(SPECS["mixed"], cfg, engines=("fast",), e=2, per_member=True, hidden=(8, 4))
+    tr.fit(data)
+    assert tr.kernel_used and tr.diagnosis is not None
+    assert [c.verdict for c in tr.diagnosis.constraints] == [c.verdict for c in tr.diagnose(data).constraints]
+    engine = fused.FusedEngine()
+    engine.fit(tr, data, 0)  # no epoch: only the evaluation at the current state
+    assert engine.kernel_used and engine.evaluation is not None
+    ref = tr.evaluate(data)
+    tol = 1e-12 if dtype == "float64" else 1e-6
+    for key in ("objective", "constraints", "lagrangian", "lambdas"):
+        np.testing.assert_allclose(engine.evaluation[key], ref[key], rtol=tol, atol=tol, err_msg=key)

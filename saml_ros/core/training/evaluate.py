@@ -37,6 +37,14 @@ def evaluate_spec(
             mm = torch.ones_like(loss) if m is None else m.double().expand_as(loss)
             sums[:, j] += (loss * mm).sum(-1)
             counts[:, j] += mm.sum(-1) if (m is not None and t.mean == "conditional") else loss.shape[-1]
+    return spec_values(spec, sums, counts, lam)
+
+
+def spec_values(spec: ProblemSpec, sums: torch.Tensor, counts: torch.Tensor,
+                lam: torch.Tensor | None = None) -> dict[str, np.ndarray]:
+    """:func:`evaluate_spec`'s result from the per-term sums and counts ``(E, 1 + K)`` (float64) over the dataset
+    (the fused training kernel accumulates them itself at the end of a fit)."""
+    e, k = sums.shape[0], spec.n_constraints
     vals = sums / counts.clamp_min(1.0)
     eps = torch.tensor([0.0] + [t.eps for t in spec.constraints], dtype=torch.float64)
     has = counts > 0

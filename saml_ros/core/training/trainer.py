@@ -160,7 +160,9 @@ class PrimalDualTrainer:
         finally:
             if bar is not None:
                 bar.close()
-        self.diagnosis = self.diagnose(data)
+        # the dataset-level values at the end: the fused kernel's own pass over the data where it ran
+        evaluation = getattr(engine, "evaluation", None) if self.kernel_used else None
+        self.diagnosis = self.diagnose(data, evaluation)
         for c in self.diagnosis.constraints:
             if c.verdict != MET:
                 log.warning(c.message)
@@ -173,13 +175,15 @@ class PrimalDualTrainer:
         theta and lambda (the quantity the convergence experiment reports)."""
         return evaluate_spec(self.model, self.spec, data, self.lam, chunk)
 
-    def diagnose(self, data: Transitions | None = None) -> FeasibilityDiagnosis:
+    def diagnose(self, data: Transitions | None = None,
+                 evaluation: dict[str, np.ndarray] | None = None) -> FeasibilityDiagnosis:
         """Per constraint: met, smallest left-hand side, lambda rising, verdict
         (:mod:`~saml_ros.core.training.diagnosis`); with ``data`` the final constraint values are dataset-level,
-        without it the means of the history's tail."""
+        without it the means of the history's tail. ``evaluation``: :meth:`evaluate` of ``data`` at the current
+        state when the caller has it already."""
         eps = [t.eps for t in self.spec.constraints]
         if data is not None:
-            ev = self.evaluate(data)
+            ev = self.evaluate(data) if evaluation is None else evaluation
             final, f = ev["constraints"], torch.as_tensor(ev["objective"])
         else:
             final = None

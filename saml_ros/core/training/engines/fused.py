@@ -42,6 +42,7 @@ from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import AugmentedDual, NuPIDual, ResilientDual
 from saml_ros.core.training.engines.base import RunState, minibatch_plan
 from saml_ros.core.training.engines.fast import FastEngine, FastRun
+from saml_ros.core.training.evaluate import spec_values
 
 log = logging.getLogger("saml_ros.trainer")
 
@@ -203,6 +204,8 @@ class FusedEngine(FastEngine):
     def __init__(self) -> None:
         self.kernel_used = False
         self.kernel_reason: str | None = None
+        #: :func:`~saml_ros.core.training.evaluate.evaluate_spec` of the data at the end of the last kernel fit
+        self.evaluation: dict[str, Any] | None = None
 
     def fit(self, run: RunState, data: Transitions, epochs: int, bar: Any = None,
             on_epoch: Callable[[], None] | None = None) -> None:
@@ -215,7 +218,9 @@ class FusedEngine(FastEngine):
             FastRun(run, data).fit(epochs, bar, on_epoch)
             return
         self.kernel_used = True
-        FusedRun(run, data, mod).fit(epochs, bar, on_epoch)
+        frun = FusedRun(run, data, mod)
+        frun.fit(epochs, bar, on_epoch)
+        self.evaluation = frun.evaluation
 
 
 class FusedRun(FastRun):
@@ -236,6 +241,7 @@ class FusedRun(FastRun):
         self.counts = torch.zeros(4, dtype=torch.int64)
         self.xi = torch.zeros(self.E, max(self.K, 1), dtype=self.dtype)
         self.stats = torch.zeros(3, dtype=torch.float64)
+        self.evaluation: dict[str, Any] | None = None
 
     def _kernel(self, bsz: int) -> Any:
         """The C++ object over this run's tensors (their storage is shared: it steps them in place)."""
@@ -346,6 +352,11 @@ class FusedRun(FastRun):
         self._from_kernel()
         self._log_point()
         self.store_state()
+        # the dataset-level spec values at the final state (the trainer's end-of-fit diagnosis), in one pass here
+        sums = torch.zeros(e, self.T, dtype=torch.float64)
+        counts = torch.zeros(e, self.T, dtype=torch.float64)
+        kern.evaluate(sums, counts)
+        self.evaluation = spec_values(tr.spec, sums, counts, tr.dual.value)
 
     def _run_kernel(self, kern: Any, vals: Tensor, lo: int, hi: int, per_epoch: int, log_every: int,
                     bar: Any) -> None:

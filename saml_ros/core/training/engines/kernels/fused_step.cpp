@@ -138,6 +138,20 @@ class FusedKernel {
     }
   }
 
+  // dataset-level spec sums at the current parameters: sums[e, j] = sum over member e's n samples of term j's
+  // per-sample loss times its region mask, counts[e, j] = the denominator's count (the mask's sum for a conditional
+  // term, n otherwise); both float64 (E, T), as saml_ros.core.training.evaluate.evaluate_spec accumulates them
+  void evaluate(at::Tensor sums, at::Tensor counts) {
+    TORCH_CHECK(sums.is_contiguous() && counts.is_contiguous() && sums.scalar_type() == at::kDouble &&
+                counts.scalar_type() == at::kDouble && sums.numel() == E_ * T_ && counts.numel() == E_ * T_,
+                "fused kernel: evaluate buffers");
+    if (is_double_) {
+      evaluate_impl<double>(sums.data_ptr<double>(), counts.data_ptr<double>());
+    } else {
+      evaluate_impl<float>(sums.data_ptr<double>(), counts.data_ptr<double>());
+    }
+  }
+
   // copy the state the steps change (flat, moments, lambda, xi, counters) into the snapshot / back
   void snapshot() { copy_state(true); }
   void restore() { copy_state(false); }
@@ -189,14 +203,15 @@ class FusedKernel {
   }
 
   // C (rows x np, row stride ldc) = A (rows x k; element (r, kk) at A[r * rs + kk * cs]) * Wp (k x np, padded
-  // with zeros to a multiple of NB = two native vectors of S). Register blocking: 4 rows x NB columns of C stay in
-  // eight vector accumulators (GCC vector extensions of the target's native width) while kk runs.
+  // with zeros to whole native vectors of S). Register blocking: 4 rows x 2 vectors of C (or 8 rows x 1 vector for
+  // the last columns) stay in eight vector accumulators (GCC vector extensions, the target's native width).
   template <typename S>
   static void gemm(int64_t rows, int64_t k, const S* A, int64_t rs, int64_t cs, const S* Wp, int64_t np, S* C,
                    int64_t ldc) {
     typedef S V __attribute__((vector_size(VEC_BYTES), aligned(sizeof(S))));
     constexpr int64_t W1 = VEC_BYTES / sizeof(S);  // one vector
-    for (int64_t j0 = 0; j0 < np; j0 += 2 * W1) {
+    int64_t j0 = 0;
+    for (; j0 + 2 * W1 <= np; j0 += 2 * W1) {
       int64_t r = 0;
       for (; r + 4 <= rows; r += 4) {
         V c00 = {}, c01 = {}, c10 = {}, c11 = {}, c20 = {}, c21 = {}, c30 = {}, c31 = {};
@@ -242,6 +257,34 @@ class FusedKernel {
         *reinterpret_cast<V*>(C + r * ldc + j0 + W1) = c1;
       }
     }
+    if (j0 < np) {  // one vector of columns left (np is a multiple of one vector): 8 rows x 1 vector
+      int64_t r = 0;
+      for (; r + 8 <= rows; r += 8) {
+        V c[8] = {};
+        const S* a0 = A + r * rs;
+        const S* w = Wp + j0;
+        for (int64_t kk = 0; kk < k; ++kk, w += np) {
+          const V w0 = *reinterpret_cast<const V*>(w);
+          const S* ak = a0 + kk * cs;
+          c[0] += ak[0] * w0;
+          c[1] += ak[rs] * w0;
+          c[2] += ak[2 * rs] * w0;
+          c[3] += ak[3 * rs] * w0;
+          c[4] += ak[4 * rs] * w0;
+          c[5] += ak[5 * rs] * w0;
+          c[6] += ak[6 * rs] * w0;
+          c[7] += ak[7 * rs] * w0;
+        }
+        for (int q = 0; q < 8; ++q) *reinterpret_cast<V*>(C + (r + q) * ldc + j0) = c[q];
+      }
+      for (; r < rows; ++r) {
+        V c0 = {};
+        const S* a0 = A + r * rs;
+        const S* w = Wp + j0;
+        for (int64_t kk = 0; kk < k; ++kk, w += np) c0 += a0[kk * cs] * *reinterpret_cast<const V*>(w);
+        *reinterpret_cast<V*>(C + r * ldc + j0) = c0;
+      }
+    }
   }
 
   static int64_t padded(int64_t n, int64_t nb) { return (n + nb - 1) / nb * nb; }
@@ -279,8 +322,8 @@ class FusedKernel {
     // per layer input H[i] (B x (d_i + 1), ones column last), per hidden layer AN = min(a, 0) and the PReLU
     // derivative D (B x np), the pre-activation A, the output OUT (B x np(NY)), err / dpred (B x NY), gradient
     // buffers G, GH (B x np_max), the packed weights WP and the weight gradient CG ((max_d + 1) x np_max)
-    constexpr int64_t NB = 2 * VEC_BYTES / sizeof(S);
-    const int64_t np_max = padded(max_d_, NB);
+    constexpr int64_t NB = VEC_BYTES / sizeof(S);  // widths are padded to whole vectors
+    const int64_t np_max = padded(max_d_, 2 * NB);
     std::vector<int64_t> h_off(L + 1), an_off(L), d_off(L);
     int64_t tot = 0;
     for (int64_t i = 0; i < L; ++i) {
@@ -712,6 +755,90 @@ class FusedKernel {
   }
 
   template <typename S>
+  void evaluate_impl(double* sums, double* counts) {
+    constexpr int64_t NB = VEC_BYTES / sizeof(S);
+    const int64_t L = L_, T = T_, NY = ny_, R = 256;
+    const S* flat = ptr<S>(FLAT);
+    const S* src_z = ptr<S>(SRC_Z);
+    const S* src_r = ptr<S>(SRC_R);
+    const S* src_mask = ptr<S>(SRC_MASK);
+    const S* src_ny = ptr<S>(SRC_NY);
+    const S* ostd = ptr<S>(OSTD);
+    const int64_t dz = dims_[0] + 1, np_max = padded(max_d_, 2 * NB);
+    std::vector<S> h(R * (max_d_ + 1)), a(R * np_max), wp((max_d_ + 1) * np_max), err(R * NY);
+    for (int64_t i = 0; i < E_ * T; ++i) sums[i] = counts[i] = 0.0;
+    for (int64_t e = 0; e < E_; ++e) {
+      const int64_t zoff = z_per_member_ ? e * n_ : 0, doff = per_member_ ? e * n_ : 0;
+      for (int64_t r0 = 0; r0 < n_; r0 += R) {
+        const int64_t nr = std::min(R, n_ - r0);
+        // layer by layer: h holds the layer's input rows with their ones column
+        for (int64_t b = 0; b < nr; ++b)
+          for (int64_t c = 0; c < dz; ++c) h[b * dz + c] = src_z[(r0 + b + zoff) * dz + c];
+        for (int64_t i = 0; i < L; ++i) {
+          const int64_t din = dims_[i] + 1, dout = dims_[i + 1], np = padded(dout, NB);
+          const S* W = flat + w_off_[i] + e * din * dout;
+          for (int64_t r = 0; r < din; ++r) {
+            for (int64_t c = 0; c < dout; ++c) wp[r * np + c] = W[r * dout + c];
+            for (int64_t c = dout; c < np; ++c) wp[r * np + c] = S(0);
+          }
+          gemm<S>(nr, din, h.data(), din, 1, wp.data(), np, a.data(), np);
+          if (i + 1 < L) {
+            const S slope = flat[s_off_ + i * E_ + e];
+            for (int64_t b = 0; b < nr; ++b) {
+              for (int64_t j = 0; j < dout; ++j) {
+                const S x = a[b * np + j];
+                h[b * (dout + 1) + j] = x * (x >= S(0) ? S(1) : slope);
+              }
+              h[b * (dout + 1) + dout] = S(1);
+            }
+          }
+        }
+        const int64_t np_y = padded(NY, NB);
+        const S* os = ostd + e * NY;
+        for (int64_t b = 0; b < nr; ++b)
+          for (int64_t f = 0; f < NY; ++f)
+            err[b * NY + f] = src_r[(r0 + b + doff) * NY + f] + a[b * np_y + f] * os[f];
+        for (int64_t j = 0; j < T; ++j) {
+          const auto& fl = fields_[j];
+          const S delta = S(delta_[j]);
+          double sum = 0.0, cnt = 0.0;
+          for (int64_t b = 0; b < nr; ++b) {
+            const S* eb = err.data() + b * NY;
+            const int64_t rr = r0 + b + doff;
+            S l = S(0);
+            switch (loss_[j]) {
+              case L2:
+              case NORMALIZED: {
+                S acc = S(0);
+                for (int64_t f : fl) acc += eb[f] * eb[f];
+                l = std::sqrt(acc);
+                if (loss_[j] == NORMALIZED) l = l / src_ny[rr * T + j];
+                break;
+              }
+              case SQUARED_L2:
+                for (int64_t f : fl) l += eb[f] * eb[f];
+                break;
+              case L1:
+                for (int64_t f : fl) l += std::abs(eb[f]);
+                break;
+              default:
+                for (int64_t f : fl) {
+                  const S ab = std::abs(eb[f]);
+                  l += ab <= delta ? S(0.5) * eb[f] * eb[f] : delta * (ab - S(0.5) * delta);
+                }
+            }
+            const double m = double(src_mask[rr * T + j]);
+            sum += double(l) * m;
+            cnt += cond_[j] ? m : 1.0;
+          }
+          sums[e * T + j] += sum;
+          counts[e * T + j] += cnt;
+        }
+      }
+    }
+  }
+
+  template <typename S>
   S* dual_grad_(int64_t e, int64_t K) {
     std::vector<S>& d = dgrad<S>();
     if ((int64_t)d.size() < E_ * std::max<int64_t>(K, 1)) d.assign(E_ * std::max<int64_t>(K, 1), S(0));
@@ -741,6 +868,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
       .def(pybind11::init<std::vector<at::Tensor>, std::vector<int64_t>, std::vector<double>>())
       .def("set_chunk", &FusedKernel::set_chunk)
       .def("run", &FusedKernel::run)
+      .def("evaluate", &FusedKernel::evaluate)
       .def("snapshot", &FusedKernel::snapshot)
       .def("restore", &FusedKernel::restore);
   m.attr("VERSION") = 1;
