@@ -2,8 +2,9 @@
 
 Prints, each measured in this one run (see docs/performance.md for what each number means):
 
-1. **throughput**: samples/s of ``PrimalDualTrainer.fit`` (fast engine) against a plain per-minibatch PyTorch
-   loop written as the paper describes Algorithm 1 (``nn.Sequential`` of Linear/PReLU, zero-initialised last
+1. **throughput**: samples/s of ``PrimalDualTrainer.fit`` (fast engine: with the fused C++ kernel, and its torch
+   path ``engine="fast_torch"``; each also as us/step, % of the one-thread ceiling and ratio to the paper loop)
+   against a plain per-minibatch PyTorch loop written as the paper describes Algorithm 1 (``nn.Sequential`` of Linear/PReLU, zero-initialised last
    layer, ``torch.optim.Adam`` for theta and for lambda; per step: sample indices, forward, loss + lambda * g,
    backward, step, dual step, clamp), for the 16-8 net at quadrotor sizes and the 128-128 paddle-ball net,
    batch 256. The two alternate in short rounds; the ratio uses each one's best round (a shared, noisy machine
@@ -188,29 +189,47 @@ THROUGHPUT_CASES = (
 )
 
 
+def flops_per_sample(system: System, hidden: tuple[int, ...]) -> int:
+    """Forward + backward matmul FLOPs per sample (~3x the forward's) of a net on ``system``."""
+    dims = [system.state.size + system.control.size, *hidden, system.target.size]
+    return 3 * sum(2 * a * b for a, b in zip(dims[:-1], dims[1:]))
+
+
 def bench_throughput(rounds: int, profile: bool) -> dict[str, float]:
     """Returns the fast engine's best samples/s per case."""
+    from saml_ros.core.training.engines import fused
+
     _say("== 1. training throughput: saml_ros (fast engine) vs the paper's plain loop, one model, batch 256 ==")
+    t0 = time.perf_counter()
+    kernel = fused.load_kernel()
+    status = ("ready (built in %.0f s)" % (time.perf_counter() - t0) if fused.build_seconds() else "ready (cached)") \
+        if kernel is not None else f"not built ({fused.kernel_reason()}): both fast rows run the torch path"
+    _say(f"   fused training kernel: {status}")
+    r1 = matmul_rate(1)
+    _say(f"   one-thread ceiling: torch.mm 2048x2048 float32 at {r1 / 1e9:.1f} GFLOP/s, measured now")
     achieved = {}
     for name, sysname, hidden, batch, n, plain_steps in THROUGHPUT_CASES:
         p = make_problem(name, sysname, hidden, n)
         plain = PaperLoop(p, batch)
         fast, data = make_trainer(p, TrainConfig.paper(batch_size=batch, engine="fast"))
+        fast_t, data_t = make_trainer(p, TrainConfig.paper(batch_size=batch, engine="fast_torch"))
         ours_plain, data_p = make_trainer(p, TrainConfig.paper(batch_size=batch, engine="plain"))
         per_epoch = n // batch
         epochs = max(1, plain_steps // per_epoch)
         plain.run(20)
         fast.fit(data, epochs=1)
+        fast_t.fit(data_t, epochs=1)
         ours_plain.fit(data_p, epochs=1)
         res = interleaved(
             {
                 "paper loop": partial(_per_step, plain.run, plain_steps, plain_steps),
                 "saml_ros fast": partial(_per_step, partial(fast.fit, data), epochs, epochs * per_epoch),
+                "fast, torch path": partial(_per_step, partial(fast_t.fit, data_t), epochs, epochs * per_epoch),
                 "saml_ros plain engine": partial(_per_step, partial(ours_plain.fit, data_p), 1, per_epoch),
             },
             rounds,
         )
-        assert fast.engine_used == "fast" and ours_plain.engine_used == "plain"
+        assert fast.engine_used == "fast" and ours_plain.engine_used == "plain" and not fast_t.kernel_used
         _say(f"-- {name}, batch {batch}, {n} samples; {rounds} interleaved rounds; per step: best wall-clock"
              " (median) / best CPU time")
         wall = {k: [w for w, _ in v] for k, v in res.items()}
@@ -225,6 +244,15 @@ def bench_throughput(rounds: int, profile: bool) -> dict[str, float]:
         r_eng = min(cpu["saml_ros plain engine"]) / min(cpu["saml_ros fast"])
         _say(f"   RATIO fast / paper loop: {r_wall:.2f}x wall-clock (best rounds; median of per-round ratios "
              f"{r_med:.2f}x), {r_cpu:.2f}x CPU time; fast / saml_ros plain engine: {r_eng:.2f}x CPU time")
+        ceil_us = batch * flops_per_sample(p.system, hidden) / r1 * 1e6  # us per step at the ceiling
+        for label, key, on in (("kernel    ", "saml_ros fast", fast.kernel_used), ("torch path", "fast, torch path", True)):
+            if not on:
+                _say(f"   {label}: not built, see above")
+                continue
+            us = min(wall[key]) * 1e6
+            _say(f"   {label}: {us:7.1f} us/step = {100 * ceil_us / us:5.2f}% of the 1-thread ceiling "
+                 f"({ceil_us:.1f} us/step); {min(wall['paper loop']) * 1e6 / us:5.2f}x the paper's plain loop "
+                 f"(best rounds)")
         achieved[name] = batch / min(wall["saml_ros fast"])
         if profile:
             profile_step(fast, data, plain)
@@ -365,9 +393,8 @@ def bench_ceiling(achieved: dict[str, float]) -> None:
          f"{n_cores} threads")
     for name, sysname, hidden, _, _, _ in THROUGHPUT_CASES:
         system = get_system(sysname)
-        dims = [system.state.size + system.control.size, *hidden, system.target.size]
-        fwd = sum(2 * a * b for a, b in zip(dims[:-1], dims[1:]))
-        per = 3 * fwd  # forward + backward ~ 3x the forward matmul FLOPs
+        per = flops_per_sample(system, hidden)  # forward + backward ~ 3x the forward matmul FLOPs
+        fwd = per // 3
         ceil1 = r1 / per
         got = achieved.get(name)
         frac = f"; achieved {got / 1e6:.3f} M samples/s = {100 * got / ceil1:.2f}% of the 1-thread ceiling" \
