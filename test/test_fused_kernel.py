@@ -26,7 +26,7 @@ from saml_ros.core.training.engines import fused
 if fused.load_kernel() is None:
     pytest.skip(f"the fused training kernel is not available here: {fused.kernel_reason()}", allow_module_level=True)
 
-F64 = {"rtol": 1e-7, "atol": 1e-8}
+RTOL, ATOL = 1e-7, 1e-8  # float64
 
 
 def _trainers(spec_dict: dict[str, Any], cfg: TrainConfig, engines: tuple[str, ...] = ("plain", "fast_torch", "fast"),
@@ -50,6 +50,12 @@ def _fit_all(runs: list[tuple[PrimalDualTrainer, Transitions]]) -> list[PrimalDu
     return [tr for tr, _ in runs]
 
 
+def _check_all(runs: list[tuple[PrimalDualTrainer, Transitions]], rtol: float = RTOL, atol: float = ATOL) -> None:
+    """Fit the three trainers of :func:`_trainers` and :func:`_check` them."""
+    plain, torch_path, kernel = _fit_all(runs)
+    _check(plain, torch_path, kernel, rtol, atol)
+
+
 def _check(plain: PrimalDualTrainer, torch_path: PrimalDualTrainer, kernel: PrimalDualTrainer, rtol: float,
            atol: float) -> None:
     """The kernel ran, and agrees with the torch path and with the plain engine."""
@@ -71,7 +77,7 @@ def test_kernel_equals_torch_path_and_plain_for_every_loss_and_mean(name: str) -
     plain, torch_path, kernel = _fit_all(_trainers(SPECS[name], _paper64()))
     if name != "uniform":
         assert plain.history.as_arrays()["lambdas"].max() > 0
-    _check(plain, torch_path, kernel, **F64)
+    _check(plain, torch_path, kernel, rtol=RTOL, atol=ATOL)
 
 
 @pytest.mark.parametrize("hidden", [(), (5,), (4, 2), (8, 4, 2), (24, 3), (40, 17)])
@@ -80,7 +86,7 @@ def test_kernel_for_every_depth_width_and_ensemble_size(hidden: tuple[int, ...],
     """No hidden layer, one to three hidden layers, widths below, at and above one register block (16 floats),
     shared data and an ensemble."""
     runs = _trainers(SPECS["mixed"], _paper64(epochs=4), hidden=hidden, e=e)
-    _check(*_fit_all(runs), **F64)
+    _check_all(runs)
 
 
 @pytest.mark.parametrize("variant", ["per_member", "full_model", "sgd", "adam_primal_sgd_dual", "dual_adam_own_betas",
@@ -102,7 +108,7 @@ def test_kernel_for_models_and_optimizers(variant: str) -> None:
     if variant == "dual_adam_own_betas":
         for tr, _ in runs:
             tr.dual.optimizer.param_groups[0]["betas"] = (0.8, 0.99)
-    _check(*_fit_all(runs), **F64)
+    _check_all(runs)
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
@@ -111,7 +117,7 @@ def test_kernel_for_every_dual_method(method: str, spec_name: str) -> None:
     runs = _trainers(SPECS[spec_name], _paper64(**METHODS[method]))
     plain, torch_path, kernel = _fit_all(runs)
     assert plain.history.as_arrays()["lambdas"].max() > 0
-    _check(plain, torch_path, kernel, **F64)
+    _check(plain, torch_path, kernel, rtol=RTOL, atol=ATOL)
 
 
 @pytest.mark.parametrize("schedules", [("cosine", "cosine"), ("step", "step"), ("cosine", "constant"),
@@ -122,7 +128,7 @@ def test_kernel_under_learning_rate_schedules(schedules: tuple[str, str], method
     cfg = _paper64(primal_schedule=primal, dual_schedule=dual, lr_floor=0.1, lr_drops=3,
                    **({} if method == "paper" else METHODS[method]))
     plain, torch_path, kernel = _fit_all(_trainers(SPECS["paper"], cfg))
-    _check(plain, torch_path, kernel, **F64)
+    _check(plain, torch_path, kernel, rtol=RTOL, atol=ATOL)
     ps, ds = kernel.schedules  # type: ignore[misc]
     assert kernel.primal_opt.param_groups[0]["lr"] == ps.lr(kernel.steps - 1)
     assert kernel.dual.lr == ds.lr(kernel.steps - 1)
@@ -141,7 +147,7 @@ def test_kernel_float32_ensemble_with_every_loss(method: str) -> None:
     """float32, an ensemble of 3 on per-member data, the mixed spec (l1, l2, squared_l2 groups) and a 16-8 net."""
     cfg = TrainConfig(epochs=6, batch_size=32, seed=3, **{k: v for k, v in METHODS[method].items()})
     runs = _trainers(SPECS["mixed"], cfg, n=1000, hidden=(16, 8), e=3, per_member=True)
-    _check(*_fit_all(runs), rtol=1e-4, atol=1e-5)
+    _check_all(runs, rtol=1e-4, atol=1e-5)
 
 
 def test_kernel_with_callbacks_logging_and_resume() -> None:
@@ -169,7 +175,7 @@ def test_kernel_with_callbacks_logging_and_resume() -> None:
     plain.fit(dp)
     kern.fit(dk)
     assert kern.kernel_used
-    _assert_same(plain, kern, **F64)
+    _assert_same(plain, kern, rtol=RTOL, atol=ATOL)
 
 
 def test_kernel_health_check_skips_a_bad_block_like_the_torch_path() -> None:
@@ -186,7 +192,7 @@ def test_kernel_health_check_skips_a_bad_block_like_the_torch_path() -> None:
     assert torch_path.health.healthy_steps == kernel.health.healthy_steps
     for a, b in zip(torch_path.model.parameters(), kernel.model.parameters()):
         assert torch.isfinite(b).all()
-        torch.testing.assert_close(b, a, **F64)
+        torch.testing.assert_close(b, a, rtol=RTOL, atol=ATOL)
 
 
 def test_switch_off_and_fast_torch_run_the_torch_path(monkeypatch: pytest.MonkeyPatch) -> None:

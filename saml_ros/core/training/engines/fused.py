@@ -259,11 +259,11 @@ class FusedRun(FastRun):
         method = 1 if isinstance(dual, NuPIDual) else 2 if isinstance(dual, AugmentedDual) else \
             3 if isinstance(dual, ResilientDual) else 0
         adam = popt.kind == "adam"
-        dadam = self.dopt is not None and self.dopt.kind == "adam"
+        dopt = self.dopt if self.dopt is not None and self.dopt.kind == "adam" else None
         ostd = self.tr.model.out_std.detach().to(self.dtype).reshape(self.E, -1).contiguous()
         self._ostd = ostd
         tensors = [net.flat, net.grad, popt.m if adam else empty, popt.v if adam else empty, self.lam,
-                   self.dopt.m if dadam else empty, self.dopt.v if dadam else empty, self.xi,
+                   dopt.m if dopt is not None else empty, dopt.v if dopt is not None else empty, self.xi,
                    self.src_z.contiguous(), self.src_r.contiguous(), self.src_mask, self.src_nyt, ostd, self.counts]
         ints = [self.E, bsz, self.n, net.n_layers, *net.dims, self.T, self.src_r.shape[1], int(self.data.per_member),
                 int(self.z_per_member), 0 if adam else 1, dkind, method, net.n_extra]
