@@ -36,6 +36,19 @@ constexpr int64_t VEC_BYTES = 32;
 constexpr int64_t VEC_BYTES = 16;
 #endif
 
+// a loop over the fields of term j: 0..NY-1 directly when the term takes every field (a contiguous loop the
+// compiler vectorises), else through the term's field indices
+#define FOR_FIELDS(j, f, ...)                                   \
+  if (all_fields_[j]) {                                         \
+    _Pragma("GCC ivdep") for (int64_t f = 0; f < NY; ++f) {     \
+      __VA_ARGS__                                               \
+    }                                                           \
+  } else {                                                      \
+    for (int64_t f : fields_[j]) {                              \
+      __VA_ARGS__                                               \
+    }                                                           \
+  }
+
 constexpr double TINY = 1e-30;   // closed_form._TINY
 constexpr double F_MIN = 1e-12;  // ResilientDual.F_MIN
 
@@ -75,6 +88,9 @@ class FusedKernel {
       int64_t nf = ints[p++];
       std::vector<int64_t> f;
       for (int64_t k = 0; k < nf; ++k) f.push_back(ints[p++]);
+      bool all = int64_t(f.size()) == ny_;
+      for (int64_t k = 0; all && k < nf; ++k) all = f[k] == k;
+      all_fields_.push_back(all);
       fields_.push_back(f);
     }
     size_t q = 0;
@@ -164,7 +180,7 @@ class FusedKernel {
   int64_t E_, B_, n_, L_, T_, K_, ny_, popt_, dopt_, method_, n_extra_;
   bool per_member_, z_per_member_, is_double_;
   std::vector<int64_t> dims_, loss_, w_off_;
-  std::vector<bool> cond_;
+  std::vector<bool> cond_, all_fields_;
   std::vector<std::vector<int64_t>> fields_;
   double b1_, b2_, peps_, db1_, db2_, deps_, k_dual_, kp_, nu_;
   std::vector<double> teps_, delta_, rho_, eps2_, deps_k_;
@@ -474,16 +490,16 @@ class FusedKernel {
               case L2:
               case NORMALIZED: {
                 S acc = S(0);
-                for (int64_t f : fl) acc += eb[f] * eb[f];
+                FOR_FIELDS(j, f, acc += eb[f] * eb[f];)
                 l = std::sqrt(acc);
                 if (loss_[j] == NORMALIZED) l = l / src_ny[rows_d[b] * T + j];
                 break;
               }
               case SQUARED_L2:
-                for (int64_t f : fl) l += eb[f] * eb[f];
+                FOR_FIELDS(j, f, l += eb[f] * eb[f];)
                 break;
               case L1:
-                for (int64_t f : fl) l += std::abs(eb[f]);
+                FOR_FIELDS(j, f, l += std::abs(eb[f]);)
                 break;
               default:
                 for (int64_t f : fl) {
@@ -538,16 +554,16 @@ class FusedKernel {
                 if (loss_[j] == NORMALIZED) {  // e / (||e|| ||y||): the per-sample value was ||e|| / ||y||
                   const S ny = src_ny[rows_d[b] * T + j];
                   S acc = S(0);
-                  for (int64_t f : fl) acc += eb[f] * eb[f];
+                  FOR_FIELDS(j, f, acc += eb[f] * eb[f];)
                   fac = wgt / ny / std::max(std::sqrt(acc), S(TINY));
                 } else {
                   fac = wgt / std::max(lv[b * T + j], S(TINY));
                 }
-                for (int64_t f : fl) db[f] += eb[f] * fac;
+                FOR_FIELDS(j, f, db[f] += eb[f] * fac;)
                 break;
               }
               case SQUARED_L2:
-                for (int64_t f : fl) db[f] += eb[f] * wgt;
+                FOR_FIELDS(j, f, db[f] += eb[f] * wgt;)
                 break;
               case L1:
                 for (int64_t f : fl) {
@@ -810,16 +826,16 @@ class FusedKernel {
               case L2:
               case NORMALIZED: {
                 S acc = S(0);
-                for (int64_t f : fl) acc += eb[f] * eb[f];
+                FOR_FIELDS(j, f, acc += eb[f] * eb[f];)
                 l = std::sqrt(acc);
                 if (loss_[j] == NORMALIZED) l = l / src_ny[rr * T + j];
                 break;
               }
               case SQUARED_L2:
-                for (int64_t f : fl) l += eb[f] * eb[f];
+                FOR_FIELDS(j, f, l += eb[f] * eb[f];)
                 break;
               case L1:
-                for (int64_t f : fl) l += std::abs(eb[f]);
+                FOR_FIELDS(j, f, l += std::abs(eb[f]);)
                 break;
               default:
                 for (int64_t f : fl) {
