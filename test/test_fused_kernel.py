@@ -267,3 +267,38 @@ def test_the_kernels_end_of_fit_evaluation_is_evaluate_spec(dtype: str) -> None:
     tol = 1e-12 if dtype == "float64" else 1e-6
     for key in ("objective", "constraints", "lagrangian", "lambdas"):
         np.testing.assert_allclose(engine.evaluation[key], ref[key], rtol=tol, atol=tol, err_msg=key)
+
+
+def test_a_trainers_kernel_run_is_kept_between_fits_until_what_it_was_built_from_changes() -> None:
+    """Repeated fits of one trainer on one dataset reuse its FusedRun (no set-up per fit) and give the torch path's
+    results; an in-place edit of the data, another batch size or another dataset object build a new one."""
+    cfg = _paper64(epochs=1)
+    (ref, dr), (tr, dt) = _trainers(SPECS["mixed"], cfg, engines=("fast_torch", "fast"))
+    runs = []
+    for _ in range(3):
+        ref.fit(dr)
+        tr.fit(dt)
+        runs.append(fused._RUNS[tr][1])
+    assert runs[0] is runs[1] is runs[2]
+    _same(ref, tr)
+    for change in ("edit", "config", "data"):
+        if change == "edit":
+            for d in (dr, dt):
+                d.y[3] += 0.5
+        elif change == "config":
+            ref.config = replace(ref.config, batch_size=12)
+            tr.config = replace(tr.config, batch_size=12)
+        else:
+            dr = Transitions(ref.model, ref.spec, dr.x.numpy(), dr.u.numpy(), dr.y.numpy())
+            dt = Transitions(tr.model, tr.spec, dt.x.numpy(), dt.u.numpy(), dt.y.numpy())
+        ref.fit(dr)
+        tr.fit(dt)
+        assert fused._RUNS[tr][1] is not runs[-1], change
+        runs.append(fused._RUNS[tr][1])
+        _same(ref, tr)
+
+
+def _same(torch_path: PrimalDualTrainer, kernel: PrimalDualTrainer) -> None:
+    assert kernel.kernel_used and not torch_path.kernel_used
+    torch_path.engine_used = "plain"  # _assert_same checks the engine names of its pair
+    _assert_same(torch_path, kernel, rtol=RTOL, atol=ATOL)

@@ -31,6 +31,7 @@ import platform
 import sys
 import time
 import warnings
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -218,9 +219,44 @@ class FusedEngine(FastEngine):
             FastRun(run, data).fit(epochs, bar, on_epoch)
             return
         self.kernel_used = True
-        frun = FusedRun(run, data, mod)
+        frun = _reusable_run(run, data, mod)
         frun.fit(epochs, bar, on_epoch)
         self.evaluation = frun.evaluation
+
+
+#: the last FusedRun of each trainer, with the signature it was built for (see _reusable_run)
+_RUNS: weakref.WeakKeyDictionary[Any, tuple[tuple[Any, ...], FusedRun]] = weakref.WeakKeyDictionary()
+
+
+def _signature(run: RunState, data: Transitions) -> tuple[Any, ...]:
+    """What a :class:`FusedRun` is built from, beyond the state it reads at every fit: the data (the Transitions
+    object and its tensors' identities and versions: an in-place edit shows; its f_hat and masks are computed once,
+    so a Transitions is not edited through the numpy arrays it was made from), the model's normalisation and
+    parameter objects, the optimizers' and dual's objects and hyper-parameters, the config and schedules."""
+    m = run.model
+    data_t = [data.x, data.u, data.y, data.base, *[mk for mk in data.masks if mk is not None]]
+    norm = [m.in_mean, m.in_std, m.out_std]
+    groups = tuple(tuple(sorted((k, repr(v)) for k, v in g.items() if k != "params"))
+                   for opt in (run.primal_opt, run.dual.optimizer) for g in opt.param_groups)
+    return (id(data), tuple(id(t) for t in data_t + norm), tuple(t._version for t in data_t + norm),
+            tuple(id(p) for p in m.net.parameters()), id(run.primal_opt), id(run.dual), id(run.dual.optimizer),
+            groups, run.config, run.schedules)
+
+
+def _reusable_run(run: RunState, data: Transitions, module: Any) -> FusedRun:
+    """The trainer's FusedRun of its last fit when nothing it was built from changed (as the online StreamRun is
+    kept between calls: the set-up, sources and kernel object are then not rebuilt; the state is read at every
+    fit, or skipped when no tensor of it changed), else a new one."""
+    sig = _signature(run, data)
+    cached = _RUNS.get(run)
+    if cached is not None and cached[1].module is module and cached[0] == sig:
+        return cached[1]
+    frun = FusedRun(run, data, module)
+    try:
+        _RUNS[run] = (sig, frun)
+    except TypeError:  # a run object that takes no weak reference: no reuse
+        pass
+    return frun
 
 
 class FusedRun(FastRun):
@@ -242,6 +278,8 @@ class FusedRun(FastRun):
         self.xi = torch.zeros(self.E, max(self.K, 1), dtype=self.dtype)
         self.stats = torch.zeros(3, dtype=torch.float64)
         self.evaluation: dict[str, Any] | None = None
+        self._kern: Any = None
+        self._kern_bsz = 0
 
     def _kernel(self, bsz: int) -> Any:
         """The C++ object over this run's tensors (their storage is shared: it steps them in place)."""
@@ -326,7 +364,9 @@ class FusedRun(FastRun):
         tr.model.train()
         self.load_state()
         self._pending = self._pending_from_log()
-        kern = self._kernel(bsz)
+        if self._kern is None or self._kern_bsz != bsz:
+            self._kern, self._kern_bsz = self._kernel(bsz), bsz
+        kern = self._kern
         self._to_kernel()
         # as FastRun.fit: several epochs drawn at once (rand(Q, E, N) consumes the generator like Q rand(E, N))
         per_ints = per_epoch * e * bsz
