@@ -114,7 +114,7 @@ def _ensure_ninja_on_path() -> None:
     except Exception:  # noqa: BLE001 - the wheel is optional when ninja is installed system-wide
         pass
     path = os.environ.get("PATH", "").split(os.pathsep)
-    missing = [d for d in dirs if d not in path]
+    missing = [d for i, d in enumerate(dirs) if d not in path and d not in dirs[:i]]
     if missing:
         os.environ["PATH"] = os.pathsep.join([*missing, *path])
 
