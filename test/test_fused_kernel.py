@@ -302,3 +302,19 @@ def _same(torch_path: PrimalDualTrainer, kernel: PrimalDualTrainer) -> None:
     assert kernel.kernel_used and not torch_path.kernel_used
     torch_path.engine_used = "plain"  # _assert_same checks the engine names of its pair
     _assert_same(torch_path, kernel, rtol=RTOL, atol=ATOL)
+
+
+def test_a_kernel_set_up_failure_runs_the_torch_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A configuration the kernel object refuses (here: a failing constructor) runs the torch path, same result."""
+    cfg = _paper64(epochs=2)
+    (ref, dr), (tr, dt) = _trainers(SPECS["paper"], cfg, engines=("fast_torch", "fast"))
+
+    def refuse(self: fused.FusedRun, bsz: int) -> Any:
+        raise RuntimeError("fused kernel: refused")
+
+    monkeypatch.setattr(fused.FusedRun, "_kernel", refuse)
+    ref.fit(dr)
+    tr.fit(dt)
+    assert not tr.kernel_used
+    for a, b in zip(ref.model.parameters(), tr.model.parameters()):
+        assert torch.equal(a, b)

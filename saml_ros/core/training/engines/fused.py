@@ -218,8 +218,17 @@ class FusedEngine(FastEngine):
             self.kernel_used = False
             FastRun(run, data).fit(epochs, bar, on_epoch)
             return
+        try:  # set-up only: nothing of the run's state has changed if it fails
+            frun = _reusable_run(run, data, mod)
+            frun.prepare()
+        except Exception as exc:  # noqa: BLE001 - a configuration the kernel refuses: the torch path
+            self.kernel_reason = f"kernel set-up failed: {type(exc).__name__}: {exc}"
+            log.warning("fused training kernel not used (%s): the fast engine's torch path", self.kernel_reason)
+            _RUNS.pop(run, None)
+            self.kernel_used = False
+            FastRun(run, data).fit(epochs, bar, on_epoch)
+            return
         self.kernel_used = True
-        frun = _reusable_run(run, data, mod)
         frun.fit(epochs, bar, on_epoch)
         self.evaluation = frun.evaluation
 
@@ -320,6 +329,13 @@ class FusedRun(FastRun):
                      float(dual.eps[k])]
         return self.module.FusedKernel(tensors, ints, dbls)
 
+    def prepare(self) -> Any:
+        """The kernel object for the configured batch size (built on the first call, or when that changed)."""
+        bsz = minibatch_plan(self.tr.config.batch_size, self.n)[0]
+        if self._kern is None or self._kern_bsz != bsz:
+            self._kern, self._kern_bsz = self._kernel(bsz), bsz
+        return self._kern
+
     # ------------------------------------------------------------------------------ counters <-> flat optimizers
     def _to_kernel(self) -> None:
         nupi = self.dnupi
@@ -364,9 +380,7 @@ class FusedRun(FastRun):
         tr.model.train()
         self.load_state()
         self._pending = self._pending_from_log()
-        if self._kern is None or self._kern_bsz != bsz:
-            self._kern, self._kern_bsz = self._kernel(bsz), bsz
-        kern = self._kern
+        kern = self.prepare()
         self._to_kernel()
         # as FastRun.fit: several epochs drawn at once (rand(Q, E, N) consumes the generator like Q rand(E, N))
         per_ints = per_epoch * e * bsz
