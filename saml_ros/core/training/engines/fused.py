@@ -8,10 +8,11 @@ multipliers, for every ensemble member) as plain C++ loops over the fast engine'
 of steps per call; the health check runs on the block's outputs (:meth:`TrainingHealth.check_block_values`).
 
 * :func:`load_kernel` compiles it once per machine with :func:`torch.utils.cpp_extension.load`
-  (``-O3 -march=native``) into ``~/.cache/saml_ros/fused_kernel/<name>`` (``$SAML_KERNEL_CACHE`` or
-  ``$XDG_CACHE_HOME/saml_ros`` instead of ``~/.cache/saml_ros``), where the name holds a hash of the source,
-  the torch version, the compiler flags and this CPU's model and flags: a build from another CPU or torch is
-  never loaded. A build that fails leaves :func:`kernel_reason` / :func:`build_error` and one warning, and
+  (``-O3 -march=native``) into ``~/.cache/saml_ros/fused_kernel/<name>`` (``$SAML_KERNEL_CACHE`` instead of
+  that directory, or ``$XDG_CACHE_HOME`` instead of ``~/.cache``), where the name holds a hash of the source,
+  the torch and Python versions, the compiler flags and this CPU's model and flags: a build from another CPU or
+  torch is never loaded. A trainer's :class:`FusedRun` is kept between its fits while what it was built from is
+  unchanged (:func:`_reusable_run`). A build that fails leaves :func:`kernel_reason` / :func:`build_error` and one warning, and
   training runs the torch path.
 * ``SAML_FUSED_KERNEL=0`` (:func:`switched_off`) or ``TrainConfig(engine="fast_torch")`` run the torch path.
 * :class:`FusedEngine` is ``TrainConfig.engine="fast"``: the kernel where it loaded and applies
@@ -96,7 +97,8 @@ def build_name(source: Path = KERNEL_SOURCE) -> str:
 
 
 def cache_root() -> Path:
-    """Where builds go: ``$SAML_KERNEL_CACHE``, else ``$XDG_CACHE_HOME/saml_ros`` or ``~/.cache/saml_ros``."""
+    """Where builds go: ``$SAML_KERNEL_CACHE``, else ``$XDG_CACHE_HOME/saml_ros/fused_kernel`` or
+    ``~/.cache/saml_ros/fused_kernel``."""
     env = os.environ.get("SAML_KERNEL_CACHE")
     if env:
         return Path(env)
