@@ -84,8 +84,9 @@ class NumpyMLP:
                         np.ascontiguousarray(self.w_x.T), np.ascontiguousarray(self.w_u.T))  # fmt: skip
         wt, wxt, wut = self._jt
         n = len(self.weights)
-        h = x @ self.w_x
-        h += u @ self.w_u
+        dot = np.dot  # np.dot: ~1 us a call on these small arrays, the @ operator ~1.5-2.5 us
+        h = dot(x, self.w_x)
+        h += dot(u, self.w_u)
         h += self.biases[0]
         if n == 1:  # affine: constant Jacobians
             bsz = x.shape[0]
@@ -96,13 +97,13 @@ class NumpyMLP:
             masks.append(mask)
             if i < n - 1 or want_y:
                 h *= mask
-                h = h @ self.weights[i]
+                h = dot(h, self.weights[i])
                 h += self.biases[i]
         g = wt[-1] * masks[-1][:, None, :]  # (B, n_y, d_{L-1})
         for i in range(n - 2, 0, -1):
-            g = g @ wt[i]
+            g = dot(g, wt[i])
             g *= masks[i - 1][:, None, :]
-        return (h if want_y else None), g @ wxt, g @ wut
+        return (h if want_y else None), dot(g, wxt), dot(g, wut)
 
     def state_part(self, x: np.ndarray) -> np.ndarray:
         """The first layer's pre-activation from the state alone, ``x @ W_x + b_0`` ``(d,)``, for
