@@ -58,10 +58,13 @@ class NumpyMLP:
 
     def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """phi(x, u): ``(B, n_x), (B, n_u) -> (B, n_y)``, or one sample ``(n_x,), (n_u,) -> (n_y,)``."""
-        n = len(self.weights)
-        h = x @ self.w_x + u @ self.w_u + self.biases[0]
+        n, dot = len(self.weights), np.dot  # np.dot: 1-2.5 us less a call than @ on these sizes (numpy 2.4)
+        h = dot(x, self.w_x)
+        h += dot(u, self.w_u)
+        h += self.biases[0]
         for i in range(1, n):
-            h = self._act(h, i - 1) @ self.weights[i] + self.biases[i]
+            h = dot(self._act(h, i - 1), self.weights[i])
+            h += self.biases[i]
         return h
 
     def forward_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -84,8 +87,9 @@ class NumpyMLP:
                         np.ascontiguousarray(self.w_x.T), np.ascontiguousarray(self.w_u.T))  # fmt: skip
         wt, wxt, wut = self._jt
         n = len(self.weights)
-        h = x @ self.w_x
-        h += u @ self.w_u
+        dot = np.dot
+        h = dot(x, self.w_x)
+        h += dot(u, self.w_u)
         h += self.biases[0]
         if n == 1:  # affine: constant Jacobians
             bsz = x.shape[0]
@@ -96,29 +100,30 @@ class NumpyMLP:
             masks.append(mask)
             if i < n - 1 or want_y:
                 h *= mask
-                h = h @ self.weights[i]
+                h = dot(h, self.weights[i])
                 h += self.biases[i]
         g = wt[-1] * masks[-1][:, None, :]  # (B, n_y, d_{L-1})
         for i in range(n - 2, 0, -1):
-            g = g @ wt[i]
+            g = dot(g, wt[i])
             g *= masks[i - 1][:, None, :]
-        return (h if want_y else None), g @ wxt, g @ wut
+        return (h if want_y else None), dot(g, wxt), dot(g, wut)
 
     def state_part(self, x: np.ndarray) -> np.ndarray:
         """The first layer's pre-activation from the state alone, ``x @ W_x + b_0`` ``(d,)``, for
         :meth:`forward_pre1` when many controls are tried at one state."""
-        return x @ self.w_x + self.biases[0]
+        return np.dot(x, self.w_x) + self.biases[0]
 
     def forward_pre1(self, x: np.ndarray, u: np.ndarray,
                      x_part: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
         """phi for one sample ``(n_x,), (n_u,) -> (n_y,)`` and the hidden layers' pre-activations, from which
         :meth:`jac_u1` takes the Jacobian (so that a trial point whose Jacobian turns out not to be needed costs
         one forward pass). ``x_part``: :meth:`state_part` of ``x``, if already known."""
-        h = (x @ self.w_x + self.biases[0] if x_part is None else x_part) + u @ self.w_u
+        dot = np.dot
+        h = (dot(x, self.w_x) + self.biases[0] if x_part is None else x_part) + dot(u, self.w_u)
         pre = [h]
         for i in range(1, len(self.weights)):
             a = self.slopes[i - 1]
-            h = (np.maximum(h, a * h) if self._max_ok[i - 1] else np.where(h >= 0.0, h, a * h)) @ self.weights[i]
+            h = dot(np.maximum(h, a * h) if self._max_ok[i - 1] else np.where(h >= 0.0, h, a * h), self.weights[i])
             h += self.biases[i]
             pre.append(h)
         pre.pop()
@@ -133,5 +138,5 @@ class NumpyMLP:
         n = len(self.weights)
         g = self._wt[-1] * np.where(pre[-1] >= 0.0, 1.0, self.slopes[n - 2])
         for i in range(n - 2, 0, -1):
-            g = (g @ self._wt[i]) * np.where(pre[i - 1] >= 0.0, 1.0, self.slopes[i - 1])
-        return g @ self._wt[0]
+            g = np.dot(g, self._wt[i]) * np.where(pre[i - 1] >= 0.0, 1.0, self.slopes[i - 1])
+        return np.dot(g, self._wt[0])

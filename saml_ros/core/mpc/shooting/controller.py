@@ -101,7 +101,7 @@ class ShootingMPC:
         if x0.shape != (self.n,):
             raise ValueError(f"{self.system.name} MPC: x0 must have shape ({self.n},), got {x0.shape}")
         task = self.task if goal is None else self.task.with_target(goal)
-        if not np.all(np.isfinite(x0)):
+        if not np.isfinite(x0).all():
             return self._fallback(start, "non-finite state")
         u0, xs0 = self._warm_start(x0, task)
         try:
@@ -110,7 +110,7 @@ class ShootingMPC:
             # the optimiser's own prediction is the plan's unless clipping moved a control
             plan_x = xs if xs is not None and np.array_equal(clipped, plan_u) else self.rollout(x0, clipped)
             plan_u = clipped
-            if not (np.all(np.isfinite(plan_x)) and np.all(np.isfinite(plan_u))):
+            if not (np.isfinite(plan_x).all() and np.isfinite(plan_u).all()):
                 return self._fallback(start, f"non-finite plan ({msg})", iters)
         except Exception as exc:  # any numerical breakdown: keep flying on the last good plan
             return self._fallback(start, f"solver failure: {type(exc).__name__}: {exc}")

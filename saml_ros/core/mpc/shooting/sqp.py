@@ -163,7 +163,8 @@ class SQPShootingMPC(ShootingMPC):
         curvature scale of the Levenberg-Marquardt term. For a scalar stage residual (exact l1 model) ``hess``
         is zero and ``G, h`` hold the state-constraint rows only: the stage rows are ``self._l1_rows``."""
         T, k = self.horizon, task.res_idx.size
-        jac = sens[1:, task.res_idx, :]  # (T, k, Tm)
+        # (T, k, Tm); a scalar residual's (T, 1, Tm) as a view (no fancy-index copy)
+        jac = sens[1:, task.res_idx[0] : task.res_idx[0] + 1, :] if k == 1 else sens[1:, task.res_idx, :]
         if task.n_cons:
             g_con = task.cons_sign[:, None] * sens[task.cons_t, task.cons_idx, :]
             if task.att_tol is not None:
@@ -212,7 +213,7 @@ class SQPShootingMPC(ShootingMPC):
             pen_all = np.concatenate((np.ones(2 * r1.size), pen))
             self.stats["ipm_qp"] += 1
             d = solve_qp(hess, grad, lo, hi, g_all, h_all, pen_all, backend="ipm").d
-        pred = float(np.abs(r1).sum() - np.abs(r1 + j1 @ d).sum())
+        pred = float(np.abs(r1).sum() - np.abs(r1 + np.dot(j1, d)).sum())
         if h_vec.size:
             pred += float(pen @ (np.maximum(-h_vec, 0.0) - np.maximum(g_mat @ d - h_vec, 0.0)))
         if grad is not self._zeros_nu:
