@@ -233,6 +233,30 @@ def test_a_failing_build_falls_back_to_the_torch_path_with_one_warning(tmp_path:
         tr.fit(dt)
 
 
+def test_a_stale_torch_build_lock_neither_hangs_a_load_nor_a_build(tmp_path: Path) -> None:
+    """A process killed during the first build (Ctrl-C) leaves torch's ``lock`` file in the build directory;
+    torch.utils.cpp_extension would wait for it forever. A finished build is imported without touching it, and a
+    build (here: of a broken copy, which fails fast) removes it under the kernel's own flock and goes on."""
+    kernel = fused.load_kernel()
+    if kernel is None:
+        pytest.skip(f"no kernel here: {fused.kernel_reason()}")
+    name = fused.build_name()
+    built = fused.cache_root() / name
+    copy = tmp_path / name
+    copy.mkdir()
+    (copy / f"{name}.so").write_bytes((built / f"{name}.so").read_bytes())
+    (copy / "lock").touch()
+    assert hasattr(fused._load_built(name, copy), "FusedKernel")
+    broken = tmp_path / "fused_step.cpp"
+    broken.write_text('#include "no_such_header_saml.h"\n' + fused.KERNEL_SOURCE.read_text())
+    stale = tmp_path / "stale"
+    stale.mkdir()
+    (stale / "lock").touch()
+    with pytest.raises(Exception, match="no_such_header_saml|Error building"):
+        fused._build("saml_fused_step_broken", broken, stale, verbose=False)
+    assert not (stale / "lock").exists()
+
+
 def test_build_name_depends_on_source_torch_and_cpu(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A cached build is only ever loaded by the same source, torch version, flags and CPU."""
     name = fused.build_name()

@@ -25,7 +25,9 @@ and the plain engine. This module is the only one that imports the kernel; :mod:
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
+import importlib.util
 import logging
 import os
 import platform
@@ -89,8 +91,10 @@ def _cpu_id() -> str:
 def build_name(source: Path = KERNEL_SOURCE) -> str:
     """The extension's name: ``saml_fused_step_<hash>`` of the source, torch version, flags and CPU."""
     h = hashlib.sha256()
+    # the torch installation's path too: two environments (venvs) sharing the cache would otherwise rewrite each
+    # other's build.ninja (other include paths) and rebuild in turn
     for part in (source.read_bytes(), torch.__version__.encode(), " ".join(CFLAGS).encode(), _cpu_id().encode(),
-                 sys.version.encode()):
+                 sys.version.encode(), str(Path(torch.__file__).resolve().parent).encode()):
         h.update(part)
         h.update(b"\0")
     return f"saml_fused_step_{h.hexdigest()[:16]}"
@@ -121,6 +125,46 @@ def _ensure_ninja_on_path() -> None:
         os.environ["PATH"] = os.pathsep.join([*missing, *path])
 
 
+def _load_built(name: str, build_dir: Path) -> Any:
+    """The module of a finished build in ``build_dir``, imported directly (no ninja, no lock), or None when there
+    is none or it does not import (a build killed while linking: it is rebuilt)."""
+    so = build_dir / f"{name}.so"
+    if not so.is_file():
+        return None
+    try:
+        spec = importlib.util.spec_from_file_location(name, so)
+        if spec is None or spec.loader is None:
+            return None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    except ImportError:
+        return None
+
+
+def _build(name: str, src: Path, build_dir: Path, verbose: bool) -> Any:
+    """Build with :func:`torch.utils.cpp_extension.load` under an exclusive ``flock`` on ``build_dir/saml.lock``:
+    the kernel holds it until the build ends and it dies with the process. torch's own lock file (``lock``,
+    which waits forever once a process is killed while holding it: Ctrl-C during the first build) is therefore
+    stale whenever it exists here, and is removed. Another process's finished build is loaded instead."""
+    _ensure_ninja_on_path()
+    from torch.utils.cpp_extension import load
+
+    with open(build_dir / "saml.lock", "w") as lock_file:
+        fcntl.flock(lock_file, fcntl.LOCK_EX)
+        try:
+            mod = _load_built(name, build_dir)
+            if mod is not None:
+                return mod
+            (build_dir / "lock").unlink(missing_ok=True)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                return load(name=name, sources=[str(src)], extra_cflags=list(CFLAGS), build_directory=str(build_dir),
+                            verbose=verbose)
+        finally:
+            fcntl.flock(lock_file, fcntl.LOCK_UN)
+
+
 def load_kernel(source: Path | None = None, verbose: bool = False) -> Any:
     """The compiled kernel module (built on the first call on this machine, then loaded from the cache), or
     ``None`` when it is switched off or cannot be built (:func:`kernel_reason`, :func:`build_error`; one warning
@@ -136,15 +180,11 @@ def load_kernel(source: Path | None = None, verbose: bool = False) -> Any:
         name = build_name(src)
         build_dir = cache_root() / name
         build_dir.mkdir(parents=True, exist_ok=True)
-        state.cached = any(build_dir.glob(f"{name}*.so"))
-        _ensure_ninja_on_path()
-        from torch.utils.cpp_extension import load
-
         t0 = time.perf_counter()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            mod = load(name=name, sources=[str(src)], extra_cflags=list(CFLAGS), build_directory=str(build_dir),
-                       verbose=verbose)
+        mod = _load_built(name, build_dir)
+        state.cached = mod is not None
+        if mod is None:
+            mod = _build(name, src, build_dir, verbose)
         state.seconds = None if state.cached else time.perf_counter() - t0
         if not hasattr(mod, "FusedKernel"):
             raise RuntimeError("the built module has no FusedKernel")
