@@ -1,7 +1,8 @@
 """Online updates on the fast engine's path (saml_ros.core.online.updates, engines.stream) learn what the plain
 online step learns on the same minibatches: parameters, multipliers, optimizer states, history and telemetry
 averages, for every dual method and learning-rate schedule; and the health checks still keep bad minibatches and
-exploding weights out of the model."""
+exploding weights out of the model. Where the fused kernel is built, the fast path runs on it
+(engines.fused.FusedStreamRun), and it equals the torch-path stream (engine "fast_torch") on the same minibatches."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from saml_ros.core.online import OnlineConfig, OnlineLearner
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.training import TrainConfig
+from saml_ros.core.training.engines import fused
 from saml_ros.core.training.health import HealthConfig
 
 OPEN = "{x.p: [-.inf, .inf], x.v: [-.inf, .inf], u.u: [-.inf, .inf]}"
@@ -49,6 +51,12 @@ def _run_both(fast: OnlineLearner, plain: OnlineLearner, chunks: list[int]) -> N
         assert fast.updates == plain.updates
     assert fast._updates is not None and fast._updates.engine == "fast"
     assert plain._updates is not None and plain._updates.engine == "plain"
+    assert fast._updates.stream is not None and fast._updates.stream.kernel_used == KERNEL
+
+
+#: the fused kernel is built here (then the fast online updates run on it)
+KERNEL = fused.load_kernel() is not None
+needs_kernel = pytest.mark.skipif(not KERNEL, reason=f"fused kernel not available: {fused.kernel_reason()}")
 
 
 def _assert_same(fast: OnlineLearner, plain: OnlineLearner, tol: float) -> None:
@@ -111,6 +119,8 @@ def test_fast_online_updates_skip_exactly_the_minibatches_the_plain_step_skips()
     _run_both(fast, plain, [100, 100])
     skipped = fast.trainer.health.counters()["train_health/skipped/loss"]  # type: ignore[union-attr]
     assert skipped > 5
+    if KERNEL:  # the kernel's blocks with a bad minibatch were put back and replayed with per-update gates
+        assert getattr(fast._updates.stream, "blocks_replayed", 0) > 0  # type: ignore[union-attr]
     _assert_same(fast, plain, 1e-8)
 
 
@@ -143,3 +153,63 @@ def test_an_unsupported_configuration_falls_back_to_the_plain_step() -> None:
     learner.update(3)
     assert learner._updates is not None and learner._updates.engine == "plain"
     assert "weight decay" in (learner._updates.plain_reason or "") and learner.updates == 4
+
+
+def _run_pair(kernel: OnlineLearner, torch_path: OnlineLearner, chunks: list[int]) -> None:
+    for n in chunks:
+        assert kernel.update(n) == n and torch_path.update(n) == n
+    ks, ts = kernel._updates.stream, torch_path._updates.stream  # type: ignore[union-attr]
+    assert ks is not None and ts is not None
+    assert ks.kernel_used and isinstance(ks, fused.FusedStreamRun)
+    assert not ts.kernel_used and "fast_torch" in (ts.kernel_reason or "")
+
+
+@needs_kernel
+@pytest.mark.parametrize(
+    ("dual_method", "schedule"),
+    [("paper", "constant"), ("augmented", "cosine"), ("nupi", "step"), ("resilient", "cosine")],
+)
+def test_kernel_stream_equals_the_torch_path_stream_on_the_same_minibatches(dual_method: str, schedule: str) -> None:
+    """Float64 (test_fast_train.py's bounds): the kernel-backed stream and the torch-path stream of the same
+    trainer, chunks crossing history rows and health blocks at odd places."""
+    kw: dict[str, Any] = {"dual_method": dual_method, "primal_schedule": schedule, "dual_schedule": schedule,
+                          "schedule_steps": 150}
+    kern, tp = _learner("friction", "fast", **kw), _learner("friction", "fast_torch", **kw)
+    _run_pair(kern, tp, [7, 30, 1, 63, 44, 50])
+    _assert_same(kern, tp, 1e-8)
+
+
+@needs_kernel
+def test_kernel_stream_equals_the_torch_path_stream_on_a_region_constraint_with_sgd() -> None:
+    kw: dict[str, Any] = {"primal_optimizer": "sgd", "dual_optimizer": "sgd", "primal_lr": 1e-2, "dual_lr": 1e-2}
+    kern, tp = _learner("quadrotor", "fast", hidden=(16, 8), **kw), _learner("quadrotor", "fast_torch",
+                                                                              hidden=(16, 8), **kw)
+    _run_pair(kern, tp, [25, 40, 13])
+    _assert_same(kern, tp, 1e-8)
+
+
+@needs_kernel
+def test_kernel_stream_in_float32_stays_close_to_the_torch_path() -> None:
+    kern, tp = _learner("friction", "fast", dtype="float32"), _learner("friction", "fast_torch", dtype="float32")
+    _run_pair(kern, tp, [50, 50, 50])
+    for a, b in zip(_state(kern), _state(tp)):
+        assert torch.allclose(a.double(), b.double(), rtol=1e-4, atol=1e-5)
+
+
+@needs_kernel
+def test_kernel_stream_skips_and_puts_back_like_the_torch_path() -> None:
+    """Bad minibatches and exploding weights: the kernel's failing blocks are replayed with the per-update gates,
+    so the same updates are skipped and counted, and the rest learn the same."""
+    health = HealthConfig(max_weight=1.5, check_every=5)
+    kern, tp = (_learner("friction", e, health=health, primal_lr=0.2) for e in ("fast", "fast_torch"))
+    system = get_system("friction")
+    bx, bu, by = system.make_dataset(4, np.random.default_rng(4))
+    by[:, 1] = [1e200, -1e200, 1e180, 3e38]
+    for learner in (kern, tp):
+        learner.update(30)
+        learner.add_batch(bx, bu, by)
+    _run_pair(kern, tp, [60, 60])
+    assert kern._updates.stream.blocks_replayed > 0  # type: ignore[union-attr]
+    h = kern.trainer.health  # type: ignore[union-attr]
+    assert h.healthy_steps + sum(h.skipped.values()) == kern.updates
+    _assert_same(kern, tp, 1e-8)

@@ -19,6 +19,7 @@ from saml_ros.core.buffer import ReplayBuffer
 from saml_ros.core.online.telemetry import StepAverages
 from saml_ros.core.training import PrimalDualTrainer
 from saml_ros.core.training.dataset import Transitions
+from saml_ros.core.training.engines.fused import make_stream_run
 from saml_ros.core.training.engines.stream import StreamRun, stream_unsupported_reason
 
 log = logging.getLogger("saml_ros.online")
@@ -63,7 +64,7 @@ class OnlineUpdates:
             like = Transitions(tr.model, tr.spec, x[0, :2], u[0, :2], y[0, :2])
             self.plain_reason = stream_unsupported_reason(tr, like)
             if self.plain_reason is None:
-                self.stream = StreamRun(tr, bsz, self.log_every, like)
+                self.stream = make_stream_run(tr, bsz, self.log_every, like)
             else:
                 log.info("fast online updates not used (%s): plain steps", self.plain_reason)
         if self.stream is not None:

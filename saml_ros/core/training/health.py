@@ -282,6 +282,26 @@ class TrainingHealth:
         self.streak = 0
         return None
 
+    def accept_loss_steps(self, losses: list[tuple[float, float]]) -> bool:
+        """The fused online updates' loss checks of a block of steps already taken: ``losses`` holds each step's
+        minibatch Lagrangian and objective (summed over members). When :meth:`check_loss_values` would pass every
+        one of them in turn (the running mean moving after each, as the plain step's), they are counted healthy
+        as :meth:`count_healthy` does (without a gradient norm) and True is returned; else nothing changes and
+        False is returned (the caller puts the block back and takes it step by step)."""
+        cfg = self.config
+        mean = _Mean()
+        mean.value, mean.n = self._loss.value, self._loss.n
+        for lag, obj in losses:
+            if not (math.isfinite(lag) and math.isfinite(obj)) or mean.exploding(obj, cfg):
+                return False
+            mean.add(obj, cfg.warmup, cfg.smoothing)
+        if losses:
+            self._loss = mean
+            self._pending_grad = None
+            self.healthy_steps += len(losses)
+            self.streak = 0
+        return True
+
     # ------------------------------------------------------------------------------ reporting
     def _problem(self, reason: str, detail: str) -> str:
         self.last_problem = f"{reason}: {detail}"

@@ -46,6 +46,7 @@ from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import AugmentedDual, NuPIDual, ResilientDual
 from saml_ros.core.training.engines.base import RunState, minibatch_plan
 from saml_ros.core.training.engines.fast import FastEngine, FastRun
+from saml_ros.core.training.engines.stream import StreamRun
 from saml_ros.core.training.evaluate import spec_values
 
 log = logging.getLogger("saml_ros.trainer")
@@ -310,30 +311,17 @@ def _reusable_run(run: RunState, data: Transitions, module: Any) -> FusedRun:
     return frun
 
 
-class FusedRun(FastRun):
-    """One :meth:`Engine.fit` on the fused kernel: the fast engine's flat state and sources, stepped by
-    ``kernels/fused_step.cpp`` in blocks of ``health.check_every`` steps (see the module docstring)."""
+class _KernelSteps(FastRun):
+    """What the fused runs (offline :class:`FusedRun`, online :class:`FusedStreamRun`) share: the kernel object
+    over the run's flat tensors, the step counters and nuPI error exchanged with it, the per-step learning rates."""
 
-    def __init__(self, trainer: RunState, data: Transitions, module: Any) -> None:
-        super().__init__(trainer, data)
-        self.module = module
-        rows = self.src_r.shape[0]
-        # every term's mask column and ||y|| (1 where unused), in term order
-        self.src_mask = torch.ones(rows, self.T, dtype=self.dtype)
-        self.src_nyt = torch.ones(rows, self.T, dtype=self.dtype)
-        for g, m, ny in zip(self.groups, self.src_masks, self.src_ny):
-            self.src_mask[:, g.cols] = m
-            if ny is not None:
-                self.src_nyt[:, g.cols] = ny
-        self.counts = torch.zeros(4, dtype=torch.int64)
-        self.xi = torch.zeros(self.E, max(self.K, 1), dtype=self.dtype)
-        self.stats = torch.zeros(3, dtype=torch.float64)
-        self.evaluation: dict[str, Any] | None = None
-        self._kern: Any = None
-        self._kern_bsz = 0
+    module: Any
+    counts: Tensor
+    xi: Tensor
 
-    def _kernel(self, bsz: int) -> Any:
-        """The C++ object over this run's tensors (their storage is shared: it steps them in place)."""
+    def _make_kernel(self, bsz: int, n: int, src_z: Tensor, src_r: Tensor, src_mask: Tensor, src_nyt: Tensor) -> Any:
+        """The C++ object over this run's tensors and the sources given (``n`` rows per member; their storage is
+        shared: it steps the state in place and reads the sources at every call)."""
         net, popt, dual = self.net, self.popt, self.dual
         empty = torch.empty(0, dtype=self.dtype)
         if not self.K:
@@ -353,8 +341,8 @@ class FusedRun(FastRun):
         self._ostd = ostd
         tensors = [net.flat, net.grad, popt.m if adam else empty, popt.v if adam else empty, self.lam,
                    dopt.m if dopt is not None else empty, dopt.v if dopt is not None else empty, self.xi,
-                   self.src_z.contiguous(), self.src_r.contiguous(), self.src_mask, self.src_nyt, ostd, self.counts]
-        ints = [self.E, bsz, self.n, net.n_layers, *net.dims, self.T, self.src_r.shape[1], int(self.data.per_member),
+                   src_z.contiguous(), src_r.contiguous(), src_mask, src_nyt, ostd, self.counts]
+        ints = [self.E, bsz, n, net.n_layers, *net.dims, self.T, src_r.shape[1], int(self.data.per_member),
                 int(self.z_per_member), 0 if adam else 1, dkind, method, net.n_extra]
         for t in self.terms:
             ints += [_LOSS_CODES[t.loss], int(t.region is not None and t.mean == "conditional"), len(t.fields),
@@ -370,13 +358,6 @@ class FusedRun(FastRun):
             dbls += [float(rho[k]) if rho is not None else 0.0, float(eps2[k]) if eps2 is not None else 0.0,
                      float(dual.eps[k])]
         return self.module.FusedKernel(tensors, ints, dbls)
-
-    def prepare(self) -> Any:
-        """The kernel object for the configured batch size (built on the first call, or when that changed)."""
-        bsz = minibatch_plan(self.tr.config.batch_size, self.n)[0]
-        if self._kern is None or self._kern_bsz != bsz:
-            self._kern, self._kern_bsz = self._kernel(bsz), bsz
-        return self._kern
 
     # ------------------------------------------------------------------------------ counters <-> flat optimizers
     def _to_kernel(self) -> None:
@@ -411,6 +392,40 @@ class FusedRun(FastRun):
         else:
             out[:, 1] = torch.tensor([ds.lr(t) for t in range(t0, t0 + s)], dtype=torch.float64)
         return out
+
+
+class FusedRun(_KernelSteps):
+    """One :meth:`Engine.fit` on the fused kernel: the fast engine's flat state and sources, stepped by
+    ``kernels/fused_step.cpp`` in blocks of ``health.check_every`` steps (see the module docstring)."""
+
+    def __init__(self, trainer: RunState, data: Transitions, module: Any) -> None:
+        super().__init__(trainer, data)
+        self.module = module
+        rows = self.src_r.shape[0]
+        # every term's mask column and ||y|| (1 where unused), in term order
+        self.src_mask = torch.ones(rows, self.T, dtype=self.dtype)
+        self.src_nyt = torch.ones(rows, self.T, dtype=self.dtype)
+        for g, m, ny in zip(self.groups, self.src_masks, self.src_ny):
+            self.src_mask[:, g.cols] = m
+            if ny is not None:
+                self.src_nyt[:, g.cols] = ny
+        self.counts = torch.zeros(4, dtype=torch.int64)
+        self.xi = torch.zeros(self.E, max(self.K, 1), dtype=self.dtype)
+        self.stats = torch.zeros(3, dtype=torch.float64)
+        self.evaluation: dict[str, Any] | None = None
+        self._kern: Any = None
+        self._kern_bsz = 0
+
+    def _kernel(self, bsz: int) -> Any:
+        """The C++ object over this run's tensors and sources."""
+        return self._make_kernel(bsz, self.n, self.src_z, self.src_r, self.src_mask, self.src_nyt)
+
+    def prepare(self) -> Any:
+        """The kernel object for the configured batch size (built on the first call, or when that changed)."""
+        bsz = minibatch_plan(self.tr.config.batch_size, self.n)[0]
+        if self._kern is None or self._kern_bsz != bsz:
+            self._kern, self._kern_bsz = self._kernel(bsz), bsz
+        return self._kern
 
     # ------------------------------------------------------------------------------ training
     def fit(self, epochs: int, bar: Any = None, on_epoch: Callable[[], None] | None = None) -> None:
@@ -492,6 +507,154 @@ class FusedRun(FastRun):
             self._pending.append(vals[start:hi])
         if bar is not None:
             bar.update(hi - lo)
+
+
+# ------------------------------------------------------------------------------------------------- online updates
+def make_stream_run(trainer: RunState, batch_size: int, log_every: int, like: Transitions) -> StreamRun:
+    """The online learner's update run: a :class:`FusedStreamRun` where the kernel loaded and applies (as
+    :class:`FusedEngine`: not switched off, :func:`kernel_unsupported_reason` ``None``, engine not
+    ``"fast_torch"``), else the torch-path :class:`~.stream.StreamRun`; ``run.kernel_used`` / ``run.kernel_reason``
+    say which. Raises ``ValueError`` where neither applies (:func:`~.stream.stream_unsupported_reason`)."""
+    mod = load_kernel()
+    why = kernel_reason() if mod is None else kernel_unsupported_reason(trainer, like)
+    if why is None and getattr(trainer.config, "engine", "fast") == "fast_torch":
+        why = "engine 'fast_torch' configured"
+    if why is None:
+        try:
+            return FusedStreamRun(trainer, batch_size, log_every, like, mod)
+        except ValueError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a configuration the kernel refuses: the torch path
+            why = f"kernel set-up failed: {type(exc).__name__}: {exc}"
+            log.warning("fused kernel not used for online updates (%s): the torch path", why)
+    run = StreamRun(trainer, batch_size, log_every, like)
+    run.kernel_reason = why
+    return run
+
+
+class FusedStreamRun(StreamRun, _KernelSteps):
+    """:class:`~.stream.StreamRun` with its steps in the fused kernel.
+
+    One kernel object is kept for the run: it reads the minibatches from source buffers of this run (room for
+    ``S x B`` rows, grown when a call brings more), into which each :meth:`steps` call copies its prepared
+    minibatches, so a call costs the preparation of its ``S`` minibatches (as the torch path), a few copies and one
+    kernel call per block.
+
+    Health: the kernel runs a block (``check_every`` steps, ending at log points and at the call's end) and the
+    block is then checked: every step's minibatch loss as the torch path's per-update gate does
+    (:meth:`TrainingHealth.accept_loss_steps`: non-finite or exploding, with the running mean moved after each
+    step) and the weights after the block. A block that passes counts its steps healthy. A block that fails is put
+    back (the kernel's snapshot) and replayed on the torch path with its per-update gates and its weights check,
+    so a bad minibatch is skipped and counted exactly as by :class:`~.stream.StreamRun`, and the block's good
+    minibatches are applied (:attr:`blocks_replayed` counts such blocks). What the kernel path does not do is the
+    gradient-norm test of blocks that pass: a non-finite gradient reaches the weights through Adam / SGD (then
+    the block is replayed and the gate skips that step), a finite exploding gradient norm is not looked for, and
+    the gradient's running mean only moves in replayed steps.
+    """
+
+    kernel_used = True
+
+    def __init__(self, trainer: RunState, batch_size: int, log_every: int, like: Transitions, module: Any) -> None:
+        super().__init__(trainer, batch_size, log_every, like)
+        self.module = module
+        self.counts = torch.zeros(4, dtype=torch.int64)
+        self.xi = torch.zeros(self.E, max(self.K, 1), dtype=self.dtype)
+        self.stats = torch.zeros(3, dtype=torch.float64)
+        #: blocks that failed a check after the kernel ran them and were replayed on the torch path
+        self.blocks_replayed = 0
+        self._cap = 0
+        self._kern: Any = None
+        self._zpm = self.z_per_member
+        self._grow(16)  # set-up errors show here (make_stream_run then runs the torch path)
+
+    def _grow(self, s: int) -> None:
+        """Source buffers for ``s`` minibatches and the kernel object over them."""
+        rows, e, dt = s * self.bsz, self.E, self.dtype
+        nz, ny = self.src_z.shape[1], self.src_r.shape[1]
+        self._zpm = self.z_per_member
+        self._bz = torch.zeros((e if self._zpm else 1) * rows, nz, dtype=dt)
+        self._br = torch.zeros(rows, ny, dtype=dt)
+        self._bm = torch.ones(rows, self.T, dtype=dt)
+        self._bn = torch.ones(rows, self.T, dtype=dt)
+        self._idx = torch.arange(rows).view(s, 1, self.bsz).expand(s, e, self.bsz).contiguous()
+        self._kern = self._make_kernel(self.bsz, rows, self._bz, self._br, self._bm, self._bn)
+        self._cap = s
+
+    def _fill(self, s: int) -> None:
+        """Copy the prepared sources of this call's ``s`` minibatches into the kernel's buffers."""
+        if s > self._cap or self.z_per_member != self._zpm:
+            self._grow(max(s, self._cap))
+        rows, cap_rows = s * self.bsz, self._cap * self.bsz
+        if self._zpm:
+            self._bz.view(self.E, cap_rows, -1)[:, :rows].copy_(self.src_z.view(self.E, rows, -1))
+        else:
+            self._bz[:rows].copy_(self.src_z)
+        self._br[:rows].copy_(self.src_r)
+        for g, m, ny in zip(self.groups, self.src_masks, self.src_ny):
+            self._bm[:rows, g.cols] = m
+            if ny is not None:
+                self._bn[:rows, g.cols] = ny
+
+    def steps(self, x: Any, u: Any, y: Any) -> Tensor:
+        """:meth:`StreamRun.steps <.stream.StreamRun.steps>` on the kernel (see the class docstring)."""
+        s, b = int(x.shape[0]), int(x.shape[1])
+        if b != self.bsz:
+            raise ValueError(f"minibatches of {b} samples, this run takes {self.bsz}")
+        tr = self.tr
+        flat = [a.reshape(s * b, a.shape[-1]) for a in (x, u, y)]
+        self.data = Transitions(tr.model, tr.spec, *flat)
+        self._prepare_sources()
+        self._fill(s)
+        kern = self._kern
+        vals = torch.empty(s, self.E, self.T, dtype=self.dtype)
+        self.load_state()
+        self._pending += self._pending_from_log()  # values of plain steps taken in between
+        self._to_kernel()
+        kern.set_chunk(self._idx[:s], vals, self._lrs(tr.steps, s))
+        health, stats, log_every = tr.health, self.stats, self.log_every
+        every, max_weight = health.config.check_every, health.config.max_weight
+        next_log = tr.steps + (log_every - tr.steps % log_every)
+        start = j = 0
+        while j < s:
+            e = min(s, j + every, j + (next_log - tr.steps))
+            kern.snapshot()
+            kern.run(j, e, stats)
+            biggest = float(stats[2])
+            ok = biggest <= max_weight  # NaN fails this
+            if ok:
+                losses = [(sum(sum(v) for v in step), sum(v[0] for v in step)) for step in vals[j:e].tolist()]
+                ok = health.accept_loss_steps(losses)
+            if not ok:
+                kern.restore()
+                self._from_kernel()
+                self._replay(vals, j, e)
+                self._to_kernel()
+                self.blocks_replayed += 1
+            tr.steps += e - j
+            j = e
+            if tr.steps == next_log:
+                next_log += log_every
+                self._pending.append(vals[start:j])
+                start = j
+                self._log_point()
+        if start < s:
+            self._pending.append(vals[start:s])
+        self._from_kernel()
+        self.store_state()
+        return vals
+
+    def _replay(self, vals: Tensor, a: int, b: int) -> None:
+        """Steps ``a:b`` of this call on the torch path (per-update gates, then the weights check of the block),
+        from the state before them; ``trainer.steps`` is that of step ``a`` (the caller advances it)."""
+        z_all, r_all, sg_all = self._gather(self._idx[a:b])
+        rows = vals.unbind(0)
+        t0 = self.tr.steps
+        snap = self._snapshot()
+        self._skipped_in_block = 0
+        for k in range(b - a):
+            self._rates(t0 + k)
+            self._step(z_all[k], r_all[k], sg_all[k], rows[a + k])
+        self._check_weights(vals, a, b, snap)
 
 
 def main() -> int:

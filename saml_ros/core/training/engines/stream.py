@@ -54,6 +54,11 @@ class StreamRun(FastRun):
         ValueError: the fast path does not apply (:func:`stream_unsupported_reason`).
     """
 
+    #: False: the torch path (the fused kernel's run, :class:`~.fused.FusedStreamRun`, says True)
+    kernel_used = False
+    #: why the fused kernel does not run these updates (set by :func:`~.fused.make_stream_run`)
+    kernel_reason: str | None = None
+
     def __init__(self, trainer: RunState, batch_size: int, log_every: int, like: Transitions) -> None:
         why = stream_unsupported_reason(trainer, like)
         if why is not None:
