@@ -597,13 +597,8 @@ class FusedStreamRun(StreamRun, _KernelSteps):
 
     def steps(self, x: Any, u: Any, y: Any) -> Tensor:
         """:meth:`StreamRun.steps <.stream.StreamRun.steps>` on the kernel (see the class docstring)."""
-        s, b = int(x.shape[0]), int(x.shape[1])
-        if b != self.bsz:
-            raise ValueError(f"minibatches of {b} samples, this run takes {self.bsz}")
+        s = self._take_minibatches(x, u, y)
         tr = self.tr
-        flat = [a.reshape(s * b, a.shape[-1]) for a in (x, u, y)]
-        self.data = Transitions(tr.model, tr.spec, *flat)
-        self._prepare_sources()
         self._fill(s)
         kern = self._kern
         vals = torch.empty(s, self.E, self.T, dtype=self.dtype)

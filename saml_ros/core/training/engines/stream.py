@@ -100,19 +100,25 @@ class StreamRun(FastRun):
         health.skip(why, n_ok)
         health.restores += 1
 
+    def _take_minibatches(self, x: Any, u: Any, y: Any) -> int:
+        """Make ``S`` minibatches ``(S, B, .)`` this run's data and prepare their sources; returns ``S``."""
+        s, b = int(x.shape[0]), int(x.shape[1])
+        if b != self.bsz:
+            raise ValueError(f"minibatches of {b} samples, this run takes {self.bsz}")
+        flat = [a.reshape(s * b, a.shape[-1]) for a in (x, u, y)]
+        self.data = Transitions(self.tr.model, self.tr.spec, *flat)
+        self._prepare_sources()
+        return s
+
     def steps(self, x: Any, u: Any, y: Any) -> Tensor:
         """``S`` updates on the minibatches ``x, u, y`` ``(S, B, .)`` (numpy or torch, float64 or the model's dtype).
 
         Returns the minibatch term values before each update ``(S, E, T)`` (objective, then g_k; NaN for steps the
         health check skipped).
         """
-        s, b = int(x.shape[0]), int(x.shape[1])
-        if b != self.bsz:
-            raise ValueError(f"minibatches of {b} samples, this run takes {self.bsz}")
+        s = self._take_minibatches(x, u, y)
         tr = self.tr
-        flat = [a.reshape(s * b, a.shape[-1]) for a in (x, u, y)]
-        self.data = Transitions(tr.model, tr.spec, *flat)
-        self._prepare_sources()
+        b = self.bsz
         idx = torch.arange(s * b).view(s, 1, b).expand(s, self.E, b)
         z_all, r_all, sg_all = self._gather(idx)
         vals = torch.empty(s, self.E, self.T, dtype=self.dtype)
