@@ -160,7 +160,9 @@ def test_closed_loop_learns_switches_models_and_stops_on_sigint(ros_env: RosDoma
     proc = start_bringup(ros_env, tmp_path, "--sim-time", "0")
     try:
         # wait until the MPC flies a learned model and the learner has trained a while
+        # (a few hundred updates: the first dozen can leave the in-region error above the base model's)
         wait_for(lambda: (v := progress_value(proc.output(), r"MPC model v(\d+)")) and v[-1] >= 2
+                 and (n := progress_value(proc.output(), r"learner updates (\d+)")) and n[-1] >= 300
                  or not proc.alive(), 150, what="the MPC to switch to a learned model")
         assert proc.alive(), proc.output()
         pids = child_pids(proc.output())

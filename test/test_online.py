@@ -418,6 +418,63 @@ def test_the_node_prelaunches_the_training_interpreter_without_importing_torch()
     assert out.stdout.strip() == "False", out.stderr
 
 
+def test_the_training_process_pays_its_one_time_costs_before_it_is_ready(tmp_path: Path) -> None:
+    """The first torch optimizer imports torch._dynamo (2-3 s): warm_up does it before "ready", so the first
+    update (while a robot is already streaming) does not; the log says what became of the fused kernel."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from saml_ros.core.online.child import warm_up; before = 'torch._dynamo' in sys.modules; "
+            "w = warm_up(); print(before, 'torch._dynamo' in sys.modules, w['kernel'])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    before, after, *kernel = out.stdout.split()
+    assert (before, after) == ("False", "True"), out.stderr
+    assert " ".join(kernel).startswith(("loaded", "switched off", "not built yet"))
+    messages: list[str] = []
+    proc = TrainingProcess(_setup(tmp_path / "run"), on_log=lambda level, text: messages.append(text))
+    proc.start()
+    try:
+        assert any(m.startswith("training process warmed up in") for m in messages), messages
+    finally:
+        proc.stop()
+
+
+def test_a_slow_start_of_training_does_not_hold_the_chunks_at_one_update() -> None:
+    """The loop sizes its chunks from the measured time per update; the call that starts training (normalisation,
+    trainer, kernel set-up) is not an update's cost. Counted, a 1-s start kept the chunks at one update (and
+    the learner at a few updates per second) for dozens of chunks."""
+    from multiprocessing import Pipe
+
+    from saml_ros.core.online.loop import run_loop
+
+    learner = new_learner()
+    start, update = learner._start_training, learner.update
+    sizes: list[int] = []
+
+    def slow_start() -> None:
+        time.sleep(1.0)
+        start()
+
+    def counting_update(n: int) -> int:
+        sizes.append(n)
+        return update(n)
+
+    learner._start_training = slow_start  # type: ignore[method-assign]
+    learner.update = counting_update  # type: ignore[method-assign,assignment]
+    for tr in transitions(300, seed=3):
+        learner.add(tr)
+    parent, child = Pipe()
+    loop = LoopConfig(telemetry_rate=5.0, checkpoint_period=100.0)
+    thread = threading.Thread(target=run_loop, args=(learner, loop, child, lambda msg: None), daemon=True)
+    thread.start()
+    try:
+        _wait(lambda: len(sizes) >= 6, timeout=60)
+    finally:
+        parent.send(("stop",))
+        thread.join(30)
+    assert sizes[0] == 1 and max(sizes[2:6]) > 1, sizes
+
+
 class _Bad(ValueError):
     def __init__(self, reason: str) -> None:
         super().__init__(f"bad message ({reason})")

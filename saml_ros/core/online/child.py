@@ -12,6 +12,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from typing import Any
 
 import torch
@@ -85,6 +86,24 @@ def apply_compute_settings(threads: int, flush_denormal: bool) -> dict[str, Any]
     return {"threads": torch.get_num_threads(), "flush_denormal": flushing}
 
 
+def warm_up() -> dict[str, Any]:
+    """Pay the training's one-time costs before the process reports ready, not in its first update: the first
+    torch optimizer imports ``torch._dynamo`` (2-3 s here, more under load), and the fused kernel is loaded
+    from its cache (a kernel not built yet is built by the first update that needs it, as before: a build takes
+    about a minute, longer than a start-up should wait). Returns ``{"seconds": float, "kernel": what became of the
+    kernel, for the log}``."""
+    from saml_ros.core.training.engines.fused import SWITCH_ENV, load_kernel, switched_off
+
+    t0 = time.perf_counter()
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+    if switched_off():
+        kernel = f"switched off ({SWITCH_ENV}=0)"
+    else:
+        kernel = "loaded" if load_kernel(build=False) is not None else (
+            "not built yet: the first update that uses it builds it, about a minute")
+    return {"seconds": time.perf_counter() - t0, "kernel": kernel}
+
+
 def _child_main(conn: Any, setup: LearnerSetup) -> None:
     _die_with_parent()
     # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops, and tells
@@ -121,6 +140,8 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
         info = None if r is None else {"path": str(r.path), "version": r.version, "updates": r.updates,
                                        "lam": r.lam, "skipped": [(str(p), why) for p, why in r.skipped]}
         raw = None if decode is None else RawIngest(learner, setup.channels, decode)
+        warm = warm_up()
+        log.info("training process warmed up in %.1f s (fused kernel %s)", warm["seconds"], warm["kernel"])
         log.info("training process: %d torch intra-op thread(s), subnormal floats %s", compute["threads"],
                  "flushed to zero" if compute["flush_denormal"] else "not flushed")
         send(("ready", info, list(learner.model.hidden), learner.status(), compute))

@@ -137,8 +137,11 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             n = min(due, n)
             paced_done += n
         try:
+            started = learner.trainer is not None
             t0 = time.monotonic()
-            if learner.update(n):
+            if learner.update(n) and started:
+                # the call that starts training (normalisation fit, trainer and kernel set-up) is not an update's
+                # cost: counted, it kept the chunks at one update for dozens of chunks
                 took = (time.monotonic() - t0) / n
                 per_update = took if per_update == 0 else 0.8 * per_update + 0.2 * took
         except Exception as exc:  # noqa: BLE001 - report, back off, keep going

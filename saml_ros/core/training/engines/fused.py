@@ -25,6 +25,7 @@ and the plain engine. This module is the only one that imports the kernel; :mod:
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import hashlib
 import importlib.util
@@ -166,14 +167,21 @@ def _build(name: str, src: Path, build_dir: Path, verbose: bool) -> Any:
             fcntl.flock(lock_file, fcntl.LOCK_UN)
 
 
-def load_kernel(source: Path | None = None, verbose: bool = False) -> Any:
+def load_kernel(source: Path | None = None, verbose: bool = False, build: bool = True) -> Any:
     """The compiled kernel module (built on the first call on this machine, then loaded from the cache), or
     ``None`` when it is switched off or cannot be built (:func:`kernel_reason`, :func:`build_error`; one warning
-    per process). The result is cached for the process; ``source`` (tests) builds another copy of the source."""
+    per process). The result is cached for the process; ``source`` (tests) builds another copy of the source.
+    ``build=False`` only loads a finished build: without one it returns ``None`` and a later call still builds."""
     if switched_off():
         return None
     if source is None and _STATE.tried:
         return _STATE.module
+    if not build:
+        src = KERNEL_SOURCE if source is None else Path(source)
+        with contextlib.suppress(Exception):
+            if (cache_root() / build_name(src) / f"{build_name(src)}.so").is_file():
+                return load_kernel(source, verbose)
+        return None
     state = _STATE if source is None else _KernelState()
     state.tried = True
     src = KERNEL_SOURCE if source is None else Path(source)
