@@ -177,9 +177,9 @@ def load_kernel(source: Path | None = None, verbose: bool = False, build: bool =
     if source is None and _STATE.tried:
         return _STATE.module
     if not build:
-        src = KERNEL_SOURCE if source is None else Path(source)
         with contextlib.suppress(Exception):
-            if (cache_root() / build_name(src) / f"{build_name(src)}.so").is_file():
+            name = build_name(KERNEL_SOURCE if source is None else Path(source))
+            if (cache_root() / name / f"{name}.so").is_file():
                 return load_kernel(source, verbose)
         return None
     state = _STATE if source is None else _KernelState()
