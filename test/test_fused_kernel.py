@@ -8,6 +8,7 @@ difference in the algorithm shows at 1e-3 or more). The module is skipped where 
 
 from __future__ import annotations
 
+import os
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -342,3 +343,19 @@ def test_a_kernel_set_up_failure_runs_the_torch_path(monkeypatch: pytest.MonkeyP
     assert not tr.kernel_used
     for a, b in zip(ref.model.parameters(), tr.model.parameters()):
         assert torch.equal(a, b)
+
+
+def test_load_without_build_loads_a_finished_build_and_otherwise_leaves_the_build_for_later(tmp_path: Path) -> None:
+    """``load_kernel(build=False)`` (the training process's warm-up): an empty cache gives None and no build, and
+    the state stays "not loaded yet" so the next ``load_kernel()`` builds; with the build cached it loads it."""
+    import subprocess
+    import sys
+
+    code = ("from saml_ros.core.training.engines import fused; m = fused.load_kernel(build=False); "
+            "print(m is None, fused.kernel_reason() == 'not loaded yet', any(fused.cache_root().rglob('*.so')))")
+    empty = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
+                           env={**os.environ, "SAML_KERNEL_CACHE": str(tmp_path / "cache")})
+    assert empty.stdout.split() == ["True", "True", "False"], empty.stderr
+    if fused.load_kernel() is not None:  # built here: the same call in a fresh process loads it
+        built = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+        assert built.stdout.split()[:2] == ["False", "False"], built.stderr

@@ -92,15 +92,16 @@ def warm_up() -> dict[str, Any]:
     from its cache (a kernel not built yet is built by the first update that needs it, as before: a build takes
     about a minute, longer than a start-up should wait). Returns ``{"seconds": float, "kernel": what became of the
     kernel, for the log}``."""
-    from saml_ros.core.training.engines.fused import SWITCH_ENV, load_kernel, switched_off
+    from saml_ros.core.training.engines.fused import kernel_reason, load_kernel, switched_off
 
     t0 = time.perf_counter()
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])
-    if switched_off():
-        kernel = f"switched off ({SWITCH_ENV}=0)"
+    if load_kernel(build=False) is not None:
+        kernel = "loaded"
+    elif switched_off():
+        kernel = f"not used: {kernel_reason()}"
     else:
-        kernel = "loaded" if load_kernel(build=False) is not None else (
-            "not built yet: the first update that uses it builds it, about a minute")
+        kernel = "not built yet: the first update that uses it builds it, about a minute"
     return {"seconds": time.perf_counter() - t0, "kernel": kernel}
 
 

@@ -25,7 +25,6 @@ and the plain engine. This module is the only one that imports the kernel; :mod:
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import hashlib
 import importlib.util
@@ -176,14 +175,7 @@ def load_kernel(source: Path | None = None, verbose: bool = False, build: bool =
         return None
     if source is None and _STATE.tried:
         return _STATE.module
-    if not build:
-        with contextlib.suppress(Exception):
-            name = build_name(KERNEL_SOURCE if source is None else Path(source))
-            if (cache_root() / name / f"{name}.so").is_file():
-                return load_kernel(source, verbose)
-        return None
     state = _STATE if source is None else _KernelState()
-    state.tried = True
     src = KERNEL_SOURCE if source is None else Path(source)
     try:
         name = build_name(src)
@@ -191,6 +183,9 @@ def load_kernel(source: Path | None = None, verbose: bool = False, build: bool =
         build_dir.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         mod = _load_built(name, build_dir)
+        if mod is None and not build:
+            return None  # nothing finished to load; the state is untouched, so a later call builds
+        state.tried = True
         state.cached = mod is not None
         if mod is None:
             mod = _build(name, src, build_dir, verbose)
@@ -199,7 +194,7 @@ def load_kernel(source: Path | None = None, verbose: bool = False, build: bool =
             raise RuntimeError("the built module has no FusedKernel")
         state.module, state.reason, state.error = mod, None, None
     except Exception as exc:  # noqa: BLE001 - any build or load problem means: the torch path
-        state.module = None
+        state.tried, state.module = True, None
         state.error = f"{type(exc).__name__}: {exc}"
         first = str(exc).strip().splitlines()
         state.reason = f"build failed: {type(exc).__name__}: {first[0] if first else ''}"[:300]
