@@ -32,6 +32,7 @@ from saml_ros.bringup import (
     load_config,
     ros_params_file,
 )
+from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS
 
 REPO = Path(__file__).resolve().parents[1]
 DT_NS = 100_000_000
@@ -196,9 +197,14 @@ def test_bringup_stops_after_the_simulated_time_and_on_sigterm(ros_env: RosDomai
     found = re.search(r"summary \(friction\): (\S+) s simulated", out)
     assert found, out
     sim = float(found.group(1))
-    assert 3.0 <= sim < 4.0
+    # the simulator itself ends the run at sim_time: nothing is simulated (or recorded) while the stop travels
+    assert 3.0 <= sim < 3.2
+    assert "max_sim_time 3.0 s reached" in (tmp_path / "run" / "logs" / "sim.log").read_text()
     assert "record" in child_pids(out)
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    # the newest message logged (simulated time: the run starts at LOCKSTEP_T0_NS = 1 s) is within sim_time
+    end_ns = meta["starting_time"]["nanoseconds_since_epoch"] + meta["duration"]["nanoseconds"]
+    assert end_ns < LOCKSTEP_T0_NS + 3.2e9
     assert "/friction/state" in {t["topic_metadata"]["name"] for t in meta["topics_with_message_count"]}
     for pid in child_pids(out).values():
         assert_group_gone(pid)

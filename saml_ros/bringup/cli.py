@@ -16,10 +16,11 @@ What it does:
    simulator (lockstep by default, so the loop runs as fast as its slowest participant);
 3. prints a progress line every ``--progress-period`` wall seconds, read from the topics (simulated time from
    the state stamps, episodes, the learner's in-region model error, the MPC's model version and solve time);
-4. stops after ``--sim-time`` seconds of simulated time, on Ctrl-C (SIGINT) or SIGTERM: SIGINT to every
-   child's process group, then SIGTERM, then SIGKILL for what is left (no orphans: children also get
-   SIGTERM from the kernel if bringup itself dies, via ``PR_SET_PDEATHSIG``), and prints a before/after
-   summary (model error, task error of the episodes flown on the base model vs the last ones).
+4. stops after ``--sim-time`` seconds of simulated time (passed as the simulator's ``max_sim_time``: it ends
+   the run itself at the first state at or after that time, so nothing beyond it is simulated or recorded),
+   on Ctrl-C (SIGINT) or SIGTERM: SIGINT to every child's process group, then SIGTERM, then SIGKILL for what
+   is left (no orphans: children also get SIGTERM from the kernel if bringup itself dies, via
+   ``PR_SET_PDEATHSIG``), and prints a before/after summary (model error, task error of the episodes flown on the base model vs the last ones).
 
 Environment: ``ROS_DOMAIN_ID`` is respected (``--domain-id`` overrides it for this run);
 ``ROS_AUTOMATIC_DISCOVERY_RANGE`` defaults to ``LOCALHOST`` when unset. Children inherit both.

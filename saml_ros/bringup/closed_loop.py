@@ -150,6 +150,11 @@ class _Loop:
         recording = any(c.name == "record" for c in started)
         waits = ["-p", f"min_state_subscribers:={want + (1 if recording else 0)}",
                  "-p", f"min_applied_cmd_subscribers:={n_learners + (1 if recording else 0)}"]
+        # the simulator ends the run itself at sim_time: stopping it from here would simulate (and record)
+        # whatever it steps while the stop reaches it, seconds more at tens of times real time
+        sim_time = float(self.config["sim_time"])
+        if sim_time > 0:
+            waits += ["-p", f"max_sim_time:={sim_time!r}"]
         sim = self.procs.start("sim", node_argv(self.entry.sim_node, self.namespace, self.files["sim"]) + waits,
                                self.env, self.logs / "sim.log")
         self.say(f"[bringup] consumers ready after {time.monotonic() - t_wall0:.1f} s; started {self.entry.sim_node} "
@@ -167,6 +172,8 @@ class _Loop:
             if sim_time > 0 and result.sim_time >= sim_time:
                 self.stop["reason"] = "sim_time"
             for c in self.procs.exited():
+                if c.name == "sim" and sim_time > 0 and c.proc.returncode == 0:
+                    self.stop.setdefault("reason", "sim_time")  # it exits 0 only at max_sim_time (or signalled)
                 self.stop.setdefault("reason", f"child {c.name} exited (code {c.proc.returncode})")
             now = time.monotonic()
             if now >= next_progress:
