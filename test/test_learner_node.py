@@ -664,8 +664,10 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
                     "skipped training steps and WARN on /diagnostics")
         updates = tester.last()["updates"]
         tester.send("/friction", episodes(400, np.random.default_rng(12), t0=t + 10 * DT_NS, ep_len=4))
-        tester.wait(lambda: tester.last().get("updates", 0) > updates + 600 and tester.counter("model_version") > first + 2,
-                    60.0, "training to go on")
+        # enough healthy updates to learn from, whatever the machine's load (a loaded run's 600 updates left the
+        # last checkpoint 12 % below the base model's error)
+        tester.wait(lambda: tester.last().get("updates", 0) > updates + 3000 and tester.counter("model_version") > first + 2,
+                    90.0, "training to go on")
         assert tester.counter("/friction/paired") == 804 and tester.counter("rejected/bounds") == 0
         assert tester.counter("train_health/unhealthy_streak") < 50 and tester.counter("checkpoints_unhealthy") == 0
         # never ERROR for health (most steps stay healthy); the feasibility verdict may say ERROR on its own
