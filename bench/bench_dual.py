@@ -14,6 +14,9 @@ all trained as ONE ensemble on the fast engine), printed as measured in this run
   from how hard a seed's data is);
 * **near best, held-out**: seeds that are feasible AND whose objective on the shared held-out data (the same
   20000 fresh transitions for every seed) is within 10 % of the best feasible seed's;
+* **near best, held-out, same data**: seeds that are feasible AND whose held-out objective is within 10 % of the
+  best held-out objective any recipe reached with that seed's own dataset (the statistical objective, E[l] over
+  the data's distribution, compared among runs that saw the same data);
 * **objective**: the training objective, median [min - max] over seeds;
 * **in-region error**: held-out (fresh data from the same distribution) mean loss of the constraint's loss inside
   its region, median [min - max];
@@ -165,24 +168,70 @@ def table(rows: list[Row], problems: dict[str, Problem], eps: dict[str, float], 
         per_seed = np.min([np.where(r.feasible, r.objective, np.inf) for r in pr], axis=0)
         feas_held = np.concatenate([r.held_objective[r.feasible] for r in pr] or [np.zeros(0)])
         best_held = float(feas_held.min()) if len(feas_held) else float("nan")
+        per_seed_held = np.min([np.where(r.feasible, r.held_objective, np.inf) for r in pr], axis=0)
         note = p.note if name not in nets else p.note.replace(p.note.split(" net")[0], "-".join(map(str, nets[name])))
         lines += [f"**{name}** ({note}; eps = {eps[name]:g}; best feasible objective {best:.4g})", "",
-                  "| recipe | feasible | near best | near best, same data | near best, held-out | objective | "
-                  "in-region error (held-out) | verdicts met / not conv. / infeasible | lambda | train s |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  "| recipe | feasible | near best | near best, same data | near best, held-out | near best, held-out, "
+                  "same data | objective | in-region error (held-out) | verdicts met / not conv. / infeasible | lambda | "
+                  "train s |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in pr:
             near = int(np.sum(r.feasible & (r.objective <= 1.1 * best))) if np.isfinite(best) else 0
             same = int(np.sum(r.feasible & (r.objective <= 1.1 * per_seed)))
             held = int(np.sum(r.feasible & (r.held_objective <= 1.1 * best_held))) if np.isfinite(best_held) else 0
+            held_same = int(np.sum(r.feasible & (r.held_objective <= 1.1 * per_seed_held)))
             v = ("-" if r.recipe == "UA" else
                  f"{r.verdicts.count(MET)} / {r.verdicts.count(NOT_CONVERGED)} / {r.verdicts.count(INFEASIBLE)}")
             feas = f"{int(r.feasible.sum())}/{n_seeds}"
             nb = f"{near}/{n_seeds}"
             name = r.recipe.replace("|", "\\|")  # a markdown cell
-            lines.append(f"| {name} | {feas} | {nb} | {same}/{n_seeds} | {held}/{n_seeds} | {fmt_dist(r.objective)} | {fmt_dist(r.in_region)} | {v} | "
+            lines.append(f"| {name} | {feas} | {nb} | {same}/{n_seeds} | {held}/{n_seeds} | {held_same}/{n_seeds} | {fmt_dist(r.objective)} | {fmt_dist(r.in_region)} | {v} | "
                          f"{np.median(r.lam):.3g} | {r.seconds:.0f} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def budget_sweep(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarray, ...],
+                 test: tuple[np.ndarray, ...], seeds: list[int], budgets: list[int],
+                 plot: Path | None = None) -> list[dict[str, Any]]:
+    """The default recipe at several epoch budgets: does the seeds' spread of the objective shrink as training goes
+    on (an optimum being reached) or not? Prints, per budget, the training and the held-out objective over seeds
+    (median, min, max, max / min, seeds within 10 % of the best); optionally a PNG of both against the budget."""
+    out = []
+    n = len(seeds)
+    for ep in budgets:
+        row = run_recipe(p, sysm, spec, data, test, seeds, "default", TrainConfig(), 1, ep)
+        out.append({"epochs": ep, "train": row.objective, "held": row.held_objective, "feasible": row.feasible,
+                    "seconds": row.seconds})
+        parts = []
+        for label, a in (("training", row.objective), ("held-out", row.held_objective)):
+            parts.append(f"{label} {np.median(a):.5f} [{a.min():.5f} - {a.max():.5f}], max/min {a.max() / a.min():.3f}, "
+                         f"within 10 % of the best {int(np.sum(a <= 1.1 * a.min()))}/{n}")
+        print(f"  {p.name} default, {ep:4d} epochs ({row.seconds:.0f} s): feasible {int(row.feasible.sum())}/{n}; "
+              + "; ".join(parts), flush=True)
+    if plot is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6.4, 4.2))
+        eps_ = [r["epochs"] for r in out]
+        for i in range(n):
+            ax.plot(eps_, [r["train"][i] for r in out], "-", color="tab:blue", alpha=0.5, lw=1,
+                    label="training objective (one line per seed)" if i == 0 else None)
+            ax.plot(eps_, [r["held"][i] for r in out], "--", color="tab:orange", alpha=0.5, lw=1,
+                    label="held-out objective (20000 fresh transitions)" if i == 0 else None)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("epochs (the cosine schedule spans the whole run)")
+        ax.set_ylabel("normalised objective")
+        ax.set_title(f"{p.name}: default recipe, {n} seeds" + (", one shared dataset" if data[0].ndim == 2 else ""))
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(plot, dpi=120)
+        print(f"  plot: {plot}")
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -209,6 +258,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="every seed trains on the same dataset (that of the first seed): seeds then differ only by "
                          "initialisation and minibatch order")
     ap.add_argument("--json", type=Path, help="also write every number into this file")
+    ap.add_argument("--budgets", metavar="PROBLEM=E1,E2,...",
+                    help="instead of the recipe tables: the default recipe on PROBLEM at each epoch budget, the "
+                         "seeds' spread of the training and held-out objectives (e.g. paddle=50,100,200,400)")
+    ap.add_argument("--plot", type=Path, help="with --budgets: a PNG of both objectives against the budget")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
@@ -236,6 +289,16 @@ def main(argv: list[str] | None = None) -> int:
         problems[k] = replace(problems.get(k, PROBLEMS[k]), epochs=int(v),
                               note=PROBLEMS[k].note.replace(f"{PROBLEMS[k].epochs} epochs", f"{v} epochs"))
     problems = {k: v for k, v in problems.items() if k in args.problems}
+    budgets: list[int] = []
+    if args.budgets:
+        k, _, v = args.budgets.partition("=")
+        try:
+            budgets = [int(e) for e in v.split(",")]
+        except ValueError:
+            budgets = []
+        if k not in PROBLEMS or not budgets or min(budgets) < 1:
+            ap.error(f"--budgets: expected PROBLEM=E1,E2,... with PROBLEM one of {sorted(PROBLEMS)}, got {args.budgets!r}")
+        problems = {k: problems.get(k, PROBLEMS[k])}
     print(("bench_dual: one dataset shared by every seed; " if args.shared_data else "bench_dual: ")
           + f"{n_seeds} seeds per problem, problems {list(problems)}, restarts {args.restarts} on "
           f"{args.restarts_on}" + (" (--quick)" if args.quick else ""), flush=True)
@@ -253,6 +316,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.shared_data:
             data = tuple(a[0] for a in data)  # (N, .): one dataset, shared by every member
         test = sysm.make_dataset(20000, np.random.default_rng(10_000))
+        if budgets:
+            budget_sweep(p, sysm, spec, data, test, seeds, budgets, args.plot)
+            continue
         on = name in args.restarts_on
         for recipe, (cfg, restarts, slope) in recipes(args.restarts if on else 1, args.abs_restarts if on else 0).items():
             if args.recipes and recipe not in args.recipes:
@@ -264,8 +330,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"{fmt_dist(row.objective)}, in-region {fmt_dist(row.in_region)}, verdicts "
                   f"{row.verdicts}, smallest final left-hand side {row.reachable:.3g}, {time.perf_counter() - t0:.0f} s",
                   flush=True)
-    print()
-    print(table(rows, problems, eps, n_seeds, nets))
+    if rows:
+        print()
+        print(table(rows, problems, eps, n_seeds, nets))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"total {time.perf_counter() - t_all:.0f} s (load average at the end {load:.1f} on {os.cpu_count()} CPUs)")
     if args.json:

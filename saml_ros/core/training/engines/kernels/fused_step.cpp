@@ -8,7 +8,8 @@
 // (L - 1, E), then n_extra merged dual slots per member (E, n_extra).
 //
 // Inner loops run over contiguous memory with no branches, so g++ -O3 -march=native vectorises them.
-#include <torch/extension.h>
+#include <ATen/core/Tensor.h>
+#include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
 #include <cmath>
