@@ -13,6 +13,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.shooting import ShootingMPC
+from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import landing_point
@@ -84,6 +85,50 @@ def test_batched_rollout_equals_step_by_step(name: str, kind: str, hidden: tuple
         for t in range(5):
             x = dyn.step1(x, us[k, t])
             np.testing.assert_allclose(xs[k, t + 1], x, rtol=1e-12, atol=1e-12)
+
+
+def test_batched_rollout_results_are_independent() -> None:
+    """The fused rollout reuses one buffer per batch size: a returned prediction must not change with the next call."""
+    system = get_system("friction")
+    dyn = NumpyDynamics(system, perturbed("friction"), base=base_model_np(system))
+    assert dyn.fused_rollout
+    x0 = np.array([0.4, -0.2])
+    us = np.linspace(-5.0, 5.0, 30).reshape(3, 10, 1)
+    first = dyn.rollout_batch(x0, us)
+    kept = first.copy()
+    dyn.rollout_batch(-x0, -us)
+    np.testing.assert_array_equal(first, kept)
+    np.testing.assert_allclose(first[1], dyn.rollout_batch(x0, us[1:2])[0], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("scale", [0.5, 4.0, 400.0])
+def test_batched_line_search_matches_sequential(scale: float) -> None:
+    """The fast solver's line search rolls all step lengths out in one batched call when the model has a fused
+    rollout; it must accept the same step length and trial point as the one-by-one search (large steps make it
+    backtrack, the largest fails)."""
+    system = get_system("friction")
+    ctrl = make_controller(system, perturbed("friction"), "fast")
+    assert isinstance(ctrl, SQPShootingMPC) and ctrl.dyn.fused_rollout
+    rng = np.random.default_rng(0)
+    task = ctrl.task
+    seen = set()
+    for _ in range(20):
+        x0 = rng.uniform(-1.0, 1.0, 2)
+        u = rng.uniform(-2.0, 2.0, (ctrl.horizon, 1))
+        d = scale * rng.normal(size=ctrl.horizon)
+        merit = ctrl._merit(ctrl.rollout(x0, u), task, 10.0)[0]
+        pred = 0.5 * merit
+        got = {}
+        for fused in (True, False):
+            ctrl.dyn.fused_rollout = fused
+            ctrl.stats = {"rollouts": 0}
+            got[fused] = ctrl._line_search(x0, u, d, merit, pred, task, 10.0)
+        (a1, ok1, t1), (a2, ok2, t2) = got[True], got[False]
+        assert (a1, ok1) == (a2, ok2)
+        seen.add((a1, ok1))
+        for v1, v2 in zip(t1, t2, strict=True):
+            np.testing.assert_allclose(v1, v2, rtol=1e-10, atol=1e-12)
+    assert len(seen) >= 2  # the problems exercise more than one outcome
 
 
 def test_ensemble_uses_member_zero_and_rejects_other_systems() -> None:

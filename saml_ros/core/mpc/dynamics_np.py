@@ -33,6 +33,12 @@ from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: one hidden layer's step of the fused rollout: (matrix, input rows, pre-activation rows, relu rows)
+_FusedLayer = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+#: the fused rollout's buffer and views (:meth:`NumpyDynamics._fused_plan`): z, per step (hidden layers, the
+#: step's block, the rows of x_{t+1}), the rows of x_0, of all controls and of all states
+_FusedPlan = tuple[np.ndarray, list[tuple[list[_FusedLayer], np.ndarray, np.ndarray]], np.ndarray, np.ndarray,
+                   np.ndarray]
 
 #: the model name that makes the MPC predict with the TRUE dynamics (see the module docstring)
 ORACLE: Literal["oracle"] = "oracle"
@@ -464,6 +470,13 @@ class NumpyDynamics:
         self.mlp: NumpyMLP | None = None
         #: "residual", "full", "base" (f_hat alone) or "oracle"
         self.kind: str
+        #: rollout_batch's stacked weights, row blocks and rows of ones (:meth:`_fused_layout`), made on first use
+        self._fused: tuple[list[np.ndarray], list[tuple[int, int, int, int, int]], list[int]] | None = None
+        #: per (batch size, horizon): the buffer and row views of :meth:`_rollout_fused` (:meth:`_fused_plan`)
+        self._fused_plans: dict[tuple[int, int], _FusedPlan] = {}
+        #: :meth:`rollout_batch` is fused (one product per layer and step for all K sequences): K sequences cost
+        #: about as much as one, so callers may batch what they would otherwise roll out one by one
+        self.fused_rollout = False
         if isinstance(model, str):
             if model != ORACLE:
                 raise ValueError(f"unknown prediction model {model!r}; a DynamicsModel, None or {ORACLE!r}")
@@ -480,8 +493,8 @@ class NumpyDynamics:
                     f"not {system.name!r} (schema {system.schema_hash()})"
                 )
             self.mlp = NumpyMLP(model, member)
-        #: rollout_batch's stacked weights, row blocks and rows of ones (:meth:`_fused_layout`), made on first use
-        self._fused: tuple[list[np.ndarray], list[tuple[int, int, int, int, int]], list[int]] | None = None
+        self.fused_rollout = self.mlp is not None and (self.base is None or getattr(self.base, "linear", None)
+                                                       is not None)
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Predicted target ``(B, n_y)``."""
@@ -510,9 +523,8 @@ class NumpyDynamics:
         layer's ``W_x x``: about 10 numpy calls per step instead of about 20. Otherwise: T calls of :meth:`step`.
         """
         k, horizon = us.shape[0], us.shape[1]
-        lin = None if self.base is None else getattr(self.base, "linear", None)
-        if self.mlp is not None and (lin is not None or self.base is None):
-            return self._rollout_fused(x0, us, lin)
+        if self.fused_rollout:
+            return self._rollout_fused(x0, us, None if self.base is None else getattr(self.base, "linear", None))
         xs = np.empty((k, horizon + 1, x0.shape[0]))
         xs[:, 0] = x0
         x = xs[:, 0]
@@ -530,32 +542,43 @@ class NumpyDynamics:
         ONE product of ``[a W, (1 - a) W, b]`` with the previous block; the last product also carries the base
         model ``A x + B u`` (zero weights elsewhere) and writes ``x_{t+1}`` in place. Per step: one product and
         one ``maximum`` per hidden layer, one final product (5 numpy calls for two hidden layers, was 8)."""
-        mlp = self.mlp
-        assert mlp is not None
         k, horizon, n = us.shape[0], us.shape[1], x0.shape[0]
         m = us.shape[2]
         if self._fused is None:
             self._fused = self._fused_layout(lin, n, m)
+        plan = self._fused_plans.get((k, horizon))
+        if plan is None:
+            plan = self._fused_plans[(k, horizon)] = self._fused_plan(k, horizon, n, m)
+        z, steps, x_first, u_all, x_all = plan
+        x_first[...] = x0[:, None]
+        u_all[...] = us.transpose(1, 2, 0)
+        last = self._fused[0][-1]
+        # np.dot into a C-contiguous row block: ~1 us a call here; np.matmul with out= checks the overlap of
+        # out and input (same buffer) and costs ~3.5 us. The row blocks are views made once per batch size
+        # (numpy 2.4: ~0.2 us per slice, as much as the products themselves on these sizes)
+        dot, maximum = np.dot, np.maximum
+        for layers, zt, x_next in steps:
+            for mat, z_in, h, relu in layers:
+                dot(mat, z_in, out=h)
+                maximum(h, 0.0, out=relu)
+            dot(last, zt, out=x_next)
+        return x_all.transpose(2, 0, 1).copy()
+
+    def _fused_plan(self, k: int, horizon: int, n: int, m: int) -> _FusedPlan:
+        """:meth:`_rollout_fused`'s buffer ``z`` ``(T+1, R, K)`` (rows of ones filled in) and its views: per step
+        t the hidden layers' ``(matrix, input rows, h rows, relu(h) rows)``, the whole block and the rows of
+        ``x_{t+1}``; then the rows of ``x_0``, of all controls ``(T, m, K)`` and of all states ``(T+1, n, K)``."""
+        assert self._fused is not None
         mats, blocks, ones = self._fused
         z = np.empty((horizon + 1, mats[-1].shape[1], k))
-        z[0, :n] = x0[:, None]
-        z[:horizon, n : n + m] = us.transpose(1, 2, 0)
         z[:, ones] = 1.0
-        last = mats[-1]
-        # np.dot into a C-contiguous row block: ~1 us a call here; np.matmul with out= checks the overlap of
-        # out and input (same buffer) and costs ~3.5 us
-        dot, maximum = np.dot, np.maximum
-        if not blocks:  # phi affine: one product per step
-            for t in range(horizon):
-                dot(last, z[t], out=z[t + 1, :n])
-            return z[:, :n].transpose(2, 0, 1)
+        steps: list[tuple[list[_FusedLayer], np.ndarray, np.ndarray]] = []
         for t in range(horizon):
             zt = z[t]
-            for mat, (i0, i1, o0, o1, r1) in zip(mats, blocks, strict=False):
-                dot(mat, zt[i0:i1], out=zt[o0:o1])
-                maximum(zt[o0:o1], 0.0, out=zt[o1:r1])
-            dot(last, zt, out=z[t + 1, :n])
-        return z[:, :n].transpose(2, 0, 1)
+            layers: list[_FusedLayer] = [(mat, zt[i0:i1], zt[o0:o1], zt[o1:r1]) for mat, (i0, i1, o0, o1, r1) in zip(mats, blocks,
+                                                                                                  strict=False)]
+            steps.append((layers, zt, z[t + 1, :n]))
+        return z, steps, z[0, :n], z[:horizon, n : n + m], z[:, :n]
 
     def _fused_layout(self, lin: tuple[np.ndarray, np.ndarray] | None, n: int,
                       m: int) -> tuple[list[np.ndarray], list[tuple[int, int, int, int, int]], list[int]]:

@@ -31,6 +31,8 @@ from saml_ros.core.systems.base import System
 
 #: one trial point of the line search: controls (T, m), predicted states (T+1, n), merit, residuals, constraints
 _Trial = tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]
+#: the line search's step lengths, tried in this order
+_ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 
 
 class SQPShootingMPC(ShootingMPC):
@@ -101,6 +103,7 @@ class SQPShootingMPC(ShootingMPC):
             self._tri = (np.eye(nt), np.zeros((nt, T * m)), np.concatenate(ia).astype(np.intp),
                          np.concatenate(ib).astype(np.intp))  # fmt: skip
         self._eye = np.eye(nu)
+        self._alphas = np.array(_ALPHAS)[:, None, None]  # (5, 1, 1): the batched line search's step lengths
         self._zeros_nu = np.zeros(nu)
         self._zeros_hess = np.zeros((nu, nu))
         self._zeros_hess.flags.writeable = False
@@ -323,9 +326,24 @@ class SQPShootingMPC(ShootingMPC):
     def _line_search(self, x0: np.ndarray, u: np.ndarray, d: np.ndarray, merit: float, pred: float,
                      task: ShootingTask, penalty: float) -> tuple[float, bool, _Trial]:
         """Backtracking along the QP step ``d`` (T m,) from ``u`` (T, m) on the l1 merit (Armijo on the predicted
-        decrease ``pred``): the last step length tried, whether it was accepted, and its trial point."""
+        decrease ``pred``) over the step lengths :data:`_ALPHAS`: the last step length tried, whether it was
+        accepted, and its trial point.
+
+        With a fused batched rollout (:attr:`NumpyDynamics.fused_rollout`: a linear base model or none, and a
+        network) all step lengths are rolled out in ONE batched call, which costs about as much as one
+        sequence; the merits are then taken in order, so the accepted point is the sequential search's."""
         T, m = self.horizon, self.m
-        for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):
+        if getattr(self.dyn, "fused_rollout", False):
+            u_all = u[None] + self._alphas * d.reshape(1, T, m)
+            xs_all = self.dyn.rollout_batch(x0, u_all)
+            self.stats["rollouts"] += 1
+            for i, alpha in enumerate(_ALPHAS):
+                u_new, xs_new = u_all[i], xs_all[i]
+                merit_new, r_new, c_new = self._merit(xs_new, task, penalty)
+                if merit_new <= merit - 1e-4 * alpha * pred:
+                    return alpha, True, (u_new, xs_new, merit_new, r_new, c_new)
+            return alpha, False, (u_new, xs_new, merit_new, r_new, c_new)
+        for alpha in _ALPHAS:
             u_new = u + alpha * d.reshape(T, m)
             xs_new = self.rollout(x0, u_new)
             self.stats["rollouts"] += 1
