@@ -13,8 +13,8 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.shooting import ShootingMPC
-from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
+from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import landing_point
 
