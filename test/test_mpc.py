@@ -127,7 +127,7 @@ def test_batched_line_search_matches_sequential(scale: float) -> None:
         assert (a1, ok1) == (a2, ok2)
         seen.add((a1, ok1))
         for v1, v2 in zip(t1, t2, strict=True):
-            np.testing.assert_allclose(v1, v2, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(np.asarray(v1), np.asarray(v2), rtol=1e-10, atol=1e-12)
     assert len(seen) >= 2  # the problems exercise more than one outcome
 
 
