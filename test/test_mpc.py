@@ -101,6 +101,76 @@ def test_batched_rollout_results_are_independent() -> None:
     np.testing.assert_allclose(first[1], dyn.rollout_batch(x0, us[1:2])[0], rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize(("kind", "hidden"), [("residual", (4, 2)), ("full", (4, 2)), ("residual", ()),
+                                               ("residual", (3,))])
+def test_fused_jacobians_equal_jacobians(kind: str, hidden: tuple[int, ...]) -> None:
+    """The Jacobians read from a fused rollout's activation pattern are ``jacobians`` at that sequence's states."""
+    system = get_system("friction")
+    model = DynamicsModel(system, kind=kind, hidden=hidden, seed=3).double()
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for w in model.net.weights:
+            w.add_(0.5 * torch.randn(w.shape, generator=gen, dtype=w.dtype))
+        for s in model.net.slopes:  # not ReLU: the masks' other value matters
+            s.fill_(-0.3)
+    dyn = NumpyDynamics(system, model, base=base_model_np(system))
+    us = np.random.default_rng(0).uniform(-5.0, 5.0, (7, 10, 1))
+    x0 = np.array([0.3, -0.5])
+    assert dyn.fused_jacobians(7, 10, 0) is None  # nothing rolled out yet
+    xs = dyn.rollout_batch(x0, us)
+    dyn.rollout_batch(x0, us[:3])  # another batch size keeps its own buffer
+    patterns = set()
+    for i in range(7):
+        ab = dyn.fused_jacobians(7, 10, i)
+        assert ab is not None
+        a_ref, b_ref = dyn.jacobians(xs[i, :-1], us[i])
+        np.testing.assert_allclose(ab[0], a_ref, rtol=1e-12, atol=1e-13)
+        np.testing.assert_allclose(ab[1], b_ref, rtol=1e-12, atol=1e-13)
+        patterns |= {tuple(r) for r in ab[1].reshape(10, -1).round(9)}
+    assert len(patterns) >= (3 if hidden else 1)  # several activation patterns were met
+
+
+def test_fused_jacobians_need_a_small_network() -> None:
+    """A network too wide for the pattern table (the quadrotor's full 16-8 model: 24 units) gives None."""
+    system = get_system("quadrotor")
+    dyn = NumpyDynamics(system, perturbed("quadrotor", kind="full"))
+    assert dyn.fused_rollout
+    x0, u = system.sample_inputs(8, np.random.default_rng(0))
+    dyn.rollout_batch(x0[0], u.reshape(2, 4, -1))
+    assert dyn.fused_jacobians(2, 4, 0) is None
+
+
+def test_fast_solver_same_plan_with_fused_jacobians() -> None:
+    """The fast friction solver reads its Jacobians from the start's and the line search's fused rollouts; the plans
+    must be those it finds with NumpyDynamics.jacobians."""
+    system = get_system("friction")
+    model = perturbed("friction")
+    ctrls = []
+    for _ in range(2):
+        ctrl = make_controller(system, model, "fast")
+        assert isinstance(ctrl, SQPShootingMPC)
+        ctrls.append(ctrl)
+    ctrls[1].dyn.fused_jacobians = lambda k, horizon, i: None  # type: ignore[method-assign]
+    calls = {"jac": 0}
+    plain = ctrls[0].dyn.jacobians
+
+    def counted(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        calls["jac"] += 1
+        return plain(x, u)
+
+    ctrls[0].dyn.jacobians = counted  # type: ignore[method-assign]
+    iters = 0
+    for p0 in (-1.5, -0.4, 0.3, 1.2):
+        x = np.array([p0, 0.0])
+        for _ in range(6):
+            res = [ctrl.solve(x) for ctrl in ctrls]
+            np.testing.assert_allclose(res[0].plan_u, res[1].plan_u, rtol=1e-9, atol=1e-9)
+            assert res[0].iterations == res[1].iterations
+            iters += res[0].iterations
+            x = system.true_step_np(x, res[0].u)
+    assert iters > 24 and calls["jac"] == 0  # every Jacobian came from a fused rollout
+
+
 @pytest.mark.parametrize("scale", [0.5, 4.0, 400.0])
 def test_batched_line_search_matches_sequential(scale: float) -> None:
     """The fast solver's line search rolls all step lengths out in one batched call when the model has a fused

@@ -33,6 +33,9 @@ from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: :meth:`NumpyDynamics.fused_jacobians` tabulates the Jacobians of every activation pattern of up to this many
+#: hidden units (2^10 = 1024 patterns; the friction model's 4-2 net has 64)
+JAC_TABLE_UNITS = 10
 #: one hidden layer's step of the fused rollout: (matrix, input rows, pre-activation rows, relu rows)
 _FusedLayer = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 #: the fused rollout's buffer and views (:meth:`NumpyDynamics._fused_plan`): z, per step (hidden layers, the
@@ -477,6 +480,8 @@ class NumpyDynamics:
         #: :meth:`rollout_batch` is fused (one product per layer and step for all K sequences): K sequences cost
         #: about as much as one, so callers may batch what they would otherwise roll out one by one
         self.fused_rollout = False
+        #: :meth:`fused_jacobians`' code weights and tables (:meth:`_jac_table`), False if too wide; made on first use
+        self._jac_tab: tuple[np.ndarray, np.ndarray, np.ndarray] | Literal[False] | None = None
         if isinstance(model, str):
             if model != ORACLE:
                 raise ValueError(f"unknown prediction model {model!r}; a DynamicsModel, None or {ORACLE!r}")
@@ -575,8 +580,8 @@ class NumpyDynamics:
         steps: list[tuple[list[_FusedLayer], np.ndarray, np.ndarray]] = []
         for t in range(horizon):
             zt = z[t]
-            layers: list[_FusedLayer] = [(mat, zt[i0:i1], zt[o0:o1], zt[o1:r1]) for mat, (i0, i1, o0, o1, r1) in zip(mats, blocks,
-                                                                                                  strict=False)]
+            layers: list[_FusedLayer] = [(mat, zt[i0:i1], zt[o0:o1], zt[o1:r1])
+                                         for mat, (i0, i1, o0, o1, r1) in zip(mats, blocks, strict=False)]
             steps.append((layers, zt, z[t + 1, :n]))
         return z, steps, z[0, :n], z[:horizon, n : n + m], z[:, :n]
 
@@ -620,6 +625,56 @@ class NumpyDynamics:
         last[:, i0:i1] = prev
         mats.append(np.ascontiguousarray(last))
         return mats, blocks, ones
+
+    def fused_jacobians(self, k: int, horizon: int, i: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The Jacobians ``A (T, n, n)``, ``B (T, n, m)`` along sequence ``i`` of the last :meth:`rollout_batch` of
+        ``k`` sequences over ``horizon`` steps, read from the activation pattern its pre-activations left in the
+        fused buffer (:meth:`_jac_table`): 5 numpy calls instead of the ~20 of :meth:`jacobians` (a forward pass and
+        the reverse products). The values are :meth:`jacobians`' at that sequence's states and controls (a
+        pre-activation within rounding of 0 may fall on the other side of the kink). None when the rollout was not
+        fused, no such rollout was made, or the network has more than :data:`JAC_TABLE_UNITS` hidden units."""
+        plan = self._fused_plans.get((k, horizon))
+        if plan is None:
+            return None
+        if self._jac_tab is None:
+            self._jac_tab = self._jac_table()
+        if self._jac_tab is False:
+            return None
+        weights, tab_a, tab_b = self._jac_tab
+        codes = np.dot(plan[0][:horizon, :, i] >= 0.0, weights).astype(np.intp)
+        return tab_a[codes], tab_b[codes]
+
+    def _jac_table(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | Literal[False]:
+        """For :meth:`fused_jacobians`: the code weights over the fused buffer's rows ``(R,)`` (``2^j`` on hidden
+        unit j's pre-activation row, 0 elsewhere: the dot with ``h >= 0`` numbers the activation pattern), and the
+        Jacobians of ``f_hat + phi`` of every pattern, ``A (2^H, n, n)`` and ``B (2^H, n, m)`` (a PReLU unit with
+        ``h >= 0`` passes its input, otherwise scales it by its slope, as :meth:`NumpyMLP.forward_jac`). False when
+        the H hidden units exceed :data:`JAC_TABLE_UNITS`."""
+        mlp = self.mlp
+        assert mlp is not None and self._fused is not None
+        mats, blocks, _ = self._fused
+        widths = [o1 - o0 for _, _, o0, o1, _ in blocks]
+        units = sum(widths)
+        if units > JAC_TABLE_UNITS:
+            return False
+        n, m = mlp.n_x, mlp.n_u
+        weights = np.zeros(mats[-1].shape[1])
+        bits = (np.arange(2**units)[:, None] >> np.arange(units)) & 1  # (2^H, H): pattern c's unit j is on
+        masks, j = [], 0
+        for (_, _, o0, o1, _), width, slope in zip(blocks, widths, mlp.slopes, strict=False):
+            weights[o0:o1] = 2.0 ** np.arange(j, j + width)
+            masks.append(np.where(bits[:, j : j + width] == 1, 1.0, slope))
+            j += width
+        # reverse mode, as NumpyMLP._jac: W_L' M_{L-1} ... W_1' M_0 W_0' for every pattern at once
+        w = mlp.weights
+        g = np.broadcast_to(w[-1].T, (2**units, *w[-1].T.shape)).copy()
+        for layer in range(len(w) - 2, -1, -1):
+            g = (g * masks[layer][:, None, :]) @ w[layer].T
+        lin = None if self.base is None else getattr(self.base, "linear", None)
+        if lin is not None:
+            g[:, :, :n] += lin[0]
+            g[:, :, n:] += lin[1]
+        return weights, np.ascontiguousarray(g[:, :, :n]), np.ascontiguousarray(g[:, :, n : n + m])
 
     def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Jacobians of :meth:`step_jac` alone (the SQP has the prediction from its rollout): with a linear

@@ -109,6 +109,8 @@ class SQPShootingMPC(ShootingMPC):
         self._zeros_hess.flags.writeable = False
         self._no_rows = np.zeros(0)
         self._no_g = np.zeros((0, nu))
+        #: the accepted trial point's (batch size, sequence) in the line search's fused rollout, or None
+        self._trial_src: tuple[int, int] | None = None
         self._l1qp: L1QP | None = None  # the l1 model's DAQP buffers (scalar stage cost), made on first use
         #: per-solve counters (iterations, QPs, rollouts, ...) of the last solve, for profiling
         self.stats: dict[str, int] = {}
@@ -260,8 +262,13 @@ class SQPShootingMPC(ShootingMPC):
         rho = self._rho
         msg, converged = "max_iter", False
         it = 0
+        # the Jacobians along xs: from the activation pattern of the batched rollout that predicted it when
+        # that rollout was fused (src = its batch size and sequence), else by NumpyDynamics.jacobians
+        fused_jac = getattr(self.dyn, "fused_jacobians", None) if getattr(self.dyn, "fused_rollout", False) else None
+        src = self._start_src if xs0 is not None else None
         for it in range(1, self.max_iter + 1):  # noqa: B007
-            a, b = self.dyn.jacobians(xs[:-1], u)
+            ab = fused_jac(src[0], self.horizon, src[1]) if fused_jac is not None and src is not None else None
+            a, b = ab if ab is not None else self.dyn.jacobians(xs[:-1], u)
             self.stats["jacobians"] += 1
             sens = self._sensitivities(a, b)
             hess, grad, g_mat, h_vec, pen, scale = self._subproblem(sens, xs, r, c, task, penalty)
@@ -316,6 +323,7 @@ class SQPShootingMPC(ShootingMPC):
             if not accepted:
                 break
             u, xs, merit, r, c = trial
+            src = self._trial_src
             if self.max_time is not None and time.perf_counter() - start > self.max_time:
                 msg = "time budget"
                 break
@@ -341,8 +349,11 @@ class SQPShootingMPC(ShootingMPC):
                 u_new, xs_new = u_all[i], xs_all[i]
                 merit_new, r_new, c_new = self._merit(xs_new, task, penalty)
                 if merit_new <= merit - 1e-4 * alpha * pred:
+                    self._trial_src = (len(_ALPHAS), i)
                     return alpha, True, (u_new, xs_new, merit_new, r_new, c_new)
+            self._trial_src = None
             return alpha, False, (u_new, xs_new, merit_new, r_new, c_new)
+        self._trial_src = None
         for alpha in _ALPHAS:
             u_new = u + alpha * d.reshape(T, m)
             xs_new = self.rollout(x0, u_new)
