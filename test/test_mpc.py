@@ -13,7 +13,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.shooting import ShootingMPC
-from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
+from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, L1QP, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import landing_point
@@ -277,6 +277,37 @@ def test_qp_backends_agree_on_elastic_and_l1_problems(hard_first: bool) -> None:
         assert fa <= fb + 1e-6 * (1 + abs(fb)), (trial, fa, fb)
         assert abs(fa - fb) <= 1e-5 * (1 + abs(fb)), (trial, fa, fb)
         assert np.all(a.mult >= 0) and np.all(a.mult <= pen * (1 + 1e-6))
+
+
+@pytest.mark.skipif("daqp" not in QP_BACKENDS, reason="daqp not installed")
+def test_l1qp_reused_workspace_matches_fresh_solves() -> None:
+    """L1QP keeps one DAQP workspace and refreshes only what changed (the Hessian when the damping does, the cost
+    vector when the gradient does): a sequence of solves with scalar and matrix Hessians, with and without a
+    gradient and with the same damping twice, must give each problem's own optimum (the interior point method's
+    on the same model as elastic rows)."""
+    rng = np.random.default_rng(11)
+    n, t = 10, 10
+    for k in (0, 3):
+        qp = L1QP(n, t, k)
+        for call in range(12):
+            j, r = rng.normal(size=(t, n)), rng.normal(size=t)
+            lo, hi = -rng.uniform(0.1, 2, n), rng.uniform(0.1, 2, n)
+            g_mat, h_vec, pen = rng.normal(size=(k, n)), rng.normal(scale=0.5, size=k), rng.uniform(0.5, 5.0, k)
+            damp = (1e-3, 0.5, 0.5, 2.0)[call % 4]  # calls 1 -> 2: the same damping, Hessian not refreshed
+            hess_arg: np.ndarray | float = damp if call % 3 else damp * np.eye(n)
+            grad = rng.normal(size=n) if call in (4, 5) else None  # 6: back to no gradient
+            d = qp.solve(hess_arg, grad, lo, hi, j, r, g_mat, h_vec, pen)
+            assert d is not None and np.all(d >= lo) and np.all(d <= hi)
+            g0 = np.zeros(n) if grad is None else grad
+            ref = solve_qp(damp * np.eye(n), g0, lo, hi, np.vstack((j, -j, g_mat)), np.concatenate((-r, r, h_vec)),
+                           np.concatenate((np.ones(2 * t), pen)), backend="ipm").d
+
+            def obj(v: np.ndarray, g0: np.ndarray = g0, j: np.ndarray = j, r: np.ndarray = r, damp: float = damp,
+                    g_mat: np.ndarray = g_mat, h_vec: np.ndarray = h_vec, pen: np.ndarray = pen) -> float:
+                return float(0.5 * damp * v @ v + g0 @ v + np.abs(r + j @ v).sum()
+                             + pen @ np.maximum(g_mat @ v - h_vec, 0.0))
+
+            assert abs(obj(d) - obj(ref)) <= 1e-6 * (1 + abs(obj(ref))), (k, call, obj(d), obj(ref))
 
 
 def test_qp_rejects_unknown_backend() -> None:

@@ -111,6 +111,8 @@ class SQPShootingMPC(ShootingMPC):
         self._no_g = np.zeros((0, nu))
         #: the accepted trial point's (batch size, sequence) in the line search's fused rollout, or None
         self._trial_src: tuple[int, int] | None = None
+        self._l1_rows = (self._no_g, self._no_rows)  # the l1 model's stage rows (J (T, T m), r (T,)), per iteration
+        self._l1_abs = 0.0  # sum |r| of those rows
         self._l1qp: L1QP | None = None  # the l1 model's DAQP buffers (scalar stage cost), made on first use
         #: per-solve counters (iterations, QPs, rollouts, ...) of the last solve, for profiling
         self.stats: dict[str, int] = {}
@@ -190,6 +192,7 @@ class SQPShootingMPC(ShootingMPC):
             # with the mean squared sensitivity of the residuals, the curvature a smooth model would have
             j1, r1 = jac[:, 0, :], r[:, 0]
             self._l1_rows = (j1, r1)
+            self._l1_abs = float(np.abs(r1).sum())
             nu = j1.shape[1]
             scale = max(float(np.einsum("ij,ij->", j1, j1)) / nu, 1e-6)
             return self._zeros_hess, self._zeros_nu, g_con, -c, pen_c, scale
@@ -202,27 +205,26 @@ class SQPShootingMPC(ShootingMPC):
         scale = max(float(np.trace(hess)) / hess.shape[0], 1e-6)
         return hess, grad, g_con, -c, pen_c, scale
 
-    def _l1_step(self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray,
-                 h_vec: np.ndarray, pen: np.ndarray) -> tuple[np.ndarray, float]:
-        """The l1 model's step and its predicted decrease (stage rows ``self._l1_rows``, elastic rows ``G, h``)."""
+    def _l1_step(self, damp: float, lo: np.ndarray, hi: np.ndarray, g_mat: np.ndarray, h_vec: np.ndarray,
+                 pen: np.ndarray) -> tuple[np.ndarray, float]:
+        """The l1 model's step and its predicted decrease (stage rows ``self._l1_rows``, elastic rows ``G, h``,
+        Hessian ``damp * I``: the Levenberg-Marquardt term alone)."""
         j1, r1 = self._l1_rows
         d: np.ndarray | None = None
         if self.qp_backend == "daqp":
             if self._l1qp is None or (self._l1qp.t, self._l1qp.k) != (r1.size, h_vec.size):
                 self._l1qp = L1QP(j1.shape[1], r1.size, h_vec.size)
             self.stats["daqp_qp"] += 1
-            d = self._l1qp.solve(hess, grad, lo, hi, j1, r1, g_mat, h_vec, pen)
+            d = self._l1qp.solve(damp, None, lo, hi, j1, r1, g_mat, h_vec, pen)
         if d is None:  # the numpy fallback (or DAQP failed): the same model as elastic rows, two per stage
             g_all = np.vstack((j1, -j1, g_mat))
             h_all = np.concatenate((-r1, r1, h_vec))
             pen_all = np.concatenate((np.ones(2 * r1.size), pen))
             self.stats["ipm_qp"] += 1
-            d = solve_qp(hess, grad, lo, hi, g_all, h_all, pen_all, backend="ipm").d
-        pred = float(np.abs(r1).sum() - np.abs(r1 + np.dot(j1, d)).sum())
+            d = solve_qp(damp * self._eye, self._zeros_nu, lo, hi, g_all, h_all, pen_all, backend="ipm").d
+        pred = self._l1_abs - float(np.abs(r1 + np.dot(j1, d)).sum())
         if h_vec.size:
             pred += float(pen @ (np.maximum(-h_vec, 0.0) - np.maximum(g_mat @ d - h_vec, 0.0)))
-        if grad is not self._zeros_nu:
-            pred -= float(grad @ d)
         return d, pred
 
     def _qp(
@@ -278,8 +280,7 @@ class SQPShootingMPC(ShootingMPC):
             undamped_tried = False
             while True:
                 if stage_rows:  # exact l1 model: no smooth part beyond the damping
-                    d, pred = self._l1_step((rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec,
-                                            pen)
+                    d, pred = self._l1_step(rho * scale + self.lm_floor, lo, hi, g_mat, h_vec, pen)
                 else:
                     d = self._qp(hess + (rho * scale + self.lm_floor) * self._eye, grad, lo, hi, g_mat, h_vec, pen)
                     pred = (-(grad @ d + 0.5 * d @ hess @ d) + rows0
