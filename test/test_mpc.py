@@ -310,6 +310,34 @@ def test_l1qp_reused_workspace_matches_fresh_solves() -> None:
             assert abs(obj(d) - obj(ref)) <= 1e-6 * (1 + abs(obj(ref))), (k, call, obj(d), obj(ref))
 
 
+def test_l1_convergence_certificate_is_sound() -> None:
+    """The fast friction solver skips its first QP when a dual bound proves that the QP's predicted decrease is below
+    the threshold: whenever the bound says so, the QP's own prediction must be below it (and the bound must decide
+    some of the problems, or it is dead code)."""
+    system = get_system("friction")
+    ctrl = make_controller(system, perturbed("friction"), "fast")
+    assert isinstance(ctrl, SQPShootingMPC)
+    ctrl.stats = dict.fromkeys(("daqp_qp", "ipm_qp"), 0)
+    rng = np.random.default_rng(5)
+    nu = ctrl.horizon
+    decided = 0
+    for trial in range(300):
+        # residuals of all sizes, some tiny (a converged plan), sensitivities of all scales, controls at the bounds
+        r1 = rng.normal(size=nu) * 10.0 ** rng.uniform(-6, 0, nu)
+        j1 = rng.normal(size=(nu, nu)) * 10.0 ** rng.uniform(-5, -1)
+        u_max = float(system.control_high[0])
+        u = np.clip(rng.uniform(-1.5, 1.5, nu) * u_max, -u_max, u_max)
+        lo, hi = -u_max - u, u_max - u
+        damp = 10.0 ** rng.uniform(-3, 1)
+        threshold = 3e-4 * (1.0 + float(np.abs(r1).sum()))
+        ctrl._l1_rows, ctrl._l1_abs = (j1, r1), float(np.abs(r1).sum())
+        _, pred = ctrl._l1_step(damp, lo, hi, np.zeros((0, nu)), np.zeros(0), np.zeros(0))
+        if ctrl._l1_converged(damp, lo, hi, threshold):
+            decided += 1
+            assert pred <= threshold * (1 + 1e-9) + 1e-12, (trial, pred, threshold)
+    assert 30 <= decided <= 270, decided
+
+
 def test_qp_rejects_unknown_backend() -> None:
     with pytest.raises(ValueError, match="unknown QP backend"):
         solve_qp(np.eye(2), np.ones(2), -np.ones(2), np.ones(2), np.ones((1, 2)), np.zeros(1), 1.0, backend="osqp")
