@@ -116,18 +116,22 @@ def test_fused_jacobians_equal_jacobians(kind: str, hidden: tuple[int, ...]) -> 
     dyn = NumpyDynamics(system, model, base=base_model_np(system))
     us = np.random.default_rng(0).uniform(-5.0, 5.0, (7, 10, 1))
     x0 = np.array([0.3, -0.5])
-    assert dyn.fused_jacobians(7, 10, 0) is None  # nothing rolled out yet
+    assert dyn.fused_jacobians(7, 10, 0, dyn.fused_calls) is None  # nothing rolled out yet
     xs = dyn.rollout_batch(x0, us)
+    stamp = dyn.fused_calls
     dyn.rollout_batch(x0, us[:3])  # another batch size keeps its own buffer
     patterns = set()
     for i in range(7):
-        ab = dyn.fused_jacobians(7, 10, i)
+        ab = dyn.fused_jacobians(7, 10, i, stamp)
         assert ab is not None
         a_ref, b_ref = dyn.jacobians(xs[i, :-1], us[i])
         np.testing.assert_allclose(ab[0], a_ref, rtol=1e-12, atol=1e-13)
         np.testing.assert_allclose(ab[1], b_ref, rtol=1e-12, atol=1e-13)
         patterns |= {tuple(r) for r in ab[1].reshape(10, -1).round(9)}
     assert len(patterns) >= (3 if hidden else 1)  # several activation patterns were met
+    dyn.rollout_batch(-x0, -us)  # the same batch size again: that buffer now holds other sequences
+    assert dyn.fused_jacobians(7, 10, 0, stamp) is None
+    assert dyn.fused_jacobians(7, 10, 0, dyn.fused_calls) is not None
 
 
 def test_fused_jacobians_need_a_small_network() -> None:
@@ -137,7 +141,7 @@ def test_fused_jacobians_need_a_small_network() -> None:
     assert dyn.fused_rollout
     x0, u = system.sample_inputs(8, np.random.default_rng(0))
     dyn.rollout_batch(x0[0], u.reshape(2, 4, -1))
-    assert dyn.fused_jacobians(2, 4, 0) is None
+    assert dyn.fused_jacobians(2, 4, 0, dyn.fused_calls) is None
 
 
 def test_fast_solver_same_plan_with_fused_jacobians() -> None:
@@ -150,7 +154,7 @@ def test_fast_solver_same_plan_with_fused_jacobians() -> None:
         ctrl = make_controller(system, model, "fast")
         assert isinstance(ctrl, SQPShootingMPC)
         ctrls.append(ctrl)
-    ctrls[1].dyn.fused_jacobians = lambda k, horizon, i: None  # type: ignore[method-assign]
+    ctrls[1].dyn.fused_jacobians = lambda k, horizon, i, stamp: None  # type: ignore[method-assign]
     calls = {"jac": 0}
     plain = ctrls[0].dyn.jacobians
 

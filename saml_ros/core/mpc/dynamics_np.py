@@ -477,6 +477,9 @@ class NumpyDynamics:
         self._fused: tuple[list[np.ndarray], list[tuple[int, int, int, int, int]], list[int]] | None = None
         #: per (batch size, horizon): the buffer and row views of :meth:`_rollout_fused` (:meth:`_fused_plan`)
         self._fused_plans: dict[tuple[int, int], _FusedPlan] = {}
+        #: fused rollouts made so far; :attr:`_fused_stamps` holds, per buffer, the count at its last fill
+        self.fused_calls = 0
+        self._fused_stamps: dict[tuple[int, int], int] = {}
         #: :meth:`rollout_batch` is fused (one product per layer and step for all K sequences): K sequences cost
         #: about as much as one, so callers may batch what they would otherwise roll out one by one
         self.fused_rollout = False
@@ -554,6 +557,8 @@ class NumpyDynamics:
         plan = self._fused_plans.get((k, horizon))
         if plan is None:
             plan = self._fused_plans[(k, horizon)] = self._fused_plan(k, horizon, n, m)
+        self.fused_calls += 1
+        self._fused_stamps[(k, horizon)] = self.fused_calls
         z, steps, x_first, u_all, x_all = plan
         x_first[...] = x0[:, None]
         u_all[...] = us.transpose(1, 2, 0)
@@ -626,15 +631,16 @@ class NumpyDynamics:
         mats.append(np.ascontiguousarray(last))
         return mats, blocks, ones
 
-    def fused_jacobians(self, k: int, horizon: int, i: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """The Jacobians ``A (T, n, n)``, ``B (T, n, m)`` along sequence ``i`` of the last :meth:`rollout_batch` of
-        ``k`` sequences over ``horizon`` steps, read from the activation pattern its pre-activations left in the
-        fused buffer (:meth:`_jac_table`): 5 numpy calls instead of the ~20 of :meth:`jacobians` (a forward pass and
-        the reverse products). The values are :meth:`jacobians`' at that sequence's states and controls (a
-        pre-activation within rounding of 0 may fall on the other side of the kink). None when the rollout was not
-        fused, no such rollout was made, or the network has more than :data:`JAC_TABLE_UNITS` hidden units."""
+    def fused_jacobians(self, k: int, horizon: int, i: int, stamp: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The Jacobians ``A (T, n, n)``, ``B (T, n, m)`` along sequence ``i`` of the fused :meth:`rollout_batch` of
+        ``k`` sequences over ``horizon`` steps that was call number ``stamp`` (:attr:`fused_calls` right after it),
+        read from the activation pattern its pre-activations left in the fused buffer (:meth:`_jac_table`): 5 numpy
+        calls instead of the ~20 of :meth:`jacobians` (a forward pass and the reverse products). The values are
+        :meth:`jacobians`' at that sequence's states and controls (a pre-activation within rounding of 0 may fall on
+        the other side of the kink). None when that buffer has been refilled since (or never filled), or the
+        network has more than :data:`JAC_TABLE_UNITS` hidden units."""
         plan = self._fused_plans.get((k, horizon))
-        if plan is None:
+        if plan is None or self._fused_stamps.get((k, horizon)) != stamp:
             return None
         if self._jac_tab is None:
             self._jac_tab = self._jac_table()

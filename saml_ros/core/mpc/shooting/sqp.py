@@ -109,8 +109,8 @@ class SQPShootingMPC(ShootingMPC):
         self._zeros_hess.flags.writeable = False
         self._no_rows = np.zeros(0)
         self._no_g = np.zeros((0, nu))
-        #: the accepted trial point's (batch size, sequence) in the line search's fused rollout, or None
-        self._trial_src: tuple[int, int] | None = None
+        #: the accepted trial point's (batch size, sequence, ``dyn.fused_calls``) in the line search's fused rollout
+        self._trial_src: tuple[int, int, int] | None = None
         self._l1_rows = (self._no_g, self._no_rows)  # the l1 model's stage rows (J (T, T m), r (T,)), per iteration
         self._l1_abs = 0.0  # sum |r| of those rows
         self._l1qp: L1QP | None = None  # the l1 model's DAQP buffers (scalar stage cost), made on first use
@@ -286,7 +286,7 @@ class SQPShootingMPC(ShootingMPC):
         fused_jac = getattr(self.dyn, "fused_jacobians", None) if getattr(self.dyn, "fused_rollout", False) else None
         src = self._start_src if xs0 is not None else None
         for it in range(1, self.max_iter + 1):  # noqa: B007
-            ab = fused_jac(src[0], self.horizon, src[1]) if fused_jac is not None and src is not None else None
+            ab = fused_jac(src[0], self.horizon, src[1], src[2]) if fused_jac is not None and src is not None else None
             a, b = ab if ab is not None else self.dyn.jacobians(xs[:-1], u)
             self.stats["jacobians"] += 1
             sens = self._sensitivities(a, b)
@@ -374,7 +374,7 @@ class SQPShootingMPC(ShootingMPC):
                 u_new, xs_new = u_all[i], xs_all[i]
                 merit_new, r_new, c_new = self._merit(xs_new, task, penalty)
                 if merit_new <= merit - 1e-4 * alpha * pred:
-                    self._trial_src = (len(_ALPHAS), i)
+                    self._trial_src = (len(_ALPHAS), i, self.dyn.fused_calls)
                     return alpha, True, (u_new, xs_new, merit_new, r_new, c_new)
             self._trial_src = None
             return alpha, False, (u_new, xs_new, merit_new, r_new, c_new)
