@@ -13,7 +13,8 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.shooting import ShootingMPC
-from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
+from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, L1QP, solve_box_qp, solve_qp
+from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.paddle_ball import landing_point
 
@@ -84,6 +85,124 @@ def test_batched_rollout_equals_step_by_step(name: str, kind: str, hidden: tuple
         for t in range(5):
             x = dyn.step1(x, us[k, t])
             np.testing.assert_allclose(xs[k, t + 1], x, rtol=1e-12, atol=1e-12)
+
+
+def test_batched_rollout_results_are_independent() -> None:
+    """The fused rollout reuses one buffer per batch size: a returned prediction must not change with the next call."""
+    system = get_system("friction")
+    dyn = NumpyDynamics(system, perturbed("friction"), base=base_model_np(system))
+    assert dyn.fused_rollout
+    x0 = np.array([0.4, -0.2])
+    us = np.linspace(-5.0, 5.0, 30).reshape(3, 10, 1)
+    first = dyn.rollout_batch(x0, us)
+    kept = first.copy()
+    dyn.rollout_batch(-x0, -us)
+    np.testing.assert_array_equal(first, kept)
+    np.testing.assert_allclose(first[1], dyn.rollout_batch(x0, us[1:2])[0], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize(("kind", "hidden"), [("residual", (4, 2)), ("full", (4, 2)), ("residual", ()),
+                                               ("residual", (3,))])
+def test_fused_jacobians_equal_jacobians(kind: str, hidden: tuple[int, ...]) -> None:
+    """The Jacobians read from a fused rollout's activation pattern are ``jacobians`` at that sequence's states."""
+    system = get_system("friction")
+    model = DynamicsModel(system, kind=kind, hidden=hidden, seed=3).double()
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for w in model.net.weights:
+            w.add_(0.5 * torch.randn(w.shape, generator=gen, dtype=w.dtype))
+        for s in model.net.slopes:  # not ReLU: the masks' other value matters
+            s.fill_(-0.3)
+    dyn = NumpyDynamics(system, model, base=base_model_np(system))
+    us = np.random.default_rng(0).uniform(-5.0, 5.0, (7, 10, 1))
+    x0 = np.array([0.3, -0.5])
+    assert dyn.fused_jacobians(7, 10, 0, dyn.fused_calls) is None  # nothing rolled out yet
+    xs = dyn.rollout_batch(x0, us)
+    stamp = dyn.fused_calls
+    dyn.rollout_batch(x0, us[:3])  # another batch size keeps its own buffer
+    patterns = set()
+    for i in range(7):
+        ab = dyn.fused_jacobians(7, 10, i, stamp)
+        assert ab is not None
+        a_ref, b_ref = dyn.jacobians(xs[i, :-1], us[i])
+        np.testing.assert_allclose(ab[0], a_ref, rtol=1e-12, atol=1e-13)
+        np.testing.assert_allclose(ab[1], b_ref, rtol=1e-12, atol=1e-13)
+        patterns |= {tuple(r) for r in ab[1].reshape(10, -1).round(9)}
+    assert len(patterns) >= (3 if hidden else 1)  # several activation patterns were met
+    dyn.rollout_batch(-x0, -us)  # the same batch size again: that buffer now holds other sequences
+    assert dyn.fused_jacobians(7, 10, 0, stamp) is None
+    assert dyn.fused_jacobians(7, 10, 0, dyn.fused_calls) is not None
+
+
+def test_fused_jacobians_need_a_small_network() -> None:
+    """A network too wide for the pattern table (the quadrotor's full 16-8 model: 24 units) gives None."""
+    system = get_system("quadrotor")
+    dyn = NumpyDynamics(system, perturbed("quadrotor", kind="full"))
+    assert dyn.fused_rollout
+    x0, u = system.sample_inputs(8, np.random.default_rng(0))
+    dyn.rollout_batch(x0[0], u.reshape(2, 4, -1))
+    assert dyn.fused_jacobians(2, 4, 0, dyn.fused_calls) is None
+
+
+def test_fast_solver_same_plan_with_fused_jacobians() -> None:
+    """The fast friction solver reads its Jacobians from the start's and the line search's fused rollouts; the plans
+    must be those it finds with NumpyDynamics.jacobians."""
+    system = get_system("friction")
+    model = perturbed("friction")
+    ctrls = []
+    for _ in range(2):
+        ctrl = make_controller(system, model, "fast")
+        assert isinstance(ctrl, SQPShootingMPC)
+        ctrls.append(ctrl)
+    ctrls[1].dyn.fused_jacobians = lambda k, horizon, i, stamp: None  # type: ignore[method-assign]
+    calls = {"jac": 0}
+    plain = ctrls[0].dyn.jacobians
+
+    def counted(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        calls["jac"] += 1
+        return plain(x, u)
+
+    ctrls[0].dyn.jacobians = counted  # type: ignore[method-assign]
+    iters = 0
+    for p0 in (-1.5, -0.4, 0.3, 1.2):
+        x = np.array([p0, 0.0])
+        for _ in range(6):
+            res = [ctrl.solve(x) for ctrl in ctrls]
+            np.testing.assert_allclose(res[0].plan_u, res[1].plan_u, rtol=1e-9, atol=1e-9)
+            assert res[0].iterations == res[1].iterations
+            iters += res[0].iterations
+            x = system.true_step_np(x, res[0].u)
+    assert iters > 24 and calls["jac"] == 0  # every Jacobian came from a fused rollout
+
+
+@pytest.mark.parametrize("scale", [0.5, 4.0, 400.0])
+def test_batched_line_search_matches_sequential(scale: float) -> None:
+    """The fast solver's line search rolls all step lengths out in one batched call when the model has a fused
+    rollout; it must accept the same step length and trial point as the one-by-one search (large steps make it
+    backtrack, the largest fails)."""
+    system = get_system("friction")
+    ctrl = make_controller(system, perturbed("friction"), "fast")
+    assert isinstance(ctrl, SQPShootingMPC) and ctrl.dyn.fused_rollout
+    rng = np.random.default_rng(0)
+    task = ctrl.task
+    seen = set()
+    for _ in range(20):
+        x0 = rng.uniform(-1.0, 1.0, 2)
+        u = rng.uniform(-2.0, 2.0, (ctrl.horizon, 1))
+        d = scale * rng.normal(size=ctrl.horizon)
+        merit = ctrl._merit(ctrl.rollout(x0, u), task, 10.0)[0]
+        pred = 0.5 * merit
+        got = {}
+        for fused in (True, False):
+            ctrl.dyn.fused_rollout = fused
+            ctrl.stats = {"rollouts": 0}
+            got[fused] = ctrl._line_search(x0, u, d, merit, pred, task, 10.0)
+        (a1, ok1, t1), (a2, ok2, t2) = got[True], got[False]
+        assert (a1, ok1) == (a2, ok2)
+        seen.add((a1, ok1))
+        for v1, v2 in zip(t1, t2, strict=True):
+            np.testing.assert_allclose(np.asarray(v1), np.asarray(v2), rtol=1e-10, atol=1e-12)
+    assert len(seen) >= 2  # the problems exercise more than one outcome
 
 
 def test_ensemble_uses_member_zero_and_rejects_other_systems() -> None:
@@ -162,6 +281,65 @@ def test_qp_backends_agree_on_elastic_and_l1_problems(hard_first: bool) -> None:
         assert fa <= fb + 1e-6 * (1 + abs(fb)), (trial, fa, fb)
         assert abs(fa - fb) <= 1e-5 * (1 + abs(fb)), (trial, fa, fb)
         assert np.all(a.mult >= 0) and np.all(a.mult <= pen * (1 + 1e-6))
+
+
+@pytest.mark.skipif("daqp" not in QP_BACKENDS, reason="daqp not installed")
+def test_l1qp_reused_workspace_matches_fresh_solves() -> None:
+    """L1QP keeps one DAQP workspace and refreshes only what changed (the Hessian when the damping does, the cost
+    vector when the gradient does): a sequence of solves with scalar and matrix Hessians, with and without a
+    gradient and with the same damping twice, must give each problem's own optimum (the interior point method's
+    on the same model as elastic rows)."""
+    rng = np.random.default_rng(11)
+    n, t = 10, 10
+    for k in (0, 3):
+        qp = L1QP(n, t, k)
+        for call in range(12):
+            j, r = rng.normal(size=(t, n)), rng.normal(size=t)
+            lo, hi = -rng.uniform(0.1, 2, n), rng.uniform(0.1, 2, n)
+            g_mat, h_vec, pen = rng.normal(size=(k, n)), rng.normal(scale=0.5, size=k), rng.uniform(0.5, 5.0, k)
+            damp = (1e-3, 0.5, 0.5, 2.0)[call % 4]  # calls 1 -> 2: the same damping, Hessian not refreshed
+            hess_arg: np.ndarray | float = damp if call % 3 else damp * np.eye(n)
+            grad = rng.normal(size=n) if call in (4, 5) else None  # 6: back to no gradient
+            d = qp.solve(hess_arg, grad, lo, hi, j, r, g_mat, h_vec, pen)
+            assert d is not None and np.all(d >= lo) and np.all(d <= hi)
+            g0 = np.zeros(n) if grad is None else grad
+            ref = solve_qp(damp * np.eye(n), g0, lo, hi, np.vstack((j, -j, g_mat)), np.concatenate((-r, r, h_vec)),
+                           np.concatenate((np.ones(2 * t), pen)), backend="ipm").d
+
+            def obj(v: np.ndarray, g0: np.ndarray = g0, j: np.ndarray = j, r: np.ndarray = r, damp: float = damp,
+                    g_mat: np.ndarray = g_mat, h_vec: np.ndarray = h_vec, pen: np.ndarray = pen) -> float:
+                return float(0.5 * damp * v @ v + g0 @ v + np.abs(r + j @ v).sum()
+                             + pen @ np.maximum(g_mat @ v - h_vec, 0.0))
+
+            assert abs(obj(d) - obj(ref)) <= 1e-6 * (1 + abs(obj(ref))), (k, call, obj(d), obj(ref))
+
+
+def test_l1_convergence_certificate_is_sound() -> None:
+    """The fast friction solver skips its first QP when a dual bound proves that the QP's predicted decrease is below
+    the threshold: whenever the bound says so, the QP's own prediction must be below it (and the bound must decide
+    some of the problems, or it is dead code)."""
+    system = get_system("friction")
+    ctrl = make_controller(system, perturbed("friction"), "fast")
+    assert isinstance(ctrl, SQPShootingMPC)
+    ctrl.stats = dict.fromkeys(("daqp_qp", "ipm_qp"), 0)
+    rng = np.random.default_rng(5)
+    nu = ctrl.horizon
+    decided = 0
+    for trial in range(300):
+        # residuals of all sizes, some tiny (a converged plan), sensitivities of all scales, controls at the bounds
+        r1 = rng.normal(size=nu) * 10.0 ** rng.uniform(-6, 0, nu)
+        j1 = rng.normal(size=(nu, nu)) * 10.0 ** rng.uniform(-5, -1)
+        u_max = float(system.control_high[0])
+        u = np.clip(rng.uniform(-1.5, 1.5, nu) * u_max, -u_max, u_max)
+        lo, hi = -u_max - u, u_max - u
+        damp = 10.0 ** rng.uniform(-3, 1)
+        threshold = 3e-4 * (1.0 + float(np.abs(r1).sum()))
+        ctrl._l1_rows, ctrl._l1_abs = (j1, r1), float(np.abs(r1).sum())
+        _, pred = ctrl._l1_step(damp, lo, hi, np.zeros((0, nu)), np.zeros(0), np.zeros(0))
+        if ctrl._l1_converged(damp, lo, hi, threshold):
+            decided += 1
+            assert pred <= threshold * (1 + 1e-9) + 1e-12, (trial, pred, threshold)
+    assert 30 <= decided <= 270, decided
 
 
 def test_qp_rejects_unknown_backend() -> None:

@@ -12,6 +12,7 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
 from saml_ros.core.mpc.factory import make_task
 from saml_ros.core.mpc.shooting import ShootingMPC
+from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.mpc.shooting.tasks import push_brake_sequences
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
@@ -135,3 +136,26 @@ def test_start_scores_match_cost_and_violations() -> None:
     np.testing.assert_allclose(task.start_scores(xs), want, rtol=1e-12)
     np.testing.assert_allclose(task.start_scores(ctrl._rollout_batch(x0, seqs)), want, rtol=1e-9)
     assert task.violations(xs[0])[:-1].max() > 0 and task.violations(xs[1])[-1] > 0  # penalties exercised
+
+
+def test_l1_certificate_keeps_the_plans() -> None:
+    """The fast solver skips its first QP when a dual bound proves convergence (SQPShootingMPC._l1_converged): with a
+    dead-zone model (flat predicted cost at rest, where it decides) closed loops must plan as well as without it (the
+    same cost: the model's flat regions make the optimal controls not unique, and the QP workspace's warm start
+    differs when a QP is skipped)."""
+    ctrls = []
+    for _ in range(2):
+        ctrl = make_controller(SYSTEM, dead_zone_model(), "fast")
+        assert isinstance(ctrl, SQPShootingMPC)
+        ctrls.append(ctrl)
+    ctrls[1]._l1_converged = lambda damp, lo, hi, threshold: False  # type: ignore[method-assign]
+    certified = 0
+    for p0 in (-1.5, -0.4, 0.3, 1.2):
+        x = np.array([p0, 0.0])
+        for _ in range(15):
+            res = [ctrl.solve(x) for ctrl in ctrls]
+            certified += ctrls[0].stats["certified"]
+            assert res[0].success and res[1].success
+            assert abs(res[0].cost - res[1].cost) <= 1e-8 * (1.0 + res[1].cost), (p0, res[0].cost, res[1].cost)
+            x = SYSTEM.true_step_np(x, res[0].u)
+    assert certified >= 5

@@ -33,6 +33,15 @@ from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: :meth:`NumpyDynamics.fused_jacobians` tabulates the Jacobians of every activation pattern of up to this many
+#: hidden units (2^10 = 1024 patterns; the friction model's 4-2 net has 64)
+JAC_TABLE_UNITS = 10
+#: one hidden layer's step of the fused rollout: (matrix, input rows, pre-activation rows, relu rows)
+_FusedLayer = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+#: the fused rollout's buffer and views (:meth:`NumpyDynamics._fused_plan`): z, per step (hidden layers, the
+#: step's block, the rows of x_{t+1}), the rows of x_0, of all controls and of all states
+_FusedPlan = tuple[np.ndarray, list[tuple[list[_FusedLayer], np.ndarray, np.ndarray]], np.ndarray, np.ndarray,
+                   np.ndarray]
 
 #: the model name that makes the MPC predict with the TRUE dynamics (see the module docstring)
 ORACLE: Literal["oracle"] = "oracle"
@@ -464,6 +473,18 @@ class NumpyDynamics:
         self.mlp: NumpyMLP | None = None
         #: "residual", "full", "base" (f_hat alone) or "oracle"
         self.kind: str
+        #: rollout_batch's stacked weights, row blocks and rows of ones (:meth:`_fused_layout`), made on first use
+        self._fused: tuple[list[np.ndarray], list[tuple[int, int, int, int, int]], list[int]] | None = None
+        #: per (batch size, horizon): the buffer and row views of :meth:`_rollout_fused` (:meth:`_fused_plan`)
+        self._fused_plans: dict[tuple[int, int], _FusedPlan] = {}
+        #: fused rollouts made so far; :attr:`_fused_stamps` holds, per buffer, the count at its last fill
+        self.fused_calls = 0
+        self._fused_stamps: dict[tuple[int, int], int] = {}
+        #: :meth:`rollout_batch` is fused (one product per layer and step for all K sequences): K sequences cost
+        #: about as much as one, so callers may batch what they would otherwise roll out one by one
+        self.fused_rollout = False
+        #: :meth:`fused_jacobians`' code weights and tables (:meth:`_jac_table`), False if too wide; made on first use
+        self._jac_tab: tuple[np.ndarray, np.ndarray, np.ndarray] | Literal[False] | None = None
         if isinstance(model, str):
             if model != ORACLE:
                 raise ValueError(f"unknown prediction model {model!r}; a DynamicsModel, None or {ORACLE!r}")
@@ -480,8 +501,8 @@ class NumpyDynamics:
                     f"not {system.name!r} (schema {system.schema_hash()})"
                 )
             self.mlp = NumpyMLP(model, member)
-        #: rollout_batch's stacked weights, row blocks and rows of ones (:meth:`_fused_layout`), made on first use
-        self._fused: tuple[list[np.ndarray], list[tuple[int, int, int, int, int]], list[int]] | None = None
+        self.fused_rollout = self.mlp is not None and (self.base is None or getattr(self.base, "linear", None)
+                                                       is not None)
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Predicted target ``(B, n_y)``."""
@@ -510,9 +531,8 @@ class NumpyDynamics:
         layer's ``W_x x``: about 10 numpy calls per step instead of about 20. Otherwise: T calls of :meth:`step`.
         """
         k, horizon = us.shape[0], us.shape[1]
-        lin = None if self.base is None else getattr(self.base, "linear", None)
-        if self.mlp is not None and (lin is not None or self.base is None):
-            return self._rollout_fused(x0, us, lin)
+        if self.fused_rollout:
+            return self._rollout_fused(x0, us, None if self.base is None else getattr(self.base, "linear", None))
         xs = np.empty((k, horizon + 1, x0.shape[0]))
         xs[:, 0] = x0
         x = xs[:, 0]
@@ -530,32 +550,45 @@ class NumpyDynamics:
         ONE product of ``[a W, (1 - a) W, b]`` with the previous block; the last product also carries the base
         model ``A x + B u`` (zero weights elsewhere) and writes ``x_{t+1}`` in place. Per step: one product and
         one ``maximum`` per hidden layer, one final product (5 numpy calls for two hidden layers, was 8)."""
-        mlp = self.mlp
-        assert mlp is not None
         k, horizon, n = us.shape[0], us.shape[1], x0.shape[0]
         m = us.shape[2]
         if self._fused is None:
             self._fused = self._fused_layout(lin, n, m)
+        plan = self._fused_plans.get((k, horizon))
+        if plan is None:
+            plan = self._fused_plans[(k, horizon)] = self._fused_plan(k, horizon, n, m)
+        self.fused_calls += 1
+        self._fused_stamps[(k, horizon)] = self.fused_calls
+        z, steps, x_first, u_all, x_all = plan
+        x_first[...] = x0[:, None]
+        u_all[...] = us.transpose(1, 2, 0)
+        last = self._fused[0][-1]
+        # np.dot into a C-contiguous row block: ~1 us a call here; np.matmul with out= checks the overlap of
+        # out and input (same buffer) and costs ~3.5 us. The row blocks are views made once per batch size
+        # (numpy 2.4: ~0.2 us per slice, as much as the products themselves on these sizes)
+        dot, maximum = np.dot, np.maximum
+        for layers, zt, x_next in steps:
+            for mat, z_in, h, relu in layers:
+                dot(mat, z_in, out=h)
+                maximum(h, 0.0, out=relu)
+            dot(last, zt, out=x_next)
+        return x_all.transpose(2, 0, 1).copy()
+
+    def _fused_plan(self, k: int, horizon: int, n: int, m: int) -> _FusedPlan:
+        """:meth:`_rollout_fused`'s buffer ``z`` ``(T+1, R, K)`` (rows of ones filled in) and its views: per step
+        t the hidden layers' ``(matrix, input rows, h rows, relu(h) rows)``, the whole block and the rows of
+        ``x_{t+1}``; then the rows of ``x_0``, of all controls ``(T, m, K)`` and of all states ``(T+1, n, K)``."""
+        assert self._fused is not None
         mats, blocks, ones = self._fused
         z = np.empty((horizon + 1, mats[-1].shape[1], k))
-        z[0, :n] = x0[:, None]
-        z[:horizon, n : n + m] = us.transpose(1, 2, 0)
         z[:, ones] = 1.0
-        last = mats[-1]
-        # np.dot into a C-contiguous row block: ~1 us a call here; np.matmul with out= checks the overlap of
-        # out and input (same buffer) and costs ~3.5 us
-        dot, maximum = np.dot, np.maximum
-        if not blocks:  # phi affine: one product per step
-            for t in range(horizon):
-                dot(last, z[t], out=z[t + 1, :n])
-            return z[:, :n].transpose(2, 0, 1)
+        steps: list[tuple[list[_FusedLayer], np.ndarray, np.ndarray]] = []
         for t in range(horizon):
             zt = z[t]
-            for mat, (i0, i1, o0, o1, r1) in zip(mats, blocks, strict=False):
-                dot(mat, zt[i0:i1], out=zt[o0:o1])
-                maximum(zt[o0:o1], 0.0, out=zt[o1:r1])
-            dot(last, zt, out=z[t + 1, :n])
-        return z[:, :n].transpose(2, 0, 1)
+            layers: list[_FusedLayer] = [(mat, zt[i0:i1], zt[o0:o1], zt[o1:r1])
+                                         for mat, (i0, i1, o0, o1, r1) in zip(mats, blocks, strict=False)]
+            steps.append((layers, zt, z[t + 1, :n]))
+        return z, steps, z[0, :n], z[:horizon, n : n + m], z[:, :n]
 
     def _fused_layout(self, lin: tuple[np.ndarray, np.ndarray] | None, n: int,
                       m: int) -> tuple[list[np.ndarray], list[tuple[int, int, int, int, int]], list[int]]:
@@ -597,6 +630,57 @@ class NumpyDynamics:
         last[:, i0:i1] = prev
         mats.append(np.ascontiguousarray(last))
         return mats, blocks, ones
+
+    def fused_jacobians(self, k: int, horizon: int, i: int, stamp: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The Jacobians ``A (T, n, n)``, ``B (T, n, m)`` along sequence ``i`` of the fused :meth:`rollout_batch` of
+        ``k`` sequences over ``horizon`` steps that was call number ``stamp`` (:attr:`fused_calls` right after it),
+        read from the activation pattern its pre-activations left in the fused buffer (:meth:`_jac_table`): 5 numpy
+        calls instead of the ~20 of :meth:`jacobians` (a forward pass and the reverse products). The values are
+        :meth:`jacobians`' at that sequence's states and controls (a pre-activation within rounding of 0 may fall on
+        the other side of the kink). None when that buffer has been refilled since (or never filled), or the
+        network has more than :data:`JAC_TABLE_UNITS` hidden units."""
+        plan = self._fused_plans.get((k, horizon))
+        if plan is None or self._fused_stamps.get((k, horizon)) != stamp:
+            return None
+        if self._jac_tab is None:
+            self._jac_tab = self._jac_table()
+        if self._jac_tab is False:
+            return None
+        weights, tab_a, tab_b = self._jac_tab
+        codes = np.dot(plan[0][:horizon, :, i] >= 0.0, weights).astype(np.intp)
+        return tab_a[codes], tab_b[codes]
+
+    def _jac_table(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | Literal[False]:
+        """For :meth:`fused_jacobians`: the code weights over the fused buffer's rows ``(R,)`` (``2^j`` on hidden
+        unit j's pre-activation row, 0 elsewhere: the dot with ``h >= 0`` numbers the activation pattern), and the
+        Jacobians of ``f_hat + phi`` of every pattern, ``A (2^H, n, n)`` and ``B (2^H, n, m)`` (a PReLU unit with
+        ``h >= 0`` passes its input, otherwise scales it by its slope, as :meth:`NumpyMLP.forward_jac`). False when
+        the H hidden units exceed :data:`JAC_TABLE_UNITS`."""
+        mlp = self.mlp
+        assert mlp is not None and self._fused is not None
+        mats, blocks, _ = self._fused
+        widths = [o1 - o0 for _, _, o0, o1, _ in blocks]
+        units = sum(widths)
+        if units > JAC_TABLE_UNITS:
+            return False
+        n, m = mlp.n_x, mlp.n_u
+        weights = np.zeros(mats[-1].shape[1])
+        bits = (np.arange(2**units)[:, None] >> np.arange(units)) & 1  # (2^H, H): pattern c's unit j is on
+        masks, j = [], 0
+        for (_, _, o0, o1, _), width, slope in zip(blocks, widths, mlp.slopes, strict=False):
+            weights[o0:o1] = 2.0 ** np.arange(j, j + width)
+            masks.append(np.where(bits[:, j : j + width] == 1, 1.0, slope))
+            j += width
+        # reverse mode, as NumpyMLP._jac: W_L' M_{L-1} ... W_1' M_0 W_0' for every pattern at once
+        w = mlp.weights
+        g = np.broadcast_to(w[-1].T, (2**units, *w[-1].T.shape)).copy()
+        for layer in range(len(w) - 2, -1, -1):
+            g = (g * masks[layer][:, None, :]) @ w[layer].T
+        lin = None if self.base is None else getattr(self.base, "linear", None)
+        if lin is not None:
+            g[:, :, :n] += lin[0]
+            g[:, :, n:] += lin[1]
+        return weights, np.ascontiguousarray(g[:, :, :n]), np.ascontiguousarray(g[:, :, n : n + m])
 
     def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Jacobians of :meth:`step_jac` alone (the SQP has the prediction from its rollout): with a linear

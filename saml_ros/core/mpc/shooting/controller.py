@@ -75,6 +75,10 @@ class ShootingMPC:
         self._starts_key: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # _clipped_starts' cache
         self._starts = np.zeros((0, self.horizon, self.m))
         self._cands: np.ndarray | None = None
+        #: where the last start's predicted states came from: (batch size, sequence, ``dyn.fused_calls`` after it)
+        #: of the batched rollout that scored the candidates (the fast solver reads that sequence's Jacobians from
+        #: it, :meth:`NumpyDynamics.fused_jacobians`), or None
+        self._start_src: tuple[int, int, int] | None = None
 
     # ------------------------------------------------------------------------------ Controller API
     def set_model(self, model: PredictionModel) -> None:
@@ -155,6 +159,7 @@ class ShootingMPC:
         unshifted when x0 is nearer x_0 (a re-solve from the same state); its last step is filled per
         ``self.tail``. It competes with the candidates only if ``task.starts_every_solve`` (otherwise it is
         used as is); ties go to the previous plan, then to the earlier candidate."""
+        self._start_src = None
         starts = self._clipped_starts(task)
         if self.start == "plain":
             starts = starts[:0]
@@ -196,6 +201,7 @@ class ShootingMPC:
         ties) and its predicted states ``(T+1, n)``."""
         xs = self._rollout_batch(x0, cands)
         i = int(np.argmin(task.start_scores(xs)))
+        self._start_src = (cands.shape[0], i, getattr(self.dyn, "fused_calls", -1))
         return cands[i].copy(), np.ascontiguousarray(xs[i])
 
     def _rollout_batch(self, x0: np.ndarray, cands: np.ndarray) -> np.ndarray:

@@ -161,40 +161,68 @@ class L1QP:
         self._bu = np.full(nz + 2 * t + k, _INF)
         self._bl = np.full(nz + 2 * t + k, -_INF)
         self._bl[n + t : nz] = 0.0
+        # views refilled per call, made once (a slice costs ~0.2 us in numpy 2.4, as much as a small copy)
+        h, a, bu, bl = self._h, self._a, self._bu, self._bl
+        self._h_dd = h[:n, :n]
+        self._h_diag = h.reshape(-1)[: n * (nz + 1) : nz + 1]  # the d block's diagonal
+        self._f_d, self._f_e = self._f[:n], self._f[n + t :]
+        self._a_j, self._a_mj, self._a_g = a[:t, :n], a[t : 2 * t, :n], a[2 * t :, :n]
+        self._bu_d, self._bl_d = bu[:n], bl[:n]
+        self._bu_mr, self._bu_r, self._bu_h = bu[nz : nz + t], bu[nz + t : nz + 2 * t], bu[nz + 2 * t :]
+        self._f_zero = True  # the cost vector's d block is zero (no gradient) and the workspace has it so
+        self._damp: float | None = None  # the scalar Hessian ``damp * I`` the workspace holds, if it holds one
         self._model: Any = None  # the DAQP workspace, set up on the first solve
 
     def solve(
-        self, hess: np.ndarray, grad: np.ndarray, lo: np.ndarray, hi: np.ndarray, j: np.ndarray, r: np.ndarray,
-        g_mat: np.ndarray, h_vec: np.ndarray, pen: np.ndarray,
+        self, hess: np.ndarray | float, grad: np.ndarray | None, lo: np.ndarray, hi: np.ndarray, j: np.ndarray,
+        r: np.ndarray, g_mat: np.ndarray, h_vec: np.ndarray, pen: np.ndarray,
     ) -> np.ndarray | None:
-        """The step ``d`` ``(n,)`` (clipped to the box), or None if DAQP fails. Shapes: ``hess (n, n)``, ``grad,
-        lo, hi (n,)``, ``j (t, n)``, ``r (t,)``, ``g_mat (k, n)``, ``h_vec, pen (k,)``."""
+        """The step ``d`` ``(n,)`` (clipped to the box), or None if DAQP fails. Shapes: ``hess (n, n)`` or a float
+        ``c`` for ``c I`` (the SQP's damping alone: the workspace's Hessian is then refreshed only when c changes),
+        ``grad, lo, hi (n,)`` (``grad`` None: zero), ``j (t, n)``, ``r (t,)``, ``g_mat (k, n)``, ``h_vec, pen (k,)``."""
         assert _daqp is not None
-        n, t = self.n, self.t
-        nz = self._f.size
-        self._h[:n, :n] = hess
-        self._f[:n] = grad
-        self._f[n + t :] = pen
-        a = self._a
-        a[:t, :n] = j
-        np.negative(j, out=a[t : 2 * t, :n])
-        a[2 * t :, :n] = g_mat
-        bu, bl = self._bu, self._bl
-        bu[:n] = hi
-        bl[:n] = lo
-        np.negative(r, out=bu[nz : nz + t])
-        bu[nz + t : nz + 2 * t] = r
-        bu[nz + 2 * t :] = h_vec
+        new_h = True
+        if isinstance(hess, float):
+            if hess == self._damp:
+                new_h = False
+            else:
+                if self._damp is None:
+                    self._h_dd.fill(0.0)
+                self._h_diag.fill(hess)
+                self._damp = hess
+        else:
+            self._h_dd[...] = hess
+            self._damp = None
+        if grad is None:
+            new_f = not self._f_zero
+            if new_f:
+                self._f_d.fill(0.0)
+            self._f_zero = True
+        else:
+            self._f_d[...] = grad
+            self._f_zero, new_f = False, True
+        np.copyto(self._a_j, j)
+        np.negative(j, out=self._a_mj)
+        np.copyto(self._bu_d, hi)
+        np.copyto(self._bl_d, lo)
+        np.negative(r, out=self._bu_mr)
+        np.copyto(self._bu_r, r)
+        if self.k:
+            new_f = True
+            self._f_e[...] = pen
+            self._a_g[...] = g_mat
+            self._bu_h[...] = h_vec
         if self._model is None:
             self._model = _daqp.Model()
-            self._model.setup(self._h, self._f, a, bu, bl)
+            self._model.setup(self._h, self._f, self._a, self._bu, self._bl)
         else:
-            self._model.update(H=self._h, f=self._f, A=a, bupper=bu, blower=bl)
+            self._model.update(H=self._h if new_h else None, f=self._f if new_f else None, A=self._a,
+                               bupper=self._bu, blower=self._bl)
         x, _, flag, _ = self._model.solve()
         if flag != 1:
             self._model = None  # start the next solve from a fresh workspace
             return None
-        d = np.maximum(x[:n], lo)
+        d = np.maximum(x[: self.n], lo)
         return np.minimum(d, hi, out=d)
 
 

@@ -42,8 +42,9 @@ class ShootingTask:
     #: (G, T, m) candidate control sequences for the initial guess (see ``ShootingMPC._warm_start``): without a
     #: previous plan the one with the lowest :meth:`start_scores` is used
     u_starts: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
-    #: also score the candidates against the shifted previous plan at EVERY solve (one batched rollout,
-    #: ~0.15 ms at T = 10), not only without a previous plan: needed where a local solver can be trapped (friction)
+    #: also score the candidates against the shifted previous plan at EVERY solve (one batched rollout, ~50 us
+    #: for the 4-2 friction model at T = 10), not only without a previous plan: needed where a local solver can be
+    #: trapped (friction)
     starts_every_solve: bool = False
     cons_t: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) time index in 1..T
     cons_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  #: (nc,) state index
