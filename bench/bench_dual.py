@@ -216,11 +216,13 @@ def budget_sweep(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.nda
         import matplotlib.pyplot as plt
 
         fig, ax = plt.subplots(figsize=(6.4, 4.2))
-        eps_ = [r["epochs"] for r in out]
+        eps_ = np.array(budgets, dtype=float)
+        train = np.stack([np.asarray(r["train"], dtype=float) for r in out])  # (budgets, seeds)
+        held = np.stack([np.asarray(r["held"], dtype=float) for r in out])
         for i in range(n):
-            ax.plot(eps_, [r["train"][i] for r in out], "-", color="tab:blue", alpha=0.5, lw=1,
+            ax.plot(eps_, train[:, i], "-", color="tab:blue", alpha=0.5, lw=1,
                     label="training objective (one line per seed)" if i == 0 else None)
-            ax.plot(eps_, [r["held"][i] for r in out], "--", color="tab:orange", alpha=0.5, lw=1,
+            ax.plot(eps_, held[:, i], "--", color="tab:orange", alpha=0.5, lw=1,
                     label="held-out objective (20000 fresh transitions)" if i == 0 else None)
         ax.set_xscale("log")
         ax.set_yscale("log")

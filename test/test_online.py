@@ -16,6 +16,7 @@ import torch
 
 from msg_schemas.telemetry import REJECT_REASONS, model_error_names
 from saml_ros.core.checkpoint import CheckpointStore, atomic_write
+from saml_ros.core.child_launch import launch_child
 from saml_ros.core.online import (
     LearnerSetup,
     LoopConfig,
@@ -338,6 +339,25 @@ def test_training_process_trains_checkpoints_and_stops_with_a_final_checkpoint(t
     assert not errors and proc.dropped == 0
     found = CheckpointStore(tmp_path / "run").load_latest_valid()
     assert found is not None and found.version == final[1] and found.meta["updates"] == final[2]
+
+
+def test_a_cancelled_start_kills_the_starting_training_process_without_waiting_for_it(tmp_path: Path) -> None:
+    """A stop signal during a node's start-up: ``start(cancelled=...)`` gives up as soon as the predicate says so
+    (the child is still importing torch and warming up, seconds away from ready), kills the child and writes
+    nothing; without a predicate the same start runs to ready."""
+    from saml_ros.core.online import StartCancelled
+
+    t0 = time.monotonic()
+    proc = TrainingProcess(_setup(tmp_path / "run"))
+    launched = launch_child()
+    child = launched[0]
+    with pytest.raises(StartCancelled):
+        proc.start(launched=launched, cancelled=lambda: time.monotonic() - t0 > 0.2)
+    assert child.poll() is not None, "the starting child was not ended"
+    assert proc.ready is None and time.monotonic() - t0 < 10.0
+    other = TrainingProcess(_setup(tmp_path / "run2"))
+    assert other.start(cancelled=lambda: False).status["updates"] == 0
+    assert other.stop() is not None
 
 
 def test_paused_training_process_buffers_but_neither_trains_nor_checkpoints(tmp_path: Path) -> None:

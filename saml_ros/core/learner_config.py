@@ -12,7 +12,7 @@ Importing this module imports no torch: the learner node imports it before its t
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -283,14 +283,16 @@ class LearnerConfig:
 
     def start_training(self, system: System, spec: ProblemSpec, schema: SystemSchema, run_dir: str,
                        decoder: DecoderFactory, *, paused: bool = False, launched: Any = None,
-                       **callbacks: Any) -> TrainingProcess:
+                       cancelled: Callable[[], bool] | None = None, **callbacks: Any) -> TrainingProcess:
         """The training process of :meth:`training_setup` for ``schema``'s :meth:`channels`, started (``paused``:
-        not training until ``resume()``; ``launched``: a pre-started interpreter; ``callbacks``: the
+        not training until ``resume()``; ``launched``: a pre-started interpreter; ``cancelled``: give up the start
+        when it returns True, see :meth:`~saml_ros.core.online.TrainingProcess.start`; ``callbacks``: the
         ``on_*`` arguments of :class:`~saml_ros.core.online.TrainingProcess`).
 
         Raises:
             ValueError: an invalid setting, a run directory whose checkpoints contradict the configuration, or a
                 training process that could not start; the message says which.
+            StartCancelled: ``cancelled()`` became true while the training process started.
         """
         from saml_ros.core.online import ResumeError, TrainingProcess
 
@@ -298,7 +300,7 @@ class LearnerConfig:
         setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
         trainer = TrainingProcess(dataclasses.replace(setup, paused=paused), **callbacks)
         try:
-            trainer.start(launched=launched)
+            trainer.start(launched=launched, cancelled=cancelled)
         except ResumeError as exc:
             raise ValueError(str(exc)) from None
         except RuntimeError as exc:

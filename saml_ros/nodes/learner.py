@@ -92,11 +92,16 @@ class LearnerNode(ManagedNode):
         self.unstamped, self.channel_qos = p.channel_traits(self.schema)  # no header: stamped on receipt
         self.received = [0] * len(self.channels)
         launched, self._launched = self._launched, None
+        from saml_ros.core.online import StartCancelled
+
         try:  # imports torch (the training interpreter is importing it meanwhile)
             self.trainer = p.start_training(self.system, self.spec, self.schema, str(run_dir), make_decoder,
-                                            paused=True, launched=launched, on_checkpoint=self._announce,
-                                            on_log=self._child_log, on_error=self._child_error)
+                                            paused=True, launched=launched, cancelled=self.stop_requested,
+                                            on_checkpoint=self._announce, on_log=self._child_log,
+                                            on_error=self._child_error)
         except ValueError as exc:
+            raise TransitionRefused(str(exc)) from None
+        except StartCancelled as exc:
             raise TransitionRefused(str(exc)) from None
         self._create_publishers()
         ready = self.trainer.ready

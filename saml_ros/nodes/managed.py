@@ -19,6 +19,7 @@ deactivate, then cleanup). What this class adds to rclpy's:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -46,6 +47,8 @@ class ManagedNode(LifecycleNode):
         self.invalid_transitions = 0
         #: the log line of the newest failed or raising step
         self.last_failure = ""
+        #: True once a stop signal arrived (set by :func:`run_managed`): long start-up steps give up on it
+        self.stop_requested: Callable[[], bool] = lambda: False
         service = self._service_change_state
         service.callback = self._guarded(service.callback)
 
@@ -129,6 +132,9 @@ class ManagedNode(LifecycleNode):
             return True
         for trigger in (self.trigger_configure, self.trigger_activate):
             if trigger() != TransitionCallbackReturn.SUCCESS:
+                if self.stop_requested():  # a stop signal cut the start-up short: not a configuration error
+                    self.get_logger().info("stopped during start-up")
+                    return True
                 self.get_logger().fatal(f"configuration error: {self.last_failure}")
                 return False
         return True
@@ -142,6 +148,7 @@ class ManagedNode(LifecycleNode):
 def run_managed(node: ManagedNode, stop: StopFlag, start_failed: int) -> int:
     """Start ``node`` (:meth:`ManagedNode.start_up`), spin it until a stop signal or ``finalized``, then
     :meth:`ManagedNode.finish`. Returns 0, or ``start_failed`` when autostart could not activate the node."""
+    node.stop_requested = lambda: bool(stop["signal"])
     try:
         if not node.start_up():
             return start_failed

@@ -10,7 +10,7 @@ interpreter, and the socket protocol) and ``child`` (what runs in that interpret
 from saml_ros.core.online.ingest import RawIngest
 from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
 from saml_ros.core.online.loop import LoopConfig, run_loop
-from saml_ros.core.online.process import LearnerSetup, ReadyInfo, TrainingProcess
+from saml_ros.core.online.process import LearnerSetup, ReadyInfo, StartCancelled, TrainingProcess
 from saml_ros.core.online.resume import ResumeError, ResumeInfo
 from saml_ros.core.online.telemetry import assemble_telemetry
 
@@ -23,6 +23,7 @@ __all__ = [
     "ReadyInfo",
     "ResumeError",
     "ResumeInfo",
+    "StartCancelled",
     "TrainingProcess",
     "assemble_telemetry",
     "run_loop",

@@ -51,6 +51,15 @@ log = logging.getLogger("saml_ros.online")
 #: ``factory(decoder_args) -> decode``: builds a training process's raw-message decoder (a module-level function,
 #: so it pickles by reference; e.g. :func:`msg_schemas.decode.make_decoder`)
 DecoderFactory = Callable[[Any], Decode]
+#: how often (s) :meth:`TrainingProcess.start` asks its ``cancelled`` predicate while the child starts
+CANCEL_POLL_S = 0.1
+
+
+class StartCancelled(Exception):
+    """:meth:`TrainingProcess.start` gave up because its ``cancelled`` predicate said so (a stop signal arrived
+    while the training process was still starting); the child was killed, nothing was written."""
+
+
 #: what :meth:`TrainingProcess.stop` sends the training process: save now, skip the inbox (see
 #: :func:`~saml_ros.core.online.loop.run_loop`)
 STOP_SIGNAL = signal.SIGUSR1
@@ -203,31 +212,42 @@ class TrainingProcess:
         self._threads: list[threading.Thread] = []
 
     # ---------------------------------------------------------------------------------------- lifecycle
-    def start(self, timeout: float = 120.0, launched: LaunchedChild | None = None) -> ReadyInfo:
+    def start(self, timeout: float = 120.0, launched: LaunchedChild | None = None,
+              cancelled: Callable[[], bool] | None = None) -> ReadyInfo:
         """Start the child (or use ``launched``, from :func:`launch_child`) and wait until it has built its
-        learner (and resumed).
+        learner (and resumed). ``cancelled`` is asked every :data:`CANCEL_POLL_S` s while waiting: a node that
+        received a stop signal during its start-up must not wait for the child's warm-up (seconds of imports, more
+        under load) before it can exit.
 
         Raises:
             ResumeError: the run directory contradicts the configuration.
             RuntimeError: the child could not build its learner or did not answer within ``timeout`` s.
+            StartCancelled: ``cancelled()`` became true first (the child is killed).
         """
-        ready = self._spawn(self.setup, timeout, launched)
+        ready = self._spawn(self.setup, timeout, launched, cancelled)
         for target, name in ((self._ship, "learner-ship"), (self._read, "learner-read")):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
         return ready
 
-    def _spawn(self, setup: LearnerSetup, timeout: float, launched: LaunchedChild | None = None) -> ReadyInfo:
+    def _spawn(self, setup: LearnerSetup, timeout: float, launched: LaunchedChild | None = None,
+               cancelled: Callable[[], bool] | None = None) -> ReadyInfo:
         proc, parent = launched if launched is not None else launch_child()
         parent.send(setup)
         deadline = time.monotonic() + timeout
         while True:
+            if cancelled is not None and cancelled():
+                proc.kill()
+                proc.wait(5)
+                raise StartCancelled("stopped while the training process was starting")
             left = deadline - time.monotonic()
-            if left <= 0 or not parent.poll(left):
+            if left <= 0:
                 proc.kill()
                 proc.wait(5)
                 raise RuntimeError(f"the training process did not start within {timeout:.0f} s")
+            if not parent.poll(left if cancelled is None else min(left, CANCEL_POLL_S)):
+                continue
             try:
                 msg = parent.recv()
             except (EOFError, OSError):
