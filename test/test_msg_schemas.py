@@ -309,9 +309,10 @@ def test_cdr_fast_path_leaves_bad_messages_to_from_msg() -> None:
         *parents, leaf = path.split(".")
         setattr(functools.reduce(getattr, parents, m), leaf, value)
         both(state, m)
-    for name, value in (("effort", np.array([1.0, 2.0, math.nan, 4.0])), ("effort", np.array([1.0, 2.0])),
+    bad_fields: tuple[tuple[str, Any], ...] = (("effort", np.array([1.0, 2.0, math.nan, 4.0])), ("effort", np.array([1.0, 2.0])),
                         ("name", ["rotor1", "rotor2", "rotor4", "rotor3"]), ("name", ["rotor1"]),
-                        ("position", np.ones(4)), ("velocity", np.ones(3))):
+                        ("position", np.ones(4)), ("velocity", np.ones(3)))
+    for name, value in bad_fields:
         u = quad.control_to_msg([1.0, 2.0, 3.0, 4.0], 7, factory=BAGS)
         setattr(u, name, value)
         both(control, u)
