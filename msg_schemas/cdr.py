@@ -243,3 +243,50 @@ class CdrCodec:
         if self._msg_cls is None:
             self._msg_cls = RCLPY.cls(self.codec.msg_type)
         return deserialize_message(data, self._msg_cls)
+
+
+class NamedVectorCdr:
+    """``{name: value}`` as the CDR bytes of the ``sensor_msgs/JointState`` that
+    :func:`~msg_schemas.telemetry.named_vector_to_msg` builds (``name`` = keys, ``position`` = values, ``velocity``
+    and ``effort`` empty): the names' bytes are written once and reused while the names stay the same (the MPC's
+    ``mpc/status``, one message per control step)."""
+
+    def __init__(self, frame_id: str = "") -> None:
+        self.frame_id = frame_id
+        self._names: tuple[str, ...] | None = None
+        self._prefix = b""
+        self._pad = b""
+        self._tail = b""
+
+    def _layout(self, names: tuple[str, ...]) -> None:
+        from msg_schemas.base import SchemaError
+
+        if any(not isinstance(n, str) or not n for n in names):
+            raise SchemaError("", "name", "names", f"metric names must be non-empty strings, got {list(names)}")
+        frame, pos = _string(self.frame_id, 8)
+        pad = -pos % 4
+        pos += pad + 4
+        parts = [frame, b"\x00" * pad, _U32.pack(len(names))]
+        for name in names:
+            raw, pos = _string(name, pos)
+            parts.append(raw)
+        pad = -pos % 4
+        pos += pad + 4  # the position count
+        parts.append(b"\x00" * pad + _U32.pack(len(names)))
+        self._pad = b"\x00" * (-pos % 8) if names else b""
+        pos += len(self._pad) + 8 * len(names)
+        # velocity and effort: empty sequences (a count of 0 each, 4-aligned)
+        self._tail = b"\x00" * (-pos % 4) + _U32.pack(0) + _U32.pack(0)
+        self._prefix = b"".join(parts)
+        self._names = names
+
+    def encode(self, values: dict[str, float], stamp_ns: int, topic: str = "") -> bytes:
+        """The CDR bytes of ``named_vector_to_msg(values, stamp_ns, frame_id=self.frame_id)``."""
+        from msg_schemas.base import split_stamp
+
+        names = tuple(values)
+        if names != self._names:
+            self._layout(names)
+        sec, nanosec = split_stamp(stamp_ns, topic)
+        body = np.fromiter(values.values(), dtype=np.float64, count=len(names))
+        return _LE + _STAMP.pack(sec, nanosec) + self._prefix + self._pad + body.tobytes() + self._tail

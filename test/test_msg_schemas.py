@@ -280,6 +280,26 @@ def test_cdr_fast_path_writes_and_reads_what_the_object_path_does(case: int) -> 
         del fast._deserialize
 
 
+def test_named_vector_cdr_writes_the_status_message_bytes() -> None:
+    """NamedVectorCdr gives the exact bytes of named_vector_to_msg's JointState (mpc/status as the MPC node
+    publishes it), also when the names change between messages, and refuses empty names as it does."""
+    from msg_schemas.cdr import NamedVectorCdr
+
+    enc = NamedVectorCdr()
+    rng = np.random.default_rng(0)
+    base = {n: float(v) for n, v in zip(tm.MPC_STATUS_NAMES, rng.normal(size=len(tm.MPC_STATUS_NAMES)), strict=True)}
+    for values in (base, base | {"guard_fallbacks": 3.0, "x": math.nan}, {"a": 1.0}, {"abc": -2.5, "de": math.inf},
+                   {}, base):
+        for stamp in (0, 1_000_000_007, MAX_STAMP):
+            want = bytes(TS.serialize_cdr(tm.named_vector_to_msg(values, stamp, factory=BAGS), "sensor_msgs/msg/JointState"))
+            assert enc.encode(values, stamp) == want, values
+    status = tm.mpc_status_values(base | {"extra": 1.0})
+    assert enc.encode(status, 5) == bytes(TS.serialize_cdr(tm.mpc_status_to_msg(base | {"extra": 1.0}, 5, factory=BAGS),
+                                                          "sensor_msgs/msg/JointState"))
+    with pytest.raises(SchemaError):
+        enc.encode({"": 1.0}, 0)
+
+
 def test_cdr_fast_path_leaves_bad_messages_to_from_msg() -> None:
     """Every message from_msg rejects is rejected by CdrCodec.decode with the same SchemaError (the object path
     reads it); other frame ids and a big-endian sender's bytes are read as from_msg reads them."""

@@ -42,7 +42,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError, get_schema
-from msg_schemas.cdr import CdrCodec
+from msg_schemas.cdr import CdrCodec, NamedVectorCdr
 from msg_schemas.telemetry import (
     CHECKPOINT_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -53,6 +53,7 @@ from msg_schemas.telemetry import (
     checkpoint_from_msg,
     diagnostics_to_msg,
     mpc_status_to_msg,
+    mpc_status_values,
 )
 from saml_ros.core.lifecycle import TransitionRefused
 from saml_ros.core.mpc.config import EXECUTORS, MPCConfig
@@ -78,6 +79,7 @@ class MPCNode(ManagedNode):
         self.schema = get_schema(system_name)
         # state and cmd as CDR bytes without message objects (msg_schemas.cdr), the lockstep path's cost
         self._state_cdr, self._control_cdr = CdrCodec(self.schema.state), CdrCodec(self.schema.control)
+        self._status_cdr = NamedVectorCdr()
         self.service: MPCService | None = None
         self.state_sub: Any = None
         self._entities: list[tuple[Callable[[Any], Any], Any]] = []  # (destroy, entity) made by configure
@@ -174,7 +176,10 @@ class MPCNode(ManagedNode):
     def _publish_status(self, answer: Answer | None) -> None:
         if answer is not None:
             stamp, values = answer
-            self.status_pub.publish(mpc_status_to_msg(values, stamp))
+            if self._control_cdr.fast:  # the same JointState as mpc_status_to_msg builds, as CDR bytes
+                self.status_pub.publish(self._status_cdr.encode(mpc_status_values(values), stamp, MPC_STATUS_TOPIC))
+            else:
+                self.status_pub.publish(mpc_status_to_msg(values, stamp))
 
     def _publish_diagnostics(self) -> None:
         if self.service is None:
