@@ -74,6 +74,8 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
     procs = ProcessGroup()
     state_t: dict[int, int] = {}
     lat: list[float] = []
+    sim_side: list[float] = []  # cmd arrival -> the next state's arrival (ms): the simulator's part of a step
+    last_cmd = [0]
     step_ms: list[float] = []
     solve_ms: list[float] = []
     swap_steps: list[float] = []
@@ -89,6 +91,9 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
         now = time.perf_counter_ns()
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         state_t[stamp] = now
+        if last_cmd[0]:
+            sim_side.append((now - last_cmd[0]) * 1e-6)
+            last_cmd[0] = 0
         if not first:
             first.append(stamp)
         last[0] = stamp
@@ -99,6 +104,7 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
         t = state_t.pop(stamp, None)
         if t is not None:
             lat.append((now - t) * 1e-6)
+            last_cmd[0] = now
 
     def on_status(msg: Any) -> None:
         values, _ = mpc_status_from_msg(msg)
@@ -146,7 +152,7 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
         node.destroy_node()
         rclpy.try_shutdown()
     steps = len(lat)
-    return {"latency": lat, "step_ms": step_ms, "solve_ms": solve_ms, "swap_steps": swap_steps, "swap_ms": swap_ms,
+    return {"latency": lat, "sim_side": sim_side, "step_ms": step_ms, "solve_ms": solve_ms, "swap_steps": swap_steps, "swap_ms": swap_ms,
             "swap_solve": swap_solve,
             "versions": sorted(versions), "wall": wall, "steps": steps, "codes": codes, "phases": phases}
 
@@ -170,6 +176,7 @@ def _report(label: str, r: dict[str, Any], args: argparse.Namespace) -> dict[str
     print(f"  simulated / wall time: {speed:.1f}x real time ({'meets' if speed >= 30 else 'misses'} the target of "
           f">= 30x on an idle machine)")
     print(f"  state -> cmd latency (this process):  {_percentiles(lat)}")
+    print(f"  cmd -> next state (simulator side):    {_percentiles(r['sim_side'][5:])}")
     print(f"  MPC control step (mpc/status step_ms): {_percentiles(r['step_ms'][5:])}")
     print(f"  MPC solve time:                       {_percentiles(r['solve_ms'][5:])}")
     print(f"  MPC step that swapped a model in:      {_percentiles(r['swap_steps'])}")
@@ -183,7 +190,8 @@ def _report(label: str, r: dict[str, Any], args: argparse.Namespace) -> dict[str
         print(f"  warning: non-zero exit codes {bad}", file=sys.stderr)
     step = r["step_ms"][5:]
     solve = r["solve_ms"][5:]
-    return {"speed": speed, "latency": med, "solve": float(np.median(solve)) if solve else float("nan"),
+    sim_side = r["sim_side"][5:]
+    return {"speed": speed, "latency": med, "sim_side": float(np.median(sim_side)) if sim_side else float("nan"), "solve": float(np.median(solve)) if solve else float("nan"),
             "overhead": float(np.median(lat)) - float(np.median(solve)) if lat and solve else float("nan"),
             "step": float(np.median(step)) if step else float("nan"), "load": os.getloadavg()[0]}
 
@@ -233,10 +241,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.compare:
         print("\nside by side (medians; overhead = latency - solve: transport, decoding, scheduling):")
         print(f"  {'run':<10} {'x real time':>11} {'latency ms':>10} {'solve ms':>8} {'overhead ms':>11} "
-              f"{'MPC step ms':>11} {'load':>5}")
+              f"{'MPC step ms':>11} {'sim side ms':>11} {'load':>5}")
         for name, v in rows:
             print(f"  {name:<10} {v['speed']:>11.1f} {v['latency']:>10.2f} {v['solve']:>8.2f} {v['overhead']:>11.2f} "
-                  f"{v['step']:>11.2f} {v['load']:>5.2f}")
+                  f"{v['step']:>11.2f} {v['sim_side']:>11.2f} {v['load']:>5.2f}")
         for name in CONFIGS:
             mine = [v for n, v in rows if n == name]
             print(f"  {name:<10} mean {np.mean([v['speed'] for v in mine]):.1f}x real time, latency "
