@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import os
 import random
+import struct
 import sys
 import tempfile
 import time
@@ -87,9 +88,15 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
     first: list[int] = []
     last = [0]
 
+    # state and cmd are taken raw and only their stamps read (the CDR header: sec, nanosec after the 4-byte
+    # encapsulation), so this probe's own decoding does not delay its arrival times
+    def stamp_of(data: bytes) -> int:
+        sec, nanosec = struct.unpack_from("<iI", data, 4)
+        return int(sec) * 1_000_000_000 + int(nanosec)
+
     def on_state(msg: Any) -> None:
         now = time.perf_counter_ns()
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_of(msg)
         state_t[stamp] = now
         if last_cmd[0]:
             sim_side.append((now - last_cmd[0]) * 1e-6)
@@ -100,7 +107,7 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
 
     def on_cmd(msg: Any) -> None:
         now = time.perf_counter_ns()
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_of(msg)
         t = state_t.pop(stamp, None)
         if t is not None:
             lat.append((now - t) * 1e-6)
@@ -116,8 +123,8 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
             swap_ms.append(values["swap_ms"])
             swap_solve.append(values["solve_time_ms"])
 
-    node.create_subscription(RCLPY.cls(schema.state.msg_type), "state", on_state, DATA_QOS.to_rclpy())
-    node.create_subscription(JointState, "cmd", on_cmd, DATA_QOS.to_rclpy())
+    node.create_subscription(RCLPY.cls(schema.state.msg_type), "state", on_state, DATA_QOS.to_rclpy(), raw=True)
+    node.create_subscription(JointState, "cmd", on_cmd, DATA_QOS.to_rclpy(), raw=True)
     node.create_subscription(JointState, "mpc/status", on_status, TELEMETRY_QOS.to_rclpy())
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -239,7 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     mpc_extra)
         rows.append((name, _report(f"{i + 1}/{len(plan)} {label}", r, args)))
     if args.compare:
-        print("\nside by side (medians; overhead = latency - solve: transport, decoding, scheduling):")
+        print("\nside by side (medians; overhead = median latency - median solve: transport, decoding, scheduling)")
         print(f"  {'run':<10} {'x real time':>11} {'latency ms':>10} {'solve ms':>8} {'overhead ms':>11} "
               f"{'MPC step ms':>11} {'sim side ms':>11} {'load':>5}")
         for name, v in rows:
