@@ -105,6 +105,7 @@ def loop(mpc: str, steps: int, checkpoints: Path | None, profile: bool) -> dict[
         prof.enable()
     for _ in range(steps):
         x, stamp = next((o[1], o[2]) for o in out if o[0] == STATE)
+        assert x is not None
         t0 = time.perf_counter()
         _, values = svc.control_step(x, stamp, t0)
         t1 = time.perf_counter()
