@@ -5,7 +5,8 @@ Prints three numbers measured in one run, each as steps per second and as a mult
 
 1. ``core``: the ROS-free :class:`~saml_ros.core.worlds.sim_core.SteppedSim` answered in a Python loop (the simulator's
    own cost: validation, ``true_step``, ground contact, stamping);
-2. ``core + messages``: the same plus every message conversion a lockstep step makes (``msg_schemas``:
+2. ``core + messages`` (message objects) and ``core + CDR messages`` (the CDR bytes of :mod:`msg_schemas.cdr`,
+   what the node writes and reads now): the same plus every message conversion a lockstep step makes (``msg_schemas``:
    decode ``cmd``, encode ``applied_cmd``, ``/clock`` and ``state``), still without DDS;
 3. ``node``: the real simulator node (``<system>_sim`` in lockstep, its own process) answered by a minimal
    responder node in this process that replies to each state with the safe default (hover thrust for the
@@ -36,9 +37,11 @@ STARTS: dict[str, tuple[float, ...]] = {
 }
 
 
-def bench_core(system_name: str, steps: int, with_messages: bool) -> float:
-    """Steps per second of the lockstep core answered in-process (optionally with message conversions)."""
+def bench_core(system_name: str, steps: int, with_messages: bool, cdr: bool = False) -> float:
+    """Steps per second of the lockstep core answered in-process (optionally with message conversions: message
+    objects, or with ``cdr`` the CDR bytes the node writes and reads for state, applied_cmd and cmd)."""
     from msg_schemas import get_schema
+    from msg_schemas.cdr import CdrCodec
     from msg_schemas.telemetry import clock_to_msg
     from saml_ros.core.systems import get_system
     from saml_ros.core.systems.registry import build_stepped_sim
@@ -53,6 +56,10 @@ def bench_core(system_name: str, steps: int, with_messages: bool) -> float:
         APPLIED: lambda v, t: schema.control_to_msg(v, t),
         CLOCK: lambda v, t: clock_to_msg(t),
     }
+    state_cdr, control_cdr = CdrCodec(schema.state), CdrCodec(schema.control)
+    if cdr:
+        encode[STATE] = state_cdr.encode
+        encode[APPLIED] = control_cdr.encode
     outputs = sim.begin(time.monotonic_ns())
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -60,7 +67,10 @@ def bench_core(system_name: str, steps: int, with_messages: bool) -> float:
         if with_messages:
             for kind, vec, t in outputs:
                 encode[kind](vec, t)
-            u, stamp = schema.control_from_msg(schema.control_to_msg(answer, stamp))
+            if cdr:
+                u, stamp = control_cdr.decode(control_cdr.encode(answer, stamp))
+            else:
+                u, stamp = schema.control_from_msg(schema.control_to_msg(answer, stamp))
         else:
             u = answer
         outputs = sim.on_cmd(u, stamp, time.monotonic_ns())
@@ -155,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     dt = get_system(args.system).dt
     core = bench_core(args.system, 5 * args.steps, with_messages=False)
     core_msgs = bench_core(args.system, args.steps, with_messages=True)
+    core_cdr = bench_core(args.system, args.steps, with_messages=True, cdr=True)
     node_rates: dict[str, list[float]] = {ex: [] for ex in args.executors}
     diag: dict[str, str] = {}
     for r in range(args.rounds):
@@ -165,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
             node_rates[ex].append(rate)
     print(f"{args.system} lockstep (dt = {dt} s), {os.cpu_count()} CPUs, load average "
           f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    rows = [("core", core), ("core + messages", core_msgs)]
+    rows = [("core", core), ("core + messages", core_msgs), ("core + CDR messages", core_cdr)]
     clock = "" if args.no_clock else " + /clock"
     rows += [(f"node{clock} + responder, {ex}", max(v)) for ex, v in node_rates.items()]
     for label, rate in rows:

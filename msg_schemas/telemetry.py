@@ -187,13 +187,20 @@ MPC_STATUS_EXTRA: tuple[tuple[str, str, str], ...] = (
 MPC_STATUS_NAMES: tuple[str, ...] = tuple(n for n, _, _ in MPC_STATUS_FIELDS)
 
 
-def mpc_status_to_msg(values: Mapping[str, float], stamp_ns: int, *, factory: MessageFactory = RCLPY) -> Any:
-    """``mpc/status`` message; ``values`` must hold every name in :data:`MPC_STATUS_NAMES` (extras allowed)."""
+def mpc_status_values(values: Mapping[str, float]) -> dict[str, float]:
+    """``values`` in ``mpc/status`` order (:data:`MPC_STATUS_NAMES`, then the extras); every standard name must be
+    there (:class:`SchemaError` otherwise)."""
     missing = [n for n in MPC_STATUS_NAMES if n not in values]
     if missing:
         raise SchemaError(MPC_STATUS_TOPIC, "name", "names", f"missing status values {missing}")
-    ordered = {n: values[n] for n in MPC_STATUS_NAMES} | {k: v for k, v in values.items() if k not in MPC_STATUS_NAMES}
-    return named_vector_to_msg(ordered, stamp_ns, factory=factory, topic=MPC_STATUS_TOPIC)
+    return {n: values[n] for n in MPC_STATUS_NAMES} | {k: v for k, v in values.items() if k not in MPC_STATUS_NAMES}
+
+
+def mpc_status_to_msg(values: Mapping[str, float], stamp_ns: int, *, factory: MessageFactory = RCLPY) -> Any:
+    """``mpc/status`` message; ``values`` must hold every name in :data:`MPC_STATUS_NAMES` (extras allowed). The
+    MPC node publishes the same message as CDR bytes (:class:`msg_schemas.cdr.NamedVectorCdr` of
+    :func:`mpc_status_values`)."""
+    return named_vector_to_msg(mpc_status_values(values), stamp_ns, factory=factory, topic=MPC_STATUS_TOPIC)
 
 
 def mpc_status_from_msg(msg: Any, topic: str = MPC_STATUS_TOPIC) -> tuple[dict[str, float], int]:

@@ -1,6 +1,7 @@
 """The simulator node's publishers, one emitter per output kind of the core (:mod:`saml_ros.core.worlds.sim_core`).
 
-Publishers skip rclpy's default QoS-event handlers: each one is an extra entity in every executor wait, and
+``state`` and ``applied_cmd`` are published as CDR bytes written without message objects (:mod:`msg_schemas.cdr`,
+byte-identical to the messages' own serialization). Publishers skip rclpy's default QoS-event handlers: each one is an extra entity in every executor wait, and
 reliable + volatile offers are compatible with every volatile subscriber (the ``cmd`` subscription keeps them: a
 best-effort ``cmd`` publisher would be incompatible, and says so).
 """
@@ -19,6 +20,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 
 from msg_schemas import CLOCK_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS
 from msg_schemas.base import SystemSchema
+from msg_schemas.cdr import CdrCodec
 from msg_schemas.telemetry import CLOCK_TOPIC, DIAGNOSTICS_TOPIC, clock_to_msg
 from saml_ros.core.worlds.sim_core import APPLIED, CLOCK, FLIGHT, STATE, TARGET
 
@@ -47,8 +49,16 @@ def make_emitters(node: Node, schema: SystemSchema, publish_clock: bool) -> Emit
     applied_pub = node.create_publisher(RCLPY.cls(schema.control.msg_type), schema.applied_cmd_topic, data_qos,
                                         event_callbacks=lean)
     out.state_pub, out.applied_pub = state_pub, applied_pub
-    out.emit[STATE] = lambda x, t: state_pub.publish(schema.state_to_msg(x, t))
-    out.emit[APPLIED] = lambda u, t: applied_pub.publish(schema.control_to_msg(u, t))
+    # state and applied_cmd are written as CDR bytes directly (msg_schemas.cdr) when their codec has that path
+    state_cdr, control_cdr = CdrCodec(schema.state), CdrCodec(schema.control)
+    if state_cdr.fast:
+        out.emit[STATE] = lambda x, t: state_pub.publish(state_cdr.encode(x, t))
+    else:
+        out.emit[STATE] = lambda x, t: state_pub.publish(schema.state_to_msg(x, t))
+    if control_cdr.fast:
+        out.emit[APPLIED] = lambda u, t: applied_pub.publish(control_cdr.encode(u, t))
+    else:
+        out.emit[APPLIED] = lambda u, t: applied_pub.publish(schema.control_to_msg(u, t))
     if schema.target_topic != schema.state_topic:
         target_pub = node.create_publisher(RCLPY.cls(schema.target.msg_type), schema.target_topic, data_qos,
                                            event_callbacks=lean)

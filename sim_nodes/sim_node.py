@@ -31,6 +31,7 @@ from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from msg_schemas import DATA_QOS, RCLPY, SchemaError
+from msg_schemas.cdr import CdrCodec
 from msg_schemas.telemetry import (
     OK,
     WARN,
@@ -89,8 +90,10 @@ class SimNode(Node):
         self._emit = emitters.emit
         self.state_pub, self.applied_pub, self.diag_pub = emitters.state_pub, emitters.applied_pub, emitters.diag_pub
         # the cmd subscription keeps rclpy's QoS-event handlers (a best-effort cmd publisher is reported)
+        # raw: the CDR bytes are read without a message object (msg_schemas.cdr; malformed ones as before)
+        self._cmd_cdr = CdrCodec(self.schema.control)
         self.cmd_sub = self.create_subscription(RCLPY.cls(self.schema.control.msg_type), self.schema.cmd_topic,
-                                                self._on_cmd, DATA_QOS.to_rclpy())
+                                                self._on_cmd, DATA_QOS.to_rclpy(), raw=True)
         self.create_service(Trigger, "~/reset", self._on_reset)
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -156,7 +159,7 @@ class SimNode(Node):
     def _on_cmd(self, msg: Any) -> None:
         now = time.monotonic_ns()
         try:
-            u, stamp = self.schema.control_from_msg(msg, self.cmd_sub.topic_name)
+            u, stamp = self._cmd_cdr.decode(msg, self.cmd_sub.topic_name)
         except SchemaError as exc:
             self.core.reject(exc.reason, str(exc))
             self._warn_throttled("reject", f"rejected cmd: {exc}")

@@ -97,3 +97,20 @@ def test_runs_are_pooled_per_start(tmp_path: Path) -> None:
                            "base_worst": 0.2}
     text = format_aggregate(agg)
     assert "CI excludes 0: yes" in text and "(>= 50%: yes)" in text and "no worse: yes" in text
+
+
+def test_demo_set_overrides_reach_both_learners_and_the_evaluation(tmp_path: Path) -> None:
+    """demo --set: a learner parameter reaches the SA and the UA learner's ROS parameters, an mpc one the MPC's
+    (which the evaluation reads too); without --set the demo's configuration is bringup's."""
+    from saml_ros.bringup.config import node_params
+    from saml_ros.demo.cli import demo_config, live_config
+
+    assert live_config(3, 60.0, []) == demo_config(3, 60.0)
+    config = live_config(3, 60.0, ["learner.training_niceness=5", "learner.training_idle=true",
+                                   "mpc.horizon=8"])
+    params = node_params(config, tmp_path)
+    for name in ("learner", "learner_ua"):
+        assert params[name]["training_niceness"] == 5 and params[name]["training_idle"] is True
+    assert params["learner_ua"]["uniform"] is True
+    assert params["mpc"]["horizon"] == 8
+    assert config["sim"]["seed"] == 3 and config["sim_time"] == 60.0

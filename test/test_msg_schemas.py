@@ -242,6 +242,110 @@ def test_bytes_on_the_wire_equal_rosbags_bytes() -> None:
         ctx.try_shutdown()
 
 
+# ------------------------------------------------------------------------------- CDR fast path
+def _cdr_cases() -> list[tuple[str, str, Any]]:
+    """(system, role, codec) of every Odometry / JointState codec of every system."""
+    from msg_schemas.codecs import OdometryCodec
+
+    out = []
+    for system in SYSTEMS:
+        schema = get_schema(system)
+        for role in ("state", "control", "target"):
+            codec = getattr(schema, role)
+            if isinstance(codec, OdometryCodec | JointStateCodec):
+                out.append((system, role, codec))
+    return out
+
+
+@pytest.mark.parametrize("case", range(len(_cdr_cases())))
+def test_cdr_fast_path_writes_and_reads_what_the_object_path_does(case: int) -> None:
+    """CdrCodec.encode gives the exact bytes of the message to_msg builds (rosbags' CDR, equal to the bytes on
+    the wire, test above); decode reads them back to what from_msg reads from the deserialized message."""
+    from msg_schemas.cdr import CdrCodec
+
+    system, role, codec = _cdr_cases()[case]
+    fast = CdrCodec(codec)
+    rng = np.random.default_rng(case)
+    for stamp in (0, 1_700_000_000_123_456_789, MAX_STAMP, int(rng.integers(0, 10**15))):
+        x = _random_vector(system, role, rng)
+        data = fast.encode(x, stamp)
+        assert data == bytes(TS.serialize_cdr(codec.to_msg(x, stamp, factory=BAGS), codec.msg_type))
+        want, want_stamp = codec.from_msg(deserialize_message(data, RCLPY.cls(codec.msg_type)))
+        got, got_stamp = fast.decode(data)
+        assert got_stamp == want_stamp == stamp
+        assert got.dtype == np.float64 and np.array_equal(got, want)
+        # the fast path itself did the work: the same values come back without the object path
+        fast._deserialize = None  # type: ignore[method-assign, assignment]
+        assert np.array_equal(fast.decode(data)[0], want)
+        del fast._deserialize
+
+
+def test_named_vector_cdr_writes_the_status_message_bytes() -> None:
+    """NamedVectorCdr gives the exact bytes of named_vector_to_msg's JointState (mpc/status as the MPC node
+    publishes it), also when the names change between messages, and refuses empty names as it does."""
+    from msg_schemas.cdr import NamedVectorCdr
+
+    enc = NamedVectorCdr()
+    rng = np.random.default_rng(0)
+    base = {n: float(v) for n, v in zip(tm.MPC_STATUS_NAMES, rng.normal(size=len(tm.MPC_STATUS_NAMES)), strict=True)}
+    for values in (base, base | {"guard_fallbacks": 3.0, "x": math.nan}, {"a": 1.0}, {"abc": -2.5, "de": math.inf},
+                   {}, base):
+        for stamp in (0, 1_000_000_007, MAX_STAMP):
+            want = bytes(TS.serialize_cdr(tm.named_vector_to_msg(values, stamp, factory=BAGS), "sensor_msgs/msg/JointState"))
+            assert enc.encode(values, stamp) == want, values
+    status = tm.mpc_status_values(base | {"extra": 1.0})
+    assert enc.encode(status, 5) == bytes(TS.serialize_cdr(tm.mpc_status_to_msg(base | {"extra": 1.0}, 5, factory=BAGS),
+                                                          "sensor_msgs/msg/JointState"))
+    with pytest.raises(SchemaError):
+        enc.encode({"": 1.0}, 0)
+
+
+def test_cdr_fast_path_leaves_bad_messages_to_from_msg() -> None:
+    """Every message from_msg rejects is rejected by CdrCodec.decode with the same SchemaError (the object path
+    reads it); other frame ids and a big-endian sender's bytes are read as from_msg reads them."""
+    from msg_schemas.cdr import CdrCodec
+
+    quad = get_schema("quadrotor")
+    state, control = CdrCodec(quad.state), CdrCodec(quad.control)
+    x = _random_vector("quadrotor", "state", np.random.default_rng(3))
+
+    def both(codec: Any, msg: Any) -> None:
+        data = bytes(TS.serialize_cdr(msg, codec.codec.msg_type))
+        rmsg = deserialize_message(data, RCLPY.cls(codec.codec.msg_type))
+        try:
+            want: Any = codec.codec.from_msg(rmsg, "t")
+        except SchemaError as exc:
+            with pytest.raises(SchemaError) as info:
+                codec.decode(data, "t")
+            assert (info.value.reason, info.value.field, str(info.value)) == (exc.reason, exc.field, str(exc))
+            return
+        got = codec.decode(data, "t")
+        assert got[1] == want[1] and np.array_equal(got[0], want[0])
+
+    for path, value in (("twist.twist.linear.y", math.nan), ("twist.twist.angular.z", math.inf),
+                        ("pose.pose.position.x", math.nan), ("pose.pose.orientation.w", 0.2),
+                        ("header.frame_id", "map"), ("child_frame_id", "a_much_longer_child_frame")):
+        m = quad.state_to_msg(x, 5, factory=BAGS)
+        *parents, leaf = path.split(".")
+        setattr(functools.reduce(getattr, parents, m), leaf, value)
+        both(state, m)
+    bad_fields: tuple[tuple[str, Any], ...] = (("effort", np.array([1.0, 2.0, math.nan, 4.0])), ("effort", np.array([1.0, 2.0])),
+                        ("name", ["rotor1", "rotor2", "rotor4", "rotor3"]), ("name", ["rotor1"]),
+                        ("position", np.ones(4)), ("velocity", np.ones(3)))
+    for name, value in bad_fields:
+        u = quad.control_to_msg([1.0, 2.0, 3.0, 4.0], 7, factory=BAGS)
+        setattr(u, name, value)
+        both(control, u)
+    # a big-endian sender (XCDR1 BE): rclpy reads it, so the fast path hands it over
+    be = bytes(TS.serialize_cdr(quad.state_to_msg(x, 9, factory=BAGS), quad.state.msg_type, little_endian=False))
+    assert be[:4] != state.encode(x, 9)[:4]
+    got, stamp = state.decode(be)
+    assert stamp == 9 and np.array_equal(got, quad.state.from_msg(deserialize_message(be, RCLPY.cls(quad.state.msg_type)))[0])
+    for bad in (b"", b"\x00\x01\x00\x00" + b"\x01" * 7, state.encode(x, 9)[:-8]):
+        with pytest.raises(Exception):  # noqa: B017, PT011 - whatever rclpy raises for a truncated message
+            state.decode(bad)
+
+
 # --------------------------------------------------------------------------------------- rejections
 def _raises(fn: Callable[[], Any], reason: str, field: str, *words: str) -> SchemaError:
     with pytest.raises(SchemaError) as info:

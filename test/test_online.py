@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import signal
@@ -424,6 +425,33 @@ def test_training_process_applies_its_thread_and_subnormal_settings(tmp_path: Pa
         proc.stop()
     with pytest.raises(ValueError, match="threads"):
         _setup(tmp_path / "run", threads=-1)
+
+
+def _collect(into: list[str], level: int, text: str) -> None:
+    into.append(text)
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux's")
+def test_training_process_runs_at_the_lower_priority_it_was_given(tmp_path: Path) -> None:
+    """idle: the training process (and the threads it starts) run under SCHED_IDLE; niceness: its nice value is
+    ours plus the increment; neither lowers this process. Read from the OS, not from the child's report."""
+    for kw, policy, nice in (({"idle": True}, os.SCHED_IDLE, None), ({"niceness": 7}, os.SCHED_OTHER, 7)):
+        messages: list[str] = []
+        proc = TrainingProcess(_setup(tmp_path / f"run{policy}", **kw), on_log=functools.partial(_collect, messages))
+        proc.start()
+        try:
+            pid = proc.pid
+            assert pid is not None
+            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+            assert len(tids) > 1  # torch's and the loop's threads too
+            assert {os.sched_getscheduler(t) for t in tids} == {policy}, kw
+            if nice is not None:
+                assert {os.getpriority(os.PRIO_PROCESS, t) for t in tids} == {os.getpriority(os.PRIO_PROCESS, 0) + nice}
+            assert any(("SCHED_IDLE" if policy == os.SCHED_IDLE else f"nice {os.nice(0) + 7}") in m
+                       for m in messages), messages
+        finally:
+            proc.stop()
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
 
 
 def test_the_node_prelaunches_the_training_interpreter_without_importing_torch() -> None:

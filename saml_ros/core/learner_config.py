@@ -94,6 +94,10 @@ _TAIL: tuple[Param, ...] = (
     Param("pairing.tolerance", 1e-6, "s: stamps closer than this are the same stamp"),
     Param("training_niceness", 10, "nice increment of the training process (0-19): the OS runs ingest, simulators "
                                    "and the MPC first when CPUs are short"),
+    Param("training_idle", False, "run the training process under Linux's SCHED_IDLE policy: it gets only CPU time "
+                                  "no other process wants, so the control loop (simulator, MPC), ingest and any "
+                                  "other work always go first and a waking controller never waits for it; "
+                                  "stronger than any training_niceness (ignored then)"),
     Param("train_threads", 1, "torch intra-op threads of the training process (0 = torch's default, one per "
                               "core); 1 is fastest for these small networks on a shared machine"),
     Param("plausible_bounds", "", "overrides of the system's plausible ranges as a YAML mapping, e.g. "
@@ -148,6 +152,7 @@ class LearnerConfig:
     pairing_tolerance: float
     training_niceness: int
     train_threads: int
+    training_idle: bool = False
     system_file: str = ""
     model_ensemble: int = 1
     uniform: bool = False
@@ -196,6 +201,7 @@ class LearnerConfig:
             resume=p["resume"], telemetry_rate=p["telemetry_rate"], telemetry_window=p["telemetry_window"],
             diagnostics_rate=p["diagnostics_rate"], dt=p["dt"], pairing_window=p["pairing.window"],
             pairing_tolerance=p["pairing.tolerance"], training_niceness=p["training_niceness"],
+            training_idle=p["training_idle"],
             train_threads=p["train_threads"], system_file=p["system_file"], model_ensemble=p["model.ensemble"],
             uniform=p["uniform"], plausible_bounds=p["plausible_bounds"],
             health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
@@ -353,6 +359,7 @@ class LearnerConfig:
         return LearnerSetup(
             system=self.system, system_params=params, spec=spec.to_dict(), config=config,
             run_dir=run_dir, resume=self.resume, loop=loop, niceness=self.training_niceness,
+            idle=self.training_idle,
             threads=self.train_threads, sources=tuple((ns, pairing) for ns in self.namespaces),
             channels=tuple((index, kind) for index, kind, _ in channels), decoder=decoder,
             decoder_args=(self.system, [(kind, topic) for _, kind, topic in channels], definition),

@@ -184,6 +184,15 @@ def demo_config(seed: int, sim_time: float) -> dict[str, Any]:
     return config
 
 
+def live_config(seed: int, sim_time: float, sets: list[str]) -> dict[str, Any]:
+    """:func:`demo_config` with ``--set`` overrides applied (the UA learner takes the learner's parameters,
+    :func:`saml_ros.bringup.config.node_params`, unless one is set for it)."""
+    from saml_ros import bringup
+
+    config = demo_config(seed, sim_time)
+    return bringup.apply_sets(config, sets) if sets else config
+
+
 def closed_loop_main(argv: list[str]) -> int:
     """``demo``: the quadrotor closed loop, then the evaluation (see the module docstring)."""
     from saml_ros import bringup
@@ -205,11 +214,14 @@ def closed_loop_main(argv: list[str]) -> int:
     p.add_argument("--figures", type=Path, help="also copy the PNGs into this directory")
     p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's)")
     p.add_argument("--progress-period", type=float, default=10.0, help="wall seconds between progress lines")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="SECTION.PARAM=VALUE",
+                   help="override a node parameter, as bringup's --set (an mpc.* value applies to the evaluation too; e.g. "
+                        "learner.training_idle=false); repeatable")
     p.add_argument("--startup-timeout", type=float, default=300.0,
                    help="wall seconds the nodes may take to come up (a loaded machine: over 90 s was measured)")
     args = p.parse_args(argv)
     t0 = time.monotonic()
-    config = demo_config(args.seed, args.sim_time)
+    config = live_config(args.seed, args.sim_time, args.sets)
     steps = int(config["sim"]["episode_steps"])
     pad = config["mpc"].get("goal.position")
     print(f"demo: quadrotor landing on a pad at {pad} m inside the ground effect, closed loop over ROS 2 (simulator "

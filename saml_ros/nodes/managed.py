@@ -145,14 +145,15 @@ class ManagedNode(LifecycleNode):
             self.trigger_shutdown()
 
 
-def run_managed(node: ManagedNode, stop: StopFlag, start_failed: int) -> int:
-    """Start ``node`` (:meth:`ManagedNode.start_up`), spin it until a stop signal or ``finalized``, then
+def run_managed(node: ManagedNode, stop: StopFlag, start_failed: int, executor: str = "single") -> int:
+    """Start ``node`` (:meth:`ManagedNode.start_up`), spin it on ``executor``
+    (:func:`~saml_ros.nodes.runtime.make_executor`) until a stop signal or ``finalized``, then
     :meth:`ManagedNode.finish`. Returns 0, or ``start_failed`` when autostart could not activate the node."""
     node.stop_requested = lambda: bool(stop["signal"])
     try:
         if not node.start_up():
             return start_failed
-        spin_until_stopped(node, stop, keep_going=lambda: node.state_label != "finalized")
+        spin_until_stopped(node, stop, keep_going=lambda: node.state_label != "finalized", executor=executor)
         return 0
     finally:
         node.finish()

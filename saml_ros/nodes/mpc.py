@@ -42,6 +42,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError, get_schema
+from msg_schemas.cdr import CdrCodec, NamedVectorCdr
 from msg_schemas.telemetry import (
     CHECKPOINT_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -52,9 +53,10 @@ from msg_schemas.telemetry import (
     checkpoint_from_msg,
     diagnostics_to_msg,
     mpc_status_to_msg,
+    mpc_status_values,
 )
 from saml_ros.core.lifecycle import TransitionRefused
-from saml_ros.core.mpc.config import MPCConfig
+from saml_ros.core.mpc.config import EXECUTORS, MPCConfig
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_entry
@@ -75,6 +77,9 @@ class MPCNode(ManagedNode):
         self.table = MPCConfig.params(system_name)
         declare_params(self, self.table)
         self.schema = get_schema(system_name)
+        # state and cmd as CDR bytes without message objects (msg_schemas.cdr), the lockstep path's cost
+        self._state_cdr, self._control_cdr = CdrCodec(self.schema.state), CdrCodec(self.schema.control)
+        self._status_cdr = NamedVectorCdr()
         self.service: MPCService | None = None
         self.state_sub: Any = None
         self._entities: list[tuple[Callable[[Any], Any], Any]] = []  # (destroy, entity) made by configure
@@ -117,8 +122,9 @@ class MPCNode(ManagedNode):
         )
 
     def activate_node(self) -> None:
+        # raw: the CDR bytes are read without a message object (msg_schemas.cdr; malformed ones as before)
         self.state_sub = self.create_subscription(RCLPY.cls(self.schema.state.msg_type), self.schema.state_topic,
-                                                  self._on_state, DATA_QOS.to_rclpy())
+                                                  self._on_state, DATA_QOS.to_rclpy(), raw=True)
 
     def deactivate_node(self) -> None:
         if self.state_sub is not None:
@@ -150,7 +156,7 @@ class MPCNode(ManagedNode):
         assert self.service is not None
         t_arrival = time.perf_counter()
         try:
-            x, stamp = self.schema.state_from_msg(msg, self.schema.state_topic)
+            x, stamp = self._state_cdr.decode(msg, self.schema.state_topic)
         except SchemaError as exc:
             self.service.reject(exc.reason, str(exc))
             return
@@ -162,12 +168,18 @@ class MPCNode(ManagedNode):
 
     # ------------------------------------------------------------------------------------------ publishing
     def _send(self, u: np.ndarray, stamp: int) -> None:
-        self.cmd_pub.publish(self.schema.control_to_msg(u, stamp))
+        if self._control_cdr.fast:
+            self.cmd_pub.publish(self._control_cdr.encode(u, stamp))
+        else:
+            self.cmd_pub.publish(self.schema.control_to_msg(u, stamp))
 
     def _publish_status(self, answer: Answer | None) -> None:
         if answer is not None:
             stamp, values = answer
-            self.status_pub.publish(mpc_status_to_msg(values, stamp))
+            if self._control_cdr.fast:  # the same JointState as mpc_status_to_msg builds, as CDR bytes
+                self.status_pub.publish(self._status_cdr.encode(mpc_status_values(values), stamp, MPC_STATUS_TOPIC))
+            else:
+                self.status_pub.publish(mpc_status_to_msg(values, stamp))
 
     def _publish_diagnostics(self) -> None:
         if self.service is None:
@@ -228,10 +240,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         try:
             node = create_node()
+            # the executor is chosen before configure (which reads the other parameters)
+            executor = str(node.get_parameter("executor").value)
+            if executor not in EXECUTORS:
+                raise ValueError(f"parameter 'executor' must be one of {list(EXECUTORS)}, got {executor!r}")
         except (ValueError, TypeError) as exc:
             rclpy.logging.get_logger("mpc").fatal(f"configuration error: {exc}")
             return USAGE_ERROR
-        return run_managed(node, stop, USAGE_ERROR)
+        return run_managed(node, stop, USAGE_ERROR, executor=executor)
     finally:
         shutdown(node)
 

@@ -23,6 +23,8 @@ from saml_ros.core.systems.registry import get_entry
 
 #: how the node answers states
 MODES = ("lockstep", "realtime")
+#: rclpy executors the node can spin on (saml_ros.nodes.runtime.EXECUTORS)
+EXECUTORS = ("events", "single")
 
 #: the parameters of every MPC node (``system``'s default is the node's own system)
 PARAMS: tuple[Param, ...] = (
@@ -39,6 +41,9 @@ PARAMS: tuple[Param, ...] = (
     Param("run_dir", "", "run directory whose `latest` checkpoint is polled ('' = follow learner/checkpoint only)"),
     Param("poll_period", 0.5, "seconds between polls of run_dir"),
     Param("diagnostics_rate", 1.0, "/diagnostics publication rate (Hz, wall clock)"),
+    Param("executor", "events", "rclpy executor the node spins on: events (rclpy.experimental.EventsExecutor, "
+                                "a shorter lockstep round trip, docs/performance.md) | single "
+                                "(SingleThreadedExecutor); the environment variable SAML_EXECUTOR overrides it"),
     Param("gate.max_constraint", math.inf, "hold back checkpoints whose recorded constraint estimates "
                                            "(E[l | region] - eps, learner's live window) exceed this; inf = take "
                                            "every valid checkpoint", finite=False),
@@ -111,6 +116,7 @@ class MPCConfig:
     plausible_bounds: str = ""
     accept_residual_factor: float = 4.0
     safe_on_infeasible: bool = False
+    executor: str = "events"
 
     @staticmethod
     def params(system: str) -> list[Param]:
@@ -142,6 +148,7 @@ class MPCConfig:
             raise ValueError(f"unknown MPC parameter(s) {unknown} for system {system!r}")
         p = read_params(table, values)
         check(p["mode"] in MODES, "mode", f"one of {MODES}", p["mode"])
+        check(p["executor"] in EXECUTORS, "executor", f"one of {EXECUTORS}", p["executor"])
         check(p["solver"] in SOLVERS, "solver", f"one of {SOLVERS}", p["solver"])
         for name in ("rate_hz", "poll_period"):
             check(p[name] > 0, name, "> 0", p[name])
@@ -174,7 +181,7 @@ class MPCConfig:
             goal=entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params}),
             task={t.name: p[f"task.{t.name}"] for t in entry.task_params}, guard=guard,
             plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
-            safe_on_infeasible=p["safe_on_infeasible"],
+            safe_on_infeasible=p["safe_on_infeasible"], executor=p["executor"],
         )
 
     def controller_options(self) -> dict[str, Any]:

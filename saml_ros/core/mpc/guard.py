@@ -107,12 +107,17 @@ class BoundedDynamics:
         self.kind = "residual"
         self.base, self.mlp = dyn.base, dyn.mlp
         self.bound = np.asarray(bound, dtype=np.float64)
+        self._neg = -self.bound
+
+    def _clip(self, phi: np.ndarray) -> np.ndarray:
+        # np.clip's Python wrapper cost 6 % of a guarded solve (one call per predicted step): the same values
+        return np.minimum(np.maximum(phi, self._neg, out=phi), self.bound, out=phi)
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return self.base.step(x, u) + np.clip(self.mlp.forward(x, u), -self.bound, self.bound)
+        return self.base.step(x, u) + self._clip(self.mlp.forward(x, u))
 
     def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return self.base.step1(x, u) + np.clip(self.mlp.forward(x, u), -self.bound, self.bound)
+        return self.base.step1(x, u) + self._clip(self.mlp.forward(x, u))
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
         y, a, b = self.base.step_jac(x, u)

@@ -105,6 +105,33 @@ def warm_up() -> dict[str, Any]:
     return {"seconds": time.perf_counter() - t0, "kernel": kernel}
 
 
+def _threads() -> list[int]:
+    """The ids of this process's threads (Linux), or ``[0]`` (the calling thread) where ``/proc`` has none."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return [0]
+
+
+def set_priority(niceness: int, idle: bool) -> str:
+    """Lower the CPU priority of this process's threads (those started later inherit it): ``SCHED_IDLE`` when
+    ``idle`` (where the OS has it), else ``niceness`` added to the nice value. Returns what was applied, for the
+    log. Both are per thread on Linux, and imports may already have started threads: each one is set."""
+    if idle:
+        try:
+            for tid in _threads():
+                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+            return "SCHED_IDLE"
+        except (AttributeError, OSError) as exc:  # not Linux: niceness instead
+            log.warning("training process: SCHED_IDLE unavailable (%s); using niceness %d", exc, niceness)
+    if niceness:
+        with contextlib.suppress(OSError):
+            base = os.getpriority(os.PRIO_PROCESS, 0)
+            for tid in _threads():
+                os.setpriority(os.PRIO_PROCESS, tid, min(19, base + niceness))
+    return f"nice {os.getpriority(os.PRIO_PROCESS, 0)}"
+
+
 def _child_main(conn: Any, setup: LearnerSetup) -> None:
     _die_with_parent()
     # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops, and tells
@@ -113,9 +140,7 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     stop_flag: list[int] = []
     signal.signal(STOP_SIGNAL, lambda signum, frame: stop_flag.append(signum))
-    if setup.niceness:
-        with contextlib.suppress(OSError):
-            os.nice(setup.niceness)
+    priority = set_priority(setup.niceness, setup.idle)
     compute = apply_compute_settings(setup.threads, setup.flush_denormal)
     lock = threading.Lock()
 
@@ -143,8 +168,8 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
         raw = None if decode is None else RawIngest(learner, setup.channels, decode)
         warm = warm_up()
         log.info("training process warmed up in %.1f s (fused kernel %s)", warm["seconds"], warm["kernel"])
-        log.info("training process: %d torch intra-op thread(s), subnormal floats %s", compute["threads"],
-                 "flushed to zero" if compute["flush_denormal"] else "not flushed")
+        log.info("training process: %d torch intra-op thread(s), subnormal floats %s, CPU priority %s",
+                 compute["threads"], "flushed to zero" if compute["flush_denormal"] else "not flushed", priority)
         send(("ready", info, list(learner.model.hidden), learner.status(), compute))
         run_loop(learner, setup.loop, conn, send, raw, stop_requested=lambda: bool(stop_flag),
                  paused=setup.paused)

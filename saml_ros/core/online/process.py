@@ -78,6 +78,8 @@ class LearnerSetup:
         loop: pacing of the training loop.
         niceness: added to the training process's nice value, so the OS runs ingest (and simulators, MPC)
             first when CPUs are short; 0 keeps the parent's priority.
+        idle: run the training process under ``SCHED_IDLE`` (Linux): it runs only when no other process wants
+            the CPU, so a waking controller never waits for it (``niceness`` does not apply then).
         threads: torch intra-op threads of the training process; 0 = torch's default (one per core). One is
             fastest for these small networks on a shared 2-core machine (docs/performance.md).
         flush_denormal: flush subnormal floats to zero in the training process (they can slow training by
@@ -100,6 +102,7 @@ class LearnerSetup:
     resume: bool = True
     loop: LoopConfig = field(default_factory=LoopConfig)
     niceness: int = 10
+    idle: bool = False
     threads: int = 1
     flush_denormal: bool = True
     sources: tuple[tuple[str, PairingConfig | ResampleConfig], ...] = ()
