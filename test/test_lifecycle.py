@@ -133,10 +133,13 @@ def test_deactivated_learner_writes_one_checkpoint_then_neither_trains_nor_write
     assert loop.change(MPC, "activate") and loop.change(LEARNER, "activate")
     wait_for(lambda: loop.latest_version() >= 2, TIMEOUT, what=f"two checkpoints:\n{loop.learner.output()}")
     assert loop.change(LEARNER, "deactivate")
-    match = re.findall(r"training paused after (\d+) updates \(checkpoint version (\d+) written\)", loop.learner.output())
+    # every update is in a checkpoint after a deactivation: one written now, or (when a periodic checkpoint was
+    # written between the last update and the pause: seen under load) the current one already holds them all
+    match = re.findall(r"training paused after (\d+) updates \(checkpoint version (\d+) (written|is current)\)",
+                       loop.learner.output())
     assert len(match) == 1, loop.learner.output()
     updates, version = int(match[0][0]), int(match[0][1])
-    assert loop.latest_version() == version and version >= 3
+    assert loop.latest_version() == version and version >= (3 if match[0][2] == "written" else 2)
     found = CheckpointStore(loop.run_dir).load_latest_valid()
     assert found is not None and found.meta["updates"] == updates
     time.sleep(3 * CHECKPOINT_PERIOD)
