@@ -200,15 +200,15 @@ class CdrCodec:
         return out
 
     # ---------------------------------------------------------------------------------------- interface
-    def encode(self, x: Any, stamp_ns: int) -> bytes:
-        """The CDR bytes of the message ``to_msg(x, stamp_ns)`` (checked as there: shape, stamp range)."""
+    def encode(self, x: Any, stamp_ns: int, topic: str = "") -> bytes:
+        """The CDR bytes of the message ``to_msg(x, stamp_ns)`` (checked as there: shape, stamp range; ``topic``
+        names the topic in the error)."""
         from msg_schemas.base import as_vector, split_stamp
 
         if not self.fast:
             from rclpy.serialization import serialize_message
 
-            return bytes(serialize_message(self.codec.to_msg(x, stamp_ns)))
-        topic = ""
+            return bytes(serialize_message(self.codec.to_msg(x, stamp_ns, topic=topic)))
         vec = as_vector(x, self.codec.size, topic)
         sec, nanosec = split_stamp(stamp_ns, topic)
         head = _LE + _STAMP.pack(sec, nanosec)
@@ -253,6 +253,8 @@ class NamedVectorCdr:
 
     def __init__(self, frame_id: str = "") -> None:
         self.frame_id = frame_id
+        #: as :attr:`CdrCodec.fast` (SAML_CDR=0: the message is built and serialized instead)
+        self.fast = os.environ.get("SAML_CDR", "1") != "0"
         self._names: tuple[str, ...] | None = None
         self._prefix = b""
         self._pad = b""
@@ -283,6 +285,14 @@ class NamedVectorCdr:
     def encode(self, values: dict[str, float], stamp_ns: int, topic: str = "") -> bytes:
         """The CDR bytes of ``named_vector_to_msg(values, stamp_ns, frame_id=self.frame_id)``."""
         from msg_schemas.base import split_stamp
+
+        if not self.fast:
+            from rclpy.serialization import serialize_message
+
+            from msg_schemas.telemetry import named_vector_to_msg
+
+            return bytes(serialize_message(named_vector_to_msg(values, stamp_ns, frame_id=self.frame_id,
+                                                               topic=topic)))
 
         names = tuple(values)
         if names != self._names:

@@ -49,16 +49,12 @@ def make_emitters(node: Node, schema: SystemSchema, publish_clock: bool) -> Emit
     applied_pub = node.create_publisher(RCLPY.cls(schema.control.msg_type), schema.applied_cmd_topic, data_qos,
                                         event_callbacks=lean)
     out.state_pub, out.applied_pub = state_pub, applied_pub
-    # state and applied_cmd are written as CDR bytes directly (msg_schemas.cdr) when their codec has that path
+    # state and applied_cmd are written as CDR bytes directly (msg_schemas.cdr; the message path where the codec
+    # has no fast one)
     state_cdr, control_cdr = CdrCodec(schema.state), CdrCodec(schema.control)
-    if state_cdr.fast:
-        out.emit[STATE] = lambda x, t: state_pub.publish(state_cdr.encode(x, t))
-    else:
-        out.emit[STATE] = lambda x, t: state_pub.publish(schema.state_to_msg(x, t))
-    if control_cdr.fast:
-        out.emit[APPLIED] = lambda u, t: applied_pub.publish(control_cdr.encode(u, t))
-    else:
-        out.emit[APPLIED] = lambda u, t: applied_pub.publish(schema.control_to_msg(u, t))
+    state_topic, applied_topic = state_pub.topic_name, applied_pub.topic_name
+    out.emit[STATE] = lambda x, t: state_pub.publish(state_cdr.encode(x, t, state_topic))
+    out.emit[APPLIED] = lambda u, t: applied_pub.publish(control_cdr.encode(u, t, applied_topic))
     if schema.target_topic != schema.state_topic:
         target_pub = node.create_publisher(RCLPY.cls(schema.target.msg_type), schema.target_topic, data_qos,
                                            event_callbacks=lean)

@@ -300,6 +300,34 @@ def test_named_vector_cdr_writes_the_status_message_bytes() -> None:
         enc.encode({"": 1.0}, 0)
 
 
+def test_cdr_object_path_writes_the_same_messages_and_names_the_topic(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With SAML_CDR=0 (and for codecs without a fast path) encode builds and serializes the message: the same
+    message as the fast path's bytes; a bad vector's error names the topic given on either path."""
+    from msg_schemas.cdr import CdrCodec, NamedVectorCdr
+
+    rng = np.random.default_rng(7)
+    for system, role, codec in _cdr_cases():
+        fast = CdrCodec(codec)
+        monkeypatch.setenv("SAML_CDR", "0")
+        slow = CdrCodec(codec)
+        monkeypatch.delenv("SAML_CDR")
+        assert fast.fast and not slow.fast
+        x = _random_vector(system, role, rng)
+        cls = RCLPY.cls(codec.msg_type)
+        got = codec.from_msg(deserialize_message(slow.encode(x, 123), cls))
+        want = codec.from_msg(deserialize_message(fast.encode(x, 123), cls))
+        assert got[1] == want[1] == 123 and np.array_equal(got[0], want[0])
+        for enc in (fast, slow):
+            with pytest.raises(SchemaError, match="/ns/state"):
+                enc.encode(np.zeros(codec.size + 1), 0, "/ns/state")
+    monkeypatch.setenv("SAML_CDR", "0")
+    slow_status = NamedVectorCdr()
+    monkeypatch.delenv("SAML_CDR")
+    values = {"a": 1.5, "b": -2.0}
+    msg = deserialize_message(slow_status.encode(values, 9), RCLPY.cls("sensor_msgs/msg/JointState"))
+    assert not slow_status.fast and tm.named_vector_from_msg(msg)[0] == values
+
+
 def test_cdr_fast_path_leaves_bad_messages_to_from_msg() -> None:
     """Every message from_msg rejects is rejected by CdrCodec.decode with the same SchemaError (the object path
     reads it); other frame ids and a big-endian sender's bytes are read as from_msg reads them."""

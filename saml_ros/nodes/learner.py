@@ -99,9 +99,7 @@ class LearnerNode(ManagedNode):
                                             paused=True, launched=launched, cancelled=self.stop_requested,
                                             on_checkpoint=self._announce, on_log=self._child_log,
                                             on_error=self._child_error)
-        except ValueError as exc:
-            raise TransitionRefused(str(exc)) from None
-        except StartCancelled as exc:
+        except (ValueError, StartCancelled) as exc:
             raise TransitionRefused(str(exc)) from None
         self._create_publishers()
         ready = self.trainer.ready

@@ -52,7 +52,6 @@ from msg_schemas.telemetry import (
     DiagnosticEntry,
     checkpoint_from_msg,
     diagnostics_to_msg,
-    mpc_status_to_msg,
     mpc_status_values,
 )
 from saml_ros.core.lifecycle import TransitionRefused
@@ -168,18 +167,12 @@ class MPCNode(ManagedNode):
 
     # ------------------------------------------------------------------------------------------ publishing
     def _send(self, u: np.ndarray, stamp: int) -> None:
-        if self._control_cdr.fast:
-            self.cmd_pub.publish(self._control_cdr.encode(u, stamp))
-        else:
-            self.cmd_pub.publish(self.schema.control_to_msg(u, stamp))
+        self.cmd_pub.publish(self._control_cdr.encode(u, stamp, self.schema.cmd_topic))
 
     def _publish_status(self, answer: Answer | None) -> None:
         if answer is not None:
-            stamp, values = answer
-            if self._control_cdr.fast:  # the same JointState as mpc_status_to_msg builds, as CDR bytes
-                self.status_pub.publish(self._status_cdr.encode(mpc_status_values(values), stamp, MPC_STATUS_TOPIC))
-            else:
-                self.status_pub.publish(mpc_status_to_msg(values, stamp))
+            stamp, values = answer  # the JointState mpc_status_to_msg builds, as CDR bytes
+            self.status_pub.publish(self._status_cdr.encode(mpc_status_values(values), stamp, MPC_STATUS_TOPIC))
 
     def _publish_diagnostics(self) -> None:
         if self.service is None:
