@@ -325,7 +325,8 @@ def test_model_error_in_the_constrained_region_falls(shared: tuple[Learner, RosS
     last = tester.last()
     assert last["updates"] > 0 and last["lambda/near_origin"] > 0 and last["training"] == 1.0
     assert np.isfinite(last["objective"]) and np.isfinite(last["lagrangian"])
-    assert last["buffer_size"] >= 1000
+    # training on the kernel can halve it before the stream's last transitions reach the buffer
+    tester.wait(lambda: tester.last().get("buffer_size", 0) >= 1000, 5.0, "all 1000 transitions in the buffer")
     # /diagnostics counters can be one diagnostics period behind the pairing itself
     tester.wait(lambda: tester.counter("/friction/paired") == 1000, 5.0, "/friction/paired == 1000")
     time.sleep(0.3)
