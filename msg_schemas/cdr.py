@@ -233,16 +233,21 @@ class CdrCodec:
                     x = None
         if x is not None:
             return x, stamp
-        return self.codec.from_msg(self._deserialize(data), topic)
+        return self.codec.from_msg(self._deserialize(data, topic), topic)
 
-    def _deserialize(self, data: bytes) -> Any:
+    def _deserialize(self, data: bytes, topic: str) -> Any:
+        """The message of ``data``; bytes that are no such message raise a ``SchemaError`` (reason ``format``), as
+        the learner's decoder (:func:`msg_schemas.decode.make_decoder`) does: a node rejects them and counts it."""
         from rclpy.serialization import deserialize_message
 
-        from msg_schemas.base import RCLPY
+        from msg_schemas.base import RCLPY, SchemaError
 
         if self._msg_cls is None:
             self._msg_cls = RCLPY.cls(self.codec.msg_type)
-        return deserialize_message(data, self._msg_cls)
+        try:
+            return deserialize_message(data, self._msg_cls)
+        except Exception as exc:  # noqa: BLE001 - malformed CDR (rclpy raises RMWError)
+            raise SchemaError(topic, "(serialized)", "format", f"cannot deserialize: {exc}") from None
 
 
 class NamedVectorCdr:

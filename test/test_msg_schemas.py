@@ -328,6 +328,18 @@ def test_cdr_object_path_writes_the_same_messages_and_names_the_topic(monkeypatc
     assert not slow_status.fast and tm.named_vector_from_msg(msg)[0] == values
 
 
+def test_cdr_decode_rejects_bytes_that_are_no_message() -> None:
+    """A raw subscription may receive bytes rclpy cannot deserialize (a faulty raw publisher): decode raises the
+    SchemaError a node counts (``rejected/format``), not rclpy's RMWError, which would end the node's spin."""
+    from msg_schemas.cdr import CdrCodec
+
+    for _, _, codec in _cdr_cases():
+        for data in (b"", b"\x00\x01\x00\x00garbage", b"\x00\x00\x00\x00" + b"\x01" * 40):
+            with pytest.raises(SchemaError) as info:
+                CdrCodec(codec).decode(data, "/ns/topic")
+            assert info.value.reason == "format" and "/ns/topic" in str(info.value)
+
+
 def test_cdr_fast_path_leaves_bad_messages_to_from_msg() -> None:
     """Every message from_msg rejects is rejected by CdrCodec.decode with the same SchemaError (the object path
     reads it); other frame ids and a big-endian sender's bytes are read as from_msg reads them."""
