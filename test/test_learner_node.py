@@ -323,7 +323,11 @@ def test_model_error_in_the_constrained_region_falls(shared: tuple[Learner, RosS
     tester.wait(lambda: tester.last().get("error_in/near_origin", 1.0) < 0.5 * e0, 30.0,
                 f"the in-region error to halve from {e0:.4f}")
     last = tester.last()
-    assert last["updates"] > 0 and last["lambda/near_origin"] > 0 and last["training"] == 1.0
+    assert last["updates"] > 0 and last["training"] == 1.0
+    # the multiplier priced the constraint while it was violated; once it is met the default method (augmented
+    # Lagrangian) may have brought lambda back to 0 by now (the kernel-fast learner: ~19,000 updates here)
+    with tester.lock:
+        assert max(m.get("lambda/near_origin", 0.0) for m in tester.telemetry) > 0
     assert np.isfinite(last["objective"]) and np.isfinite(last["lagrangian"])
     # training on the kernel can halve it before the stream's last transitions reach the buffer
     tester.wait(lambda: tester.last().get("buffer_size", 0) >= 1000, 5.0, "all 1000 transitions in the buffer")
