@@ -219,6 +219,37 @@ def test_rollback_goes_to_the_previous_model_then_to_f_hat_and_never_reuses_a_ve
     assert not any(fly(10, x0)) and unguarded.tag == 1  # rollback off: the monitor only scores
 
 
+def test_the_monitor_scores_only_the_steps_the_learned_model_planned() -> None:
+    """Steps planned with f_hat on disagreement never roll the model back: it did not fly them (a demo run rolled
+    a good SA model back on far starts where only f_hat had planned, and its landings ended worse than f_hat's)."""
+    f = plant(QUAD, TASK.landing_height)
+    x0 = QUAD.hover_state((1.0, -1.0, 2.0))
+    wild = random_model(5, 1.0)  # members far apart everywhere ...
+    with torch.no_grad():
+        wild.net.biases[-1].add_(1.0)  # ... and their mean far from the truth
+
+    def fly(ctrl: GuardedController, steps: int = 8) -> list[bool]:
+        rolled, x = [], x0
+        for _ in range(steps):
+            u = ctrl.solve(x, TASK.goal).u
+            xn = f(x, u)
+            rolled.append(ctrl.observe(x, u, xn))
+            x = xn
+        return rolled
+
+    guarded = make_guarded_controller(QUAD, "fast", DEMO_GUARD, **TASK.mpc_options())
+    guarded.set_model(wild, 3)
+    assert not any(fly(guarded)) and guarded.tag == 3 and guarded.counters["rollbacks"] == 0
+    assert guarded.counters["fallbacks"] >= 8 and guarded.counters["monitor_skipped"] == 8
+    assert math.isfinite(guarded.live_error_model)  # still scored for telemetry, not held against it
+    assert guarded.monitor.samples == 0
+    # the same model flown (disagreement check off): its own steps roll it back
+    flown = make_guarded_controller(QUAD, "fast", GuardConfig(bound_residual=True, rollback=True),
+                                    **TASK.mpc_options())
+    flown.set_model(wild, 3)
+    assert any(fly(flown)) and flown.tag == 0 and flown.banned == {3}
+
+
 # ------------------------------------------------------------------------------------------ learner
 def hover_only_checkpoint(tmp_path: Path, z: float = 0.5, updates: int = 1500, n_models: int = 5) -> Path:
     """The online learner (an ``n_models``-member SA ensemble) fed only hovering at ``z`` m (motor noise 0.3 N):

@@ -14,8 +14,9 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   ``learner.residual_bound``): outside its data a network can extrapolate to any size, the physics cannot
   (:class:`BoundedDynamics`);
 * **a live monitor with roll back** (:class:`~saml_ros.core.model_monitor.LiveErrorMonitor`): every live
-  transition :meth:`GuardedController.observe` is given scores the active model and f_hat; when the active model
-  is worse, the controller rolls back to the previous model (if it had one that was not rolled back itself),
+  transition :meth:`GuardedController.observe` is given scores the active model and f_hat; the steps the learned
+  model planned (not those planned with f_hat on disagreement) enter the monitor's window, and when the active
+  model is worse there, the controller rolls back to the previous model (if it had one that was not rolled back itself),
   otherwise to f_hat, and that model version is never used again (``rollbacks``).
 
 The unguarded MPC is the same controller with every remedy off.
@@ -298,9 +299,11 @@ class GuardedController:
 
     # ------------------------------------------------------------------------------------------ monitor
     def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> bool:
-        """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n,)``): scores the model in use and f_hat on it
-        (:attr:`live_error_model`, :attr:`live_error_base`); with ``rollback`` on, True when it made the controller
-        roll back (to the previous model or f_hat; the rolled-back tag is banned)."""
+        """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n,)``; ``u`` the command of the last
+        :meth:`solve`): scores the model in use and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`);
+        with ``rollback`` on, True when it made the controller roll back (to the previous model or f_hat; the
+        rolled-back tag is banned). Only steps the learned model planned enter the monitor's window: a step
+        planned with f_hat on disagreement is counted in ``monitor_skipped``."""
         y = np.asarray(x_next, dtype=np.float64)
         x = np.asarray(x, dtype=np.float64)
         u = np.asarray(u, dtype=np.float64)
@@ -313,6 +316,12 @@ class GuardedController:
             return False
         e_model = y - self.learned.dyn.step1(x, u)
         self.live_error_model = float(e_model @ e_model)
+        if self.last_source != "learned":
+            # the step was planned with f_hat (the ensemble disagreed): the learned model did not fly it, and its
+            # error where its members disagree is why it did not. Scoring it here rolled good models back on the
+            # far starts they never planned (docs/demo.md, "The monitor scores the steps the model planned").
+            self.counters["monitor_skipped"] += 1
+            return False
         if not self.config.rollback or not self.monitor.add(self.live_error_model, self.live_error_base):
             return False
         self.counters["rollbacks"] += 1
