@@ -114,3 +114,38 @@ def test_demo_set_overrides_reach_both_learners_and_the_evaluation(tmp_path: Pat
     assert params["learner_ua"]["uniform"] is True
     assert params["mpc"]["horizon"] == 8
     assert config["sim"]["seed"] == 3 and config["sim_time"] == 60.0
+
+
+def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: Path,
+                                                                   capsys: Any) -> None:
+    """``demo --guards RUN_DIR``: the base model and the run's newest checkpoint under every guard setting, from
+    the run's evaluation starts; a directory that is no run is refused with exit code 2."""
+    import shutil
+
+    import yaml
+    from test_guard import hover_only_checkpoint
+
+    from saml_ros.bringup.config import CHECKPOINTS
+    from saml_ros.demo.cli import demo_config, main
+
+    run = tmp_path / "run"
+    (run / CHECKPOINTS).mkdir(parents=True)
+    (run / "bringup.yaml").write_text(yaml.safe_dump(demo_config(0, 60.0)))
+    ckpt = hover_only_checkpoint(tmp_path, updates=200, n_models=3)
+    shutil.copy(ckpt, run / CHECKPOINTS / ckpt.name)
+    out = tmp_path / "guards.json"
+    assert main(["--guards", str(run), "--aggressive-starts", "2", "--workers", "1", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    got = json.loads(out.read_text())
+    settings = ["base", "unguarded", "disagreement 0.1 only", "bound only", "roll back only",
+                "run's guard without roll back", "run's guard"]
+    assert list(got["sets"]) == ["aggressive"] and list(got["sets"]["aggressive"]) == settings
+    for name in settings:
+        arm = got["sets"]["aggressive"][name]
+        assert len(arm["landing_error"]) == 2 and all(math.isfinite(e) for e in arm["landing_error"])
+        assert name in text
+    # the demo's guard plans with f_hat where the members disagree; unguarded never does
+    assert got["sets"]["aggressive"]["unguarded"]["guard"].get("solves_base", 0) == 0
+    assert got["sets"]["aggressive"]["run's guard"]["guard"]["solves"] == 2 * 50
+    assert main(["--guards", str(tmp_path)]) == 2
+    assert "not a demo run directory" in capsys.readouterr().out

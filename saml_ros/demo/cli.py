@@ -203,6 +203,8 @@ def closed_loop_main(argv: list[str]) -> int:
                    help="the offline double-integrator comparison instead (see demo --offline --help)")
     p.add_argument("--aggregate", action="store_true",
                    help="pool the demo_summary.json of several run directories instead (demo --aggregate --help)")
+    p.add_argument("--guards", action="store_true",
+                   help="fly one run's final checkpoint with each guard setting instead (demo --guards --help)")
     p.add_argument("--sim-time", type=float, default=DEMO_SIM_TIME, help="simulated seconds of the live loop")
     p.add_argument("--eval-starts", type=int, default=DEMO_EVAL_STARTS,
                    help="fresh starts of the paired evaluation from the simulator's sampler (0 = none)")
@@ -292,6 +294,11 @@ def main(argv: list[str] | None = None) -> int:
 
         args.remove("--offline")
         return offline_main(args)
+    if "--guards" in args:
+        from saml_ros.demo.guards import guards_main
+
+        args.remove("--guards")
+        return guards_main(args)
     if "--aggregate" in args:
         from saml_ros.demo.aggregate import aggregate_main
 

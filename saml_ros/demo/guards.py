@@ -1,0 +1,114 @@
+"""One demo run's final SA checkpoint flown with each guard setting (``./dev demo --guards RUN_DIR``).
+
+From the demo's evaluation starts of that run (its ``--seed``: the standard and the aggressive ones), the base
+model and the learned model with every remedy off, each remedy alone, and the run's own guard (``guard.*`` of its
+``bringup.yaml``): per setting the mean and worst landing error, the steps planned with f_hat and the roll backs.
+It answers "what does each remedy cost or buy on this model" without a new live run (ROS-free, about 30 s for
+the 10 aggressive starts here). Printed as a table; ``--json`` writes it too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from saml_ros.core.mpc.guard import GuardConfig
+from saml_ros.demo.landing import TASK_METRIC, LandingTask, aggressive_starts, standard_starts
+
+
+def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
+    """The settings flown: unguarded, each of the run's remedies alone, and the run's guard."""
+    off = GuardConfig()
+    out: dict[str, GuardConfig | None] = {"unguarded": None}
+    if math.isfinite(guard.max_disagreement):
+        out[f"disagreement {guard.max_disagreement:g} only"] = dataclasses.replace(
+            off, max_disagreement=guard.max_disagreement)
+    if guard.bound_residual:
+        out["bound only"] = dataclasses.replace(off, bound_residual=True)
+    if guard.rollback:
+        out["roll back only"] = dataclasses.replace(off, rollback=True, monitor=guard.monitor)
+        out["run's guard without roll back"] = dataclasses.replace(guard, rollback=False)
+    out["run's guard"] = guard
+    return out
+
+
+def compare(run_dir: Path, seed: int, n_standard: int, n_aggressive: int, workers: int | None = None,
+            solver: str | None = None) -> dict[str, Any]:
+    """Fly the run's newest valid SA checkpoint with :func:`guard_settings` and the base model from the run's
+    evaluation starts; per start set and setting: per-start landing errors (m) and the guard's counters."""
+    from saml_ros.bringup.config import CHECKPOINTS
+    from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.core.systems import get_system
+    from saml_ros.demo.cli import AGGRESSIVE_SEED, EVAL_SEED, newest_checkpoint
+    from saml_ros.demo.evaluation import Arm, evaluate_arms
+
+    config = yaml.safe_load((run_dir / "bringup.yaml").read_text())
+    sa = newest_checkpoint(run_dir / CHECKPOINTS)
+    if sa is None:
+        raise FileNotFoundError(f"no valid checkpoint in {run_dir / CHECKPOINTS}")
+    mpc = config["mpc"]
+    guard = MPCConfig.from_params({"system": "quadrotor", **mpc}).guard
+    task = LandingTask.from_mpc_params(mpc, int(config["sim"]["episode_steps"]),
+                                       float(config["sim"].get("landing_height", 0.1)))
+    system = get_system("quadrotor")
+    arms = [Arm("base", "base")] + [Arm(name, str(sa[0]), g) for name, g in guard_settings(guard).items()]
+    sets = {"standard": standard_starts(system, n_standard, EVAL_SEED + seed),  # type: ignore[arg-type]
+            "aggressive": aggressive_starts(system, n_aggressive, AGGRESSIVE_SEED + seed)}  # type: ignore[arg-type]
+    out: dict[str, Any] = {"run_dir": str(run_dir), "checkpoint": [str(sa[0]), sa[1]], "seed": seed, "sets": {}}
+    for name, starts in sets.items():
+        if not len(starts):
+            continue
+        res = evaluate_arms(arms, task, starts, solver or str(mpc.get("solver", "fast")), workers)
+        out["sets"][name] = {a: {"landing_error": r.metrics[TASK_METRIC].tolist(), "guard": r.guard}
+                             for a, r in res.items()}
+    return out
+
+
+def format_comparison(out: dict[str, Any]) -> str:
+    """The table of :func:`compare`'s result."""
+    lines = [f"guard settings on {out['checkpoint'][0]} (v{out['checkpoint'][1]}), the demo's evaluation starts of "
+             f"seed {out['seed']}; landing error |p_T - pad| in m"]
+    for name, arms in out["sets"].items():
+        base_worst = max(arms["base"]["landing_error"])
+        lines.append(f"\n{name} starts ({len(arms['base']['landing_error'])}):")
+        lines.append(f"  {'setting':<32} {'mean':>8} {'worst':>8}  {'no worse':>8}  steps on f_hat  roll backs")
+        for a, r in arms.items():
+            e = np.asarray(r["landing_error"])
+            g = r["guard"]
+            on_base = f"{g.get('solves_base', 0):.0f} / {g.get('solves', 0):.0f}" if a != "base" else "all"
+            verdict = "" if a == "base" else ("yes" if e.max() <= base_worst else "NO")
+            lines.append(f"  {a:<32} {e.mean():>8.4f} {e.max():>8.4f}  {verdict:>8}  {on_base:>14}  "
+                         f"{g.get('rollbacks', 0):>10.0f}")
+    return "\n".join(lines)
+
+
+def guards_main(argv: list[str]) -> int:
+    """``demo --guards RUN_DIR [--seed S]``."""
+    p = argparse.ArgumentParser(prog="demo --guards", description=(__doc__ or "").split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("run_dir", type=Path, help="a demo run directory (bringup.yaml, checkpoints/)")
+    p.add_argument("--seed", type=int, default=0, help="the run's --seed (picks its evaluation starts)")
+    p.add_argument("--eval-starts", type=int, default=0, help="standard starts (the demo flies 30)")
+    p.add_argument("--aggressive-starts", type=int, default=10, help="far and fast starts")
+    p.add_argument("--workers", type=int, help="evaluation processes (default: 2)")
+    p.add_argument("--json", type=Path, help="also write the result here")
+    args = p.parse_args(argv)
+    if not (args.run_dir / "bringup.yaml").is_file():
+        print(f"demo --guards: {args.run_dir} is not a demo run directory (no bringup.yaml)")
+        return 2
+    try:
+        out = compare(args.run_dir, args.seed, args.eval_starts, args.aggressive_starts, args.workers)
+    except FileNotFoundError as exc:
+        print(f"demo --guards: {exc}")
+        return 2
+    print(format_comparison(out))
+    if args.json is not None:
+        args.json.write_text(json.dumps(out, indent=1, default=float))
+    return 0
