@@ -54,8 +54,10 @@ PARAMS: tuple[Param, ...] = (
     Param("guard.bound_residual", False, "clip the learned residual to the bound the learner recorded in the "
                                          "checkpoint (1.5 x the largest residual in its buffer, per field)"),
     Param("guard.rollback", False, "live monitor: roll back to the previous model, else f_hat, when the active "
-                                   "model's live one-step error exceeds f_hat's (see guard.window ... guard.margin)"),
-    Param("guard.window", 5, "live transitions the monitor averages the one-step squared errors over"),
+                                   "model's live one-step error on the steps it planned exceeds f_hat's (see "
+                                   "guard.window ... guard.margin)"),
+    Param("guard.window", 5, "live transitions the monitor averages the one-step squared errors over (steps the "
+                             "learned model planned)"),
     Param("guard.min_samples", 3, "transitions in the window before the monitor may roll back"),
     Param("guard.ratio", 1.0, "roll back when mean error(model) > ratio * mean error(f_hat) + margin"),
     Param("guard.margin", 0.01, "see guard.ratio (squared state units, summed over the target fields)"),
