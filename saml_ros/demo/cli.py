@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.systems import get_system
-from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC, LandingTask, aggressive_starts, standard_starts
+from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC, LandingTask
 
 #: simulated seconds of the live loop (36 landing episodes of 5 s; the in-region error is within 20 % of its
 #: 300 s value after 150 s)
@@ -44,23 +44,8 @@ DEMO_SIM_TIME = 180.0
 #: fresh starts of the paired evaluation from the simulator's sampler, and far / fast ones
 DEMO_EVAL_STARTS = 30
 DEMO_AGGRESSIVE_STARTS = 10
-#: seeds of the evaluation starts (the simulator's episodes use ``--seed``, 0 by default); ``--seed`` adds to them
-EVAL_SEED = 4242
-AGGRESSIVE_SEED = 999
 #: starts drawn in the trajectory picture
 PICTURE_STARTS = 4
-
-
-def newest_checkpoint(directory: Path) -> tuple[Path, int] | None:
-    """The newest valid checkpoint in ``directory`` (path, version), or None."""
-    from saml_ros.core.checkpoint import CheckpointStore
-
-    if not directory.is_dir():
-        return None
-    found = CheckpointStore(directory).load_latest_valid()
-    if found is None:
-        return None
-    return Path(found.path), int(found.meta.get("version", 0))
 
 
 def run_evaluation(run_dir: Path, config: dict[str, Any], n_standard: int, n_aggressive: int, seed: int,
@@ -68,7 +53,14 @@ def run_evaluation(run_dir: Path, config: dict[str, Any], n_standard: int, n_agg
     """The paired evaluation of base, oracle, SA and UA (see the module docstring); None without an SA checkpoint."""
     from saml_ros.bringup.config import CHECKPOINTS, CHECKPOINTS_UA
     from saml_ros.core.mpc.config import MPCConfig
-    from saml_ros.demo.evaluation import Arm, evaluate_arms, paired_diff, summarize
+    from saml_ros.demo.evaluation import (
+        Arm,
+        evaluate_arms,
+        evaluation_starts,
+        newest_checkpoint,
+        paired_diff,
+        summarize,
+    )
 
     sa = newest_checkpoint(run_dir / CHECKPOINTS)
     if sa is None:
@@ -83,8 +75,7 @@ def run_evaluation(run_dir: Path, config: dict[str, Any], n_standard: int, n_agg
     if ua is not None:
         arms.append(Arm("UA", str(ua[0]), guard))
     learned = [a.name for a in arms if a.learned]
-    sets = {"standard": standard_starts(system, n_standard, EVAL_SEED + seed),  # type: ignore[arg-type]
-            "aggressive": aggressive_starts(system, n_aggressive, AGGRESSIVE_SEED + seed)}  # type: ignore[arg-type]
+    sets = evaluation_starts(system, n_standard, n_aggressive, seed)
     out: dict[str, Any] = {"task": task.__dict__, "guard": {"max_disagreement": guard.max_disagreement,
                                                            "bound_residual": guard.bound_residual,
                                                            "rollback": guard.rollback},

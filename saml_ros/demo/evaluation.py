@@ -16,12 +16,45 @@ from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing import get_context
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from saml_ros.core.mpc.guard import GuardConfig
-from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC, LandingTask, episode_metrics, plant
+from saml_ros.demo.landing import (
+    FAR,
+    METRICS,
+    TASK_METRIC,
+    LandingTask,
+    aggressive_starts,
+    episode_metrics,
+    plant,
+    standard_starts,
+)
+
+#: seeds of the evaluation starts (the simulator's episodes use ``--seed``, 0 by default); ``--seed`` adds to them
+EVAL_SEED = 4242
+AGGRESSIVE_SEED = 999
+
+
+def evaluation_starts(system: Any, n_standard: int, n_aggressive: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """The demo's evaluation starts of run seed ``seed``: ``{"standard": (n_standard, 13), "aggressive":
+    (n_aggressive, 13)}`` (the same for every arm and every tool that re-flies a run)."""
+    return {"standard": standard_starts(system, n_standard, EVAL_SEED + seed),
+            "aggressive": aggressive_starts(system, n_aggressive, AGGRESSIVE_SEED + seed)}
+
+
+def newest_checkpoint(directory: Path) -> tuple[Path, int] | None:
+    """The newest valid checkpoint in ``directory`` (path, version), or None."""
+    from saml_ros.core.checkpoint import CheckpointStore
+
+    if not directory.is_dir():
+        return None
+    found = CheckpointStore(directory).load_latest_valid()
+    if found is None:
+        return None
+    return Path(found.path), int(found.meta.get("version", 0))
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from saml_ros.core.mpc.guard import GuardConfig
-from saml_ros.demo.landing import TASK_METRIC, LandingTask, aggressive_starts, standard_starts
+from saml_ros.demo.landing import TASK_METRIC, LandingTask
 
 
 def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
@@ -46,8 +46,7 @@ def compare(run_dir: Path, seed: int, n_standard: int, n_aggressive: int, worker
     from saml_ros.bringup.config import CHECKPOINTS
     from saml_ros.core.mpc.config import MPCConfig
     from saml_ros.core.systems import get_system
-    from saml_ros.demo.cli import AGGRESSIVE_SEED, EVAL_SEED, newest_checkpoint
-    from saml_ros.demo.evaluation import Arm, evaluate_arms
+    from saml_ros.demo.evaluation import Arm, evaluate_arms, evaluation_starts, newest_checkpoint
 
     config = yaml.safe_load((run_dir / "bringup.yaml").read_text())
     sa = newest_checkpoint(run_dir / CHECKPOINTS)
@@ -59,8 +58,7 @@ def compare(run_dir: Path, seed: int, n_standard: int, n_aggressive: int, worker
                                        float(config["sim"].get("landing_height", 0.1)))
     system = get_system("quadrotor")
     arms = [Arm("base", "base")] + [Arm(name, str(sa[0]), g) for name, g in guard_settings(guard).items()]
-    sets = {"standard": standard_starts(system, n_standard, EVAL_SEED + seed),  # type: ignore[arg-type]
-            "aggressive": aggressive_starts(system, n_aggressive, AGGRESSIVE_SEED + seed)}  # type: ignore[arg-type]
+    sets = evaluation_starts(system, n_standard, n_aggressive, seed)
     out: dict[str, Any] = {"run_dir": str(run_dir), "checkpoint": [str(sa[0]), sa[1]], "seed": seed, "sets": {}}
     for name, starts in sets.items():
         if not len(starts):
