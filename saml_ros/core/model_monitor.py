@@ -1,8 +1,9 @@
 """The live model monitor (ROS-free): is the model in use predicting the transitions actually flown worse than the
 base model f_hat does? (:class:`LiveErrorMonitor`)
 
-Every control step gives one live transition ``(x, u) -> x_next`` (the state the controller solved from, the
-command it sent, the next state it received). The monitor keeps the one-step squared errors
+Every control step the active model planned gives one live transition ``(x, u) -> x_next`` (the state the
+controller solved from, the command it sent, the next state it received; the guard does not feed it the steps it
+planned with f_hat on ensemble disagreement). The monitor keeps the one-step squared errors
 ``||x_next - model(x, u)||^2`` of the active model and ``||x_next - f_hat(x, u)||^2`` of the base model over the
 last ``window`` transitions and says *roll back* once it holds at least ``min_samples`` of them and
 
