@@ -485,9 +485,14 @@ def test_quadrotor_goal_and_reported_violations() -> None:
     x[5] = -1.0  # pz_1 = 0.11 < 0.2 whatever the controls: reported, not hidden
     res = ctrl.solve(x)
     assert not res.success and "unavoidable" in res.message and res.constraint_violation > 0.08
+    assert res.unavoidable  # pz_1 is the only row violated
     assert np.all(res.plan_u >= 0.0) and np.all(res.plan_u <= 10.0)
+    x = system.hover_state((0.0, 0.0, 0.6))  # type: ignore[attr-defined]
+    x[5] = -4.0  # pz_1 = 0.2 holds, pz_2 breaks it even at full thrust: a row the controls move, not "unavoidable"
+    res = make_controller(system).solve(x)
+    assert not res.success and not res.unavoidable and "pz_2" in res.message and np.all(res.u == 10.0)
     res = make_controller(system).solve(system.hover_state((1.0, 1.0, 1.0)), goal=np.array([1.0, 1.0, 1.0]))  # type: ignore[attr-defined]
-    assert res.success and res.cost < 0.05  # hovering at the goal is (nearly) free
+    assert res.success and not res.unavoidable and res.cost < 0.05  # hovering at the goal is (nearly) free
 
 
 # ------------------------------------------------------------------------------------------ paddle ball

@@ -177,14 +177,28 @@ def test_a_non_finite_or_absurd_solve_is_answered_with_the_safe_command(system: 
 
 def test_safe_on_infeasible_also_answers_a_constraint_violating_plan_with_the_safe_command() -> None:
     quad = get_system("quadrotor")
-    x = quad.hover_state((0.0, 0.0, 0.25))  # type: ignore[attr-defined]
-    x[5] = -3.0  # falling fast just above min_height: the next state breaks it whatever the command
+    x = quad.hover_state((0.0, 0.0, 0.6))  # type: ignore[attr-defined]
+    x[5] = -4.0  # falling fast: pz_2 breaks min_height even at full thrust (a row the controls move)
     for strict in (False, True):
         service, sent = _service("quadrotor", safe_on_infeasible=strict)
         _, values = service.control_step(x, 10**9, time.perf_counter())
         assert values["success"] == 0.0 and service.counters["solves_failed"] == 1
         assert values["safe"] == float(strict)
         assert np.array_equal(sent[-1][0], quad.safe_control()) == strict
+
+
+def test_a_violation_no_command_can_avoid_is_sent_not_replaced_by_the_safe_command() -> None:
+    """pz_1 below min_height is fixed by the state (the quadrotor resting on a pad that sits on the bound, or
+    falling onto it): the safe command cannot avoid it either, and the plan brakes harder than hover thrust."""
+    quad = get_system("quadrotor")
+    x = quad.hover_state((0.0, 0.0, 0.21))  # type: ignore[attr-defined]
+    x[5] = -1.0  # pz_1 = 0.11 whatever the command
+    for strict in (False, True):
+        service, sent = _service("quadrotor", safe_on_infeasible=strict)
+        _, values = service.control_step(x, 10**9, time.perf_counter())
+        assert values["success"] == 0.0 and values["safe"] == 0.0
+        assert service.counters["solves_unavoidable"] == 1 and service.counters["solves_failed"] == 0
+        assert np.all(sent[-1][0] > quad.safe_control())  # braking above hover thrust
 
 
 # ------------------------------------------------------------------------------------------ the simulator

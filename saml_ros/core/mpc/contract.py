@@ -29,6 +29,9 @@ class MPCResult:
     message: str  #: what happened, e.g. "converged", "max_iter", "height constraint violated by 0.03 m"
     constraint_violation: float = 0.0  #: largest violation of the non-bound constraints on the plan (>= 0)
     converged: bool = False  #: the solver met its optimality tolerance (not just a feasible plan)
+    #: ``success`` is False only through constraint rows the current state fixes, which no control can move
+    #: (e.g. the quadrotor's ``pz_1 = pz_0 + dt vz_0`` below the height bound): reported, but no command avoids it
+    unavoidable: bool = False
 
 
 @runtime_checkable

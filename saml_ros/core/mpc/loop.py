@@ -42,6 +42,7 @@ class ClosedLoopRun:
     cpu_times: np.ndarray  #: (k,) s, CPU time of each solve
     iterations: np.ndarray  #: (k,) solver iterations
     success: np.ndarray  #: (k,) bool, ``MPCResult.success``
+    unavoidable: np.ndarray  #: (k,) bool, ``MPCResult.unavoidable`` (a failure no control could have avoided)
     #: (k,) the task's stage cost at the true next state: ``|p - p_goal|`` (friction), ``||p - p_goal||_2``
     #: (quadrotor), ``||landing_xy - target_xy||_2`` (paddle ball, true landing point)
     stage_costs: np.ndarray
@@ -98,7 +99,8 @@ def closed_loop(
         xs=np.array(xs), us=np.array([np.asarray(r.u, dtype=np.float64) for r in results]).reshape(len(results), m),
         costs=np.array([r.cost for r in results]), solve_times=np.array([r.solve_time for r in results]),
         cpu_times=np.array(cpus), iterations=np.array([r.iterations for r in results]),
-        success=np.array([r.success for r in results], dtype=bool), stage_costs=np.array(stage),
+        success=np.array([r.success for r in results], dtype=bool),
+        unavoidable=np.array([r.unavoidable for r in results], dtype=bool), stage_costs=np.array(stage),
         landing=np.array(landing).reshape(len(landing), 2) if paddle is not None else None, dropped=dropped,
     )  # fmt: skip
 

@@ -17,11 +17,12 @@ The node decodes messages and publishes; everything in between is here and unit-
   ``rejected/bounds``, never solved from), a solver that raises, a non-finite result (cost, plan or control: the
   controller fell back), a plan through predicted states outside the plausible range (the model predicts nonsense
   there, though the solver may call it a success) and, with ``safe_on_infeasible``, a plan that violates a
-  constraint are answered with the
+  constraint some command could have kept (not one the current state fixes: ``MPCResult.unavoidable``, counted
+  ``solves_unavoidable`` and sent, as the safe command cannot avoid it either) are answered with the
   system's safe command (:meth:`~saml_ros.core.systems.base.System.safe_control`), counted
   ``safe_commands/<reason>`` (:data:`~msg_schemas.telemetry.SAFE_COMMAND_REASONS`) and flagged ``safe = 1`` on
   ``mpc/status``; a finite plan that violates a constraint is otherwise sent and counted ``solves_failed``;
-* counters (``solves``, ``solves_failed``, ``solver_errors``, ``safe_commands``, ``deadline_misses``, ``swaps``,
+* counters (``solves``, ``solves_failed``, ``solves_unavoidable``, ``solver_errors``, ``safe_commands``, ``deadline_misses``, ``swaps``,
   ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`;
 * with any ``guard.*`` remedy on, the controller is a :class:`~saml_ros.core.mpc.guard.GuardedController`: each
   control step first shows it the live transition that just happened (previous state, the command sent, this
@@ -248,7 +249,10 @@ class MPCService:
             step = int(np.argmax(outside))
             return self._safe("implausible", f"the plan predicts an implausible state at step {step}: "
                               f"{self.bounds.state.outside(plan[step])}", values)
-        if not res.success:
+        if not res.success and res.unavoidable:
+            # no command avoids it (the safe one neither): the plan is the best effort, e.g. braking at full thrust
+            self.counters["solves_unavoidable"] += 1
+        elif not res.success:
             self.counters["solves_failed"] += 1
             if self.config.safe_on_infeasible:
                 return self._safe("infeasible", f"plan violates a constraint: {res.message}", values)
@@ -291,6 +295,8 @@ class MPCService:
         stats = self.watcher.stats()
         values: dict[str, Any] = {k: v for k, v in sorted(self.counters.items())}
         values["safe_commands"] = self.counters["safe_commands"]
+        values["solves_failed"] = self.counters["solves_failed"]
+        values["solves_unavoidable"] = self.counters["solves_unavoidable"]
         for r in SAFE_COMMAND_REASONS:
             values[f"safe_commands/{r}"] = self.counters[f"safe_commands/{r}"]
         values["rejected/bounds"] = self.counters["rejected/bounds"]

@@ -121,11 +121,15 @@ class ShootingMPC:
         viol = task.violations(plan_x)
         worst = float(max(0.0, viol.max())) if viol.size else 0.0
         ok = worst <= self.feas_tol
+        unavoidable = False
         if not ok:
             i = int(np.argmax(viol))
             msg = f"{msg}; {task.names[i]} violated by {worst:.3g}"
-            if self._fixed_rows(x0, plan_u, task)[i]:
+            fixed = self._fixed_rows(x0, plan_u, task)
+            if fixed[i]:
                 msg += " (unavoidable: fixed by the current state)"
+            movable = viol[~fixed]
+            unavoidable = not (movable.size and float(movable.max()) > self.feas_tol)
         self._plan_u, self._plan_x = plan_u, plan_x
         return MPCResult(
             u=plan_u[0].copy(),
@@ -138,6 +142,7 @@ class ShootingMPC:
             message=msg,
             constraint_violation=worst,
             converged=converged,
+            unavoidable=unavoidable,
         )
 
     # ------------------------------------------------------------------------------ helpers
