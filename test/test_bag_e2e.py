@@ -4,6 +4,7 @@ in a private ROS domain (ros_helpers). Playback: test_bag_play.py; with the lear
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from pathlib import Path
@@ -51,6 +52,42 @@ def test_recorder_follows_late_and_vanishing_publishers_and_finishes_on_sigterm(
     np.testing.assert_array_equal(out.x, ex)
     np.testing.assert_array_equal(out.u, eu)
     np.testing.assert_array_equal(out.y, ey)
+
+
+def test_a_stopped_spin_still_takes_what_the_middleware_delivered(ros_env: RosDomain) -> None:
+    """``spin_until_stopped(drain=...)`` (the recorder's SIGINT / SIGTERM path): messages DDS already delivered and
+    acknowledged to their publisher, but not yet taken, are taken after the stop instead of dying with the process
+    (a loaded suite run lost 79 of a publisher's 80 states that way)."""
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from saml_ros.nodes.runtime import spin_until_stopped
+
+    rclpy.init()
+    try:
+        node = rclpy.create_node(f"drain_probe_{os.getpid()}")
+        topic = f"/drain_probe_{os.getpid()}"
+        qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        got: list[str] = []
+        node.create_subscription(String, topic, lambda m: got.append(str(m.data)), qos)  # type: ignore[attr-defined]
+        pub = node.create_publisher(String, topic, qos)
+        deadline = time.monotonic() + 10.0
+        while pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(0.2)
+        for i in range(300):
+            pub.publish(String(data=str(i)))
+        assert pub.wait_for_all_acked(Duration(seconds=10.0))
+        stopped = {"signal": int(signal.SIGTERM)}  # the stop arrived before the messages were taken
+        spin_until_stopped(node, stopped, announce=False)
+        assert got == []  # without draining they would be lost
+        spin_until_stopped(node, stopped, announce=False, drain=lambda: len(got))
+        assert got == [str(i) for i in range(300)]
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
 
 
 def recoverable_states(bag: Path, tmp_path: Path, ns: str) -> int:

@@ -15,7 +15,8 @@ The log time of a message is when it arrived at the recorder (the middleware's r
 clock; the recorder's simulated time with ``--use-sim-time`` or ``--ros-args -p use_sim_time:=true``). ``play`` replays with those times.
 
 Durability: the pending MCAP chunk is written and the file flushed every ``--flush-period`` s (default
-0.5), so a crash (SIGKILL, power cut aside) loses at most that much. SIGINT / SIGTERM finish the bag
+0.5), so a crash (SIGKILL, power cut aside) loses at most that much. SIGINT / SIGTERM first write what the
+middleware already delivered (until nothing new arrived for 0.3 s, at most 5 s), then finish the bag
 (footer + metadata.yaml) and exit 0. A bag of a killed recorder is recovered with ``bag_info --repair``.
 """
 
@@ -279,7 +280,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                        queue_depth=args.queue_depth)
         print(f"record: writing {out} (Ctrl-C to stop)", flush=True)
         deadline = time.monotonic() + args.duration if args.duration > 0 else float("inf")
-        spin_until_stopped(node, stop, lambda: rec.error is None and time.monotonic() < deadline, announce=False)
+        # after the stop, what DDS already delivered (acknowledged to the publishers) is still written
+        spin_until_stopped(node, stop, lambda: rec.error is None and time.monotonic() < deadline, announce=False,
+                           drain=lambda: sum(writer.counts.values()) if rec.error is None else -1)
         writer.close()
         counts = writer.counts
         print(f"record: wrote {sum(counts.values())} messages on {len(counts)} topics to {out}", flush=True)

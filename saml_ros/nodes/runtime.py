@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import sys
+import time
 from collections.abc import Callable, Sequence
 from types import FrameType
 from typing import Any, TypeVar
@@ -55,13 +56,18 @@ def init_rclpy(args: Sequence[str]) -> None:
 
 
 def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool] | None = None, *,
-                       period: float = 0.1, announce: bool = True, executor: str = "single") -> None:
+                       period: float = 0.1, announce: bool = True, executor: str = "single",
+                       drain: Callable[[], int] | None = None, drain_timeout: float = 5.0,
+                       drain_quiet: float = 0.3) -> None:
     """Spin ``node`` on :func:`make_executor`'s executor until a stop signal arrives or ``keep_going()`` is False.
 
     Args:
         period: longest wait (s) between two looks at the flag.
         announce: log ``received SIGINT: shutting down`` (or SIGTERM) on the node's logger when a signal ended it.
         executor: see :func:`make_executor`.
+        drain: after the stop, keep spinning while this count (e.g. messages written) still grows, until it has
+            not grown for ``drain_quiet`` s or ``drain_timeout`` s have passed: what the middleware already
+            delivered (acknowledged to its publishers) is taken, not dropped with the process.
     """
     spinner = make_executor(executor)
     spinner.add_node(node)
@@ -69,6 +75,14 @@ def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool]
         spinner.spin_once(timeout_sec=period)
     if announce and stop["signal"]:
         node.get_logger().info(f"received {signal.Signals(stop['signal']).name}: shutting down")
+    if drain is not None:
+        now = time.monotonic()
+        deadline, quiet_since, last = now + drain_timeout, now, drain()
+        while now < deadline and now - quiet_since < drain_quiet:
+            spinner.spin_once(timeout_sec=min(period, drain_quiet))
+            now, count = time.monotonic(), drain()
+            if count != last:
+                last, quiet_since = count, now
 
 
 #: executors :func:`make_executor` knows (environment variable ``SAML_EXECUTOR``; docs/performance.md)
