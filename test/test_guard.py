@@ -250,6 +250,33 @@ def test_the_monitor_scores_only_the_steps_the_learned_model_planned() -> None:
     assert any(fly(flown)) and flown.tag == 0 and flown.banned == {3}
 
 
+def test_a_learned_plan_that_breaks_a_constraint_f_hat_keeps_is_replaced_by_f_hats() -> None:
+    """guard.infeasible: a model with a yaw-rate residual far from its data (as a demo checkpoint had on fast
+    descents) makes the MPC plan a yaw spin whose terminal attitude row it cannot keep; f_hat's plan keeps it and is
+    flown. A violation the current state fixes (unavoidable) is no reason to switch."""
+    x0 = QUAD.hover_state((1.0, -1.0, 2.0))
+    spin = random_model(1, 1e-4)
+    with torch.no_grad():
+        spin.net.biases[-1][:, :, 12] += 20.0  # a yaw-rate residual everywhere (w_z is state field 12)
+    plain = make_guarded_controller(QUAD, "fast", GuardConfig(), **TASK.mpc_options())
+    plain.set_model(spin, 1)
+    res = plain.solve(x0, TASK.goal)
+    assert not res.success and not res.unavoidable and "attitude" in res.message and plain.last_source == "learned"
+    guarded = make_guarded_controller(QUAD, "fast", GuardConfig(infeasible=True), **TASK.mpc_options())
+    guarded.set_model(spin, 1)
+    res = guarded.solve(x0, TASK.goal)
+    assert res.success and guarded.last_source == "base"
+    assert guarded.counters["infeasible_fallbacks"] == 1 and guarded.counters["solves_base"] == 1
+    np.testing.assert_allclose(res.plan_x, guarded.base.rollout(x0, res.plan_u), rtol=1e-9, atol=1e-9)
+    calm = random_model(1, 1e-4)
+    guarded.set_model(calm, 2)
+    low = QUAD.hover_state((0.0, 0.0, 0.21))
+    low[5] = -1.0  # pz_1 = 0.11 whatever the command: unavoidable
+    res = guarded.solve(low, TASK.goal)
+    assert not res.success and res.unavoidable and guarded.last_source == "learned"
+    assert guarded.counters["infeasible_fallbacks"] == 1
+
+
 # ------------------------------------------------------------------------------------------ learner
 def hover_only_checkpoint(tmp_path: Path, z: float = 0.5, updates: int = 1500, n_models: int = 5) -> Path:
     """The online learner (an ``n_models``-member SA ensemble) fed only hovering at ``z`` m (motor noise 0.3 N):
@@ -347,6 +374,11 @@ def test_mpc_config_reads_the_guard_parameters() -> None:
                                "guard.window": 7, "guard.min_samples": 4, "guard.margin": 0.02,
                                "guard.bound_residual": True})
     assert c.guard == GuardConfig(0.1, True, True, MonitorConfig(7, 4, 1.0, 0.02))
+    c = MPCConfig.from_params({"system": "quadrotor", "guard.infeasible": True})
+    assert c.guard == GuardConfig(infeasible=True) and c.guard.enabled
+    from saml_ros.bringup.config import default_config
+
+    assert MPCConfig.from_params({"system": "quadrotor", **default_config("quadrotor")["mpc"]}).guard.infeasible
     for bad in ({"guard.max_disagreement": 0.0}, {"guard.window": 2, "guard.min_samples": 3},
                 {"guard.margin": -0.1}):
         with pytest.raises(ValueError, match="guard"):

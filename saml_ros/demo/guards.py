@@ -35,7 +35,12 @@ def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
     if guard.rollback:
         out["roll back only"] = dataclasses.replace(off, rollback=True, monitor=guard.monitor)
         out["run's guard without roll back"] = dataclasses.replace(guard, rollback=False)
+    if guard.infeasible:
+        out["infeasible fallback only"] = dataclasses.replace(off, infeasible=True)
+        out["run's guard without infeasible fallback"] = dataclasses.replace(guard, infeasible=False)
     out["run's guard"] = guard
+    if not guard.infeasible:
+        out["run's guard + infeasible fallback"] = dataclasses.replace(guard, infeasible=True)
     return out
 
 

@@ -56,6 +56,9 @@ PARAMS: tuple[Param, ...] = (
     Param("guard.rollback", False, "live monitor: roll back to the previous model, else f_hat, when the active "
                                    "model's live one-step error on the steps it planned exceeds f_hat's (see "
                                    "guard.window ... guard.margin)"),
+    Param("guard.infeasible", False, "plan a step with f_hat too when the learned model's plan violates a "
+                                     "constraint some control could keep, and fly f_hat's plan if it keeps the "
+                                     "constraints or violates them less"),
     Param("guard.window", 5, "live transitions the monitor averages the one-step squared errors over (steps the "
                              "learned model planned)"),
     Param("guard.min_samples", 3, "transitions in the window before the monitor may roll back"),
@@ -162,7 +165,7 @@ class MPCConfig:
         try:
             guard = GuardConfig(
                 max_disagreement=p["guard.max_disagreement"], bound_residual=p["guard.bound_residual"],
-                rollback=p["guard.rollback"],
+                rollback=p["guard.rollback"], infeasible=p["guard.infeasible"],
                 monitor=MonitorConfig(window=p["guard.window"], min_samples=p["guard.min_samples"],
                                       ratio=p["guard.ratio"], margin=p["guard.margin"]))
         except ValueError as exc:

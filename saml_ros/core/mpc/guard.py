@@ -53,12 +53,16 @@ class GuardConfig:
         bound_residual: clip phi to the checkpoint's recorded residual bound (off when it records none).
         rollback: run the live monitor and roll back (``monitor`` says when).
         monitor: the monitor's window and threshold.
+        infeasible: when the learned model's plan violates a constraint some control could keep (not only rows
+            the current state fixes), plan this step with f_hat too and fly f_hat's plan if it satisfies the
+            constraints or violates them less.
     """
 
     max_disagreement: float = math.inf
     bound_residual: bool = False
     rollback: bool = False
     monitor: MonitorConfig = MonitorConfig()
+    infeasible: bool = False
 
     def __post_init__(self) -> None:
         if not self.max_disagreement > 0:
@@ -66,7 +70,7 @@ class GuardConfig:
 
     @property
     def enabled(self) -> bool:
-        return math.isfinite(self.max_disagreement) or self.bound_residual or self.rollback
+        return math.isfinite(self.max_disagreement) or self.bound_residual or self.rollback or self.infeasible
 
 
 class EnsembleNP:
@@ -277,6 +281,11 @@ class GuardedController:
                 if np.all(np.isfinite(res.plan_x)):
                     self.base.set_warm_start(res.plan_u, res.plan_x)
                 use_learned = False
+            elif self.config.infeasible and not res.success and not res.unavoidable:
+                base = self._infeasible_fallback(x0, goal, res)
+                if base is not None:
+                    self.last_source = "base"
+                    return base
             elif np.all(np.isfinite(res.plan_x)):
                 self.base.set_warm_start(res.plan_u, res.plan_x)
         if not use_learned:
@@ -288,6 +297,21 @@ class GuardedController:
             self.counters["clipped"] += 1
         self.last_source = "learned" if use_learned else "base"
         return res
+
+    def _infeasible_fallback(self, x0: np.ndarray, goal: Any | None, learned: MPCResult) -> MPCResult | None:
+        """The learned plan ``learned`` violates a constraint a control could keep: f_hat's plan from ``x0``
+        (warm-started from the learned plan) when it keeps the constraints or violates them less (counted
+        ``infeasible_fallbacks``), else None (fly the learned plan)."""
+        if np.all(np.isfinite(learned.plan_x)):
+            self.base.set_warm_start(learned.plan_u, learned.plan_x)
+        base = self.base.solve(x0, goal)
+        if not (base.success or base.constraint_violation < learned.constraint_violation):
+            return None
+        if np.all(np.isfinite(base.plan_x)):
+            self.learned.set_warm_start(base.plan_u, base.plan_x)
+        self.counters["infeasible_fallbacks"] += 1
+        self.counters["solves_base"] += 1
+        return base
 
     def _clipped(self, res: MPCResult) -> bool:
         """Whether the bound clipped phi anywhere on the learned plan ``res`` flies."""
