@@ -1,8 +1,10 @@
 """One demo run's final SA checkpoint flown with each guard setting (``./dev demo --guards RUN_DIR``).
 
 From the demo's evaluation starts of that run (its ``--seed``: the standard and the aggressive ones), the base
-model and the learned model with every remedy off, each remedy alone, and the run's own guard (``guard.*`` of its
-``bringup.yaml``): per setting the mean and worst landing error, the steps planned with f_hat and the roll backs.
+model and the learned model with every remedy off, each remedy alone, the run's own guard (``guard.*`` of its
+``bringup.yaml``) and it without roll back / without the infeasible-plan fallback (or with it, for runs recorded
+before it existed): per setting the mean and worst landing error, the steps planned with f_hat and the roll
+backs.
 It answers "what does each remedy cost or buy on this model" without a new live run (ROS-free, about 30 s for
 the 10 aggressive starts here). Printed as a table; ``--json`` writes it too.
 """
