@@ -74,7 +74,10 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
     ros_node.subscribe(JointState, f"{NS}/learner/model_error",
                        callback=lambda m: telemetry.append(tele.model_error_from_msg(m)[0]))
     # the robot starts once the learner listens, so the learner sees its first drive into the dock approach
-    wait_for(lambda: telemetry or not learner.alive(), timeout=60, what="the learner to start")
+    try:
+        wait_for(lambda: telemetry or not learner.alive(), timeout=60, what="the learner to start")
+    except TimeoutError:
+        raise AssertionError(f"no learner telemetry within 60 s; learner output:\n{learner.output()}") from None
     assert learner.alive(), learner.output()
     wait_for(lambda: "record: recording" in rec.output() or "record: writing" in rec.output() or not rec.alive(),
              what="the recorder")

@@ -140,7 +140,6 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     stop_flag: list[int] = []
     signal.signal(STOP_SIGNAL, lambda signum, frame: stop_flag.append(signum))
-    priority = set_priority(setup.niceness, setup.idle)
     compute = apply_compute_settings(setup.threads, setup.flush_denormal)
     lock = threading.Lock()
 
@@ -167,6 +166,9 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
                                        "lam": r.lam, "skipped": [(str(p), why) for p, why in r.skipped]}
         raw = None if decode is None else RawIngest(learner, setup.channels, decode)
         warm = warm_up()
+        # lowered only now, for training: under SCHED_IDLE on a busy machine the one-time start-up (learner, kernel,
+        # warm-up) starved past the node's 120 s start timeout (a loaded suite run); every thread so far is covered
+        priority = set_priority(setup.niceness, setup.idle)
         log.info("training process warmed up in %.1f s (fused kernel %s)", warm["seconds"], warm["kernel"])
         log.info("training process: %d torch intra-op thread(s), subnormal floats %s, CPU priority %s",
                  compute["threads"], "flushed to zero" if compute["flush_denormal"] else "not flushed", priority)
