@@ -234,7 +234,11 @@ def test_paddle_ball_lockstep_publishes_state_applied_cmd_and_post_impact_with_o
     flight = ros_node.subscribe(Odometry, f"{ns}/flight")
     sim = ros_env.launch("paddle_ball_sim", "-p", "mode:=lockstep", "-p", "initial_state:=[0.0, 0.0, 1.0, 0.0, 0.0, 0.0]",
                          "-p", "start_delay:=0.3", "-p", "lockstep_timeout:=20.0")
-    wait_for(lambda: len(post) >= 3 and len(states) >= 4, TIMEOUT, what=f"3 impacts; output:\n{sim.output()}")
+    try:
+        wait_for(lambda: len(post) >= 3 and len(states) >= 4, TIMEOUT, what="3 impacts")
+    except TimeoutError as exc:
+        raise AssertionError(f"{exc}: {len(states)} states, {len(applied)} applied, {len(post)} impacts; simulator "
+                             f"{'alive' if sim.alive() else 'exited'}, output:\n{sim.output()}") from None
     xs = by_stamp(states, schema.state_from_msg)
     us = by_stamp(applied, schema.control_from_msg)
     ys = by_stamp(post, schema.target_from_msg)

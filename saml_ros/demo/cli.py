@@ -78,7 +78,8 @@ def run_evaluation(run_dir: Path, config: dict[str, Any], n_standard: int, n_agg
     sets = evaluation_starts(system, n_standard, n_aggressive, seed)
     out: dict[str, Any] = {"task": task.__dict__, "guard": {"max_disagreement": guard.max_disagreement,
                                                            "bound_residual": guard.bound_residual,
-                                                           "rollback": guard.rollback},
+                                                           "rollback": guard.rollback,
+                                                           "infeasible": guard.infeasible},
                            "checkpoints": {"SA": [str(sa[0]), sa[1]], "UA": [str(ua[0]), ua[1]] if ua else None},
                            "sets": {}}
     for name, starts in sets.items():
