@@ -56,7 +56,8 @@ def test_play_republishes_identical_bytes_with_clock_and_timing(ros_env: RosDoma
     assert rec.stop() == 0, rec.output()
     with Bag(src) as a, Bag(tmp_path / "fast") as b:
         for topic in a.topics:
-            assert [m.data for m in a.messages([topic])] == [m.data for m in b.messages([topic])], topic
+            assert [m.data for m in a.messages([topic])] == [m.data for m in b.messages([topic])], (
+                topic, play.output(), rec.output())
         clocks = [clock_from_msg(b.decode(m)) for m in b.messages(["/clock"])]
         assert clocks == sorted({m.log_time_ns for m in a.messages()})
         assert b.topics[f"{ns}/learner/checkpoint"].qos[0].durability.name == "TRANSIENT_LOCAL"

@@ -110,6 +110,8 @@ class Player:
 
             self.clock_pub = node.create_publisher(Clock, CLOCK_TOPIC, CLOCK_QOS.to_rclpy())
         self.published = 0
+        #: topics whose subscribers had not acknowledged every message within ``ack_timeout`` (reliable QoS)
+        self.unacked: set[str] = set()
 
     def wait_for_subscribers(self, topics: Sequence[str], timeout: float, stop: dict[str, int]) -> list[str]:
         """Wait until each of ``topics`` has a subscriber; returns the ones still without one."""
@@ -157,10 +159,12 @@ class Player:
                 dirty.add(msg.topic)
                 if self.published % max(1, ack_batch) == 0:
                     for topic in dirty:
-                        self.publishers[topic].wait_for_all_acked(ack)
+                        if not self.publishers[topic].wait_for_all_acked(ack):
+                            self.unacked.add(topic)
                     dirty.clear()
-        for pub in self.publishers.values():
-            pub.wait_for_all_acked(ack)
+        for topic, pub in self.publishers.items():
+            if not pub.wait_for_all_acked(ack):
+                self.unacked.add(topic)
 
 
 @process_main
@@ -211,6 +215,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         t0 = time.monotonic()
         player.play(args.rate, stop, ack_batch=args.ack_batch, ack_timeout=args.ack_timeout)
         print(f"play: published {player.published} messages in {time.monotonic() - t0:.3f} s", flush=True)
+        if player.unacked:
+            print(f"play: not every message on {sorted(player.unacked)} was acknowledged within {args.ack_timeout} s "
+                  f"(--ack-timeout): a subscriber may have missed some", file=sys.stderr)
         return 0
     except BagError as exc:
         print(f"play: {exc}", file=sys.stderr)
