@@ -41,9 +41,10 @@ PARAMS: tuple[Param, ...] = (
     Param("run_dir", "", "run directory whose `latest` checkpoint is polled ('' = follow learner/checkpoint only)"),
     Param("poll_period", 0.5, "seconds between polls of run_dir"),
     Param("diagnostics_rate", 1.0, "/diagnostics publication rate (Hz, wall clock)"),
-    Param("executor", "events", "rclpy executor the node spins on: events (rclpy.experimental.EventsExecutor, "
-                                "a shorter lockstep round trip, docs/performance.md) | single "
-                                "(SingleThreadedExecutor); the environment variable SAML_EXECUTOR overrides it"),
+    Param("executor", "single", "rclpy executor the node spins on: single (SingleThreadedExecutor) | events "
+                                "(rclpy.experimental.EventsExecutor: a shorter lockstep round trip, but twice an "
+                                "active MPC on it never answered its first state; docs/performance.md); the "
+                                "environment variable SAML_EXECUTOR overrides it"),
     Param("gate.max_constraint", math.inf, "hold back checkpoints whose recorded constraint estimates "
                                            "(E[l | region] - eps, learner's live window) exceed this; inf = take "
                                            "every valid checkpoint", finite=False),
