@@ -183,21 +183,26 @@ def test_guard_plans_with_f_hat_where_the_members_disagree() -> None:
     assert single.last_source == "learned" and single.counters["fallbacks"] == 0
 
 
-def test_rollback_goes_to_the_previous_model_then_to_f_hat_and_never_reuses_a_version() -> None:
+def fly_observed(ctrl: GuardedController, x0: np.ndarray, steps: int) -> list[bool]:
+    """Fly ``steps`` steps from ``x0`` on the simulator's dynamics, showing the controller every transition; whether
+    each one made it roll back."""
     f = plant(QUAD, TASK.landing_height)
+    rolled, x = [], x0
+    for _ in range(steps):
+        u = ctrl.solve(x, TASK.goal).u
+        xn = f(x, u)
+        rolled.append(ctrl.observe(x, u, xn))
+        x = xn
+    return rolled
+
+
+def test_rollback_goes_to_the_previous_model_then_to_f_hat_and_never_reuses_a_version() -> None:
     ctrl = make_guarded_controller(QUAD, "fast", GuardConfig(rollback=True), **TASK.mpc_options())
     good: DynamicsModel = random_model(1, 1e-5, seed=1)
     bad: DynamicsModel = random_model(1, 2.0, seed=2)
 
     def fly(steps: int, x0: np.ndarray) -> list[bool]:
-        rolled = []
-        x = x0
-        for _ in range(steps):
-            u = ctrl.solve(x, TASK.goal).u
-            xn = f(x, u)
-            rolled.append(ctrl.observe(x, u, xn))
-            x = xn
-        return rolled
+        return fly_observed(ctrl, x0, steps)
 
     x0 = QUAD.hover_state((0.5, 0.5, 1.2))
     ctrl.set_model(bad, 1)  # no model before it: rolls back to f_hat
@@ -222,20 +227,13 @@ def test_rollback_goes_to_the_previous_model_then_to_f_hat_and_never_reuses_a_ve
 def test_the_monitor_scores_only_the_steps_the_learned_model_planned() -> None:
     """Steps planned with f_hat on disagreement never roll the model back: it did not fly them (a demo run rolled
     a good SA model back on far starts where only f_hat had planned, and its landings ended worse than f_hat's)."""
-    f = plant(QUAD, TASK.landing_height)
     x0 = QUAD.hover_state((1.0, -1.0, 2.0))
     wild = random_model(5, 1.0)  # members far apart everywhere ...
     with torch.no_grad():
         wild.net.biases[-1].add_(1.0)  # ... and their mean far from the truth
 
     def fly(ctrl: GuardedController, steps: int = 8) -> list[bool]:
-        rolled, x = [], x0
-        for _ in range(steps):
-            u = ctrl.solve(x, TASK.goal).u
-            xn = f(x, u)
-            rolled.append(ctrl.observe(x, u, xn))
-            x = xn
-        return rolled
+        return fly_observed(ctrl, x0, steps)
 
     guarded = make_guarded_controller(QUAD, "fast", DEMO_GUARD, **TASK.mpc_options())
     guarded.set_model(wild, 3)

@@ -19,7 +19,7 @@ import torch
 
 from saml_ros.core.online.ingest import RawIngest
 from saml_ros.core.online.loop import Send, run_loop
-from saml_ros.core.online.process import STOP_SIGNAL, LearnerSetup
+from saml_ros.core.online.process import STOP_SIGNAL, LearnerSetup, thread_ids
 from saml_ros.core.online.resume import ResumeError
 
 log = logging.getLogger("saml_ros.online")
@@ -105,21 +105,13 @@ def warm_up() -> dict[str, Any]:
     return {"seconds": time.perf_counter() - t0, "kernel": kernel}
 
 
-def _threads() -> list[int]:
-    """The ids of this process's threads (Linux), or ``[0]`` (the calling thread) where ``/proc`` has none."""
-    try:
-        return [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        return [0]
-
-
 def set_priority(niceness: int, idle: bool) -> str:
     """Lower the CPU priority of this process's threads (those started later inherit it): ``SCHED_IDLE`` when
     ``idle`` (where the OS has it), else ``niceness`` added to the nice value. Returns what was applied, for the
     log. Both are per thread on Linux, and imports may already have started threads: each one is set."""
     if idle:
         try:
-            for tid in _threads():
+            for tid in thread_ids():
                 os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
             return "SCHED_IDLE"
         except (AttributeError, OSError) as exc:  # not Linux: niceness instead
@@ -127,7 +119,7 @@ def set_priority(niceness: int, idle: bool) -> str:
     if niceness:
         with contextlib.suppress(OSError):
             base = os.getpriority(os.PRIO_PROCESS, 0)
-            for tid in _threads():
+            for tid in thread_ids():
                 os.setpriority(os.PRIO_PROCESS, tid, min(19, base + niceness))
     return f"nice {os.getpriority(os.PRIO_PROCESS, 0)}"
 

@@ -152,6 +152,15 @@ class ReadyInfo:
     flush_denormal: bool
 
 
+
+def thread_ids(pid: int | None = None) -> list[int]:
+    """The ids of the threads of process ``pid`` (None: this process) on Linux. Where ``/proc`` has none: ``[0]``
+    (the calling thread) for this process, ``[]`` for another."""
+    try:
+        return [int(t) for t in os.listdir(f"/proc/{'self' if pid is None else pid}/task")]
+    except OSError:
+        return [0] if pid is None else []
+
 class TrainingProcess:
     """Runs the training side of an :class:`OnlineLearner` in a child process fed with transitions.
 
@@ -306,11 +315,7 @@ class TrainingProcess:
         ``CAP_SYS_NICE`` or a high enough ``RLIMIT_NICE``) its threads return to the normal policy now."""
         if self._proc is None or not self.setup.idle or self._proc.poll() is not None:
             return
-        try:
-            tids = [int(t) for t in os.listdir(f"/proc/{self._proc.pid}/task")]
-        except OSError:
-            return
-        for tid in tids:
+        for tid in thread_ids(self._proc.pid):
             with contextlib.suppress(OSError, AttributeError):
                 os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
 
