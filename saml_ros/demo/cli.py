@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.systems import get_system
-from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC, LandingTask
+from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC
 
 #: simulated seconds of the live loop (36 landing episodes of 5 s; the in-region error is within 20 % of its
 #: 300 s value after 150 s)
@@ -52,13 +52,13 @@ def run_evaluation(run_dir: Path, config: dict[str, Any], n_standard: int, n_agg
                    workers: int | None = None) -> dict[str, Any] | None:
     """The paired evaluation of base, oracle, SA and UA (see the module docstring); None without an SA checkpoint."""
     from saml_ros.bringup.config import CHECKPOINTS, CHECKPOINTS_UA
-    from saml_ros.core.mpc.config import MPCConfig
     from saml_ros.demo.evaluation import (
         Arm,
         evaluate_arms,
         evaluation_starts,
         newest_checkpoint,
         paired_diff,
+        run_task_and_guard,
         summarize,
     )
 
@@ -68,9 +68,7 @@ def run_evaluation(run_dir: Path, config: dict[str, Any], n_standard: int, n_agg
     ua = newest_checkpoint(run_dir / CHECKPOINTS_UA)
     system = get_system("quadrotor")
     mpc = config["mpc"]
-    guard = MPCConfig.from_params({"system": "quadrotor", **mpc}).guard
-    task = LandingTask.from_mpc_params(mpc, int(config["sim"]["episode_steps"]),
-                                       float(config["sim"].get("landing_height", 0.1)))
+    task, guard = run_task_and_guard(config)
     arms = [Arm("base", "base"), Arm("oracle", "oracle"), Arm("SA", str(sa[0]), guard)]
     if ua is not None:
         arms.append(Arm("UA", str(ua[0]), guard))

@@ -45,6 +45,15 @@ def evaluation_starts(system: Any, n_standard: int, n_aggressive: int, seed: int
             "aggressive": aggressive_starts(system, n_aggressive, AGGRESSIVE_SEED + seed)}
 
 
+def run_task_and_guard(config: dict[str, Any]) -> tuple[LandingTask, GuardConfig]:
+    """The landing task and the MPC's guard a bringup configuration (a run's ``bringup.yaml``) flew with."""
+    from saml_ros.core.mpc.config import MPCConfig
+
+    mpc, sim = config["mpc"], config["sim"]
+    task = LandingTask.from_mpc_params(mpc, int(sim["episode_steps"]), float(sim.get("landing_height", 0.1)))
+    return task, MPCConfig.from_params({"system": "quadrotor", **mpc}).guard
+
+
 def newest_checkpoint(directory: Path) -> tuple[Path, int] | None:
     """The newest valid checkpoint in ``directory`` (path, version), or None."""
     from saml_ros.core.checkpoint import CheckpointStore

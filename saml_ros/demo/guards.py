@@ -22,7 +22,7 @@ import numpy as np
 import yaml
 
 from saml_ros.core.mpc.guard import GuardConfig
-from saml_ros.demo.landing import TASK_METRIC, LandingTask
+from saml_ros.demo.landing import TASK_METRIC
 
 
 def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
@@ -51,18 +51,14 @@ def compare(run_dir: Path, seed: int, n_standard: int, n_aggressive: int, worker
     """Fly the run's newest valid SA checkpoint with :func:`guard_settings` and the base model from the run's
     evaluation starts; per start set and setting: per-start landing errors (m) and the guard's counters."""
     from saml_ros.bringup.config import CHECKPOINTS
-    from saml_ros.core.mpc.config import MPCConfig
     from saml_ros.core.systems import get_system
-    from saml_ros.demo.evaluation import Arm, evaluate_arms, evaluation_starts, newest_checkpoint
+    from saml_ros.demo.evaluation import Arm, evaluate_arms, evaluation_starts, newest_checkpoint, run_task_and_guard
 
     config = yaml.safe_load((run_dir / "bringup.yaml").read_text())
     sa = newest_checkpoint(run_dir / CHECKPOINTS)
     if sa is None:
         raise FileNotFoundError(f"no valid checkpoint in {run_dir / CHECKPOINTS}")
-    mpc = config["mpc"]
-    guard = MPCConfig.from_params({"system": "quadrotor", **mpc}).guard
-    task = LandingTask.from_mpc_params(mpc, int(config["sim"]["episode_steps"]),
-                                       float(config["sim"].get("landing_height", 0.1)))
+    task, guard = run_task_and_guard(config)
     system = get_system("quadrotor")
     arms = [Arm("base", "base")] + [Arm(name, str(sa[0]), g) for name, g in guard_settings(guard).items()]
     sets = evaluation_starts(system, n_standard, n_aggressive, seed)
@@ -70,7 +66,7 @@ def compare(run_dir: Path, seed: int, n_standard: int, n_aggressive: int, worker
     for name, starts in sets.items():
         if not len(starts):
             continue
-        res = evaluate_arms(arms, task, starts, solver or str(mpc.get("solver", "fast")), workers)
+        res = evaluate_arms(arms, task, starts, solver or str(config["mpc"].get("solver", "fast")), workers)
         out["sets"][name] = {a: {"landing_error": r.metrics[TASK_METRIC].tolist(), "guard": r.guard}
                              for a, r in res.items()}
     return out
