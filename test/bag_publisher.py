@@ -107,6 +107,9 @@ def main() -> int:
                    help="before publishing, wait until the pairing topics (state, applied_cmd, target) have this "
                         "many subscribers and every other topic one")
     p.add_argument("--wait-timeout", type=float, default=20.0)
+    p.add_argument("--go-file", type=Path,
+                   help="after the subscribers matched, write the published topics (JSON) to GO_FILE.ready and "
+                        "publish only once GO_FILE exists (the test saw the subscriber side match too)")
     p.add_argument("--events", type=Path, help="publish this saved roll-out (save_events) instead of rolling out")
     args = p.parse_args()
 
@@ -153,7 +156,17 @@ def main() -> int:
                 print("bag_publisher: timed out waiting for subscribers", file=sys.stderr)
                 return 1
             time.sleep(0.02)
-        time.sleep(0.2)  # let the subscriber side finish matching too
+        if not args.go_file:
+            time.sleep(0.2)  # let the subscriber side finish matching too
+    if args.go_file:
+        ready = args.go_file.with_name(args.go_file.name + ".ready")
+        ready.write_text(json.dumps(sorted(counts)))
+        deadline = time.monotonic() + args.wait_timeout
+        while not args.go_file.exists():
+            if time.monotonic() > deadline:
+                print("bag_publisher: timed out waiting for the go file", file=sys.stderr)
+                return 1
+            time.sleep(0.01)
 
     def send(name: str, msg: object) -> None:
         pubs[name].publish(msg)

@@ -42,9 +42,30 @@ def start_publisher(events: list[dict], tmp: Path, *args: str) -> subprocess.Pop
                             stderr=subprocess.PIPE, text=True, env=dict(os.environ))
 
 
-def publish(events: list[dict], tmp: Path, *args: str, timeout: float = 90.0) -> dict:
-    """Publish ``events`` with a bag_publisher.py process in this test's ROS domain; returns its JSON report."""
+def publish(events: list[dict], tmp: Path, *args: str, timeout: float = 90.0, recorder: Any = None) -> dict:
+    """Publish ``events`` with a bag_publisher.py process in this test's ROS domain; returns its JSON report.
+
+    With ``recorder`` (a ``record`` process) and ``--wait-subscribers``, the publisher sends only after the recorder
+    announced the match of each of its topics (``record: matched``): under load the recorder's side of a match can
+    lag the publisher's by more than any fixed settle time, and DDS drops what a volatile reader gets before it."""
+    go = tmp / f"go-{time.monotonic_ns()}"
+    if recorder is not None:
+        args = (*args, "--go-file", str(go))
+        before = recorder.output()
     proc = start_publisher(events, tmp, *args)
+    if recorder is not None:
+        ready = go.with_name(go.name + ".ready")
+        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=60.0, what="the publisher's match")
+        assert proc.poll() is None, proc.communicate()
+        topics = json.loads(ready.read_text())
+
+        def matched() -> bool:
+            out = recorder.output()
+            return all(out.count(f"record: matched {t} (") > before.count(f"record: matched {t} (") for t in topics)
+
+        wait_for(lambda: matched() or not recorder.alive(), timeout=60.0, what="the recorder to match every topic")
+        assert recorder.alive(), recorder.output()
+        go.touch()
     out, err = proc.communicate(timeout=timeout)
     assert proc.returncode == 0, err
     return dict(json.loads(out.strip().splitlines()[-1]))

@@ -31,7 +31,7 @@ def test_recorder_follows_late_and_vanishing_publishers_and_finishes_on_sigterm(
     events = [rollout("friction", steps, episode, int(seed), int(t0 * 1e9)) for seed, steps, episode, t0 in runs]
     for ev in events:
         reports.append(publish(ev, tmp_path, "--system", "friction", "--namespace", ns, "--rate", "400", "--clock",
-                               "--cmd", "--model-error-every", "10", "--wait-subscribers", "1"))
+                               "--cmd", "--model-error-every", "10", "--wait-subscribers", "1", recorder=rec))
     time.sleep(0.5)
     rec.signal(signal.SIGTERM)
     assert rec.wait(20) == 0, rec.output()
@@ -40,11 +40,14 @@ def test_recorder_follows_late_and_vanishing_publishers_and_finishes_on_sigterm(
         for topic in reports[0]["published"]:
             n = sum(r["published"][topic] for r in reports)
             if topic.startswith(ns):
-                assert b.topics[topic].message_count == n, (topic, rec.output())
+                assert b.topics[topic].message_count == n, (
+                    topic, {t: i.message_count for t, i in b.topics.items()}, reports, rec.output())
             else:  # /clock: shared with any other process of this ROS domain
                 assert b.topics[topic].message_count >= n, topic
         assert b.topics[f"{ns}/state"].qos[0].reliability.name == "RELIABLE"
         assert b.topics["/diagnostics"].message_count >= 1  # the recorder's own counters
+    # each publisher of each topic was announced: the second run's publishers came back to the same subscriptions
+    assert rec.output().count(f"record: matched {ns}/state (") == 2, rec.output()
     out = extract_transitions([bag], "friction")
     assert [s.namespace for s in out.sources] == [ns]
     assert len(out) == sum(r["transitions"] for r in reports)
@@ -112,8 +115,14 @@ def test_sigkill_loses_at_most_the_last_second(ros_env: RosDomain, tmp_path: Pat
         mcap = bag / "bag.mcap"
         # states, not just bytes, on disk: under load the first flushed chunks can hold only schemas and other
         # topics (a full-suite run at load 4 killed the recorder before any state was recoverable)
-        wait_for(lambda: mcap.exists() and mcap.stat().st_size > 20_000 and recoverable_states(bag, tmp_path, ns),
-                 timeout=60, what="flushed states")
+        try:
+            wait_for(lambda: mcap.exists() and mcap.stat().st_size > 20_000 and recoverable_states(bag, tmp_path, ns),
+                     timeout=60, what="flushed states")
+        except TimeoutError as exc:
+            size = mcap.stat().st_size if mcap.exists() else None
+            pub.kill()
+            raise AssertionError(f"{exc}; bag.mcap {size} bytes; recorder:\n{rec.output()}\npublisher:\n"
+                                 f"{pub.communicate(timeout=10)}") from exc
         time.sleep(2.0)
         killed_at = time.time_ns()
         rec.signal(signal.SIGKILL)

@@ -10,6 +10,9 @@ Messages are recorded with *raw* subscriptions: the CDR bytes DDS delivered are 
 polled every ``--poll-period`` s, so topics that appear late are picked up; topics that disappear keep
 their subscription (and resume if they come back). Each topic is subscribed with the QoS its publishers
 offer (reliable / transient local when all of them are), and their offered profiles go into metadata.yaml.
+Each new publisher is announced (``record: matched TOPIC ...``, counted as ``publishers_matched`` on
+/diagnostics): a publisher that starts sending before that line may lose its first messages to DDS (it
+sees the recorder a moment before the recorder sees it, and a volatile reader drops what comes between).
 
 The log time of a message is when it arrived at the recorder (the middleware's receive time on the wall
 clock; the recorder's simulated time with ``--use-sim-time`` or ``--ros-args -p use_sim_time:=true``). ``play`` replays with those times.
@@ -115,7 +118,7 @@ class Recorder:
         self.subscriptions: dict[tuple[str, str], Any] = {}
         self.skipped: set[tuple[str, str]] = set()
         self.counters: dict[str, int] = {"messages": 0, "bytes": 0, "topics": 0, "skipped_topics": 0,
-                                         "write_errors": 0}
+                                         "write_errors": 0, "publishers_matched": 0}
         self.error: str | None = None
         self._clock = node.get_clock()
         self._diag_pub = self._make_diagnostics_publisher()
@@ -153,6 +156,7 @@ class Recorder:
                 self._subscribe(topic, msg_type, publishers)
 
     def _subscribe(self, topic: str, msg_type: str, publishers: list[Any]) -> None:
+        from rclpy.event_handler import SubscriptionEventCallbacks
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
         key = (topic, msg_type)
@@ -186,10 +190,23 @@ class Recorder:
         def on_message(data: bytes, info: Any, _key: tuple[str, str] = key) -> None:
             self._write(_key, data, info)
 
-        self.subscriptions[key] = self.node.create_subscription(cls, topic, on_message, qos, raw=True)
+        def on_matched(status: Any, _topic: str = topic) -> None:
+            self._matched(_topic, status)
+
+        self.subscriptions[key] = self.node.create_subscription(
+            cls, topic, on_message, qos, raw=True, event_callbacks=SubscriptionEventCallbacks(matched=on_matched))
         self.counters["topics"] += 1
         print(f"record: recording {topic} ({msg_type}, {'reliable' if reliable else 'best effort'}"
               f"{', transient local' if transient else ''})", flush=True)
+
+    def _matched(self, topic: str, status: Any) -> None:
+        """The subscription's matched status changed. Only from a "matched" line on is a publisher's data recorded:
+        a publisher sees this recorder a little before this recorder sees it, and DDS drops, for a volatile reader,
+        what the publisher sent in between (scripts that must lose nothing wait for this line)."""
+        if int(status.total_count_change) > 0:
+            self.counters["publishers_matched"] += int(status.total_count_change)
+            print(f"record: matched {topic} ({int(status.current_count)} publishers, "
+                  f"{int(status.total_count)} so far)", flush=True)
 
     # -- data
     def _write(self, key: tuple[str, str], data: bytes, info: Any = None) -> None:
