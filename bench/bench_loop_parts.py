@@ -122,7 +122,7 @@ def loop(mpc: str, steps: int, checkpoints: Path | None, profile: bool) -> dict[
     if prof is not None:
         prof.disable()
     return {"wall": time.perf_counter() - t_all, "parts": parts, "iterations": np.array(iters), "prof": prof,
-            "model_version": svc.model_version}
+            "model_version": svc.model_version, "commands": np.array([u for u, _ in sent])}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

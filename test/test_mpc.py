@@ -58,6 +58,18 @@ def test_numpy_model_and_jacobians_match_torch(name: str, kind: str) -> None:
     np.testing.assert_allclose(np.stack([dyn.step1(x[i], u[i]) for i in range(6)]), ref, atol=1e-12)
     np.testing.assert_allclose(a, ja.detach().numpy(), atol=1e-10)
     np.testing.assert_allclose(b, jb.detach().numpy(), atol=1e-10)
+    # the SQP's paths: Jacobians without the prediction (the base model's own when it has one), and rollouts
+    # (the base model's rollout1 without a network) give exactly what step_jac and step1 give
+    aj, bj = dyn.jacobians(x, u)
+    np.testing.assert_array_equal(aj, a)
+    np.testing.assert_array_equal(bj, b)
+    if y.shape != x.shape:  # the paddle predicts an impact, not the next state: nothing to roll out
+        return
+    xs = dyn.rollout(x[0], u)
+    want = [x[0]]
+    for t in range(6):
+        want.append(dyn.step1(want[-1], u[t]))
+    np.testing.assert_array_equal(xs, np.stack(want))
 
 
 @pytest.mark.parametrize(("name", "kind", "hidden"), [("friction", "residual", (4, 2)), ("friction", "full", (4, 2)),

@@ -148,6 +148,9 @@ class ShootingMPC:
     # ------------------------------------------------------------------------------ helpers
     def rollout(self, x0: np.ndarray, plan_u: np.ndarray) -> np.ndarray:
         """Predicted states ``(T+1, n)`` from ``x0`` under ``plan_u`` ``(T, m)`` with the model in use."""
+        roll = getattr(self.dyn, "rollout", None)
+        if roll is not None:
+            return np.asarray(roll(x0, plan_u))
         xs = np.empty((plan_u.shape[0] + 1, self.n))
         xs[0] = x0
         step = self.dyn.step1

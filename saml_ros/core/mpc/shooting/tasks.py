@@ -105,10 +105,13 @@ class ShootingTask:
         lin = self.cons_sign * xs[self.cons_t, self.cons_idx] - self.cons_bound
         if self.att_tol is None:
             return lin, None
-        qv = xs[self.horizon, list(self.att_qv)]
-        norm = float(np.sqrt(qv @ qv + 1e-12))
-        bound = float(np.sqrt(1.0 - (1.0 - self.att_tol) ** 2))
-        return np.append(lin, norm - bound), qv / norm
+        i, j, k = self.att_qv
+        qv = xs[self.horizon, i : k + 1] if j == i + 1 and k == i + 2 else xs[self.horizon, list(self.att_qv)]
+        norm = math.sqrt(float(qv @ qv) + 1e-12)
+        out = np.empty(lin.size + 1)
+        out[:-1] = lin
+        out[-1] = norm - math.sqrt(1.0 - (1.0 - self.att_tol) ** 2)
+        return out, qv / norm
 
 
 def push_brake_sequences(
