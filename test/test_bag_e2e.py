@@ -15,6 +15,7 @@ from bag_test_helpers import expected, publish, ros_env_fixture, start_publisher
 from ros_helpers import RosDomain, wait_for
 
 from msg_schemas import get_schema
+from msg_schemas.telemetry import clock_from_msg
 from saml_ros.bags.io import Bag, BagError, repair_bag
 from saml_ros.bags.transitions import extract_transitions
 
@@ -30,7 +31,7 @@ def test_recorder_follows_late_and_vanishing_publishers_and_finishes_on_sigterm(
     reports = []
     events = [rollout("friction", steps, episode, int(seed), int(t0 * 1e9)) for seed, steps, episode, t0 in runs]
     for ev in events:
-        reports.append(publish(ev, tmp_path, "--system", "friction", "--namespace", ns, "--rate", "400", "--clock",
+        reports.append(publish(ev, tmp_path, "--system", "friction", "--namespace", ns, "--rate", "200", "--clock",
                                "--cmd", "--model-error-every", "10", "--wait-subscribers", "1", recorder=rec))
     time.sleep(0.5)
     rec.signal(signal.SIGTERM)
@@ -42,8 +43,10 @@ def test_recorder_follows_late_and_vanishing_publishers_and_finishes_on_sigterm(
             if topic.startswith(ns):
                 assert b.topics[topic].message_count == n, (
                     topic, {t: i.message_count for t, i in b.topics.items()}, reports, rec.output())
-            else:  # /clock: shared with any other process of this ROS domain
-                assert b.topics[topic].message_count >= n, topic
+        # /clock is kept last 10 by its publisher (CLOCK_QOS): a recorder lagging more than 10 clocks behind loses
+        # the older ones by design (a loaded CI run kept 131 of 200); the last clock of each run always arrives
+        clocks = {clock_from_msg(b.decode(m)) for m in b.messages(["/clock"])}
+        assert {ev[-1]["stamp"] for ev in events} <= clocks, sorted(clocks)[-5:]
         assert b.topics[f"{ns}/state"].qos[0].reliability.name == "RELIABLE"
         assert b.topics["/diagnostics"].message_count >= 1  # the recorder's own counters
     # each publisher of each topic was announced: the second run's publishers came back to the same subscriptions

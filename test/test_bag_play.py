@@ -50,7 +50,7 @@ def test_play_republishes_identical_bytes_with_clock_and_timing(ros_env: RosDoma
     events, n = make_play_bag(src, ns)
     # 1) as fast as possible, once the recorder listens: nothing lost, the same bytes, /clock = log times
     rec = start_recorder(ros_env, tmp_path / "fast", "--system", "friction", "--namespace", ns)
-    play = ros_env.launch("play", args=[str(src), "--rate", "0", "--wait-for-subscribers"])
+    play = ros_env.launch("play", args=[str(src), "--rate", "0", "--wait-for-subscribers", "--delay", "1"])
     assert play.wait(60) == 0, play.output()
     time.sleep(0.5)
     assert rec.stop() == 0, rec.output()
@@ -63,7 +63,7 @@ def test_play_republishes_identical_bytes_with_clock_and_timing(ros_env: RosDoma
         assert b.topics[f"{ns}/learner/checkpoint"].qos[0].durability.name == "TRANSIENT_LOCAL"
     # 2) original timing at twice the speed: 2 s of bag in about 1 s
     rec = start_recorder(ros_env, tmp_path / "timed", "--system", "friction", "--namespace", ns)
-    play = ros_env.launch("play", args=[str(src), "--rate", "2", "--wait-for-subscribers"])
+    play = ros_env.launch("play", args=[str(src), "--rate", "2", "--wait-for-subscribers", "--delay", "1"])
     assert play.wait(60) == 0, play.output()
     time.sleep(0.5)
     assert rec.stop() == 0, rec.output()

@@ -81,6 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="before playing, wait until these topics (no names: every played topic and /clock) have a "
                         "subscriber")
     p.add_argument("--wait-timeout", type=float, default=30.0, help="give up waiting for subscribers after (s)")
+    p.add_argument("--delay", type=float, default=0.0,
+                   help="sleep this long (s) before playing (after --wait-for-subscribers): a subscriber's side of "
+                        "a match can lag the player's, and DDS drops what a volatile reader gets before it")
     p.add_argument("--ack-batch", type=int, default=50,
                    help="--rate 0: wait for acknowledgements after this many messages")
     p.add_argument("--ack-timeout", type=float, default=10.0, help="longest wait for acknowledgements (s)")
@@ -210,6 +213,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             if still and not stop["signal"]:
                 print(f"play: no subscriber on {still} after {args.wait_timeout} s", file=sys.stderr)
                 return 1
+        if args.delay > 0 and not stop["signal"]:
+            deadline = time.monotonic() + args.delay
+            while not stop["signal"] and time.monotonic() < deadline:
+                time.sleep(min(0.05, max(deadline - time.monotonic(), 0.0)))
         print(f"play: {bag.path}: {bag.message_count} messages over {bag.duration_ns / 1e9:.3f} s at rate "
               f"{args.rate if args.rate > 0 else 'max'}", flush=True)
         t0 = time.monotonic()
