@@ -12,7 +12,9 @@ other in one Python loop, as they do across processes in the lockstep loop, and 
 
 ``--mpc demo`` uses the demo's MPC settings (config/bringup_quadrotor.yaml: pad on the floor, tilt bound, guard;
 f_hat, or the newest checkpoint of ``--checkpoints DIR``, e.g. a demo run's ``checkpoints``); ``plain`` the MPC
-node's defaults. ``--profile`` adds cProfile's top functions of the loop. The transport (DDS, executors) is
+node's defaults. ``--profile`` adds cProfile's top functions of the loop. ``--save F`` keeps the loop's commands
+and SQP iteration counts, ``--against F`` compares with them (exit status 1 unless identical): a speed change that
+must not change what the MPC does is checked that way. The transport (DDS, executors) is
 ``bench closed_loop``'s; see docs/performance.md, "The loop".
 """
 
@@ -131,6 +133,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--checkpoints", type=Path, help="plan with the newest checkpoint of this directory")
     p.add_argument("--steps", type=int, default=300, help="lockstep steps (6 landing episodes of 50)")
     p.add_argument("--profile", action="store_true", help="also print cProfile's top 30 functions by cumulative time")
+    p.add_argument("--save", type=Path, metavar="NPZ",
+                   help="save the loop's commands and SQP iteration counts (to check a later change against)")
+    p.add_argument("--against", type=Path, metavar="NPZ",
+                   help="compare the commands and iteration counts with a --save file of the same settings: a "
+                        "speed change that must not change what the MPC does shows 0 and 'identical'")
     args = p.parse_args(argv)
     load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     r = loop(args.mpc, args.steps, args.checkpoints, args.profile)
@@ -149,9 +156,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     print("message conversions per message (us): object path (to_msg + serialize / deserialize + from_msg) vs CDR")
     for what, obj, cdr in conversions():
         print(f"  {what:<14} {obj:7.1f} vs {cdr:6.1f}  ({obj / cdr:.1f}x)")
+    if args.save is not None:
+        np.savez(args.save, commands=r["commands"], iterations=it)
+        print(f"  saved the commands and iteration counts to {args.save}")
+    status = 0
+    if args.against is not None:
+        ref = np.load(args.against)
+        same_shape = ref["commands"].shape == r["commands"].shape
+        du = float(np.abs(ref["commands"] - r["commands"]).max()) if same_shape else float("inf")
+        same = same_shape and du == 0.0 and np.array_equal(ref["iterations"], it)
+        print(f"  against {args.against}: max |command difference| {du:.3g}, iteration counts "
+              f"{'equal' if np.array_equal(ref['iterations'], it) else 'differ'}: "
+              f"{'identical' if same else 'DIFFERENT'}")
+        status = 0 if same else 1
     if r["prof"] is not None:
         pstats.Stats(r["prof"]).sort_stats("cumulative").print_stats(30)
-    return 0
+    return status
 
 
 if __name__ == "__main__":
