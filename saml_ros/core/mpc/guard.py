@@ -131,9 +131,16 @@ class BoundedDynamics:
         return y + np.clip(phi, -self.bound, self.bound), a + ax * keep, b + au * keep
 
     def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The Jacobians of :meth:`step_jac` alone (which fields are clipped needs phi, so it is computed)."""
-        _, a, b = self.step_jac(x, u)
-        return a, b
+        """The Jacobians of :meth:`step_jac` alone (which fields are clipped needs phi, so it is computed; f_hat's
+        prediction is not, when the base model has Jacobians of its own)."""
+        base_jac = getattr(self.base, "jacobians", None)
+        if base_jac is None:
+            _, a, b = self.step_jac(x, u)
+            return a, b
+        a, b = base_jac(x, u)
+        phi, ax, au = self.mlp.forward_jac(x, u)
+        keep = (np.abs(phi) < self.bound)[:, :, None]
+        return a + ax * keep, b + au * keep
 
     def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
         """Predicted states ``(K, T+1, n)`` of control sequences ``us`` ``(K, T, m)`` from ``x0`` ``(n,)``."""
