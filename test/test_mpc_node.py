@@ -221,7 +221,7 @@ class Probe:
         self.state_pub = self.node.create_publisher(RCLPY.cls(self.schema.state.msg_type), "state",
                                                     DATA_QOS.to_rclpy())
         self.ckpt_pub = self.node.create_publisher(String, "learner/checkpoint", CHECKPOINT_QOS.to_rclpy())
-        self.node.create_subscription(JointState, "cmd", self._on_cmd, DATA_QOS.to_rclpy())
+        self.cmd_sub = self.node.create_subscription(JointState, "cmd", self._on_cmd, DATA_QOS.to_rclpy())
         self.node.create_subscription(JointState, "mpc/status", self._on_status, TELEMETRY_QOS.to_rclpy())
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, TELEMETRY_QOS.to_rclpy())
 
@@ -252,8 +252,11 @@ class Probe:
             self.executor.spin_once(timeout_sec=0.02)
 
     def wait_connected(self, proc: MPCProcess, timeout: float = 60.0) -> None:
-        self.spin_until(lambda: self.state_pub.get_subscription_count() > 0
-                        and self.node.count_publishers("/quadrotor/cmd") > 0, timeout, "the MPC node", proc)
+        """Until both sides of both directions matched: the probe's state writer and cmd reader (seen here), and
+        the node's state reader (its ``state_publishers`` on /diagnostics). A loaded suite run lost the first
+        state to a node whose reader had not matched the probe yet, though the probe's writer had."""
+        self.spin_until(lambda: self.state_pub.get_subscription_count() > 0 and self.cmd_sub.get_publisher_count() > 0
+                        and float(self.diag.get("state_publishers", 0)) >= 1, timeout, "the MPC node", proc)
 
     def step(self, x: np.ndarray, stamp: int, proc: MPCProcess, timeout: float = 10.0) -> np.ndarray:
         """Publish state ``x`` stamped ``stamp`` and wait for the answer (like a lockstep simulator)."""

@@ -179,6 +179,9 @@ class MPCNode(ManagedNode):
             return
         values = self.service.diagnostic_values()
         values["lifecycle"] = state = self.state_label
+        # publishers this node's state subscription has matched (its own side of discovery: a state sent
+        # before it matched is dropped by DDS, whatever the publisher's subscription count says)
+        values["state_publishers"] = self.state_sub.get_publisher_count() if self.state_sub is not None else 0
         values["invalid_transitions"] = self.invalid_transitions
         refused = values["checkpoints_refused"]
         version = self.service.model_version
