@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -242,12 +243,15 @@ class Probe:
             if entry.name == "/quadrotor/mpc":
                 self.diag = dict(entry.values)
 
-    def spin_until(self, pred: Any, timeout: float, what: str, proc: MPCProcess | None = None) -> None:
+    def spin_until(self, pred: Any, timeout: float, what: str | Callable[[], str],
+                   proc: MPCProcess | None = None) -> None:
         deadline = time.monotonic() + timeout
         while not pred():
             if time.monotonic() > deadline:
+                what = what() if callable(what) else what
                 raise AssertionError(f"timed out waiting for {what}" + (f"\n{proc.log()}" if proc else ""))
             if proc is not None and proc.proc.poll() is not None:
+                what = what() if callable(what) else what
                 raise AssertionError(f"mpc exited ({proc.proc.returncode}) while waiting for {what}\n{proc.log()}")
             self.executor.spin_once(timeout_sec=0.02)
 
@@ -255,8 +259,14 @@ class Probe:
         """Until both sides of both directions matched: the probe's state writer and cmd reader (seen here), and
         the node's state reader (its ``state_publishers`` on /diagnostics). A loaded suite run lost the first
         state to a node whose reader had not matched the probe yet, though the probe's writer had."""
-        self.spin_until(lambda: self.state_pub.get_subscription_count() > 0 and self.cmd_sub.get_publisher_count() > 0
-                        and float(self.diag.get("state_publishers", 0)) >= 1, timeout, "the MPC node", proc)
+        self.spin_until(lambda: self.state_pub.get_subscription_count() > 0 and self.cmd_sub.get_publisher_count() > 0,
+                        timeout, lambda: (f"the MPC node (state subscribers {self.state_pub.get_subscription_count()}"
+                                          f", cmd publishers {self.cmd_sub.get_publisher_count()})"), proc)
+        # the node's side, from its 1 Hz /diagnostics: a loaded run once saw none from it for 60 s with both
+        # directions matched here, so wait for it a while, then let the first step tell
+        deadline = time.monotonic() + 15.0
+        while float(self.diag.get("state_publishers", 0)) < 1 and time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.05)
 
     def step(self, x: np.ndarray, stamp: int, proc: MPCProcess, timeout: float = 10.0) -> np.ndarray:
         """Publish state ``x`` stamped ``stamp`` and wait for the answer (like a lockstep simulator)."""

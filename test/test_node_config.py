@@ -50,10 +50,16 @@ def test_mpc_config_defaults_and_controller_options() -> None:
     assert paddle.controller_options() == {"max_iter": 20}  # one-shot: no horizon
     assert paddle.deadline_s(0.0) == 0.1
     assert MPCConfig.from_params({"system": "friction", "gate.max_constraint": 0.002}).gate_max_constraint == 0.002
+    # executor auto: EventsExecutor in lockstep (simulation), SingleThreadedExecutor in realtime (beside a robot)
+    assert MPCConfig.from_params({"system": "friction"}).executor == "events"
+    assert MPCConfig.from_params({"system": "friction", "mode": "realtime"}).executor == "single"
+    assert MPCConfig.from_params({"system": "friction", "executor": "single"}).executor == "single"
+    assert MPCConfig.from_params({"system": "friction", "mode": "realtime", "executor": "events"}).executor == "events"
 
 
 @pytest.mark.parametrize(("values", "message"), [
     ({"mode": "fast"}, r"parameter 'mode' must be one of \('lockstep', 'realtime'\), got 'fast'"),
+    ({"executor": "multi"}, r"parameter 'executor' must be auto or one of \('events', 'single'\), got 'multi'"),
     ({"solver": "ipopt"}, r"parameter 'solver' must be one of \('fast', 'slsqp'\)"),
     ({"rate_hz": 0.0}, "parameter 'rate_hz' must be > 0, got 0.0"),
     ({"rate_hz": "fast"}, "parameter 'rate_hz': expected float, got 'fast'"),
