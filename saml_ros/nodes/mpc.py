@@ -55,7 +55,7 @@ from msg_schemas.telemetry import (
     mpc_status_values,
 )
 from saml_ros.core.lifecycle import TransitionRefused
-from saml_ros.core.mpc.config import EXECUTORS, MPCConfig, choose_executor
+from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_entry
@@ -238,7 +238,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             node = create_node()
             # the executor is chosen before configure (which reads the other parameters)
             executor = str(node.get_parameter("executor").value)
-            if executor not in (*EXECUTORS, "auto"):
+            if executor not in EXECUTOR_CHOICES:
                 raise ValueError(f"parameter 'executor' must be auto or one of {list(EXECUTORS)}, got {executor!r}")
             executor = choose_executor(executor, str(node.get_parameter("mode").value))
         except (ValueError, TypeError) as exc:

@@ -25,6 +25,8 @@ from saml_ros.core.systems.registry import get_entry
 MODES = ("lockstep", "realtime")
 #: rclpy executors the node can spin on (saml_ros.nodes.runtime.EXECUTORS)
 EXECUTORS = ("events", "single")
+#: what the ``executor`` parameter accepts: an executor, or ``auto`` (:func:`choose_executor`)
+EXECUTOR_CHOICES = ("auto", *EXECUTORS)
 
 
 def choose_executor(executor: str, mode: str) -> str:
@@ -34,6 +36,7 @@ def choose_executor(executor: str, mode: str) -> str:
     if executor == "auto":
         return "events" if mode == "lockstep" else "single"
     return executor
+
 
 #: the parameters of every MPC node (``system``'s default is the node's own system)
 PARAMS: tuple[Param, ...] = (
@@ -163,7 +166,7 @@ class MPCConfig:
             raise ValueError(f"unknown MPC parameter(s) {unknown} for system {system!r}")
         p = read_params(table, values)
         check(p["mode"] in MODES, "mode", f"one of {MODES}", p["mode"])
-        check(p["executor"] in (*EXECUTORS, "auto"), "executor", f"auto or one of {EXECUTORS}", p["executor"])
+        check(p["executor"] in EXECUTOR_CHOICES, "executor", f"auto or one of {EXECUTORS}", p["executor"])
         check(p["solver"] in SOLVERS, "solver", f"one of {SOLVERS}", p["solver"])
         for name in ("rate_hz", "poll_period"):
             check(p[name] > 0, name, "> 0", p[name])

@@ -20,6 +20,7 @@ Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``y`` ``(B, n_y)``, ``A = dy/d
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Literal, Protocol
 
 import numpy as np
@@ -544,11 +545,7 @@ class NumpyDynamics:
         roll = getattr(self.base, "rollout1", None) if self.mlp is None else None
         if roll is not None:
             return np.asarray(roll(x0, us))
-        xs = np.empty((us.shape[0] + 1, x0.shape[0]))
-        xs[0] = x0
-        for t in range(us.shape[0]):
-            xs[t + 1] = self.step1(xs[t], us[t])
-        return xs
+        return rollout_steps(self.step1, x0, us)
 
     def _plus_phi(self, y: np.ndarray | None, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The base prediction ``y`` plus phi (in place), phi alone for a full model (``y`` None), or ``y``."""
@@ -754,6 +751,16 @@ class NumpyDynamics:
             bp += b
             return yp, ap, bp
         return y, a, b
+
+
+def rollout_steps(step1: Callable[[np.ndarray, np.ndarray], np.ndarray], x0: np.ndarray,
+                  us: np.ndarray) -> np.ndarray:
+    """States ``(T+1, n)`` from ``x0`` ``(n,)`` under ``us`` ``(T, m)`` by T calls of a one-sample ``step1``."""
+    xs = np.empty((us.shape[0] + 1, x0.shape[0]))
+    xs[0] = x0
+    for t in range(us.shape[0]):
+        xs[t + 1] = step1(xs[t], us[t])
+    return xs
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -124,23 +124,24 @@ class BoundedDynamics:
     def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         return self.base.step1(x, u) + self._clip(self.mlp.forward(x, u))
 
-    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
-        y, a, b = self.base.step_jac(x, u)
+    def _phi_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        """phi and its Jacobians, zero in the fields the bound clips."""
         phi, ax, au = self.mlp.forward_jac(x, u)
         keep = (np.abs(phi) < self.bound)[:, :, None]
-        return y + np.clip(phi, -self.bound, self.bound), a + ax * keep, b + au * keep
+        return phi, ax * keep, au * keep
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        y, a, b = self.base.step_jac(x, u)
+        phi, ax, au = self._phi_jac(x, u)
+        return y + np.clip(phi, -self.bound, self.bound), a + ax, b + au
 
     def jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The Jacobians of :meth:`step_jac` alone (which fields are clipped needs phi, so it is computed; f_hat's
         prediction is not, when the base model has Jacobians of its own)."""
         base_jac = getattr(self.base, "jacobians", None)
-        if base_jac is None:
-            _, a, b = self.step_jac(x, u)
-            return a, b
-        a, b = base_jac(x, u)
-        phi, ax, au = self.mlp.forward_jac(x, u)
-        keep = (np.abs(phi) < self.bound)[:, :, None]
-        return a + ax * keep, b + au * keep
+        a, b = base_jac(x, u) if base_jac is not None else self.base.step_jac(x, u)[1:]
+        _, ax, au = self._phi_jac(x, u)
+        return a + ax, b + au
 
     def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
         """Predicted states ``(K, T+1, n)`` of control sequences ``us`` ``(K, T, m)`` from ``x0`` ``(n,)``."""

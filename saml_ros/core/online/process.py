@@ -152,7 +152,6 @@ class ReadyInfo:
     flush_denormal: bool
 
 
-
 def thread_ids(pid: int | None = None) -> list[int]:
     """The ids of the threads of process ``pid`` (None: this process) on Linux. Where ``/proc`` has none: ``[0]``
     (the calling thread) for this process, ``[]`` for another."""
@@ -160,6 +159,7 @@ def thread_ids(pid: int | None = None) -> list[int]:
         return [int(t) for t in os.listdir(f"/proc/{'self' if pid is None else pid}/task")]
     except OSError:
         return [0] if pid is None else []
+
 
 class TrainingProcess:
     """Runs the training side of an :class:`OnlineLearner` in a child process fed with transitions.

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.mpc.contract import MPCResult
-from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel
+from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel, rollout_steps
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
 
@@ -151,12 +151,7 @@ class ShootingMPC:
         roll = getattr(self.dyn, "rollout", None)
         if roll is not None:
             return np.asarray(roll(x0, plan_u))
-        xs = np.empty((plan_u.shape[0] + 1, self.n))
-        xs[0] = x0
-        step = self.dyn.step1
-        for t in range(plan_u.shape[0]):
-            xs[t + 1] = step(xs[t], plan_u[t])
-        return xs
+        return rollout_steps(self.dyn.step1, x0, plan_u)
 
     def _warm_start(self, x0: np.ndarray, task: ShootingTask) -> tuple[np.ndarray, np.ndarray | None]:
         """The initial guess ``(T, m)`` and, when candidates were scored, its predicted states ``(T+1, n)``

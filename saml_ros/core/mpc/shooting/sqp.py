@@ -114,8 +114,8 @@ class SQPShootingMPC(ShootingMPC):
         self._l1_rows = (self._no_g, self._no_rows)  # the l1 model's stage rows (J (T, T m), r (T,)), per iteration
         self._l1_abs = 0.0  # sum |r| of those rows
         self._l1qp: L1QP | None = None  # the l1 model's DAQP buffers (scalar stage cost), made on first use
-        #: the last :meth:`_merit`'s trajectory and its :meth:`ShootingTask.solver_violations`
-        self._last_violations: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+        #: the last :meth:`_merit`'s trajectory and the attitude row's gradient ``d/dq_v`` there (or None)
+        self._last_dqv: tuple[np.ndarray, np.ndarray | None] | None = None
         #: per-solve counters (iterations, QPs, rollouts, ...) of the last solve, for profiling
         self.stats: dict[str, int] = {}
         #: set to a list to record (iteration, merit, predicted, actual decrease, step, |d|, rho, penalty)
@@ -137,7 +137,7 @@ class SQPShootingMPC(ShootingMPC):
         r = xs[1:, task.res_idx] - task.target
         if task.n_cons:
             c, dqv = task.solver_violations(xs)
-            self._last_violations = (xs, c, dqv)  # _subproblem linearises at the point whose merit came last
+            self._last_dqv = (xs, dqv)  # _subproblem linearises at the point whose merit came last
         else:
             c = self._no_rows
         if r.shape[1] == 1:
@@ -181,8 +181,8 @@ class SQPShootingMPC(ShootingMPC):
         if task.n_cons:
             g_con = task.cons_sign[:, None] * sens[task.cons_t, task.cons_idx, :]
             if task.att_tol is not None:
-                last = self._last_violations
-                dqv = last[2] if last is not None and last[0] is xs else task.solver_violations(xs)[1]
+                last = self._last_dqv
+                dqv = last[1] if last is not None and last[0] is xs else task.solver_violations(xs)[1]
                 assert dqv is not None
                 g_con = np.vstack((g_con, dqv @ sens[task.horizon, list(task.att_qv), :]))
             # rows no control can move (e.g. pz_1 = pz_0 + dt vz_0) only add a constant: leave them out
