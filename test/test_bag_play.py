@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -76,3 +78,10 @@ def test_play_republishes_identical_bytes_with_clock_and_timing(ros_env: RosDoma
     assert np.median(gaps) == pytest.approx(0.05, abs=0.02)
 
 
+
+
+@pytest.mark.parametrize("delay", ["-1", "nan"])
+def test_play_refuses_a_negative_or_undefined_delay(tmp_path: Path, delay: str) -> None:
+    out = subprocess.run([sys.executable, "-m", "saml_ros.executables", "play", str(tmp_path / "bag"), "--delay",
+                          delay], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "--delay must be >= 0 s" in out.stderr, out.stderr

@@ -180,6 +180,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.rate < 0:
         print("play: --rate must be >= 0", file=sys.stderr)
         return 2
+    if not args.delay >= 0:
+        print(f"play: --delay must be >= 0 s, got {args.delay}", file=sys.stderr)
+        return 2
     try:
         bag = Bag(args.bag)
     except BagError as exc:
