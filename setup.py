@@ -34,7 +34,9 @@ setup(
     ),
     package_data={"saml_ros.core.worlds": ["assets/*.xml"],
                   # the fused training kernel's source, compiled on first use (saml_ros/core/training/engines/fused.py)
-                  "saml_ros.core.training.engines": ["kernels/*.cpp"]},
+                  "saml_ros.core.training.engines": ["kernels/*.cpp"],
+                  # the fast SQP's C kernel, compiled on first use (saml_ros/core/mpc/shooting/native.py)
+                  "saml_ros.core.mpc.shooting": ["kernels/*.c"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

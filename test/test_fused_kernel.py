@@ -265,10 +265,10 @@ def test_build_name_depends_on_source_torch_and_cpu(tmp_path: Path, monkeypatch:
     other = tmp_path / "fused_step.cpp"
     other.write_text(fused.KERNEL_SOURCE.read_text() + "\n// changed\n")
     assert fused.build_name(other) != name
-    cpu_id = fused._cpu_id
-    monkeypatch.setattr(fused, "_cpu_id", lambda: "model name: another cpu\nflags: sse2")
+    cpu_id = fused.cpu_id
+    monkeypatch.setattr(fused, "cpu_id", lambda: "model name: another cpu\nflags: sse2")
     assert fused.build_name() != name
-    monkeypatch.setattr(fused, "_cpu_id", cpu_id)
+    monkeypatch.setattr(fused, "cpu_id", cpu_id)
     monkeypatch.setattr(torch, "__version__", "0.0.0")
     assert fused.build_name() != name
     monkeypatch.delenv("SAML_KERNEL_CACHE", raising=False)

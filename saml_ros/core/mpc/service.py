@@ -310,6 +310,13 @@ class MPCService:
         values["checkpoints_gated"] = stats["gated"]
         values["last_gated"] = stats["last_gated"]
         values["max_step_ms_during_swap"] = round(self.step_ms_max_swap, 3)
+        solver: Any = self.controller
+        if self.guarded is not None:  # the learned model's solver once it has solved, else f_hat's
+            learned = self.guarded.learned
+            solver = learned if getattr(learned, "native_reason", None) != "no solve yet" else self.guarded.base
+        if hasattr(solver, "native_reason"):  # the fast shooting SQP: its numerics in C, or why not
+            why = solver.native_reason
+            values["solver_kernel"] = "C" if why is None else f"numpy ({why})"
         if self.guarded is not None:
             g = self.guarded
             values["guard_fallbacks"] = g.counters["fallbacks"]

@@ -13,6 +13,10 @@
    plan that still violates a constraint some control can move.
 
 It stops when the QP predicts a merit decrease below ``tol * (1 + merit)``, at ``max_iter`` or ``max_time``.
+
+With a Euclidean stage cost (the quadrotor) and a model the C kernel knows (f_hat, a PReLU network, both, the
+guard's bounded residual), steps 1-3, the merits and the line search's rollouts run in C
+(:mod:`~saml_ros.core.mpc.shooting.native`, option ``native``); the control flow and the QP stay here.
 """
 
 from __future__ import annotations
@@ -24,13 +28,14 @@ import numpy as np
 from scipy.linalg.blas import dtrsm as _dtrsm
 
 from saml_ros.core.mpc.dynamics_np import PredictionModel
+from saml_ros.core.mpc.shooting import native as _native
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, L1QP, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
 from saml_ros.core.systems.base import System
 
 #: one trial point of the line search: controls (T, m), predicted states (T+1, n), merit, residuals, constraints
-_Trial = tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]
+_Trial = tuple[np.ndarray, np.ndarray, float, np.ndarray | None, np.ndarray]
 #: the line search's step lengths, tried in this order
 _ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 
@@ -56,6 +61,8 @@ class SQPShootingMPC(ShootingMPC):
         undamped_check: before declaring convergence with a damped step (Levenberg-Marquardt weight above
             ``rho0``), re-solve the QP once with ``rho0``: avoids stopping early in flat valleys where damping
             makes every step predict little, at the price of more iterations (use with a small ``tol``).
+        native: use the C kernel where it applies (:mod:`~saml_ros.core.mpc.shooting.native`); False, or
+            ``SAML_MPC_NATIVE=0``, keeps the numpy path. :attr:`native_reason` says why it is not used.
     """
 
     def __init__(
@@ -74,6 +81,7 @@ class SQPShootingMPC(ShootingMPC):
         radial: float = 1.0,
         qp_backend: str | None = None,
         undamped_check: bool = False,
+        native: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(system, model, horizon, **kwargs)
@@ -84,6 +92,12 @@ class SQPShootingMPC(ShootingMPC):
         self.eps, self.penalty, self.penalty_max = eps, penalty, penalty_max
         self.rho0, self.lm_floor, self.radial = rho0, lm_floor, radial
         self.undamped_check = undamped_check
+        self.native = bool(native)
+        self._nat: _native.NativeSQP | None = None  # the kernel bound to self.dyn and the task's layout
+        #: why the last solve ran the numpy path (None: it ran the C kernel)
+        self.native_reason: str | None = "no solve yet"
+        if self.native:
+            _native.load_library()  # compiled (first use on this machine, ~1 s) or loaded now, not in a solve
         self.shrink = 1.0
         self._rho = rho0
         self._ipm_first = False  # the last QP had active state constraints: skip the box-only attempt
@@ -131,6 +145,55 @@ class SQPShootingMPC(ShootingMPC):
         if self._fixed.size == task.n_cons:
             return self._fixed
         return super()._fixed_rows(x0, plan_u, task)
+
+    def _native_for(self, task: ShootingTask) -> _native.NativeSQP | None:
+        """The C kernel bound to the current model and ``task``'s layout (made when either changed), or None with
+        :attr:`native_reason` set."""
+        nat = self._nat
+        if nat is not None and nat.fits(self.dyn, task):
+            self.native_reason = None
+            return nat
+        self._nat = None
+        if not self.native:
+            self.native_reason = "switched off (solver option native: false)"
+            return None
+        why = _native.unsupported_reason(self.dyn, task)
+        lib = _native.load_library() if why is None else None
+        if why is None and lib is None:
+            why = _native.reason()
+        self.native_reason = why
+        if why is not None or lib is None:
+            return None
+        self._nat = _native.NativeSQP(lib, self.dyn, task, self._u_hi - self._u_lo, self.radial)
+        return self._nat
+
+    def _merit_of(self, nat: _native.NativeSQP | None, xs: np.ndarray, task: ShootingTask,
+                  penalty: float) -> tuple[float, np.ndarray | None, np.ndarray]:
+        """:meth:`_merit`, by the C kernel when bound (then without the residuals, which only the numpy path uses)."""
+        if nat is None:
+            return self._merit(xs, task, penalty)
+        merit, c = nat.merit(xs, penalty)
+        return merit, None, c
+
+    def _drop_fixed(self, g_con: np.ndarray, reach: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Leaves out the constraint rows no control can move (``reach``: each row's largest change over the control
+        box), e.g. ``pz_1 = pz_0 + dt vz_0``: they only add a constant. Remembers them for :meth:`_fixed_rows`."""
+        self._fixed = reach < 0.01 * self.feas_tol
+        if self._fixed.any():
+            keep = ~self._fixed
+            return g_con[keep], c[keep]
+        return g_con, c
+
+    def _native_subproblem(self, nat: _native.NativeSQP, xs: np.ndarray, u: np.ndarray, c: np.ndarray,
+                           penalty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """:meth:`_subproblem` (with the Jacobians and sensitivities) by the C kernel."""
+        hess, grad, g_con, reach, scale = nat.linearize(xs, u)
+        if c.size:
+            g_con, c = self._drop_fixed(g_con, reach, c)
+            pen_c = np.full(c.size, penalty) if c.size else self._no_rows
+        else:
+            g_con, pen_c = self._no_g, self._no_rows
+        return hess, grad, g_con, -c, pen_c, scale
 
     def _merit(self, xs: np.ndarray, task: ShootingTask, penalty: float) -> tuple[float, np.ndarray, np.ndarray]:
         """Merit (cost, norms smoothed + penalty * violation), residuals ``(T, k)``, constraint values."""
@@ -185,12 +248,7 @@ class SQPShootingMPC(ShootingMPC):
                 dqv = last[1] if last is not None and last[0] is xs else task.solver_violations(xs)[1]
                 assert dqv is not None
                 g_con = np.vstack((g_con, dqv @ sens[task.horizon, list(task.att_qv), :]))
-            # rows no control can move (e.g. pz_1 = pz_0 + dt vz_0) only add a constant: leave them out
-            reach = np.abs(g_con) @ (self._u_hi - self._u_lo)
-            self._fixed = reach < 0.01 * self.feas_tol
-            if self._fixed.any():
-                keep = ~self._fixed
-                g_con, c = g_con[keep], c[keep]
+            g_con, c = self._drop_fixed(g_con, np.abs(g_con) @ (self._u_hi - self._u_lo), c)
         else:
             g_con = self._no_g
         pen_c = np.full(c.size, penalty) if c.size else self._no_rows
@@ -281,8 +339,13 @@ class SQPShootingMPC(ShootingMPC):
         stage_rows = task.res_idx.size == 1
         penalty = self.penalty
         u = u0.copy()
-        xs = self.rollout(x0, u) if xs0 is None else xs0
-        merit, r, c = self._merit(xs, task, penalty)
+        nat = self._native_for(task)
+        if nat is not None:
+            nat.set_target(task.target, self.eps)
+            xs = nat.rollout(x0, u) if xs0 is None else xs0
+        else:
+            xs = self.rollout(x0, u) if xs0 is None else xs0
+        merit, r, c = self._merit_of(nat, xs, task, penalty)
         if not np.isfinite(merit):
             raise FloatingPointError("the warm start's prediction is not finite")
         rho = self._rho
@@ -293,11 +356,16 @@ class SQPShootingMPC(ShootingMPC):
         fused_jac = getattr(self.dyn, "fused_jacobians", None) if getattr(self.dyn, "fused_rollout", False) else None
         src = self._start_src if xs0 is not None else None
         for it in range(1, self.max_iter + 1):  # noqa: B007
-            ab = fused_jac(src[0], self.horizon, src[1], src[2]) if fused_jac is not None and src is not None else None
-            a, b = ab if ab is not None else self.dyn.jacobians(xs[:-1], u)
             self.stats["jacobians"] += 1
-            sens = self._sensitivities(a, b)
-            hess, grad, g_mat, h_vec, pen, scale = self._subproblem(sens, xs, r, c, task, penalty)
+            if nat is not None:
+                hess, grad, g_mat, h_vec, pen, scale = self._native_subproblem(nat, xs, u, c, penalty)
+            else:
+                ab = fused_jac(src[0], self.horizon, src[1], src[2]) if fused_jac is not None and src is not None \
+                    else None
+                a, b = ab if ab is not None else self.dyn.jacobians(xs[:-1], u)
+                assert r is not None
+                sens = self._sensitivities(a, b)
+                hess, grad, g_mat, h_vec, pen, scale = self._subproblem(sens, xs, r, c, task, penalty)
             lo, hi = self._u_lo - u.reshape(-1), self._u_hi - u.reshape(-1)
             rows0 = float(pen @ np.maximum(-h_vec, 0.0)) if h_vec.size else 0.0
             accepted = False
@@ -325,7 +393,7 @@ class SQPShootingMPC(ShootingMPC):
                         continue
                     converged = True
                     break
-                alpha, accepted, trial = self._line_search(x0, u, d, merit, pred, task, penalty)
+                alpha, accepted, trial = self._line_search(x0, u, d, merit, pred, task, penalty, nat)
                 merit_new = trial[2]
                 if self.trace is not None:
                     self.trace.append((it, round(merit, 5), round(pred, 6), round(merit - merit_new, 6),
@@ -347,7 +415,7 @@ class SQPShootingMPC(ShootingMPC):
                 if viol > self.feas_tol and penalty < self.penalty_max:
                     # converged to a point that still violates a constraint: make violations dearer, go on
                     penalty *= 10.0
-                    merit, r, c = self._merit(xs, task, penalty)
+                    merit, r, c = self._merit_of(nat, xs, task, penalty)
                     converged = False
                     continue
                 msg = "converged"
@@ -364,15 +432,22 @@ class SQPShootingMPC(ShootingMPC):
         return u, it, converged, msg, xs
 
     def _line_search(self, x0: np.ndarray, u: np.ndarray, d: np.ndarray, merit: float, pred: float,
-                     task: ShootingTask, penalty: float) -> tuple[float, bool, _Trial]:
+                     task: ShootingTask, penalty: float, nat: _native.NativeSQP | None = None,
+                     ) -> tuple[float, bool, _Trial]:
         """Backtracking along the QP step ``d`` (T m,) from ``u`` (T, m) on the l1 merit (Armijo on the predicted
         decrease ``pred``) over the step lengths :data:`_ALPHAS`: the last step length tried, whether it was
         accepted, and its trial point.
 
         With a fused batched rollout (:attr:`NumpyDynamics.fused_rollout`: a linear base model or none, and a
         network) all step lengths are rolled out in ONE batched call, which costs about as much as one
-        sequence; the merits are then taken in order, so the accepted point is the sequential search's."""
+        sequence; the merits are then taken in order, so the accepted point is the sequential search's. With the C
+        kernel (``nat``) the sequential search runs there."""
         T, m = self.horizon, self.m
+        if nat is not None:
+            self._trial_src = None
+            i, (u_new, xs_new, merit_new, c_new) = nat.line_search(x0, u, d, _ALPHAS, merit, pred, penalty)
+            self.stats["rollouts"] += i + 1 if i >= 0 else len(_ALPHAS)
+            return _ALPHAS[i], i >= 0, (u_new, xs_new, merit_new, None, c_new)
         if getattr(self.dyn, "fused_rollout", False):
             u_all = u[None] + self._alphas * d.reshape(1, T, m)
             xs_all = self.dyn.rollout_batch(x0, u_all)

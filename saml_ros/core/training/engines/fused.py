@@ -30,7 +30,6 @@ import hashlib
 import importlib.util
 import logging
 import os
-import platform
 import sys
 import time
 import warnings
@@ -42,6 +41,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from saml_ros.core.native_build import cache_root, cpu_id
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import AugmentedDual, NuPIDual, ResilientDual
 from saml_ros.core.training.engines.base import RunState, minibatch_plan
@@ -79,36 +79,16 @@ def switched_off() -> bool:
     return os.environ.get(SWITCH_ENV, "1").strip().lower() in ("0", "false", "off", "no")
 
 
-def _cpu_id() -> str:
-    """This CPU's model name and feature flags (what ``-march=native`` compiles for)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return f"{platform.machine()} {platform.processor()}"
-    keep = [ln for ln in text.splitlines() if ln.split(":")[0].strip() in ("model name", "flags", "Features")]
-    return "\n".join(sorted(set(keep)))
-
-
 def build_name(source: Path = KERNEL_SOURCE) -> str:
     """The extension's name: ``saml_fused_step_<hash>`` of the source, torch version, flags and CPU."""
     h = hashlib.sha256()
     # the torch installation's path too: two environments (venvs) sharing the cache would otherwise rewrite each
     # other's build.ninja (other include paths) and rebuild in turn
-    for part in (source.read_bytes(), torch.__version__.encode(), " ".join(CFLAGS).encode(), _cpu_id().encode(),
+    for part in (source.read_bytes(), torch.__version__.encode(), " ".join(CFLAGS).encode(), cpu_id().encode(),
                  sys.version.encode(), str(Path(torch.__file__).resolve().parent).encode()):
         h.update(part)
         h.update(b"\0")
     return f"saml_fused_step_{h.hexdigest()[:16]}"
-
-
-def cache_root() -> Path:
-    """Where builds go: ``$SAML_KERNEL_CACHE``, else ``$XDG_CACHE_HOME/saml_ros/fused_kernel`` or
-    ``~/.cache/saml_ros/fused_kernel``."""
-    env = os.environ.get("SAML_KERNEL_CACHE")
-    if env:
-        return Path(env)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "saml_ros" / "fused_kernel"
 
 
 def _ensure_ninja_on_path() -> None:
