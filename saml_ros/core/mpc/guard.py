@@ -105,6 +105,10 @@ class BoundedDynamics:
     """``f_hat + clip(phi, -bound, bound)`` (per target field) of a residual :class:`NumpyDynamics`; the
     Jacobian of a clipped output is f_hat's. Same interface as :class:`NumpyDynamics`."""
 
+    #: what the SQP's C kernel (:mod:`~saml_ros.core.mpc.shooting.native`) reads from a model with this marker:
+    #: ``base``, ``mlp`` and the per-field ``bound`` of ``y = base(x, u) + clip(mlp(x, u), -bound, bound)``
+    clips_phi = True
+
     def __init__(self, dyn: NumpyDynamics, bound: np.ndarray) -> None:
         if dyn.kind != "residual" or dyn.base is None or dyn.mlp is None:
             raise ValueError(f"a residual bound needs a residual model, got kind {dyn.kind!r}")

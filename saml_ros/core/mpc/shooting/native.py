@@ -170,14 +170,13 @@ def _addr(a: np.ndarray) -> int:
 def unsupported_reason(dyn: Any, task: Any) -> str | None:
     """Why :class:`NativeSQP` cannot serve this prediction model and task (None: it can)."""
     from saml_ros.core.mpc.dynamics_np import NumpyDynamics, QuadrotorBaseNP
-    from saml_ros.core.mpc.guard import BoundedDynamics
     from saml_ros.core.mpc.mlp_np import NumpyMLP
 
     if task.res_idx.size < 2:
         return "a scalar stage cost (the exact l1 model runs in numpy)"
     mlp: Any
     base: Any
-    if type(dyn) is BoundedDynamics:
+    if getattr(type(dyn), "clips_phi", False):  # the guard's BoundedDynamics: f_hat + clip(phi, -bound, bound)
         mlp, base = dyn.mlp, dyn.base
     elif type(dyn) is NumpyDynamics:
         if dyn.kind not in ("base", "residual", "full"):
