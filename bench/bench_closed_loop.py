@@ -2,7 +2,8 @@
 
     ./dev python -m bench.bench_closed_loop                # 60 s of simulated time, learner running
     ./dev python -m bench.bench_closed_loop --no-learner --sim-time 20
-    ./dev bench closed_loop --no-learner --compare --rounds 2          # before / after this branch's loop changes
+    ./dev bench closed_loop --no-learner --compare --rounds 2          # before / numpy SQP / after (issue #15)
+    ./dev bench closed_loop --no-learner --sim-time 40 --numpy-sqp     # the SQP's numpy path, not its C kernel
     ./dev bench closed_loop --no-learner --mpc demo                    # the demo's MPC settings
 
 Starts the nodes as separate processes (the bringup machinery, private ROS_DOMAIN_ID unless one is set) and
@@ -42,7 +43,7 @@ def _percentiles(values: Sequence[float]) -> str:
 
 def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Path,
         sim_executor: str = "events", mpc_executor: str = "events", cdr: bool = True,
-        mpc_extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        mpc_extra: dict[str, Any] | None = None, native: bool = True) -> dict[str, Any]:
     """Run the loop for ``sim_time`` simulated seconds; returns the measurements (ms). One function on purpose
     (longer than 80 lines): the probe node's callbacks close over the measurement lists it returns."""
     import rclpy
@@ -56,6 +57,7 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
 
     env = child_env(domain_id)
     env["SAML_CDR"] = "1" if cdr else "0"
+    env["SAML_MPC_NATIVE"] = "1" if native else "0"
     os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = env["ROS_AUTOMATIC_DISCOVERY_RANGE"]
     schema = get_schema("quadrotor")
@@ -164,9 +166,11 @@ def run(sim_time: float, learner: bool, domain_id: int, solver: str, workdir: Pa
             "versions": sorted(versions), "wall": wall, "steps": steps, "codes": codes, "phases": phases}
 
 
-#: the loop's configurations ``--compare`` measures: (label, simulator executor, MPC executor, CDR fast path);
-#: "before" is the loop before issue #15's second item (MPC on SingleThreadedExecutor, message objects)
-CONFIGS = {"before": ("events", "single", False), "after": ("events", "events", True)}
+#: the loop's configurations ``--compare`` measures: (simulator executor, MPC executor, CDR fast path, the SQP's C
+#: kernel); "before" is the loop before issue #15's second item (MPC on SingleThreadedExecutor, message objects,
+#: the numpy SQP), "numpy SQP" today's loop with the SQP's numpy path (SAML_MPC_NATIVE=0)
+CONFIGS = {"before": ("events", "single", False, False), "numpy SQP": ("events", "events", True, False),
+           "after": ("events", "events", True, True)}
 
 
 def _report(label: str, r: dict[str, Any], args: argparse.Namespace) -> dict[str, float]:
@@ -216,9 +220,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--mpc-executor", default="events", choices=("events", "single"), help="the MPC's executor")
     p.add_argument("--objects", action="store_true",
                    help="state and cmd as message objects (SAML_CDR=0), not the CDR fast path")
+    p.add_argument("--numpy-sqp", action="store_true",
+                   help="the fast SQP on its numpy path (SAML_MPC_NATIVE=0), not its C kernel")
     p.add_argument("--compare", action="store_true",
                    help=f"run the configurations {list(CONFIGS)} alternately (--rounds each) and print them side "
-                        "by side: before = MPC on SingleThreadedExecutor and message objects, after = this branch")
+                        "by side: before = MPC on SingleThreadedExecutor, message objects and the numpy SQP; numpy "
+                        "SQP = today's loop with the SQP's numpy path; after = today's loop")
     p.add_argument("--rounds", type=int, default=2, help="with --compare: runs of each configuration")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: env or random 30..90)")
     args = p.parse_args(argv)
@@ -235,15 +242,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.compare:
         plan = [name for _ in range(args.rounds) for name in CONFIGS]
     else:
-        CONFIGS["this run"] = (args.executor, args.mpc_executor, not args.objects)
+        CONFIGS["this run"] = (args.executor, args.mpc_executor, not args.objects, not args.numpy_sqp)
         plan = ["this run"]
     rows: list[tuple[str, dict[str, float]]] = []
     for i, name in enumerate(plan):
-        sim_ex, mpc_ex, cdr = CONFIGS[name]
-        label = f"{name} (sim {sim_ex}, mpc {mpc_ex}, {'CDR' if cdr else 'message objects'})"
+        sim_ex, mpc_ex, cdr, native = CONFIGS[name]
+        label = (f"{name} (sim {sim_ex}, mpc {mpc_ex}, {'CDR' if cdr else 'message objects'}, SQP "
+                 f"{'C kernel' if native else 'numpy'})")
         with tempfile.TemporaryDirectory(prefix="bench_closed_loop_") as tmp:
             r = run(args.sim_time, not args.no_learner, domain, args.solver, Path(tmp), sim_ex, mpc_ex, cdr,
-                    mpc_extra)
+                    mpc_extra, native)
         rows.append((name, _report(f"{i + 1}/{len(plan)} {label}", r, args)))
     if args.compare:
         print("\nside by side (medians; overhead = median latency - median solve: transport, decoding, scheduling)")
