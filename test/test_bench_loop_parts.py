@@ -10,6 +10,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.bench_loop_parts import main  # noqa: E402
+from saml_ros.core.mpc.shooting import native  # noqa: E402
 
 
 def test_against_reports_identical_commands_and_catches_a_change(tmp_path: Path,
@@ -19,10 +20,19 @@ def test_against_reports_identical_commands_and_catches_a_change(tmp_path: Path,
     ref = np.load(saved)
     assert ref["commands"].shape == (12, 4) and ref["iterations"].shape == (12,)
     assert main(["--steps", "12", "--against", str(saved)]) == 0  # the loop is deterministic
-    assert "identical" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "identical" in out
+    # the MPC service reports which numerics its SQP ran (its /diagnostics value solver_kernel)
+    assert ("SQP numerics C:" if native.load_library() is not None else "SQP numerics numpy (") in out
     changed = tmp_path / "changed.npz"
     cmds = ref["commands"].copy()
     cmds[5, 2] += 1e-12
     np.savez(changed, commands=cmds, iterations=ref["iterations"])
     assert main(["--steps", "12", "--against", str(changed)]) == 1
+    assert "DIFFERENT" in capsys.readouterr().out
+    assert main(["--steps", "12", "--against", str(changed), "--tol", "1e-9"]) == 0  # a rounding-size change
+    assert "equal within 1e-09" in capsys.readouterr().out
+    cmds[5, 2] += 1e-3
+    np.savez(changed, commands=cmds, iterations=ref["iterations"])
+    assert main(["--steps", "12", "--against", str(changed), "--tol", "1e-9"]) == 1
     assert "DIFFERENT" in capsys.readouterr().out
