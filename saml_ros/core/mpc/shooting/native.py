@@ -31,6 +31,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import time
 import warnings
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,7 @@ class _State:
         self.lib: ctypes.CDLL | None = None
         self.reason: str | None = "not loaded yet"
         self.warned = False
+        self.seconds: float | None = None  # compile time in this process (None: loaded from the cache)
 
 
 _STATE = _State()
@@ -133,6 +135,7 @@ def load_library(build: bool = True) -> ctypes.CDLL | None:
             with open(root / "sqp_native.lock", "w") as lock:
                 fcntl.flock(lock, fcntl.LOCK_EX)
                 if not so.is_file():
+                    t0 = time.perf_counter()
                     fd, tmp = tempfile.mkstemp(suffix=".so", dir=root)
                     os.close(fd)
                     try:
@@ -141,6 +144,7 @@ def load_library(build: bool = True) -> ctypes.CDLL | None:
                         if run.returncode != 0:
                             raise RuntimeError(f"{cc} failed: {run.stderr.strip()[:500]}")
                         os.replace(tmp, so)
+                        _STATE.seconds = time.perf_counter() - t0
                     finally:
                         Path(tmp).unlink(missing_ok=True)
         _STATE.lib = _declare(ctypes.CDLL(str(so)))
@@ -357,3 +361,15 @@ class NativeSQP:
         y, a, b = np.empty((bsz, self.n)), np.empty((bsz, self.n, self.n)), np.empty((bsz, self.n, self.m))
         self.lib.sqp_step_batch(self._pm, _addr(x), _addr(u), bsz, _addr(y), _addr(a), _addr(b))
         return y, a, b
+
+
+def main() -> int:
+    """Build or load the kernel and say which (``./dev test`` runs this before pytest, so no test pays for the
+    compile)."""
+    lib = load_library()
+    if lib is not None:
+        how = "cached" if _STATE.seconds is None else f"built in {_STATE.seconds:.1f} s"
+        print(f"[dev] MPC SQP kernel: ready ({how})", flush=True)
+    else:
+        print(f"[dev] MPC SQP kernel: not built ({reason()}) - numpy path", flush=True)
+    return 0
