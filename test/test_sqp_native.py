@@ -138,6 +138,10 @@ def test_kernel_steps_aside_where_it_does_not_apply() -> None:
     x[6], x[2] = 1.0, 2.0
     oracle.solve(x)
     assert "oracle" in str(oracle.native_reason)
+    long = make_controller(QUAD, None, solver="fast", horizon=129)  # 516 controls: beyond the kernel's buffers
+    assert isinstance(long, SQPShootingMPC)
+    long.solve(x)
+    assert "horizon 129" in str(long.native_reason)
     wide = NumpyDynamics(QUAD, _model("residual", hidden=(600,)), base=base_model_np(QUAD))
     assert "limits" in str(native.unsupported_reason(wide, quadrotor_task(QUAD)))
     assert "scalar" in str(native.unsupported_reason(wide, friction_task(friction)))
@@ -177,3 +181,24 @@ def test_kernel_is_built_once_into_the_cache_and_falls_back_without_a_compiler(t
     assert out.count("the MPC's C kernel is not available") == 1
     out = _child(_SOLVE, {"SAML_KERNEL_CACHE": str(tmp_path / "c"), "SAML_MPC_NATIVE": "0"})
     assert "OK True True REASON switched off (SAML_MPC_NATIVE=0)" in out
+
+
+def test_kernel_merit_refuses_a_non_finite_trajectory_as_numpy_does() -> None:
+    """A trial point whose last quaternion is NaN (it does not enter the position cost) has merit +inf on both
+    paths, so the line search rejects it; finite points have the same merit."""
+    ctl = make_controller(QUAD, None, solver="fast", native=False)
+    assert isinstance(ctl, SQPShootingMPC)
+    task = ctl.task
+    lib = native.load_library()
+    assert lib is not None
+    nat = native.NativeSQP(lib, ctl.dyn, task, ctl._u_hi - ctl._u_lo, ctl.radial)
+    nat.set_target(task.target, ctl.eps)
+    x0 = np.zeros(13)
+    x0[6], x0[2] = 1.0, 2.0
+    xs = ctl.rollout(x0, np.tile(QUAD.hover_thrust(), (10, 1)) * 1.1)
+    merit, c = nat.merit(xs, 10.0)
+    ref, _, c_ref = ctl._merit(xs, task, 10.0)
+    assert merit == pytest.approx(ref, rel=1e-13) and np.allclose(c, c_ref, rtol=1e-13, atol=1e-15)
+    xs[-1, 7] = np.nan
+    assert ctl._merit(xs, task, 10.0)[0] == np.inf
+    assert nat.merit(xs, 10.0)[0] == np.inf

@@ -132,7 +132,11 @@ def load_library(build: bool = True) -> ctypes.CDLL | None:
             cc = _compiler()
             if cc is None:
                 raise RuntimeError("no C compiler (cc, or $CC) on PATH")
-            with open(root / "sqp_native.lock", "w") as lock:
+            with open(root / "sqp_native.lock", "a") as lock:
+                try:
+                    os.fchmod(lock.fileno(), 0o666)  # a cache shared between users: all of them may build
+                except OSError:
+                    pass
                 fcntl.flock(lock, fcntl.LOCK_EX)
                 if not so.is_file():
                     t0 = time.perf_counter()
@@ -143,6 +147,7 @@ def load_library(build: bool = True) -> ctypes.CDLL | None:
                                              text=True, timeout=120)
                         if run.returncode != 0:
                             raise RuntimeError(f"{cc} failed: {run.stderr.strip()[:500]}")
+                        os.chmod(tmp, 0o755)  # mkstemp's 0600 would keep other users of a shared cache out
                         os.replace(tmp, so)
                         _STATE.seconds = time.perf_counter() - t0
                     finally:
@@ -178,6 +183,8 @@ def unsupported_reason(dyn: Any, task: Any) -> str | None:
 
     if task.res_idx.size < 2:
         return "a scalar stage cost (the exact l1 model runs in numpy)"
+    if task.horizon * task.u_low.size > MAX_WIDTH or task.res_idx.size > MAX_NZ:
+        return f"horizon {task.horizon} x {task.u_low.size} controls beyond the kernel's {MAX_WIDTH}"
     mlp: Any
     base: Any
     if getattr(type(dyn), "clips_phi", False):  # the guard's BoundedDynamics: f_hat + clip(phi, -bound, bound)
@@ -204,6 +211,14 @@ def unsupported_reason(dyn: Any, task: Any) -> str | None:
         return "no model"
     if n + m > MAX_NZ:
         return "state and control too large"
+    if task.u_low.size != m:
+        return f"task has {task.u_low.size} controls, the model {m}"
+    # the kernel reads these indices unchecked: anything out of range goes the numpy way (which raises)
+    idx_ok = all(a.size == 0 or (int(a.min()) >= 0 and int(a.max()) < n)
+                 for a in (np.asarray(task.res_idx), np.asarray(task.cons_idx), np.asarray(task.att_qv)))
+    t_ok = task.cons_t.size == 0 or (int(task.cons_t.min()) >= 0 and int(task.cons_t.max()) <= task.horizon)
+    if not (idx_ok and t_ok):
+        return "task indices out of range"
     return None
 
 
@@ -300,10 +315,10 @@ class NativeSQP:
                                         ("merits", self._merits), ("c_all", self._c_all),
                                         ("urange", self._urange))}
 
-    def fits(self, dyn: Any, task: Any) -> bool:
-        """Whether this binding serves ``dyn`` and ``task``'s layout (the goal may differ)."""
+    def fits(self, dyn: Any, task: Any, radial: float) -> bool:
+        """Whether this binding serves ``dyn``, ``task``'s layout (the goal may differ) and ``radial``."""
         key = self._task_key
-        return dyn is self.dyn and task.horizon == key[7] and task.att_tol == key[5] and task.att_qv == key[6] \
+        return dyn is self.dyn and radial == self.radial and task.horizon == key[7] and task.att_tol == key[5] and task.att_qv == key[6] \
             and all(a is b or np.array_equal(a, b) for a, b in zip(key[:5], (task.res_idx, task.cons_t,
                                                                             task.cons_idx, task.cons_sign,
                                                                             task.cons_bound), strict=True))

@@ -150,7 +150,7 @@ class SQPShootingMPC(ShootingMPC):
         """The C kernel bound to the current model and ``task``'s layout (made when either changed), or None with
         :attr:`native_reason` set."""
         nat = self._nat
-        if nat is not None and nat.fits(self.dyn, task):
+        if nat is not None and self.native and nat.fits(self.dyn, task, self.radial) and not _native.switched_off():
             self.native_reason = None
             return nat
         self._nat = None

@@ -13,7 +13,7 @@
 #include <math.h>
 #include <string.h>
 
-#define MAXW 512   /* widest layer */
+#define MAXW 512   /* widest layer; also the most controls in a plan (T m) */
 #define MAXL 8     /* layers */
 #define MAXZ 48    /* n + m */
 
@@ -247,14 +247,14 @@ double sqp_merit(const Task *K, const double *xs, long n, double penalty, double
     double viol = 0.0;
     for (long i = 0; i < K->nlin; i++) {
         c[i] = K->cons_sign[i] * xs[K->cons_t[i] * n + K->cons_idx[i]] - K->cons_bound[i];
-        if (c[i] > 0.0) viol += c[i];
+        if (!(c[i] <= 0.0)) viol += c[i];  /* a NaN makes the merit NaN (then +inf), as np.maximum does */
     }
     if (K->att) {
         const double *q = xs + T * n;
         const double a = q[K->qv[0]], b = q[K->qv[1]], d = q[K->qv[2]];
         const double c_att = sqrt(a * a + b * b + d * d + 1e-12) - K->att_r;
         c[K->nlin] = c_att;
-        if (c_att > 0.0) viol += c_att;
+        if (!(c_att <= 0.0)) viol += c_att;
     }
     if (K->nlin + K->att) merit += penalty * viol;
     if (!isfinite(merit)) merit = INFINITY;
