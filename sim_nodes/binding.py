@@ -7,6 +7,7 @@ registry entry builds (``SystemEntry.simulator``) from the parameter values.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,6 +25,9 @@ COMMON_PARAMS: tuple[Param, ...] = (
                               "lockstep), then the safe default applies and is counted (0 = hold forever)"),
     Param("lockstep_timeout", 1.0, "lockstep: wall seconds to wait for the cmd answering a state before "
                                    "applying the held command / safe default (counted as a miss)"),
+    Param("max_speed", 0.0, "lockstep: at most this many simulated seconds per wall second (0 = as fast as the "
+                            "slowest participant); keeps the CPU share of processes beside the loop, such as "
+                            "learners, per simulated second independent of the controller's speed"),
     Param("max_sim_time", 0.0, "simulated seconds after which the node exits (0 = run forever)"),
     Param("episode_steps", 0, "steps per episode, then a new start state (0 = one endless episode)"),
     Param("initial_state", [], "start state of every episode (the system's state vector); empty = drawn by "
@@ -107,6 +111,8 @@ def check_params(p: dict[str, Any]) -> None:
             raise ValueError(f"parameter {name!r} must be > 0, got {p[name]}")
     if p["start_delay"] < 0:
         raise ValueError(f"parameter 'start_delay' must be >= 0, got {p['start_delay']}")
+    if not (math.isfinite(p["max_speed"]) and p["max_speed"] >= 0):
+        raise ValueError(f"parameter 'max_speed' must be >= 0 (0 = no limit), got {p['max_speed']}")
 
 
 def config_from_params(p: dict[str, Any], t0_ns: int = LOCKSTEP_T0_NS) -> SimConfig:

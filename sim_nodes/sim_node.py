@@ -40,6 +40,7 @@ from msg_schemas.telemetry import (
 )
 from saml_ros.core.params import coerce_param
 from saml_ros.core.systems import get_entry
+from saml_ros.core.worlds.pacing import Pacer
 from saml_ros.core.worlds.sim_core import (
     LOCKSTEP_T0_NS,
     Output,
@@ -79,6 +80,7 @@ class SimNode(Node):
         self.schema = entry.schema()
         self.core = entry.simulator(self.system, config_from_params(p), p)
         self.lockstep = self.core.config.lockstep
+        self._pacer = Pacer(p["max_speed"] if self.lockstep else 0.0)
         self.done_future = Future()
         self._finish_at: float | None = None
         self._started_wall = time.monotonic()
@@ -105,7 +107,8 @@ class SimNode(Node):
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics, clock=steady)
         self.get_logger().info(
             f"{binding.system} simulator, {p['mode']}"
-            + (f" at {p['rate_hz']:g} Hz" if not self.lockstep else f" (lockstep_timeout {p['lockstep_timeout']} s)")
+            + (f" at {p['rate_hz']:g} Hz" if not self.lockstep else f" (lockstep_timeout {p['lockstep_timeout']} s"
+               + (f", at most {p['max_speed']:g}x real time" if p["max_speed"] > 0 else "") + ")")
             + f", episode_steps {p['episode_steps']}, max_sim_time {p['max_sim_time']} s, seed {p['seed']}"
         )
 
@@ -164,6 +167,12 @@ class SimNode(Node):
             self.core.reject(exc.reason, str(exc))
             self._warn_throttled("reject", f"rejected cmd: {exc}")
             return
+        # lockstep speed limit (max_speed), for the answer the simulator waits for only: a short sleep (nothing
+        # else is due in lockstep while the state is answered); a wrong stamp is rejected at once
+        wait = self._pacer.wait_s(stamp, now) if stamp == self.core.awaiting else 0.0
+        if wait > 0.0:
+            time.sleep(min(wait, 1.0))
+            now = time.monotonic_ns()
         rejected_before = self.core.n_rejections
         self._publish(self.core.on_cmd(u, stamp, now))
         if self.core.n_rejections != rejected_before:
@@ -193,6 +202,8 @@ class SimNode(Node):
         steps = int(values.get("steps", 0))
         rate = (steps - int(self._last_diag.get("steps", 0))) / max(now - self._last_diag_time, 1e-9)
         values["steps_per_second"] = f"{rate:.1f}"
+        if self._pacer.max_speed > 0:
+            values["max_speed_waited_s"] = f"{self._pacer.waited_s:.2f}"
         warn = any(k.startswith(_WARN_PREFIXES) and values[k] != self._last_diag.get(k, 0) for k in values)
         self._last_diag, self._last_diag_time = values, now
         entry = DiagnosticEntry(

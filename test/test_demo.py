@@ -114,6 +114,9 @@ def test_demo_set_overrides_reach_both_learners_and_the_evaluation(tmp_path: Pat
     assert params["learner_ua"]["uniform"] is True
     assert params["mpc"]["horizon"] == 8
     assert config["sim"]["seed"] == 3 and config["sim_time"] == 60.0
+    # the live loop's speed limit reaches the simulator, and --set lifts it
+    assert params["sim"]["max_speed"] == 5.0
+    assert node_params(live_config(3, 60.0, ["sim.max_speed=0"]), tmp_path)["sim"]["max_speed"] == 0
 
 
 def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: Path,

@@ -250,3 +250,37 @@ def test_paddle_ball_lockstep_publishes_state_applied_cmd_and_post_impact_with_o
     # machine delivers some after the impacts that ended the wait, or drops part of a burst; more flights follow.
     wait_for(lambda: len(flight) > 10, TIMEOUT, what="11 flight samples")
     assert sim.stop() == 0
+
+
+def test_lockstep_max_speed_limits_simulated_seconds_per_wall_second(ros_env: RosDomain,
+                                                                     ros_node: TestNode) -> None:
+    """``max_speed``: an instant controller would run the lockstep friction loop at hundreds of times real time; at
+    ``max_speed:=5`` the 3 simulated seconds take at least 0.6 wall seconds, and the waits are counted."""
+    schema = get_schema("friction")
+    qos = DATA_QOS.to_rclpy()
+    ns = "/paced"
+    cmd_pub = ros_node.publisher(JointState, f"{ns}/cmd", qos)
+    arrivals: list[tuple[float, int]] = []
+
+    def answer(msg: JointState) -> None:
+        _, t = schema.state_from_msg(msg)
+        arrivals.append((time.monotonic(), t))
+        cmd_pub.publish(schema.control_to_msg(np.zeros(1), t))
+
+    ros_node.subscribe(JointState, f"{ns}/state", qos, callback=answer)
+    diags = ros_node.subscribe(DiagnosticArray, "/diagnostics")
+    sim = ros_env.launch(
+        "friction_sim", "-p", "mode:=lockstep", "-p", "max_speed:=5.0", "-p", "max_sim_time:=3.0",
+        "-p", "start_delay:=0.3", "-p", "lockstep_timeout:=20.0", "-p", "diagnostics_period:=0.2",
+        "-p", "publish_clock:=false", namespace=ns,
+    )
+    assert sim.wait(TIMEOUT) == 0, sim.output()
+    assert "at most 5x real time" in sim.output()
+    assert len(arrivals) >= 25, sim.output()
+    (w0, t0), (w1, t1) = arrivals[0], arrivals[-1]
+    sim_span = (t1 - t0) * 1e-9
+    assert sim_span >= 2.4
+    assert w1 - w0 >= 0.95 * sim_span / 5.0, (w1 - w0, sim_span)
+    name = f"{ns}/friction_sim"
+    assert float(diagnostics_of(diags, name).get("max_speed_waited_s", 0.0)) > 0.3
+    assert counter(diags, name, "lockstep_misses") == 0

@@ -44,6 +44,12 @@ DEMO_SIM_TIME = 180.0
 #: fresh starts of the paired evaluation from the simulator's sampler, and far / fast ones
 DEMO_EVAL_STARTS = 30
 DEMO_AGGRESSIVE_STARTS = 10
+#: the live loop's speed limit (simulated seconds per wall second, the simulator's ``max_speed``): in lockstep the
+#: two training processes share the 2 cores with the loop, so a faster MPC leaves them less CPU per simulated
+#: second. Unlimited, the MPC's C kernel (5-5.8x real time) halved the learners' updates in the 180 s (2546-3201,
+#: against 6358 with the numpy SQP at 3x); at 5x they made 7938 (docs/demo.md, "Time and speed").
+#: ``--set sim.max_speed=0`` lifts it.
+DEMO_MAX_SPEED = 5.0
 #: starts drawn in the trajectory picture
 PICTURE_STARTS = 4
 
@@ -165,12 +171,14 @@ def write_figures(ev: dict[str, Any] | None, res: Any, out_dir: Path) -> list[Pa
 
 
 def demo_config(seed: int, sim_time: float) -> dict[str, Any]:
-    """The quadrotor's bringup defaults with the UA learner, the simulator seed and the simulated time."""
+    """The quadrotor's bringup defaults with the UA learner, the simulator seed, the simulated time and the live
+    loop's speed limit (:data:`DEMO_MAX_SPEED`)."""
     from saml_ros import bringup
 
     config = bringup.default_config("quadrotor")
     config["sim_time"] = sim_time
     config["sim"]["seed"] = seed
+    config["sim"].setdefault("max_speed", DEMO_MAX_SPEED)
     config.setdefault("learner_ua", {})
     return config
 
