@@ -225,8 +225,10 @@ def closed_loop_main(argv: list[str]) -> int:
     config = live_config(args.seed, args.sim_time, args.sets)
     steps = int(config["sim"]["episode_steps"])
     pad = config["mpc"].get("goal.position")
+    limit = float(config["sim"].get("max_speed", 0.0) or 0.0)
+    pace = f" at most {limit:g}x real time" if limit > 0 else ""
     print(f"demo: quadrotor landing on a pad at {pad} m inside the ground effect, closed loop over ROS 2 (simulator "
-          f"in lockstep + SA and UA learners + guarded MPC, separate processes), {args.sim_time:g} s of simulated time "
+          f"in lockstep{pace} + SA and UA learners + guarded MPC, separate processes), {args.sim_time:g} s of simulated time "
           f"= {args.sim_time / (steps * 0.1):.0f} landing episodes of {steps * 0.1:g} s; the MPC starts on the base "
           f"model and follows the SA learner's checkpoints", flush=True)
     res = bringup.run(config, bringup.RunOptions(run_dir=args.run_dir, domain_id=args.domain_id,
