@@ -49,6 +49,7 @@ from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import make_controller
 from saml_ros.core.mpc.guard import GuardedController, make_guarded_controller
+from saml_ros.core.mpc.shooting.native import NOT_SOLVED
 from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.systems.registry import get_entry
 
@@ -313,7 +314,7 @@ class MPCService:
         solver: Any = self.controller
         if self.guarded is not None:  # the learned model's solver once it has solved, else f_hat's
             learned = self.guarded.learned
-            solver = learned if getattr(learned, "native_reason", None) != "no solve yet" else self.guarded.base
+            solver = learned if getattr(learned, "native_reason", None) != NOT_SOLVED else self.guarded.base
         if hasattr(solver, "native_reason"):  # the fast shooting SQP: its numerics in C, or why not
             why = solver.native_reason
             values["solver_kernel"] = "C" if why is None else f"numpy ({why})"

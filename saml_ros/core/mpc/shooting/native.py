@@ -79,6 +79,8 @@ class _State:
 
 
 _STATE = _State()
+#: :attr:`SQPShootingMPC.native_reason` before its first solve
+NOT_SOLVED = "no solve yet"
 
 
 def switched_off() -> bool:
@@ -115,9 +117,9 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
-def load_library(build: bool = True) -> ctypes.CDLL | None:
+def load_library() -> ctypes.CDLL | None:
     """The compiled kernel (built on first use on this machine), or None: switched off, no compiler, or the build
-    failed (:func:`reason` says which; one warning per process). ``build=False`` only loads a finished build."""
+    failed (:func:`reason` says which; one warning per process)."""
     if switched_off():
         return None
     if _STATE.tried:
@@ -127,8 +129,6 @@ def load_library(build: bool = True) -> ctypes.CDLL | None:
         root.mkdir(parents=True, exist_ok=True)
         so = root / build_name()
         if not so.is_file():
-            if not build:
-                return None
             cc = _compiler()
             if cc is None:
                 raise RuntimeError("no C compiler (cc, or $CC) on PATH")
@@ -206,7 +206,7 @@ def unsupported_reason(dyn: Any, task: Any) -> str | None:
             return "network output is not the state"
         n, m = mlp.n_x, mlp.n_u
     elif base is not None:
-        n, m = 13, 4
+        n, m = dyn.system.state.size, dyn.system.control.size
     else:
         return "no model"
     if n + m > MAX_NZ:
@@ -234,10 +234,7 @@ class NativeSQP:
         self._keep: list[Any] = []
         base, mlp = dyn.base, dyn.mlp
         mod = _Model()
-        if mlp is not None:
-            n, m = mlp.n_x, mlp.n_u
-        else:
-            n, m = 13, 4
+        n, m = dyn.system.state.size, dyn.system.control.size
         mod.n, mod.m = n, m
         if base is not None:
             mod.base = 1
@@ -246,8 +243,7 @@ class NativeSQP:
             mod.jinv[:] = list(base._dt_inv_inertia_f)
             mod.dw_du[:] = np.ascontiguousarray(base._dw_du, dtype=np.float64).ravel().tolist()
         if mlp is not None:
-            ws = [np.ascontiguousarray(np.vstack((mlp.w_x, mlp.w_u)), dtype=np.float64)]
-            ws += [np.ascontiguousarray(w, dtype=np.float64) for w in mlp.weights[1:]]
+            ws = [np.ascontiguousarray(w, dtype=np.float64) for w in mlp.weights]  # the first: [W_x; W_u], folded
             bs = [np.ascontiguousarray(b, dtype=np.float64) for b in mlp.biases]
             dims = np.array([ws[0].shape[0]] + [w.shape[1] for w in ws], dtype=np.int64)
             slopes = np.array(mlp.slopes[: len(ws) - 1] or [0.0], dtype=np.float64)

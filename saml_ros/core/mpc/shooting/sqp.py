@@ -95,8 +95,8 @@ class SQPShootingMPC(ShootingMPC):
         self.native = bool(native)
         self._nat: _native.NativeSQP | None = None  # the kernel bound to self.dyn and the task's layout
         #: why the last solve ran the numpy path (None: it ran the C kernel)
-        self.native_reason: str | None = "no solve yet"
-        if self.native:
+        self.native_reason: str | None = _native.NOT_SOLVED
+        if self.native and self.task.res_idx.size > 1:  # only a Euclidean stage cost can use the kernel
             _native.load_library()  # compiled (first use on this machine, ~1 s) or loaded now, not in a solve
         self.shrink = 1.0
         self._rho = rho0
