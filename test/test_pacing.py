@@ -29,3 +29,15 @@ def test_pacer_off_and_bad_limits() -> None:
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="max_speed"):
             Pacer(bad)
+
+
+def test_simulator_parameter_max_speed_is_checked_with_its_name() -> None:
+    """The node's parameter check refuses a negative or undefined limit, naming the parameter."""
+    from sim_nodes.binding import check_params
+    from sim_nodes.quadrotor_sim import BINDING
+
+    p = {spec.name: spec.default for spec in BINDING.param_table()}
+    check_params({**p, "max_speed": 5.0})
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="parameter 'max_speed' must be >= 0"):
+            check_params({**p, "max_speed": bad})
