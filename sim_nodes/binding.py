@@ -30,7 +30,7 @@ COMMON_PARAMS: tuple[Param, ...] = (
                             "slowest participant); keeps the CPU share of processes beside the loop, such as "
                             "learners, per simulated second independent of the controller's speed", when=LIVE),
     Param("max_sim_time", 0.0, "simulated seconds after which the node exits (0 = run forever)"),
-    Param("episode_steps", 0, "steps per episode, then a new start state (0 = one endless episode)"),
+    Param("episode_steps", 0, "steps per episode, then a new start state (0 = one endless episode)", when=LIVE),
     Param("initial_state", [], "start state of every episode (the system's state vector); empty = drawn by "
                                "the start sampler"),
     Param("seed", 0, "seed of the start sampler (negative: fresh entropy)"),

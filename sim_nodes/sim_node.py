@@ -17,6 +17,7 @@ entry builds the core (``SystemEntry.simulator``).
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections.abc import Sequence
@@ -124,8 +125,11 @@ class SimNode(Node):
         return read_sim_params(self.binding, values)
 
     def _apply_live(self, live: dict[str, Any]) -> None:
-        """Parameters that apply at once: ``max_speed`` (lockstep) and ``diagnostics_period``."""
+        """Parameters that apply at once: ``episode_steps`` (from the current episode on), ``max_speed`` (lockstep)
+        and ``diagnostics_period``."""
         self.params.update(live)
+        if "episode_steps" in live:
+            self.core.config = dataclasses.replace(self.core.config, episode_steps=live["episode_steps"])
         if "max_speed" in live and self.lockstep:
             self._pacer.set_speed(live["max_speed"])
         if "diagnostics_period" in live:

@@ -3,8 +3,9 @@ checks of every later change (:class:`ParamGuard`), and reading ``system`` first
 
 Every parameter gets a ``ParameterDescriptor`` with its description and when a change applies
 (:func:`~saml_ros.core.params.change_note`), so ``ros2 param describe`` and ``--params-file`` work as usual.
-Float parameters are dynamically typed, so a YAML ``10`` is accepted for ``10.0`` (the checks of the core refuse
-anything but a number); an empty list default is declared with its ``item_type``'s array type. The values come
+Float parameters and lists of floats are dynamically typed, so a YAML ``10`` is accepted for ``10.0`` (the checks
+of the core refuse anything but numbers); another empty list default is declared with its ``item_type``'s array
+type. rclpy refuses a value of another type for the others itself. The values come
 back raw: the node's configuration class (``from_params``) converts and validates them, naming every bad
 parameter.
 
@@ -30,6 +31,7 @@ from saml_ros.core.params import (
     ParamErrors,
     Problems,
     change_note,
+    coerce_param,
     exclusive_problems,
     problems_of,
     review_change,
@@ -50,7 +52,8 @@ def is_managed(node: Node) -> bool:
 
 def declare_params(node: Node, params: Iterable[Param], dynamic_typing: bool = False) -> dict[str, Any]:
     """Declare ``params`` on ``node``; ``{name: value}`` (the default where rclpy has none). ``dynamic_typing``:
-    every parameter, not only the floats, is dynamically typed (the simulators convert every value themselves).
+    every parameter, not only the floats and float lists, is dynamically typed (the simulators convert every value
+    themselves).
 
     Raises:
         ParamErrors: rclpy refused values (e.g. an override of the wrong type), each named; every parameter is
@@ -60,17 +63,30 @@ def declare_params(node: Node, params: Iterable[Param], dynamic_typing: bool = F
     problems = Problems()
     managed = is_managed(node)
     for p in params:
+        dynamic = dynamic_typing or isinstance(p.default, float) or (isinstance(p.default, list) and p.item_type is float)
         descriptor = ParameterDescriptor(description=f"{p.description}. {change_note(p, managed)}",
-                                         dynamic_typing=dynamic_typing or isinstance(p.default, float))
-        value = _ARRAY_TYPES[p.item_type] if isinstance(p.default, list) and not p.default else p.default
+                                         dynamic_typing=dynamic)
+        typed = isinstance(p.default, list) and not p.default and not dynamic
+        value = _ARRAY_TYPES[p.item_type] if typed else p.default
         try:
             got = node.declare_parameter(p.name, value, descriptor).value
         except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad overrides
-            problems.add(f"parameter {p.name!r}: {exc}", p.name)
+            problems.add(_refused_override(node, p, exc), p.name)
             got = node.declare_parameter(p.name, value, descriptor, ignore_override=True).value
         out[p.name] = p.default if got is None else got
     problems.raise_if_any()
     return out
+
+
+def _refused_override(node: Node, param: Param, exc: Exception) -> str:
+    """Why rclpy refused the value given for ``param``, in the words of the core's checks where they apply."""
+    given = getattr(node, "_parameter_overrides", {}).get(param.name)
+    try:
+        if given is not None:
+            coerce_param(param.name, given.value, param.default, param.item_type, param.finite)
+    except ValueError as own:
+        return str(own)
+    return f"parameter {param.name!r}: {exc}"
 
 
 def current_values(node: Node, params: Iterable[Param]) -> dict[str, Any]:
