@@ -231,15 +231,18 @@ class ParamGuard:
             return
         self.given |= {p.name for p in parameters}
         logger = self.node.get_logger()
-        for name, value in decision.stored.items():
+        stored, live = decision.stored, decision.live
+        if self.managed and not self.configured():  # nothing runs yet: configure reads them all
+            stored, live = {**stored, **live}, {}
+        for name, value in stored.items():
             logger.info(f"parameter {name} set to {value!r}: read at the next configure")
-        if decision.live:
-            text = ", ".join(f"{n} = {v!r}" for n, v in decision.live.items())
+        if live:
+            text = ", ".join(f"{n} = {v!r}" for n, v in live.items())
             if self.apply is None:
                 logger.info(f"parameter change applied: {text}")
                 return
             try:
-                self.apply(dict(decision.live))
+                self.apply(dict(live))
             except Exception as exc:  # noqa: BLE001 - the value is stored; say it could not be applied
                 logger.error(f"parameter change {text} stored but not applied: {type(exc).__name__}: {exc}")
                 return
