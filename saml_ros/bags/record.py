@@ -258,6 +258,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.parameter import Parameter
     from rclpy.utilities import remove_ros_args
 
+    from saml_ros.nodes.params import check_startup
+
     full = full_argv("record", argv)
     args = build_parser().parse_args(remove_ros_args(full)[1:])
     init_rclpy(full)
@@ -265,6 +267,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     node = Node("record")
     writer: BagWriter | None = None
     try:
+        try:  # the recorder's options are its command-line arguments; ROS parameters only rclpy's own
+            check_startup(node, ())
+        except ValueError as exc:
+            print(f"record: {exc}", file=sys.stderr)
+            return 2
         if args.use_sim_time:
             node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
         namespaces = list(args.namespace)

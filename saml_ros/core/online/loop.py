@@ -52,7 +52,7 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
 
     ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
     (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``), ``("pause",)``,
-    ``("resume",)`` and ``("stop",)``.
+    ``("resume",)``, ``("loop", LoopConfig)`` (pace by it from now on) and ``("stop",)``.
     The whole inbox is handled before every chunk of updates, so ingest goes first (a backlog longer than one
     telemetry period is handled a period at a time, with a status report in between). ``send`` reports
     ``("status", status, {source name: counters})`` at ``loop.telemetry_rate``, ``("checkpoint", path,
@@ -105,6 +105,9 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
                 send(("paused", str(saved[0]) if saved else None, learner.model_version, learner.updates))
             elif msg[0] == "resume":
                 paused, paced_from = False, None
+            elif msg[0] == "loop":  # new pacing (a parameter changed on the running node)
+                loop, paced_from = msg[1], None
+                metrics_period, next_metrics = 1.0 / loop.telemetry_rate, 0.0
             elif msg[0] == "stop":
                 saved = save_and_announce(learner, send) if learner.dirty else None
                 report()

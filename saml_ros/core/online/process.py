@@ -12,8 +12,8 @@ Socket protocol (``multiprocessing.connection`` messages, tuples):
 
 * parent -> child: first the :class:`LearnerSetup`; then ``("batch", x, u, y, stamp_s, source)`` (paired
   transitions, arrays ``(B, .)`` / ``(B,)``), ``("raw", [(channel, payload), ...])`` (messages for the setup's
-  decoder), ``("pause",)`` / ``("resume",)`` (a managed learner's deactivation and activation) and finally
-  ``("stop",)``;
+  decoder), ``("pause",)`` / ``("resume",)`` (a managed learner's deactivation and activation), ``("loop",
+  LoopConfig)`` (new pacing, :meth:`TrainingProcess.set_loop`) and finally ``("stop",)``;
 * child -> parent: ``("ready", resumed, hidden, status, compute)`` once built (or ``("fatal", "resume" |
   "error", message)`` and exit), then ``("status", status, {source: counters})``, ``("checkpoint", path,
   version)``, ``("error", what, message)``, ``("log", level, text)``, after a pause ``("paused", path | None,
@@ -337,6 +337,12 @@ class TrainingProcess:
     @property
     def paused(self) -> bool:
         return self._paused
+
+    def set_loop(self, loop: LoopConfig) -> bool:
+        """Pace the running child by ``loop`` from now on (updates per second, telemetry rate, checkpoint period:
+        a learner's parameters that apply at once); a restarted child starts with it. False if the child is gone."""
+        self.setup = dataclasses.replace(self.setup, loop=loop)
+        return self._send_control(("loop", loop))
 
     def _send_control(self, msg: tuple[Any, ...]) -> bool:
         try:
