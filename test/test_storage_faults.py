@@ -52,11 +52,15 @@ def test_backoff_waits_one_two_four_periods_up_to_the_cap_and_resets_on_success(
     text = b.describe(10.0)
     assert text.startswith("No space left on device [errno 28]: /run/x/.ckpt-000003.saml.ab.tmp; 6 failed write(s)")
     assert "last good checkpoint 310 s ago" in text and "next attempt in 0.0 s" in text
-    assert b.values() == {"checkpoint_write_errors": 6.0, "checkpoint_write_failures": 6.0, "checkpoint_age_s": 310.0}
+    b.spent(0.25)
+    b.spent(-1.0)  # a clock step back is no time spent
+    assert b.values() == {"checkpoint_write_errors": 6.0, "checkpoint_write_failures": 6.0, "checkpoint_age_s": 310.0,
+                          "checkpoint_write_seconds": 0.25}
     ended, outage = b.succeeded()
     assert (ended, outage) == (6, 310.0)
     assert not b.failing and b.describe(10.0) == "" and b.may_write(10.0)
-    assert b.values() == {"checkpoint_write_errors": 6.0, "checkpoint_write_failures": 0.0, "checkpoint_age_s": 0.0}
+    assert b.values() == {"checkpoint_write_errors": 6.0, "checkpoint_write_failures": 0.0, "checkpoint_age_s": 0.0,
+                          "checkpoint_write_seconds": 0.25}
     # an error without a file name names the run directory
     f = WriteFailure.from_error(OSError(errno.EROFS, "Read-only file system"), "/run/x", 1.0)
     assert (f.reason, f.errno, f.path) == ("Read-only file system", errno.EROFS, "/run/x")

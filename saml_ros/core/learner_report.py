@@ -134,6 +134,7 @@ def learner_diagnostics(
     values["checkpoint_write_error"] = write_error
     values["checkpoint_write_errors"] = int(status.get("checkpoint_write_errors", 0))
     values["checkpoint_write_failures"] = failing
+    values["checkpoint_write_seconds"] = round(float(status.get("checkpoint_write_seconds", 0.0)), 3)
     age = status.get("checkpoint_age_s", math.nan)
     values["checkpoint_age_s"] = round(age, 1) if math.isfinite(age) else "nan"
     for key in RESAMPLE_COUNTERS:  # a robot's own topics (resampled): intervals, gaps, jitter, unstamped, ...

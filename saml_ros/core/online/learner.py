@@ -321,6 +321,14 @@ class OnlineLearner:
         """
         if self.store is None or self.trainer is None:
             return None
+        t0 = time.perf_counter()
+        try:
+            return self._save(extra)
+        finally:
+            self.writes.spent(time.perf_counter() - t0)
+
+    def _save(self, extra: Mapping[str, Any] | None) -> tuple[Path, int] | None:
+        assert self.store is not None and self.trainer is not None
         with self._lock:
             rows = self.buffer.arrays()
             fresh = DataEvidence.from_data(self.system, rows.x, rows.u, rows.y, np.random.default_rng([0, self.updates]))

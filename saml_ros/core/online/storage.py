@@ -50,7 +50,8 @@ class WriteBackoff:
         clock: time source (s); ``time.monotonic`` by default. The last good write starts at its first reading.
         max_periods: the longest wait between two attempts, in checkpoint periods (>= 1).
 
-    Counters (kept as counters: they only grow): :attr:`errors`, the failed writes so far. State:
+    Counters (kept as counters: they only grow): :attr:`errors`, the failed writes so far, and :attr:`seconds`, the
+    time spent in write attempts, good or failed (what writing takes from training: :meth:`spent`). State:
     :attr:`failures`, the failed writes since the last good one (0 while writes succeed), :attr:`last`, the newest
     failure (``None`` while writes succeed), :attr:`last_good`, when the last good write (or the start) was.
     """
@@ -64,6 +65,7 @@ class WriteBackoff:
         self.errors = 0
         self.last: WriteFailure | None = None
         self.last_good = clock()
+        self.seconds = 0.0
 
     @property
     def failing(self) -> bool:
@@ -100,6 +102,10 @@ class WriteBackoff:
         self.failures, self.last, self.last_good = 0, None, now
         return ended, outage
 
+    def spent(self, seconds: float) -> None:
+        """Count ``seconds`` of wall time spent in one write attempt (good or failed)."""
+        self.seconds += max(0.0, float(seconds))
+
     def since_good(self, now: float | None = None) -> float:
         """Seconds since the last good write (or the start)."""
         return (self._clock() if now is None else now) - self.last_good
@@ -118,10 +124,10 @@ class WriteBackoff:
 
     def values(self, now: float | None = None) -> dict[str, float]:
         """The numbers for a status report: ``checkpoint_write_errors`` (failed writes so far),
-        ``checkpoint_write_failures`` (in a row, 0 while writes succeed) and ``checkpoint_age_s`` (seconds since
-        the last good write or the start)."""
+        ``checkpoint_write_failures`` (in a row, 0 while writes succeed), ``checkpoint_age_s`` (seconds since
+        the last good write or the start) and ``checkpoint_write_seconds`` (time spent writing so far, s)."""
         return {"checkpoint_write_errors": float(self.errors), "checkpoint_write_failures": float(self.failures),
-                "checkpoint_age_s": self.since_good(now)}
+                "checkpoint_age_s": self.since_good(now), "checkpoint_write_seconds": self.seconds}
 
 
 def _seconds(s: float) -> str:
