@@ -3,7 +3,7 @@ learner and its training loop on a run directory that really stops taking writes
 a file: the OS refuses every write with ENOTDIR, for root too, on any filesystem).
 
 The learner node under a full and a read-only disk (real processes, a real tmpfs) is
-``test_learner_node_storage.py``."""
+``test_disk_faults.py``."""
 
 from __future__ import annotations
 

@@ -1,15 +1,17 @@
-"""The learner node (a real process over real rclpy) when its run directory stops taking checkpoint writes: a
-disk that fills up and one that turns read-only under the running learner, then recovers.
+"""Real processes on a disk that fails under them: the learner node whose run directory fills up and turns
+read-only, then recovers; the recorder whose bag's disk fills up.
 
-What must show (issue 29): at most one log line per checkpoint period, the cause on /diagnostics
+Learner, what must show (issue 29): at most one log line per checkpoint period, the cause on /diagnostics
 (``checkpoint_write_error``: the OS message, the path, the time since the last good write; level ERROR), training
-at the rate it had before and after (within 20 %, measured in this run), OK again once writes succeed, and ``latest``
-naming a valid checkpoint the whole time.
+going on at full speed, OK again once writes succeed, and ``latest`` naming a valid checkpoint the whole time.
+Recorder: it stops at the first failed write (one error line, no traceback, no spinning), exits 1 saying how the
+data is recovered, and ``bag_info --repair`` recovers it with a clear message.
 
 The tests run as root, which ignores permission bits, so the failures are made with mechanisms that hold for
 root: a small tmpfs mounted for the test, filled up (ENOSPC) and remounted read-only (EROFS). Where mounting is not
 allowed (an unprivileged container), the run directory is made immutable (``chattr +i``: EPERM) or, failing that,
-its parent directory is replaced by a file (ENOTDIR): one of them works everywhere, so the test never skips.
+its parent directory is replaced by a file (ENOTDIR), and the recorder's file size is limited (``RLIMIT_FSIZE``:
+EFBIG): one of them works everywhere, so the tests never skip.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import contextlib
 import errno
 import os
 import re
+import resource
 import shutil
 import subprocess
 import threading
@@ -360,3 +363,41 @@ def test_full_and_read_only_run_dir_under_a_running_learner(tmp_path: Path, ros_
             assert windows[outage.name].training_share >= 0.8 * normal, windows
             assert windows[outage.name].updates > 0
         assert "final checkpoint version" in learner.log()
+
+
+# ------------------------------------------------------------------------------------------ the recorder
+def test_recorder_on_a_full_disk_stops_cleanly_and_its_bag_is_recovered(tmp_path: Path, ros_env: ros_helpers.RosDomain,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    from saml_ros.bags import info as bag_info
+
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    mounted = _run("mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)).returncode == 0
+    try:
+        bag = mnt / "bag"
+        sim = ros_env.launch("friction_sim", "-p", "mode:=realtime", "-p", "rate_hz:=200.0", namespace="/friction")
+        rec = ros_env.launch("record", args=["--system", "friction", "-o", str(bag), "--flush-period", "0.1"])
+        ros_helpers.wait_for(lambda: "record: matched /friction/state" in rec.output() or not rec.alive(),
+                             what="the recorder to record")
+        if not mounted:  # no tmpfs here: the recorder's files may not grow past 256 KB (EFBIG; Python ignores SIGXFSZ)
+            resource.prlimit(rec.pid, resource.RLIMIT_FSIZE, (256 * 1024, 256 * 1024))
+        rc = rec.wait(90.0)
+        out = rec.output()
+        sim.stop()
+        print(out[-2000:])
+        assert rc == 1, out
+        assert "Traceback" not in out
+        assert _lines(out, "[ERROR]") == 1, out  # one line, then it stops: no retry, no spinning
+        assert ("No space left on device" if mounted else "File too large") in out
+        assert f"the messages flushed before the error are recovered with `bag_info --repair {bag}`" in out
+        capsys.readouterr()
+        assert bag_info.main([str(bag), "--repair", "--out", str(tmp_path / "repaired")]) == 0
+        printed = capsys.readouterr().out
+    finally:
+        if mounted:
+            _run("umount", "-l", str(mnt))
+    first = printed.splitlines()[0]
+    assert first.startswith("bag_info: recovered ") and "the recording was cut off" in first, printed
+    assert "unpack requires" not in printed and "EndOfFile" not in printed
+    assert int(re.search(r"recovered (\d+) messages", first).group(1)) > 100  # type: ignore[union-attr]
+    assert "/friction/state" in printed
