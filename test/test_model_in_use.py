@@ -148,7 +148,7 @@ def test_the_mpc_logs_a_roll_back_with_the_numbers_that_caused_it(tmp_path: Path
     service.start()
     try:
         assert service.model_version == 1
-        f = plant(QUAD, 0.0)
+        f = plant(QUAD, 0.0)  # type: ignore[arg-type]
         x = QUAD.hover_state((0.5, 0.5, 1.5))  # type: ignore[attr-defined]
         for k in range(10):
             service.control_step(x, 10**9 + k * 10**8, time.perf_counter())
