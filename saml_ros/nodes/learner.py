@@ -210,8 +210,11 @@ class LearnerNode(ManagedNode):
 
         if not self.active or self.trainer is None:
             return
+        stamp = self._stamp_ns()
+        if stamp == 0:  # use_sim_time and no /clock yet: nothing to stamp it with (as the ROS-time timer did)
+            return
         values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self.trainer.counts())
-        self.pub_error.publish(tele.model_error_to_msg(values, self._stamp_ns()))
+        self.pub_error.publish(tele.model_error_to_msg(values, stamp))
 
     def _publish_diagnostics(self) -> None:
         tr = self.trainer
