@@ -8,7 +8,9 @@ issue 29's measurement, batch 128) runs its training loop
 one (root with CAP_SYS_ADMIN), else the run directory's parent replaced by a file (``Not a directory``).
 
 Reported per state: the best window's updates per second (load only slows a window down), the median, and the share
-of the time spent in checkpoint writes (good or failed attempts). The ratio failing / normal of the best windows is
+of the time spent in checkpoint writes (good or failed attempts). ``--aa`` never breaks the disk: what the two
+"states" then differ by is this machine's noise (at load 22 on 2 cores: 0.70 best windows, 1.07 median of the
+rounds, while the time in writes agreed to 0.3 %). The ratio failing / normal of the best windows is
 the number issue 29 asks to be within 20 %; the states alternate normal, failing, failing, normal, ... so a load
 that drifts through the run biases neither. On a loaded machine the rates move more between windows than between
 the states; the share of the time in writes is what the back-off changes.
@@ -86,6 +88,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--window", type=float, default=3.0, help="seconds per state and round")
     ap.add_argument("--period", type=float, default=0.5, help="checkpoint period (s)")
     ap.add_argument("--transitions", type=int, default=6000, help="transitions in the replay buffer")
+    ap.add_argument("--aa", action="store_true",
+                    help="never break the disk: both states normal, to see the method's noise on this machine")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     logging.getLogger("saml_ros").setLevel(logging.CRITICAL)
@@ -130,12 +134,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             for r in range(args.rounds):
                 # ABBA: a load that rises (or falls) through the run biases neither state
                 for state in (("normal", "failing") if r % 2 == 0 else ("failing", "normal")):
-                    if state == "failing":
+                    if state == "failing" and not args.aa:
                         break_disk()
                     t0, u0, w0 = time.monotonic(), learner.updates, spent()
                     time.sleep(args.window)
                     t1, u1, w1 = time.monotonic(), learner.updates, spent()
-                    if state == "failing":
+                    if state == "failing" and not args.aa:
                         mend_disk()
                     rates[state].append((u1 - u0) / (t1 - t0))
                     shares[state].append((w1 - w0) / (t1 - t0))
@@ -143,8 +147,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             parent.send(("stop",))
             thread.join(30)
         failed = [m for m in errors if m[1] == "checkpoint"]
-        print(f"checkpoint writes failing with {how}; checkpoint period {args.period} s, {args.rounds} rounds of "
-              f"{args.window} s per state, load {os.getloadavg()[0]:.1f}")
+        what = f"checkpoint writes failing with {how}"
+        print(f"{f'A/A run, the disk never broken ({what})' if args.aa else what}; checkpoint period {args.period} s, "
+              f"{args.rounds} rounds of {args.window} s per state, load {os.getloadavg()[0]:.1f}")
         for state in ("normal", "failing"):
             print(f"  {state:8s} updates/s best {max(rates[state]):7.0f}, median {statistics.median(rates[state]):7.0f}; "
                   f"time in checkpoint writes {100 * statistics.median(shares[state]):.1f} % (median)")
