@@ -250,3 +250,44 @@ def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_
     assert updates1 > updates0  # training went on
     last = of("status")[-1][1]
     assert last[1]["checkpoint_write_failures"] == 0 and last[3]["checkpoint_write_error"] == ""
+
+
+# ------------------------------------------------------------------------------------------ a bag cut off
+def test_repair_says_in_words_where_a_cut_off_bag_stopped(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A bag file cut at every 997th byte (a killed recorder, a full disk): every repair that recovers something says
+    where and why reading stopped, never the MCAP reader's internal text ("unpack requires a buffer of 8 bytes",
+    a bare "EndOfFile")."""
+    from bag_publisher import rollout
+
+    from msg_schemas import DATA_QOS, TypestoreFactory, get_schema
+    from saml_ros.bags import info as bag_info
+    from saml_ros.bags.io import BagError, BagWriter, jazzy_typestore, repair_bag
+
+    factory = TypestoreFactory(jazzy_typestore())
+    schema = get_schema("friction")
+    w = BagWriter(tmp_path / "live", flush_period=0.0)  # a chunk per message: cuts land in and between chunks
+    w.add_topic("/friction/state", "sensor_msgs/msg/JointState", DATA_QOS)
+    for ev in rollout("friction", 60, 0, seed=1, t0_ns=10**9):
+        w.write_msg("/friction/state", schema.state_to_msg(ev["x"], ev["stamp"], factory=factory), ev["stamp"])
+    w.flush()
+    data = (tmp_path / "live" / "live.mcap").read_bytes()
+    w.close()
+    problems = []
+    for i, cut in enumerate(range(997, len(data), 997)):
+        src = tmp_path / f"cut{i}"
+        src.mkdir()
+        (src / "x.mcap").write_bytes(data[:cut])
+        try:
+            res = repair_bag(src)
+        except BagError:
+            continue  # nothing complete before the cut
+        problems.append(res.problem)
+    assert len(problems) >= 5
+    for p in problems:
+        assert p.startswith("x.mcap: the file ends inside a record after byte ") and "was cut off" in p, p
+        assert "unpack" not in p and "EndOfFile" not in p
+    # and as bag_info --repair prints it
+    assert bag_info.main([str(tmp_path / "cut3"), "--repair", "--out", str(tmp_path / "out3")]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("bag_info: recovered ") and "source stopped early: x.mcap: the file ends inside a record" \
+        in first, first
