@@ -46,7 +46,11 @@ OUTAGE = 8.0  # wall seconds each outage lasts
 
 # ------------------------------------------------------------------------------------------ failing disks
 def _run(*cmd: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(list(cmd), capture_output=True, text=True, timeout=30)
+    """Run ``cmd``; a missing program is a failed run (return code 127), not an exception."""
+    try:
+        return subprocess.run(list(cmd), capture_output=True, text=True, timeout=30)
+    except FileNotFoundError as exc:
+        return subprocess.CompletedProcess(list(cmd), 127, "", str(exc))
 
 
 class Tmpfs:
