@@ -18,7 +18,9 @@ The log time of a message is when it arrived at the recorder (the middleware's r
 clock; the recorder's simulated time with ``--use-sim-time`` or ``--ros-args -p use_sim_time:=true``). ``play`` replays with those times.
 
 Durability: the pending MCAP chunk is written and the file flushed every ``--flush-period`` s (default
-0.5), so a crash (SIGKILL, power cut aside) loses at most that much. SIGINT / SIGTERM first write what the
+0.5), so a crash (SIGKILL, power cut aside) loses at most that much. A write that fails (a full or read-only disk)
+stops the recording at once (one error line, ERROR on /diagnostics) and the recorder exits 1; where the bag can no
+longer be finished it says so and the messages flushed before are recovered with ``bag_info --repair``. SIGINT / SIGTERM first write what the
 middleware already delivered (until nothing new arrived for 0.3 s, at most 5 s), then finish the bag
 (footer + metadata.yaml) and exit 0. A bag of a killed recorder is recovered with ``bag_info --repair``.
 """
@@ -307,7 +309,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # after the stop, what DDS already delivered (acknowledged to the publishers) is still written
         spin_until_stopped(node, stop, lambda: rec.error is None and time.monotonic() < deadline, announce=False,
                            drain=lambda: sum(writer.counts.values()) if rec.error is None else -1)
-        writer.close()
+        try:
+            writer.close()
+        except OSError as exc:  # a full or read-only disk: the footer and metadata.yaml cannot be written either
+            why = f"{rec.error}; the bag cannot be finished either" if rec.error else f"the bag cannot be finished ({exc})"
+            print(f"record: {why}: the messages flushed before the error are recovered with `bag_info --repair {out}`",
+                  file=sys.stderr, flush=True)
+            return 1
         counts = writer.counts
         print(f"record: wrote {sum(counts.values())} messages on {len(counts)} topics to {out}", flush=True)
         return 1 if rec.error else 0
