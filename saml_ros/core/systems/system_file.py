@@ -187,8 +187,9 @@ def _section(raw: Any, where: str, key: str) -> dict[str, Any]:
 def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = None) -> dict[str, Any]:
     """Validate a system file's contents; returns the normalised definition (a plain dict, the spec inlined).
 
-    ``where`` labels errors (the file name); ``base_dir`` resolves a relative ``spec_file``. Does not import the
-    base model (see :class:`FileSystem`).
+    ``where`` labels errors (the file name); ``base_dir`` (the file's folder) resolves a relative ``spec_file`` and
+    a user base model's ``path`` (default: ``base_dir`` itself), stored absolute. Does not import the base model
+    (see :class:`FileSystem`).
     """
     d = _keys(raw, where, "", _TOP_KEYS, {"name", "dt", "state", "control"})
     d = copy.deepcopy(d)
@@ -224,9 +225,12 @@ def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = No
     d["control"]["safe"] = safe
     d["pairing"] = _pairing(d.get("pairing") or {}, where, d)
     try:
-        d["base_model"] = BaseModelSpec.parse(d.get("base_model")).to_dict()
+        base = BaseModelSpec.parse(d.get("base_model"))
     except BaseModelError as exc:
         raise _fail(where, "base_model", str(exc)) from None
+    if base.function is not None and base_dir is not None:  # user code next to the file: record where, absolute
+        base.path = [str((base_dir / d).resolve()) for d in base.path or ["."]]
+    d["base_model"] = base.to_dict()
     m = _keys(d.get("model") or {}, where, "model", _MODEL_KEYS)
     kind = m.get("kind", "residual")
     if kind not in ("residual", "full"):
