@@ -164,7 +164,7 @@ BAD: list[tuple[str, Any, str]] = [
     ("base_model.builtin", "bicycle", r"base_model: .*unknown built-in 'bicycle'"),
     ("pairing.command_guard", 0.015, r"pairing: cmd_guard_ns .* must be less than half of dt_ns"),
     ("pairing.state", "cubic", r"pairing.state: expected one of"),
-    ("pairing.command", "latest", r"pairing.command: expected one of \['hold', 'answer'\]"),
+    ("pairing.command", "latest", r"pairing.command: expected one of \['hold', 'answer_next_step', 'answer'\]"),
     ("colour", "red", r"unknown key\(s\) \['colour'\]"),
     ("control.topic", "odom", r"control.topic: the state and the control come on the same topic"),
     ("state.topic", "odom//x", r"state.topic: 'odom//x' is not a valid ROS topic name"),
