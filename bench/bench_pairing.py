@@ -182,15 +182,17 @@ def _pct(a: np.ndarray, qs: tuple[float, ...]) -> str:
     return ", ".join(f"p{q:g} {v / 1e3:.0f}" for q, v in zip(qs, np.percentile(a, qs), strict=True))
 
 
-def part_ros(seconds: float) -> None:
+def part_ros(seconds: float, keep: str | None = None) -> None:
     from bench.ros_procs import claimed_domain
 
-    with claimed_domain() as domain, tempfile.TemporaryDirectory(prefix="bench_pairing_") as tmp:
+    with claimed_domain() as domain, tempfile.TemporaryDirectory(prefix="bench_pairing_") as tmp_dir:
+        tmp = keep or tmp_dir
+        Path(tmp).mkdir(parents=True, exist_ok=True)
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                    PYTHONPATH=str(REPO))
         for controller in ("trigger", "timer"):
             d = Path(tmp) / controller
-            d.mkdir()
+            d.mkdir(exist_ok=True)
 
             def start(role: str, secs: float, d: Path = d) -> subprocess.Popen[bytes]:
                 return subprocess.Popen([sys.executable, "-m", "bench.bench_pairing", "--role", role, "--out",
@@ -239,6 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--part", choices=("sim", "ros", "all"), default="all")
     ap.add_argument("--seeds", type=int, default=6, help="simulated runs per row")
     ap.add_argument("--seconds", type=float, default=20.0, help="length of each real-process run")
+    ap.add_argument("--keep", help="keep the real-process logs in this directory")
     ap.add_argument("--role", help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -248,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.part in ("sim", "all"):
         part_sim(args.seeds)
     if args.part in ("ros", "all"):
-        part_ros(args.seconds)
+        part_ros(args.seconds, args.keep)
     return 0
 
 
