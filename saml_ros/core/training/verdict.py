@@ -22,7 +22,7 @@ the held-out estimate the verdict will read, so the root of their squares is the
 between the training value and the held-out estimate; both are measured on the model being trained
 (:func:`~saml_ros.offline.pipelines.train_models` measures them part-way through the run). A model that ends at its
 aim then has a held-out estimate below eps with about 95 % probability and is reported met (upper bound below eps)
-with probability ``Phi(Z (1 - se_h / sqrt(se_t^2 + se_h^2)))`` (about 89 % with a held-out set 10 times the training
+with probability ``Phi(Z (1 - se_h / sqrt(se_t^2 + se_h^2)))`` (about 87 % with a held-out set 10 times the training
 set's size); a model reported met exceeds eps on fresh data with at most about 5 % probability (the verdict's own
 confidence), margin or not. docs/training.md has the measurements.
 """
