@@ -347,8 +347,10 @@ def _train(args: argparse.Namespace) -> int:
     (out / "history.json").write_text(json.dumps(result.history.to_dict()))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "spec.yaml").write_text(yaml.safe_dump(spec.to_dict(), sort_keys=False))
+    marks = ({"aimed below eps from here (g against the aim)": result.aim.epoch}
+             if result.aim is not None and result.aim.margin == "auto" else None)
     fig = plot_training_curves({spec.raw.get("name", "run"): result.history}, out / "training_curves.png",
-                               title=f"{system.name}: {spec.describe()}")
+                               title=f"{system.name}: {spec.describe()}", marks=marks)
     _print_summary(result, metrics, ev, verdicts)
     print(f"train: checkpoint {ckpt} (version {version}); curves {fig}; metrics {out / 'metrics.json'}")
     return 1 if args.require_met and not verdicts.all_met else 0
