@@ -151,6 +151,9 @@ class AimReport:
     def describe(self) -> str:
         parts = [f"'{n}' at {a:.4g} = eps {e:g} - {100 * (1 - a / e):.1f} %" for n, e, a in
                  zip(self.names, self.eps, self.aim)]
+        for i in range(len(self.names)):
+            if self.train_se and not (math.isfinite(self.train_se[i]) and math.isfinite(self.heldout_se[i])):
+                parts[i] += f" (no margin: fewer than {MIN_N} training or held-out samples in the region)"
         how = (f" (sized by the standard errors measured at epoch {self.epoch:g}: training "
                + ", ".join(f"{s:.2g}" for s in self.train_se) + ", held-out "
                + ", ".join(f"{s:.2g}" for s in self.heldout_se) + ")") if self.train_se else ""
