@@ -207,9 +207,12 @@ def _training_data(args: argparse.Namespace, system: Any, seeds: list[int], n_tr
         raise _Refused(str(exc)) from None
     everything = (bt.x, bt.u, bt.y)
     source = f"{len(bt)} transitions from {len(args.bag)} bag(s)"
-    if len(bt) < 10:
-        raise _Refused(f"only {len(bt)} transitions in the bag(s); need at least 10 (a fifth is held out)")
-    kept, held = stretch_split(bt.stamps, bt.source, 0.2)
+    if not 0 < args.holdout < 1:
+        raise _Refused(f"--holdout must be in (0, 1), got {args.holdout}")
+    if len(bt) >= 10:
+        kept, held = stretch_split(bt.stamps, bt.source, 0.2)
+    else:  # too few to hold any out: trained on all of it, no held-out verdict
+        kept, held = np.arange(len(bt)), np.zeros(0, dtype=np.int64)
     select = None
     if args.restarts > 1:
         fit, sel = stretch_split(bt.stamps[kept], bt.source[kept], args.holdout)
@@ -217,9 +220,10 @@ def _training_data(args: argparse.Namespace, system: Any, seeds: list[int], n_tr
     if len(kept) < 2:
         raise _Refused(f"only {len(kept)} training transitions in the bag(s); need at least 2")
     n_src = len(np.unique(bt.source))
-    return Data(_take(everything, kept), _take(everything, held), select, True, source,
-                f"{len(held)} transitions of the recordings never trained on (two whole stretches of time per bag "
-                f"and namespace, {n_src} of them; a fifth of the data)")
+    heldout = (f"{len(held)} transitions of the recordings never trained on (two whole stretches of time per bag "
+               f"and namespace, {n_src} of them; a fifth of the data)" if len(held) else
+               f"none: {len(bt)} transitions are too few to hold any out")
+    return Data(_take(everything, kept), _take(everything, held), select, True, source, heldout)
 
 
 def _test_metrics(result: Any, spec: ProblemSpec, test: Arrays) -> tuple[dict[str, Any], Any]:
