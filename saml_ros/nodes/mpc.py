@@ -43,6 +43,7 @@ from std_msgs.msg import String
 
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError, get_schema
 from msg_schemas.cdr import CdrCodec, NamedVectorCdr
+from msg_schemas.names import join_topic
 from msg_schemas.telemetry import (
     CHECKPOINT_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -58,6 +59,7 @@ from saml_ros.core.lifecycle import TransitionRefused
 from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
+from saml_ros.core.publishers import state_command_report
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import current_values, declare_params, probe_system
@@ -197,10 +199,21 @@ class MPCNode(ManagedNode):
         if rollbacks:
             message += (f"; {rollbacks} roll back(s) by the live monitor (versions "
                         f"{values.get('guard_rolled_back_versions', '')} not used again)")
+        if self.state_sub is not None:  # two robots on state, a second controller on cmd: named (WARN)
+            p_level, parts, p_values = self._check_publishers()
+            level, message = max(level, p_level), "; ".join([message, *parts])
+            values.update(p_values)
         if state != "active":
             message = f"{state}: {message}"
         entry = DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.diag_pub.publish(diagnostics_to_msg([entry], self.get_clock().now().nanoseconds))
+
+    def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
+        """:func:`~saml_ros.core.publishers.state_command_report` of ``state`` and ``cmd`` from the ROS graph."""
+        topics = [("state", self.state_sub.topic_name), ("cmd", self.cmd_pub.topic_name)]
+        nodes = {topic: [join_topic(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+                 for _, topic in topics}
+        return state_command_report(topics, nodes)
 
     def destroy_node(self) -> None:
         if self.service is not None:
