@@ -367,13 +367,14 @@ def test_a_hover_only_checkpoint_is_caught_by_the_guard_and_the_loop_keeps_landi
 
 def test_mpc_config_reads_the_guard_parameters() -> None:
     c = MPCConfig.from_params({"system": "quadrotor"})
-    assert not c.guard.enabled  # off unless asked for (the quadrotor bringup turns it on)
+    assert c.guard == GuardConfig(rollback=True)  # the roll back alone by default (the quadrotor bringup: all on)
+    assert not MPCConfig.from_params({"system": "quadrotor", "guard.rollback": False}).guard.enabled
     c = MPCConfig.from_params({"system": "quadrotor", "guard.max_disagreement": 0.1, "guard.rollback": True,
                                "guard.window": 7, "guard.min_samples": 4, "guard.margin": 0.02,
                                "guard.bound_residual": True})
     assert c.guard == GuardConfig(0.1, True, True, MonitorConfig(7, 4, 1.0, 0.02))
     c = MPCConfig.from_params({"system": "quadrotor", "guard.infeasible": True})
-    assert c.guard == GuardConfig(infeasible=True) and c.guard.enabled
+    assert c.guard == GuardConfig(rollback=True, infeasible=True) and c.guard.enabled
     from saml_ros.bringup.config import default_config
 
     assert MPCConfig.from_params({"system": "quadrotor", **default_config("quadrotor")["mpc"]}).guard.infeasible
@@ -381,8 +382,9 @@ def test_mpc_config_reads_the_guard_parameters() -> None:
                 {"guard.margin": -0.1}):
         with pytest.raises(ValueError, match="guard"):
             MPCConfig.from_params({"system": "quadrotor", **bad})
-    with pytest.raises(ValueError, match="guard"):
-        MPCConfig.from_params({"system": "paddle_ball", "guard.rollback": True})
+    assert MPCConfig.from_params({"system": "paddle_ball"}).guard == GuardConfig(rollback=True)
+    with pytest.raises(ValueError, match="except guard.rollback"):
+        MPCConfig.from_params({"system": "paddle_ball", "guard.bound_residual": True})
 
 
 # ------------------------------------------------------------------------------------------ closed loop over ROS

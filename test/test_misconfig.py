@@ -63,6 +63,112 @@ def test_report_names_the_publishers_and_says_what_happens() -> None:
     assert values["publisher_nodes/state"] == "/f/sim"
 
 
+
+class _Log:
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def info(self, text: str) -> None:
+        self.lines.append(text)
+
+    def warning(self, text: str) -> None:
+        self.lines.append(text)
+
+
+def residual_model(system_name: str, scale: float, seed: int = 0) -> Any:
+    """A residual model with normalisation fitted on the paper's distribution and last-layer weights ~ N(0,
+    scale): near f_hat for a tiny ``scale``, wrong everywhere for a large one."""
+    import torch
+
+    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.systems import get_system
+
+    system = get_system(system_name)
+    model = DynamicsModel(system, seed=seed)
+    x, u, y = system.make_dataset(256, np.random.default_rng(seed))
+    model.fit_normalization(x, u, y)
+    with torch.no_grad():
+        model.net.weights[-1].normal_(0.0, scale, generator=torch.Generator().manual_seed(seed))
+    return model
+
+
+def test_the_paddle_balls_mpc_rolls_a_model_back_on_its_post_impact_velocities() -> None:
+    """guard.rollback is on by default for the one-shot paddle MPC too: its live transition is (pre-impact state,
+    command, post-impact velocity). A model far off is rolled back to f_hat within min_samples bounces; one as good
+    as f_hat is kept."""
+    from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.core.mpc.service import MPCService
+    from saml_ros.core.systems import get_entry
+
+    config = MPCConfig.from_params({"system": "paddle_ball"})
+    assert config.guard.rollback and not config.guard.needs_shooting
+    sent: list[tuple[np.ndarray, int]] = []
+    log = _Log()
+    service = MPCService(config, lambda u, s: sent.append((u, s)), log)
+    guarded = service.guarded
+    assert guarded is not None and not guarded.shooting
+    truth = get_entry("paddle_ball").true_model_np(service.system)
+    rng = np.random.default_rng(0)
+    stamp = [10**9]
+
+    def bounce() -> tuple[float, float]:
+        x, _ = service.system.sample_inputs(1, rng)
+        stamp[0] += 700_000_000
+        service.receive(x[0], stamp[0], time.perf_counter())
+        u, t = sent[-1]
+        assert t == stamp[0]
+        service.receive_target(truth.step1(x[0], u), stamp[0])
+        return guarded.live_error_model, guarded.live_error_base
+
+    def swap(model: Any, version: int) -> None:
+        """The model as the watcher hands over a checkpoint it loaded."""
+        from saml_ros.core.model_io import LoadedModel
+        from saml_ros.core.model_watch import ReadyModel
+
+        loaded = LoadedModel(model, None, service.system, None, {}, {})  # type: ignore[arg-type]
+        service.swap(ReadyModel(loaded, Path(f"ckpt-{version}.saml"), version, None, 0.0, "poll"))
+
+    swap(residual_model("paddle_ball", 1e-6, seed=1), 1)
+    errors = [bounce() for _ in range(8)]
+    assert guarded.tag == 1 and service.counters["rollbacks"] == 0, errors
+    assert all(np.isfinite(e) for pair in errors for e in pair)
+    swap(residual_model("paddle_ball", 3.0, seed=2), 2)
+    for _ in range(5):
+        bounce()
+    assert guarded.tag == 1 and guarded.banned == {2} and service.counters["rollbacks"] == 1, log.lines
+    assert any("rolled back from model version 2" in line for line in log.lines)
+    service.receive_target(np.zeros(3), 123)  # a target no answer was stamped with: ignored
+    assert service.counters["rollbacks"] == 1
+
+
+def test_the_monitor_pairs_each_state_with_the_one_answered_a_period_earlier() -> None:
+    """Two friction robots on one state topic, half a period apart: the MPC answers both, and the live monitor
+    scores only real transitions (each robot's state with its own previous one); pairing consecutive states, as it
+    did, scored jumps between the robots and rolled a good model back."""
+    from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.core.mpc.service import MPCService
+    from saml_ros.core.systems import get_entry
+
+    sent: list[tuple[np.ndarray, int]] = []
+    service = MPCService(MPCConfig.from_params({"system": "friction"}), lambda u, s: sent.append((u, s)), _Log())
+    guarded = service.guarded
+    assert guarded is not None
+    guarded.set_model(residual_model("friction", 1e-6), 1)
+    truth = get_entry("friction").true_model_np(service.system)
+    robots = {0: np.array([1.5, 0.0]), 50_000_000: np.array([-1.8, 0.0])}  # stamp offset -> state
+    live_base: list[float] = []
+    for k in range(20):
+        for offset, x in robots.items():
+            stamp = 10**9 + k * 100_000_000 + offset
+            answer = service.receive(x, stamp, time.perf_counter())
+            assert answer is not None
+            live_base.append(answer[1]["live_error_base"])
+            robots[offset] = truth.step1(x, sent[-1][0])
+    # f_hat misses only the friction bumps: small one-step errors, never a 3 m jump between the robots
+    assert np.isnan(live_base[:2]).all() and max(live_base[2:]) < 0.5, live_base
+    assert guarded.tag == 1 and service.counters["rollbacks"] == 0
+
+
 # ------------------------------------------------------------------------------------- processes
 def learner_status(diagnostics: list[Any]) -> tele.DiagnosticEntry | None:
     """The newest learner entry of the collected ``/diagnostics`` messages."""

@@ -59,7 +59,11 @@ def subscribe_raw(node: Node, channels: Sequence[Channel], qos: Sequence[QosSpec
     def events(channel: int) -> SubscriptionEventCallbacks | None:
         if on_matched is None:
             return None
-        return SubscriptionEventCallbacks(matched=lambda status: on_matched(channel, int(status.current_count)))
+
+        def matched(status: Any) -> None:
+            on_matched(channel, int(status.current_count))
+
+        return SubscriptionEventCallbacks(matched=matched)
 
     return [node.create_subscription(RCLPY.cls(msg_type), topic, make(ch), keep_all(qos[ch]), callback_group=group,
                                      event_callbacks=events(ch), raw=True)

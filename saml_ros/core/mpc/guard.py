@@ -19,7 +19,9 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   model is worse there, the controller rolls back to the previous model (if it had one that was not rolled back itself),
   otherwise to f_hat, and that model version is never used again (``rollbacks``).
 
-The unguarded MPC is the same controller with every remedy off.
+The unguarded MPC is the same controller with every remedy off. The roll back alone works around any controller
+whose model predicts with ``dyn.step1`` (the one-shot paddle-ball MPC too: its live transition is the pre-impact
+state, the command and the post-impact velocity); the other remedies need the shooting MPC.
 """
 
 from __future__ import annotations
@@ -71,6 +73,11 @@ class GuardConfig:
     @property
     def enabled(self) -> bool:
         return math.isfinite(self.max_disagreement) or self.bound_residual or self.rollback or self.infeasible
+
+    @property
+    def needs_shooting(self) -> bool:
+        """Whether a remedy other than the roll back is on (those need the shooting MPC's plans and warm starts)."""
+        return math.isfinite(self.max_disagreement) or self.bound_residual or self.infeasible
 
 
 class EnsembleNP:
@@ -184,7 +191,8 @@ class GuardedController:
     """The MPC with the guards of :class:`GuardConfig` around a learned-model controller (see the module docstring).
 
     Args:
-        learned: the controller that plans with the learned model (its model is set by :meth:`set_model`).
+        learned: the controller that plans with the learned model (its model is set by :meth:`set_model`); a
+            :class:`ShootingMPC`, or for the roll back alone any controller with ``dyn.step1`` (the paddle ball's).
         base: a controller of the same problem planning with f_hat alone (fallback and roll-back target).
         config: the remedies.
 
@@ -197,6 +205,11 @@ class GuardedController:
     def __init__(self, learned: ShootingMPC, base: ShootingMPC, config: GuardConfig) -> None:
         if learned.horizon != base.horizon or learned.system is not base.system:
             raise ValueError("guarded MPC: the learned and the base controller must solve the same problem")
+        #: both are shooting MPCs (warm starts, plans over a horizon); otherwise only the roll back applies
+        self.shooting = isinstance(learned, ShootingMPC) and isinstance(base, ShootingMPC)
+        if not self.shooting and config.needs_shooting:
+            raise ValueError(f"guarded MPC: only guard.rollback applies to the {learned.system.name} MPC (one-shot); "
+                             "the other remedies need the shooting MPC")
         self.learned, self.base = learned, base
         self.config = config
         self.system: System = learned.system
@@ -298,12 +311,12 @@ class GuardedController:
                 if base is not None:
                     self.last_source = "base"
                     return base
-            elif np.all(np.isfinite(res.plan_x)):
+            elif self.shooting and np.all(np.isfinite(res.plan_x)):
                 self.base.set_warm_start(res.plan_u, res.plan_x)
         if not use_learned:
             self.counters["solves_base"] += 1
             res = self.base.solve(x0, goal)
-            if np.all(np.isfinite(res.plan_x)):
+            if self.shooting and np.all(np.isfinite(res.plan_x)):
                 self.learned.set_warm_start(res.plan_u, res.plan_x)
         elif self._active.bound is not None and self._clipped(res):
             self.counters["clipped"] += 1
@@ -335,8 +348,8 @@ class GuardedController:
 
     # ------------------------------------------------------------------------------------------ monitor
     def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> bool:
-        """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n,)``; ``u`` the command of the last
-        :meth:`solve`): scores the model in use and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`);
+        """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n_y,)``; ``u`` the command solved for ``x``;
+        ``x_next`` the target: the next state, or the paddle ball's post-impact velocity): scores the model in use and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`);
         with ``rollback`` on, True when it made the controller roll back (to the previous model or f_hat; the
         rolled-back tag is banned). Only steps the learned model planned enter the monitor's window: a step
         planned with f_hat on disagreement is counted in ``monitor_skipped``."""
@@ -385,12 +398,14 @@ class GuardedController:
 def make_guarded_controller(system: System, solver: str = "fast", config: GuardConfig | None = None,
                             **options: Any) -> GuardedController:
     """A :class:`GuardedController` of two :func:`~saml_ros.core.mpc.factory.make_controller` controllers of the
-    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat."""
+    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat. A one-shot
+    controller (the paddle ball's) can only have the roll back (``ValueError`` otherwise)."""
     from saml_ros.core.mpc.factory import make_controller
 
+    config = config or GuardConfig()
     learned = make_controller(system, None, solver, **options)
     base_opts = {k: v for k, v in options.items() if k != "member"}
     base = make_controller(system, None, solver, **base_opts)
-    if not isinstance(learned, ShootingMPC) or not isinstance(base, ShootingMPC):
-        raise ValueError(f"guarded MPC: only the shooting MPC (friction, quadrotor) can be guarded, not {system.name}")
-    return GuardedController(learned, base, config or GuardConfig())
+    if not all(hasattr(getattr(c, "dyn", None), "step1") for c in (learned, base)):
+        raise ValueError(f"guarded MPC: the {system.name} controller has no one-step model (dyn.step1) to monitor")
+    return GuardedController(learned, base, config)  # type: ignore[arg-type]

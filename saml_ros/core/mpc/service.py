@@ -24,10 +24,14 @@ The node decodes messages and publishes; everything in between is here and unit-
   ``mpc/status``; a finite plan that violates a constraint is otherwise sent and counted ``solves_failed``;
 * counters (``solves``, ``solves_failed``, ``solves_unavoidable``, ``solver_errors``, ``safe_commands``, ``deadline_misses``, ``swaps``,
   ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`;
-* with any ``guard.*`` remedy on, the controller is a :class:`~saml_ros.core.mpc.guard.GuardedController`: each
-  control step first shows it the live transition that just happened (previous state, the command sent, this
-  state; not across a stamp jump) and a roll back changes the model in use (``rollbacks``, logged); its counters
-  go on ``mpc/status`` and ``/diagnostics`` (``guard_*``, ``monitor_error_*``).
+* with any ``guard.*`` remedy on (``guard.rollback`` is by default), the controller is a
+  :class:`~saml_ros.core.mpc.guard.GuardedController`: each control step first shows it the live transition that
+  just happened (the state answered one period ``dt`` earlier, within a quarter period, the command sent for it,
+  this state: a state of another stream interleaved on the topic, such as a second robot's half a period off, is
+  never taken for the next state; nothing across a stamp jump), or, for a system whose target is not the next state
+  (the paddle ball), :meth:`MPCService.receive_target` shows it the target stamped like a state it answered; a
+  roll back changes the model in use (``rollbacks``, logged); its counters go on ``mpc/status`` and
+  ``/diagnostics`` (``guard_*``, ``monitor_error_*``).
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -55,6 +59,10 @@ from saml_ros.core.systems.registry import get_entry
 
 #: recent (state, command) pairs kept as the acceptance check's probe rows
 RECENT_PROBES = 256
+#: answered (state, command) pairs kept by stamp for the live monitor (the newest; a few periods)
+SENT_KEPT = 16
+#: how far (fraction of dt) a state's stamp may be from one period after an answered one to be its next state
+NEXT_STATE_TOLERANCE = 0.25
 
 #: one answer: the stamp of the state it answered (ns) and the ``mpc/status`` values
 Answer = tuple[int, dict[str, float]]
@@ -77,7 +85,9 @@ class MPCService:
         else:
             self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
                                               **config.controller_options())
-        self._last_sent: tuple[np.ndarray, np.ndarray] | None = None  # (state, command) of the last step
+        # stamp (ns) -> (state, command) of the newest steps answered with a solved command (the live monitor's)
+        self._sent: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._target_is_state = self.system.target.names == self.system.state.names
         self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
         self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
         self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
@@ -157,9 +167,13 @@ class MPCService:
                 self.controller.reset()
                 self.counters["warm_start_resets"] += 1
                 jumped = True
+        if jumped and self.last_stamp is not None and stamp < self.last_stamp:
+            self._sent.clear()  # a restarted stream: its stamps may repeat the old ones
         self.last_stamp = stamp
-        if self.guarded is not None and self._last_sent is not None and not jumped:
-            self._observe(*self._last_sent, x)
+        if self.guarded is not None and self._target_is_state:
+            previous = self._previous_step(stamp)
+            if previous is not None:
+                self._observe(*previous, x)
         swap_ms = 0.0
         ready = self.watcher.take()
         if ready is not None:
@@ -170,7 +184,10 @@ class MPCService:
         u = np.clip(u, self.u_low, self.u_high)
         self.send(u, stamp)
         # the live monitor scores transitions from solved commands only (a safe command says nothing of the model)
-        self._last_sent = None if values["safe"] else (np.array(x, dtype=np.float64), u)
+        if not values["safe"] and self.guarded is not None:
+            self._sent[stamp] = (np.array(x, dtype=np.float64), u)
+            while len(self._sent) > SENT_KEPT:
+                self._sent.popitem(last=False)
         if not values["safe"]:
             with self._recent_lock:
                 self._recent.append((np.array(x, dtype=np.float64), u))
@@ -196,6 +213,30 @@ class MPCService:
             values |= self.guarded.values()
             values["model_source"] = 1.0 if self.guarded.last_source == "learned" else 0.0
         return stamp, values
+
+    def _previous_step(self, stamp: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The (state, command) answered one period before ``stamp`` (within :data:`NEXT_STATE_TOLERANCE` of the
+        period), or None (a stamp jump, a safe command, a state of another stream in between is skipped)."""
+        dt_ns = self.system.dt * 1e9
+        if dt_ns <= 0:
+            return None
+        for t in reversed(self._sent):
+            gap = stamp - t
+            if abs(gap - dt_ns) <= NEXT_STATE_TOLERANCE * dt_ns:
+                return self._sent[t]
+            if gap > (1 + NEXT_STATE_TOLERANCE) * dt_ns:
+                return None
+        return None
+
+    def receive_target(self, y: np.ndarray, stamp: int) -> None:
+        """A decoded target (the paddle ball's post-impact velocity) stamped like the state whose answer it
+        followed: the live monitor scores the models on that transition (ignored without ``guard.rollback``, for a
+        system whose target is the next state, or when no solved command answered that stamp)."""
+        if self.guarded is None or self._target_is_state:
+            return
+        sent = self._sent.pop(stamp, None)
+        if sent is not None:
+            self._observe(*sent, np.asarray(y, dtype=np.float64))
 
     def _observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> None:
         """Show the guard the live transition ``(x, u) -> x_next``; on a roll back switch the model in use."""
