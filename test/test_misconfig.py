@@ -107,7 +107,9 @@ def test_the_paddle_balls_mpc_rolls_a_model_back_on_its_post_impact_velocities()
     service = MPCService(config, lambda u, s: sent.append((u, s)), log)
     guarded = service.guarded
     assert guarded is not None and not guarded.shooting
-    truth = get_entry("paddle_ball").true_model_np(service.system)
+    true_np = get_entry("paddle_ball").true_model_np
+    assert true_np is not None
+    truth = true_np(service.system)
     rng = np.random.default_rng(0)
     stamp = [10**9]
 
@@ -154,7 +156,9 @@ def test_the_monitor_pairs_each_state_with_the_one_answered_a_period_earlier() -
     guarded = service.guarded
     assert guarded is not None
     guarded.set_model(residual_model("friction", 1e-6), 1)
-    truth = get_entry("friction").true_model_np(service.system)
+    true_np = get_entry("friction").true_model_np
+    assert true_np is not None
+    truth = true_np(service.system)
     robots = {0: np.array([1.5, 0.0]), 50_000_000: np.array([-1.8, 0.0])}  # stamp offset -> state
     live_base: list[float] = []
     for k in range(20):

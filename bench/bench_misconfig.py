@@ -1,0 +1,338 @@
+"""Two robots in one namespace, one wired wrong, in a real closed loop (docs/mpc.md, "Two robots on one topic").
+
+    ./dev bench misconfig [--system friction] [--sim-time 300] [--runs 1] [--no-second] [--set mpc.guard.rollback=false]
+
+Real processes in a private ROS domain: ``bringup --system <system>`` with that system's default settings
+(simulator, learner, MPC) and a second robot (bench/miswired_robot.py) publishing ``state`` and ``applied_cmd``
+into the same namespace half a period later, in lockstep with the same MPC, its command wired backwards. This
+process watches the topics (its own rclpy node) and reports:
+
+* what ``/diagnostics`` says: the learner's and the MPC's ``multiple_publishers`` (the node names);
+* the robot wired right (the simulator's stamps): each episode's final error (m) and whether a learned model
+  planned any of its steps, beside the base model f_hat flown ROS-free from the same start states (the
+  headroom: ``closed_loop`` on the true dynamics); the check: no episode flown on a learned model ends more than
+  f_hat's worst + 0.1 m;
+* the MPC's roll backs, its model versions, and the last checkpoint's one-step error on the robot's true dynamics
+  (fresh samples of the paper's distribution) against f_hat's.
+
+``--no-second`` runs the same loop with the one robot: the good case (the roll back must not roll a good model
+back). :func:`run_loop` is what test/test_misconfig_loop.py runs, shorter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+#: the check's margin over the base model's worst episode (m)
+MARGIN = 0.1
+
+
+@dataclass
+class LoopRecord:
+    """What one loop showed (see the module docstring)."""
+
+    system: str
+    second: bool
+    sim_time: float = 0.0
+    wall_time: float = 0.0
+    bringup_rc: int | None = None
+    robot_rc: int | None = None
+    episodes: list[dict[str, Any]] = field(default_factory=list)  #: the robot wired right
+    learner_shared: str = ""  #: the learner's multiple_publishers (the last non-empty one seen)
+    mpc_shared: str = ""
+    learner_message: str = ""  #: the learner's diagnostics message when it named them
+    learner_level: int = -1
+    rollbacks: int = 0
+    versions: list[int] = field(default_factory=list)  #: MPC model versions in order of use
+    learned_steps: int = 0  #: steps of the robot wired right planned with a learned model
+    checkpoint_error: float = math.nan  #: last checkpoint's mean squared one-step error, fresh samples
+    base_error: float = math.nan  #: f_hat's on the same samples
+    tail: str = ""  #: bringup's last lines
+
+    def flown_on_learned(self) -> list[dict[str, Any]]:
+        return [e for e in self.episodes if e["learned_steps"] > 0]
+
+    def base_worst(self) -> float:
+        return max((e["base_error"] for e in self.episodes), default=math.nan)
+
+    def verdict(self) -> bool:
+        """No episode flown on a learned model ends more than the base model's worst + :data:`MARGIN`."""
+        worst = self.base_worst()
+        return all(e["error"] <= worst + MARGIN for e in self.flown_on_learned())
+
+    def summary(self) -> str:
+        learned = self.flown_on_learned()
+        worst = max((e["error"] for e in learned), default=math.nan)
+        on_base = [e["error"] for e in self.episodes if e["learned_steps"] == 0]
+        ratio = self.checkpoint_error / self.base_error if self.base_error > 0 else math.nan
+        return "\n".join([
+            f"{self.system}, {'two robots (second wired backwards)' if self.second else 'one robot'}: "
+            f"{self.sim_time:.0f} s simulated in {self.wall_time:.0f} s wall",
+            f"  /diagnostics: learner multiple_publishers = {self.learner_shared!r} (level {self.learner_level}); "
+            f"mpc multiple_publishers = {self.mpc_shared!r}",
+            f"  last checkpoint: one-step squared error {self.checkpoint_error:.4g} against f_hat's "
+            f"{self.base_error:.4g} ({ratio:.1f} x), fresh samples of the robot's true dynamics",
+            f"  MPC: models {self.versions}, roll backs {self.rollbacks}, steps planned with a learned model "
+            f"{self.learned_steps}",
+            f"  episodes of the robot wired right: {len(self.episodes)}; on f_hat only {len(on_base)} "
+            f"(worst {max(on_base, default=math.nan):.4f} m); flown on a learned model {len(learned)} "
+            f"(worst {worst:.4f} m); f_hat from the same starts: worst {self.base_worst():.4f} m",
+            f"  check: every episode flown on a learned model ends within f_hat's worst + {MARGIN} m: "
+            f"{'yes' if self.verdict() else 'NO'}",
+        ])
+
+
+class Observer:
+    """This process's rclpy node: the state stream, ``mpc/status`` and ``/diagnostics`` of the loop."""
+
+    def __init__(self, system: str, namespace: str) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        import msg_schemas.telemetry as tele
+        from msg_schemas import DATA_QOS, RCLPY, TELEMETRY_QOS, get_schema
+
+        self.tele = tele
+        self.schema = get_schema(system)
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = rclpy.create_node("misconfig_observer", context=self.ctx)
+        self.lock = threading.Lock()
+        self.states: list[tuple[int, np.ndarray]] = []
+        self.status: dict[int, dict[str, float]] = {}
+        self.diag: dict[str, tele.DiagnosticEntry] = {}
+        self.shared: dict[str, tele.DiagnosticEntry] = {}  #: per node, the last entry naming several publishers
+        jt = RCLPY.cls(tele.JOINT_STATE)
+        self.node.create_subscription(RCLPY.cls(self.schema.state.msg_type), f"{namespace}/{self.schema.state_topic}",
+                                      self._on_state, DATA_QOS.to_rclpy())
+        self.node.create_subscription(jt, f"{namespace}/{tele.MPC_STATUS_TOPIC}", self._on_status,
+                                      TELEMETRY_QOS.to_rclpy())
+        self.node.create_subscription(RCLPY.cls(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, self._on_diag,
+                                      TELEMETRY_QOS.to_rclpy())
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 - the context is shut down by close()
+            pass
+
+    def _on_state(self, msg: Any) -> None:
+        x, stamp = self.schema.state_from_msg(msg)
+        with self.lock:
+            self.states.append((stamp, x))
+
+    def _on_status(self, msg: Any) -> None:
+        values, stamp = self.tele.mpc_status_from_msg(msg)
+        with self.lock:
+            self.status[stamp] = values
+
+    def _on_diag(self, msg: Any) -> None:
+        entries, _ = self.tele.diagnostics_from_msg(msg)
+        with self.lock:
+            for e in entries:
+                self.diag[e.name] = e
+                if e.values.get("multiple_publishers"):
+                    self.shared[e.name] = e
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+        self.thread.join(2.0)
+
+
+def _start(cmd: list[str], env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
+    with open(log, "wb") as out:
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
+
+
+def _stop(proc: subprocess.Popen[bytes], timeout: float = 30.0) -> int:
+    from bench.ros_procs import interrupt
+
+    if proc.poll() is None:
+        interrupt(proc, timeout)
+    return int(proc.returncode)
+
+
+def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | None = None, second: bool = True,
+             sets: Sequence[str] = (), wiring: str = "reversed", timeout: float = 1800.0,
+             progress: Callable[[str], None] = print, until: Callable[[LoopRecord, Observer], bool] | None = None,
+             ) -> LoopRecord:
+    """One loop (see the module docstring) in the current ROS domain (``ROS_DOMAIN_ID`` of the environment):
+    ``bringup`` with the system's defaults and ``sets`` (``section.param=value``), the second robot unless
+    ``second`` is False; it ends after ``sim_time`` s of simulated time, or once ``until(partial record,
+    observer)`` says so (checked every second)."""
+    from saml_ros.bringup import default_config
+    from saml_ros.bringup.results import EpisodeTracker, goal_position
+    from saml_ros.core.systems import get_entry
+    from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS
+
+    entry = get_entry(system)
+    sys_obj = entry.make_system()
+    dt_ns = int(round(sys_obj.dt * 1e9))
+    namespace = f"/{system}"
+    run_dir = Path(run_dir or tempfile.mkdtemp(prefix=f"misconfig_{system}_")).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, PYTHONUNBUFFERED="1",
+               PYTHONPATH=os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p))
+    record = LoopRecord(system, second)
+    observer = Observer(system, namespace)
+    bringup_cmd = [sys.executable, "-m", "saml_ros.executables", "bringup", "--system", system, "--run-dir",
+                   str(run_dir), "--sim-time", repr(float(sim_time)), "--progress-period", "10"]
+    for s in sets:
+        bringup_cmd += ["--set", s]
+    t0 = time.monotonic()
+    procs: list[subprocess.Popen[bytes]] = []
+    robot = None
+    try:
+        bringup = _start(bringup_cmd, env, run_dir / "bringup.out")
+        procs.append(bringup)
+        if second:
+            # it starts when the MPC, the learner and the observer listen (the simulator's own start condition)
+            robot = _start([sys.executable, "-m", "bench.miswired_robot", "--system", system, "--namespace",
+                            namespace, "--wiring", wiring, "--min-subscribers", "3"], env, run_dir / "robot_b.out")
+            procs.append(robot)
+        deadline = t0 + timeout
+        while bringup.poll() is None and time.monotonic() < deadline:
+            time.sleep(1.0)
+            if until is not None and until(record, observer):
+                break
+        record.wall_time = time.monotonic() - t0
+    finally:
+        if robot is not None:
+            record.robot_rc = _stop(robot)
+        record.bringup_rc = _stop(procs[0], 60.0)
+        observer.close()
+    record.tail = "\n".join((run_dir / "bringup.out").read_text(errors="replace").splitlines()[-25:])
+
+    # --------------------------------------------------------------------------------------- the record
+    with observer.lock:
+        states = sorted(observer.states, key=lambda s: s[0])
+        status = dict(observer.status)
+        diag = dict(observer.diag)
+        shared = dict(observer.shared)
+    for name, e in shared.items():
+        if name.endswith("/learner"):
+            record.learner_shared, record.learner_message, record.learner_level = (
+                e.values["multiple_publishers"], e.message, e.level)
+        elif name.endswith("/mpc"):
+            record.mpc_shared = e.values["multiple_publishers"]
+    mpc = next((e for n, e in diag.items() if n.endswith("/mpc")), None)
+    if mpc is not None:
+        record.rollbacks = int(mpc.values.get("guard_rollbacks", 0))
+    mine = [(t, x) for t, x in states if (t - LOCKSTEP_T0_NS) % dt_ns == 0]  # the simulator's stamps
+    if mine:
+        record.sim_time = (mine[-1][0] - mine[0][0]) * 1e-9
+    config = default_config(system)
+    tracker = EpisodeTracker(system, sys_obj.dt, goal_position(system, config["mpc"]))
+    for t, x in mine:
+        tracker.add(x, t, int(status.get(t, {}).get("model_version", 0)))
+    if mine:
+        tracker.add(mine[-1][1], mine[-1][0] + 10 * dt_ns, 0)  # a jump: closes the last episode
+    versions: list[int] = []
+    for t in sorted(status):
+        v = int(status[t].get("model_version", 0))
+        if not versions or versions[-1] != v:
+            versions.append(v)
+    record.versions = versions
+    base = _base_errors(system, config, [ep.start for ep in tracker.episodes], [ep.steps - 1 for ep in tracker.episodes])
+    for ep, b in zip(tracker.episodes, base, strict=True):
+        if ep.steps < 2:
+            continue
+        stamps = [t for t, _ in mine if ep.t_start - 1e-6 <= t * 1e-9 <= ep.t_end + 1e-6]
+        learned = sum(1 for t in stamps if t in status and status[t].get("model_source", 0.0) == 1.0
+                      and status[t].get("model_version", 0.0) > 0)
+        record.learned_steps += learned
+        record.episodes.append({"start": ep.start.tolist(), "steps": ep.steps, "error": ep.error,
+                                "base_error": b, "learned_steps": learned, "versions": [ep.model_first,
+                                                                                        ep.model_last]})
+    record.checkpoint_error, record.base_error = _checkpoint_errors(system, run_dir / "checkpoints")
+    progress(record.summary())
+    return record
+
+
+def _base_errors(system: str, config: dict[str, Any], starts: list[np.ndarray], steps: list[int]) -> list[float]:
+    """Final task error of f_hat's MPC (the bringup's MPC settings) from each start, ROS-free on the true
+    dynamics."""
+    from saml_ros.bringup.results import goal_position, task_error
+    from saml_ros.core.mpc import closed_loop, make_controller
+    from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.core.systems import get_system
+
+    mpc = MPCConfig.from_params({"system": system, **config["mpc"]})
+    controller = make_controller(get_system(system), None, mpc.solver, **mpc.controller_options())
+    goal = goal_position(system, config["mpc"])
+    out = []
+    for x0, n in zip(starts, steps, strict=True):
+        run = closed_loop(controller.system, controller, x0, max(n, 0), mpc.goal)
+        out.append(task_error(system, run.xs[-1], goal))
+    return out
+
+
+def _checkpoint_errors(system: str, checkpoints: Path, n: int = 4000) -> tuple[float, float]:
+    """Mean squared one-step error of the newest checkpoint in ``checkpoints`` and of f_hat, on ``n`` fresh
+    samples of the paper's distribution through the true dynamics (NaN without a checkpoint)."""
+    from saml_ros.core.checkpoint import CheckpointError, CheckpointStore
+    from saml_ros.core.model_io import load_model
+    from saml_ros.core.systems import get_system
+
+    try:
+        latest = CheckpointStore(checkpoints).latest()
+    except (OSError, CheckpointError):
+        return math.nan, math.nan
+    if latest is None:
+        return math.nan, math.nan
+    sys_obj = get_system(system)
+    x, u, y = sys_obj.make_dataset(n, np.random.default_rng(12345))
+    model = load_model(latest[0]).model
+    pred = model.predict_np(x, u)
+    base = sys_obj.base_step_np(x, u)
+    return float(((pred - y) ** 2).sum(1).mean()), float(((base - y) ** 2).sum(1).mean())
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="bench misconfig", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--system", default="friction")
+    ap.add_argument("--sim-time", type=float, default=300.0, help="s of simulated time per loop")
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--no-second", action="store_true", help="one robot only (the good case)")
+    ap.add_argument("--wiring", default="reversed", help="the second robot's miswiring (bench/miswired_robot.py)")
+    ap.add_argument("--set", action="append", default=[], dest="sets", help="bringup --set section.param=value")
+    ap.add_argument("--json", type=Path, default=None, help="write the records here")
+    args = ap.parse_args(argv)
+    from bench.ros_procs import claimed_domain
+
+    records = []
+    with claimed_domain() as domain:
+        os.environ["ROS_DOMAIN_ID"] = str(domain)
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        print(f"bench misconfig: ROS_DOMAIN_ID={domain}; load average {os.getloadavg()[0]:.1f}", flush=True)
+        for i in range(args.runs):
+            records.append(run_loop(args.system, args.sim_time, None, not args.no_second, args.sets, args.wiring))
+            print(f"run {i + 1}/{args.runs} done", flush=True)
+    if args.json is not None:
+        args.json.write_text(json.dumps([r.__dict__ for r in records], indent=1, default=str))
+    return 0 if all(r.verdict() for r in records) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
