@@ -103,6 +103,7 @@ class Observer:
     def __init__(self, system: str, namespace: str) -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import HistoryPolicy
 
         import msg_schemas.telemetry as tele
         from msg_schemas import DATA_QOS, RCLPY, TELEMETRY_QOS, get_schema
@@ -115,15 +116,22 @@ class Observer:
         self.lock = threading.Lock()
         self.states: list[tuple[int, np.ndarray]] = []
         self.status: dict[int, dict[str, float]] = {}
+        self.arrivals: list[int] = []  #: the model version of each status, in arrival order
         self.diag: dict[str, tele.DiagnosticEntry] = {}
         self.shared: dict[str, tele.DiagnosticEntry] = {}  #: per node, the last entry naming several publishers
         jt = RCLPY.cls(tele.JOINT_STATE)
+
+        def keep_all(spec: Any) -> Any:  # a burst waits in the reader queue instead of being dropped
+            profile = spec.to_rclpy()
+            profile.history = HistoryPolicy.KEEP_ALL
+            return profile
+
         self.node.create_subscription(RCLPY.cls(self.schema.state.msg_type), f"{namespace}/{self.schema.state_topic}",
-                                      self._on_state, DATA_QOS.to_rclpy())
+                                      self._on_state, keep_all(DATA_QOS))
         self.node.create_subscription(jt, f"{namespace}/{tele.MPC_STATUS_TOPIC}", self._on_status,
-                                      TELEMETRY_QOS.to_rclpy())
+                                      keep_all(TELEMETRY_QOS))
         self.node.create_subscription(RCLPY.cls(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, self._on_diag,
-                                      TELEMETRY_QOS.to_rclpy())
+                                      keep_all(TELEMETRY_QOS))
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, daemon=True)
@@ -144,6 +152,7 @@ class Observer:
         values, stamp = self.tele.mpc_status_from_msg(msg)
         with self.lock:
             self.status[stamp] = values
+            self.arrivals.append(int(values["model_version"]))
 
     def _on_diag(self, msg: Any) -> None:
         entries, _ = self.tele.diagnostics_from_msg(msg)
@@ -209,7 +218,8 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
         if second:
             # it starts when the MPC, the learner and the observer listen (the simulator's own start condition)
             robot = _start([sys.executable, "-m", "bench.miswired_robot", "--system", system, "--namespace",
-                            namespace, "--wiring", wiring, "--min-subscribers", "3"], env, run_dir / "robot_b.out")
+                            namespace, "--wiring", wiring, "--min-subscribers", "3", "--max-sim-time", repr(float(sim_time))],
+                           env, run_dir / "robot_b.out")
             procs.append(robot)
         deadline = t0 + timeout
         while bringup.poll() is None and time.monotonic() < deadline:
@@ -228,6 +238,7 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     with observer.lock:
         states = sorted(observer.states, key=lambda s: s[0])
         status = dict(observer.status)
+        arrivals = list(observer.arrivals)
         diag = dict(observer.diag)
         shared = dict(observer.shared)
     for name, e in shared.items():
@@ -249,8 +260,7 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     if mine:
         tracker.add(mine[-1][1], mine[-1][0] + 10 * dt_ns, 0)  # a jump: closes the last episode
     versions: list[int] = []
-    for t in sorted(status):
-        v = int(status[t].get("model_version", 0))
+    for v in arrivals:  # the two robots' stamps are apart in wall time: in arrival order, not by stamp
         if not versions or versions[-1] != v:
             versions.append(v)
     record.versions = versions
@@ -259,8 +269,10 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
         if ep.steps < 2:
             continue
         stamps = [t for t, _ in mine if ep.t_start - 1e-6 <= t * 1e-9 <= ep.t_end + 1e-6]
-        learned = sum(1 for t in stamps if t in status and status[t].get("model_source", 0.0) == 1.0
-                      and status[t].get("model_version", 0.0) > 0)
+        # a learned model planned the step (model_source: only with a guard remedy on; without, every step of a
+        # learned version is)
+        learned = sum(1 for t in stamps if t in status and status[t].get("model_version", 0.0) > 0
+                      and status[t].get("model_source", 1.0) == 1.0)
         record.learned_steps += learned
         record.episodes.append({"start": ep.start.tolist(), "steps": ep.steps, "error": ep.error,
                                 "base_error": b, "learned_steps": learned, "versions": [ep.model_first,

@@ -9,8 +9,8 @@ simulator there does, stamped half a period later (``--offset``: its clock is of
 robots collides and nothing is a duplicate), answers to its own stamps only, and applies each command through a
 wrong wiring (``--wiring``: ``reversed`` = the command's sign flipped, as motor leads swapped; ``swapped`` = the
 actuators in reverse order) while reporting on ``applied_cmd`` the command it was sent. Without ``/clock`` (the
-simulator beside it publishes that). It starts once ``cmd`` has a publisher and ``state`` ``--min-subscribers``
-subscriptions, and ends after ``--max-sim-time`` s of its own simulated time (0 = at SIGINT / SIGTERM).
+simulator beside it publishes that). It starts once ``cmd`` has a publisher, ``state`` another publisher (the
+robot it shares the namespace with) and ``--min-subscribers`` subscriptions, and ends after ``--max-sim-time`` s of its own simulated time (0 = at SIGINT / SIGTERM).
 """
 
 from __future__ import annotations
@@ -97,8 +97,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def housekeeping() -> None:
         if not core.started:
-            if node.count_publishers(cmd_sub.topic_name) >= 1 and \
-                    emit.state_pub.get_subscription_count() >= args.min_subscribers:
+            # once the robot it shares the namespace with is running (a second publisher on state) and answered
+            if node.count_publishers(cmd_sub.topic_name) >= 1 and node.count_publishers(emit.state_pub.topic_name) >= 2 \
+                    and emit.state_pub.get_subscription_count() >= args.min_subscribers:
                 print(f"miswired_robot: {args.wiring} wiring, stamps from {t0} ns, publishing into "
                       f"{node.get_namespace()}", flush=True)
                 publish(core.begin(time.monotonic_ns(), t0))

@@ -85,7 +85,8 @@ class MPCService:
         else:
             self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
                                               **config.controller_options())
-        # stamp (ns) -> (state, command) of the newest steps answered with a solved command (the live monitor's)
+        # stamp (ns) -> (state, command) of the newest steps answered with a solved command (the live monitor's;
+        # kept across stamp jumps: two streams interleaved on the topic jump back and forth between their stamps)
         self._sent: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._target_is_state = self.system.target.names == self.system.state.names
         self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
@@ -159,16 +160,12 @@ class MPCService:
     def control_step(self, x: np.ndarray, stamp: int, t_start: float) -> Answer:
         """Swap in a ready model, solve for state ``x`` (stamp ns), send the clipped command, return the status
         values (``t_start``: ``time.perf_counter()`` when the step's clock started)."""
-        jumped = self.last_stamp is None
         if self.last_stamp is not None:
             dt_ns = stamp - self.last_stamp
             # a reset, a new episode or a restarted simulator: the warm start is meaningless
             if dt_ns < 0 or (self.system.dt > 0 and dt_ns > 1.5e9 * self.system.dt):
                 self.controller.reset()
                 self.counters["warm_start_resets"] += 1
-                jumped = True
-        if jumped and self.last_stamp is not None and stamp < self.last_stamp:
-            self._sent.clear()  # a restarted stream: its stamps may repeat the old ones
         self.last_stamp = stamp
         if self.guarded is not None and self._target_is_state:
             previous = self._previous_step(stamp)
