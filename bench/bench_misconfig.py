@@ -63,6 +63,7 @@ class LoopRecord:
     checkpoint_error: float = math.nan  #: last checkpoint's mean squared one-step error, fresh samples
     base_error: float = math.nan  #: f_hat's on the same samples
     tail: str = ""  #: bringup's last lines
+    rollback_lines: list[str] = field(default_factory=list)  #: the MPC's log lines of its roll backs
 
     def flown_on_learned(self) -> list[dict[str, Any]]:
         return [e for e in self.episodes if e["learned_steps"] > 0]
@@ -78,7 +79,9 @@ class LoopRecord:
     def summary(self) -> str:
         learned = self.flown_on_learned()
         worst = max((e["error"] for e in learned), default=math.nan)
+        mean = float(np.mean([e["error"] for e in learned])) if learned else math.nan
         on_base = [e["error"] for e in self.episodes if e["learned_steps"] == 0]
+        base_mean = float(np.mean([e["base_error"] for e in self.episodes])) if self.episodes else math.nan
         ratio = self.checkpoint_error / self.base_error if self.base_error > 0 else math.nan
         return "\n".join([
             f"{self.system}, {'two robots (second wired backwards)' if self.second else 'one robot'}: "
@@ -91,7 +94,9 @@ class LoopRecord:
             f"{self.learned_steps}",
             f"  episodes of the robot wired right: {len(self.episodes)}; on f_hat only {len(on_base)} "
             f"(worst {max(on_base, default=math.nan):.4f} m); flown on a learned model {len(learned)} "
-            f"(worst {worst:.4f} m); f_hat from the same starts: worst {self.base_worst():.4f} m",
+            f"(mean {mean:.4f} m, worst {worst:.4f} m); f_hat from the same starts: mean {base_mean:.4f} m, worst "
+            f"{self.base_worst():.4f} m",
+            *(f"  MPC: {line}" for line in self.rollback_lines),
             f"  check: every episode flown on a learned model ends within f_hat's worst + {MARGIN} m: "
             f"{'yes' if self.verdict() else 'NO'}",
         ])
@@ -250,14 +255,15 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     mpc = next((e for n, e in diag.items() if n.endswith("/mpc")), None)
     if mpc is not None:
         record.rollbacks = int(mpc.values.get("guard_rollbacks", 0))
-    mine = [(t, x) for t, x in states if (t - LOCKSTEP_T0_NS) % dt_ns == 0]  # the simulator's stamps
+    # the robot wired right: the simulator's stamps (the second robot's are half a period off)
+    mine = [(t, x) for t, x in states if not second or dt_ns == 0 or (t - LOCKSTEP_T0_NS) % dt_ns == 0]
     if mine:
         record.sim_time = (mine[-1][0] - mine[0][0]) * 1e-9
     config = default_config(system)
     tracker = EpisodeTracker(system, sys_obj.dt, goal_position(system, config["mpc"]))
     for t, x in mine:
         tracker.add(x, t, int(status.get(t, {}).get("model_version", 0)))
-    if mine:
+    if mine and dt_ns > 0:
         tracker.add(mine[-1][1], mine[-1][0] + 10 * dt_ns, 0)  # a jump: closes the last episode
     versions: list[int] = []
     for v in arrivals:  # the two robots' stamps are apart in wall time: in arrival order, not by stamp
@@ -268,7 +274,8 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     for ep, b in zip(tracker.episodes, base, strict=True):
         if ep.steps < 2:
             continue
-        stamps = [t for t, _ in mine if ep.t_start - 1e-6 <= t * 1e-9 <= ep.t_end + 1e-6]
+        # the steps that led to its final state (the answer to the final state belongs to what follows)
+        stamps = [t for t, _ in mine if ep.t_start - 1e-6 <= t * 1e-9 < ep.t_end - 1e-6]
         # a learned model planned the step (model_source: only with a guard remedy on; without, every step of a
         # learned version is)
         learned = sum(1 for t in stamps if t in status and status[t].get("model_version", 0.0) > 0
@@ -278,6 +285,10 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
                                 "base_error": b, "learned_steps": learned, "versions": [ep.model_first,
                                                                                         ep.model_last]})
     record.checkpoint_error, record.base_error = _checkpoint_errors(system, run_dir / "checkpoints")
+    mpc_log = run_dir / "logs" / "mpc.log"
+    if mpc_log.exists():
+        record.rollback_lines = [line.split("]: ", 1)[-1] for line in mpc_log.read_text(errors="replace").splitlines()
+                                 if "rolled back from model version" in line]
     progress(record.summary())
     return record
 
