@@ -16,7 +16,9 @@ process watches the topics (its own rclpy node) and reports:
   (fresh samples of the paper's distribution) against f_hat's.
 
 ``--no-second`` runs the same loop with the one robot: the good case (the roll back must not roll a good model
-back). :func:`run_loop` is what test/test_misconfig_loop.py runs, shorter.
+back). ``--fly RUN_DIR`` (ROS-free) flies the newest checkpoint of a loop's run directory from fresh starts twice,
+the live monitor's roll back off and on (every transition shown to it, as the MPC node does), and compares: the
+cost of the roll back on that model. :func:`run_loop` is what test/test_misconfig_loop.py runs, shorter.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ class LoopRecord:
 
     system: str
     second: bool
+    run_dir: str = ""
     sim_time: float = 0.0
     wall_time: float = 0.0
     bringup_rc: int | None = None
@@ -64,6 +67,8 @@ class LoopRecord:
     base_error: float = math.nan  #: f_hat's on the same samples
     tail: str = ""  #: bringup's last lines
     rollback_lines: list[str] = field(default_factory=list)  #: the MPC's log lines of its roll backs
+    #: version -> (its one-step error, f_hat's) on fresh samples, for each version rolled back (NaN: pruned)
+    rolled_back: dict[int, tuple[float, float]] = field(default_factory=dict)
 
     def flown_on_learned(self) -> list[dict[str, Any]]:
         return [e for e in self.episodes if e["learned_steps"] > 0]
@@ -85,7 +90,7 @@ class LoopRecord:
         ratio = self.checkpoint_error / self.base_error if self.base_error > 0 else math.nan
         return "\n".join([
             f"{self.system}, {'two robots (second wired backwards)' if self.second else 'one robot'}: "
-            f"{self.sim_time:.0f} s simulated in {self.wall_time:.0f} s wall",
+            f"{self.sim_time:.0f} s simulated in {self.wall_time:.0f} s wall; run dir {self.run_dir}",
             f"  /diagnostics: learner multiple_publishers = {self.learner_shared!r} (level {self.learner_level}); "
             f"mpc multiple_publishers = {self.mpc_shared!r}",
             f"  last checkpoint: one-step squared error {self.checkpoint_error:.4g} against f_hat's "
@@ -97,6 +102,8 @@ class LoopRecord:
             f"(mean {mean:.4f} m, worst {worst:.4f} m); f_hat from the same starts: mean {base_mean:.4f} m, worst "
             f"{self.base_worst():.4f} m",
             *(f"  MPC: {line}" for line in self.rollback_lines),
+            *(f"  rolled back v{v}: one-step squared error {m:.4g} against f_hat's {b:.4g} on fresh samples"
+              for v, (m, b) in self.rolled_back.items()),
             f"  check: every episode flown on a learned model ends within f_hat's worst + {MARGIN} m: "
             f"{'yes' if self.verdict() else 'NO'}",
         ])
@@ -208,7 +215,7 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     run_dir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONUNBUFFERED="1",
                PYTHONPATH=os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p))
-    record = LoopRecord(system, second)
+    record = LoopRecord(system, second, str(run_dir))
     observer = Observer(system, namespace)
     bringup_cmd = [sys.executable, "-m", "saml_ros.executables", "bringup", "--system", system, "--run-dir",
                    str(run_dir), "--sim-time", repr(float(sim_time)), "--progress-period", "10"]
@@ -289,6 +296,9 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     if mpc_log.exists():
         record.rollback_lines = [line.split("]: ", 1)[-1] for line in mpc_log.read_text(errors="replace").splitlines()
                                  if "rolled back from model version" in line]
+    for line in record.rollback_lines:  # each rolled-back version on fresh samples (if the learner kept it)
+        version = int(line.split("model version ")[1].split()[0])
+        record.rolled_back[version] = _checkpoint_errors(system, run_dir / "checkpoints", version)
     progress(record.summary())
     return record
 
@@ -311,18 +321,19 @@ def _base_errors(system: str, config: dict[str, Any], starts: list[np.ndarray], 
     return out
 
 
-def _checkpoint_errors(system: str, checkpoints: Path, n: int = 4000) -> tuple[float, float]:
-    """Mean squared one-step error of the newest checkpoint in ``checkpoints`` and of f_hat, on ``n`` fresh
-    samples of the paper's distribution through the true dynamics (NaN without a checkpoint)."""
+def _checkpoint_errors(system: str, checkpoints: Path, version: int = 0, n: int = 4000) -> tuple[float, float]:
+    """Mean squared one-step error of the newest checkpoint in ``checkpoints`` (or of ``version``) and of f_hat,
+    on ``n`` fresh samples of the paper's distribution through the true dynamics (NaN without that checkpoint)."""
     from saml_ros.core.checkpoint import CheckpointError, CheckpointStore
     from saml_ros.core.model_io import load_model
     from saml_ros.core.systems import get_system
 
     try:
-        latest = CheckpointStore(checkpoints).latest()
+        store = CheckpointStore(checkpoints)
+        latest = store.latest() if version == 0 else (store.path_for(version), version)
     except (OSError, CheckpointError):
         return math.nan, math.nan
-    if latest is None:
+    if latest is None or not latest[0].exists():
         return math.nan, math.nan
     sys_obj = get_system(system)
     x, u, y = sys_obj.make_dataset(n, np.random.default_rng(12345))
@@ -330,6 +341,86 @@ def _checkpoint_errors(system: str, checkpoints: Path, n: int = 4000) -> tuple[f
     pred = model.predict_np(x, u)
     base = sys_obj.base_step_np(x, u)
     return float(((pred - y) ** 2).sum(1).mean()), float(((base - y) ** 2).sum(1).mean())
+
+
+def _observer_hook(ctrl: Any, system: Any, stepped: bool, cpu: list[Any]) -> Callable[[Any], None]:
+    """A ``closed_loop`` hook showing ``ctrl`` each live transition (the next state, or the paddle ball's
+    post-impact velocity from the true dynamics), its CPU time summed into ``cpu`` (seconds, steps)."""
+
+    def observe(step: Any) -> None:
+        t0 = time.process_time()
+        u = np.asarray(step.result.u, dtype=np.float64)
+        y = step.x_next if stepped else system.true_step_np(step.x, u)
+        ctrl.observe(step.x, u, y)
+        cpu[0] += time.process_time() - t0
+        cpu[1] += 1
+
+    return observe
+
+
+def fly(run_dir: Path, n_starts: int = 30, steps: int = 0, seed: int = 7) -> dict[str, Any]:
+    """The newest checkpoint of ``run_dir`` flown ROS-free from ``n_starts`` fresh starts (``seed``), each
+    ``steps`` long (0 = the simulator's episode length; the paddle ball: 20 bounces), with the live monitor's roll
+    back off and on, and f_hat from the same starts (the MPC settings of the run's ``bringup.yaml``): per setting
+    the final task errors (m; the paddle ball: every bounce's landing error), roll backs and the monitor's CPU time
+    per step."""
+    import yaml
+
+    from saml_ros.bringup.results import goal_position, task_error
+    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model_io import load_model
+    from saml_ros.core.mpc import closed_loop
+    from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.core.mpc.guard import GuardConfig, make_guarded_controller
+    from saml_ros.core.systems import get_entry
+
+    config = yaml.safe_load((run_dir / "bringup.yaml").read_text())
+    system_name = str(config["system"])
+    entry = get_entry(system_name)
+    mpc = MPCConfig.from_params({"system": system_name, **config["mpc"]})
+    system = entry.make_system()
+    latest = CheckpointStore(run_dir / "checkpoints").latest()
+    if latest is None:
+        raise FileNotFoundError(f"no checkpoint in {run_dir / 'checkpoints'}")
+    model = load_model(latest[0]).model
+    rng = np.random.default_rng(seed)
+    stepped = system.target.names == system.state.names
+    if stepped:
+        steps = steps or int(config["sim"].get("episode_steps", 100))
+        assert entry.stepped_model is not None
+        model_of = entry.stepped_model(system)
+        starts = [model_of.sample_start(rng) for _ in range(n_starts)]
+    else:
+        steps = steps or 20
+        starts = list(system.sample_inputs(n_starts, rng)[0])
+    goal = goal_position(system_name, config["mpc"])
+    out: dict[str, Any] = {"run_dir": str(run_dir), "checkpoint": [str(latest[0]), latest[1]], "steps": steps,
+                           "starts": n_starts}
+    for name, rollback in (("f_hat", False), ("roll back off", False), ("roll back on", True)):
+        ctrl = make_guarded_controller(system, mpc.solver, GuardConfig(rollback=rollback, monitor=mpc.guard.monitor),
+                                       member=mpc.member, **mpc.controller_options())
+        errors: list[float] = []
+        cpu = [0.0, 0]
+        observe = _observer_hook(ctrl, system, stepped, cpu)
+        for x0 in starts:
+            ctrl.reset_models()
+            if name != "f_hat":
+                ctrl.set_model(model, latest[1])
+            run = closed_loop(system, ctrl, x0, steps, mpc.goal, on_step=observe)
+            if stepped:
+                errors.append(task_error(system_name, run.xs[-1], goal))
+            else:
+                errors.extend(float(c) for c in run.stage_costs)
+        out[name] = {"mean": float(np.mean(errors)), "worst": float(np.max(errors)),
+                     "rollbacks": int(ctrl.counters["rollbacks"]), "steps_on_f_hat": int(ctrl.counters["solves_base"]),
+                     "monitor_ms_per_step": 1e3 * cpu[0] / max(cpu[1], 1)}
+    print(f"{system_name}: checkpoint v{latest[1]} of {run_dir}, {n_starts} starts x {steps} steps "
+          f"({'episodes' if stepped else 'bounces'})")
+    for name in ("f_hat", "roll back off", "roll back on"):
+        r = out[name]
+        print(f"  {name}: error mean {r['mean']:.4f} m, worst {r['worst']:.4f} m; roll backs {r['rollbacks']}, "
+              f"steps on f_hat {r['steps_on_f_hat']}; monitor {r['monitor_ms_per_step']:.3f} ms CPU per step")
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -341,7 +432,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--wiring", default="reversed", help="the second robot's miswiring (bench/miswired_robot.py)")
     ap.add_argument("--set", action="append", default=[], dest="sets", help="bringup --set section.param=value")
     ap.add_argument("--json", type=Path, default=None, help="write the records here")
+    ap.add_argument("--fly", type=Path, default=None, metavar="RUN_DIR",
+                    help="ROS-free: fly RUN_DIR's newest checkpoint with the roll back off and on")
+    ap.add_argument("--starts", type=int, default=30, help="--fly: fresh starts")
     args = ap.parse_args(argv)
+    if args.fly is not None:
+        result = fly(args.fly, args.starts)
+        if args.json is not None:
+            args.json.write_text(json.dumps(result, indent=1))
+        return 0
     from bench.ros_procs import claimed_domain
 
     records = []
