@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import ros_helpers
 from ros_helpers import RosDomain, TestNode, wait_for
 
@@ -75,9 +76,10 @@ class _Log:
         self.lines.append(text)
 
 
-def residual_model(system_name: str, scale: float, seed: int = 0) -> Any:
-    """A residual model with normalisation fitted on the paper's distribution and last-layer weights ~ N(0,
-    scale): near f_hat for a tiny ``scale``, wrong everywhere for a large one."""
+def residual_model(system_name: str, scale: float, seed: int = 0, offset: float = 0.0) -> Any:
+    """A residual model with normalisation fitted on the paper's distribution, last-layer weights ~ N(0, scale)
+    and last-layer biases + ``offset``: near f_hat for a tiny ``scale`` and no offset, wrong everywhere for a large
+    one (in units of the residual's standard deviation)."""
     import torch
 
     from saml_ros.core.models import DynamicsModel
@@ -89,6 +91,7 @@ def residual_model(system_name: str, scale: float, seed: int = 0) -> Any:
     model.fit_normalization(x, u, y)
     with torch.no_grad():
         model.net.weights[-1].normal_(0.0, scale, generator=torch.Generator().manual_seed(seed))
+        model.net.biases[-1].add_(offset)
     return model
 
 
@@ -171,6 +174,58 @@ def test_the_monitor_pairs_each_state_with_the_one_answered_a_period_earlier() -
     # f_hat misses only the friction bumps: small one-step errors, never a 3 m jump between the robots
     assert np.isnan(live_base[:2]).all() and max(live_base[2:]) < 0.5, live_base
     assert guarded.tag == 1 and service.counters["rollbacks"] == 0
+
+
+
+class OneStepController:
+    """A controller of the Controller protocol with no numpy model of its own (as a user's or another planner
+    may be): it picks, among 41 commands, the one whose predicted next position is nearest the goal."""
+
+    horizon = 1
+
+    def __init__(self, system: Any) -> None:
+        self.system = system
+        self.model: Any = None
+        self.candidates = np.linspace(system.control_low, system.control_high, 41)
+
+    def set_model(self, model: Any) -> None:
+        self.model = model
+
+    def reset(self) -> None:
+        pass
+
+    def solve(self, x0: np.ndarray, goal: Any = None) -> Any:
+        from saml_ros.core.mpc.contract import MPCResult
+
+        xs = np.repeat(np.asarray(x0, dtype=np.float64)[None], len(self.candidates), 0)
+        pred = self.system.base_step_np(xs, self.candidates) if self.model is None else \
+            self.model.predict_np(xs, self.candidates)
+        k = int(np.argmin(np.abs(pred[:, 0])))
+        return MPCResult(self.candidates[k], self.candidates[k:k + 1], np.stack([x0, pred[k]]), float(abs(pred[k, 0])),
+                         0.0, 0, True, "ok")
+
+
+def test_the_roll_back_works_around_any_controller() -> None:
+    """A controller without a numpy model (no ``dyn``): the monitor predicts with the model and the system's f_hat,
+    and rolls a wrong model back (a robot from a system file flown by another planner is monitored the same way)."""
+    from saml_ros.core.mpc.guard import GuardConfig, GuardedController
+    from saml_ros.core.systems import get_system
+
+    system = get_system("friction")
+    guarded = GuardedController(OneStepController(system), OneStepController(system),  # type: ignore[arg-type]
+                                GuardConfig(rollback=True))
+    assert not guarded.shooting
+    x, rolled = np.array([1.0, 0.0]), []
+    guarded.set_model(residual_model("friction", 3.0, offset=30.0), 1)
+    for _ in range(6):
+        u = guarded.solve(x).u
+        x_next = system.true_step_np(x, u)
+        rolled.append(guarded.observe(x, u, x_next))
+        x = x_next
+    assert any(rolled) and guarded.tag == 0 and guarded.banned == {1}
+    with pytest.raises(ValueError, match="only guard.rollback"):
+        GuardedController(OneStepController(system), OneStepController(system),  # type: ignore[arg-type]
+                          GuardConfig(rollback=True, infeasible=True))
 
 
 # ------------------------------------------------------------------------------------- processes

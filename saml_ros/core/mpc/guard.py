@@ -19,9 +19,11 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   model is worse there, the controller rolls back to the previous model (if it had one that was not rolled back itself),
   otherwise to f_hat, and that model version is never used again (``rollbacks``).
 
-The unguarded MPC is the same controller with every remedy off. The roll back alone works around any controller
-whose model predicts with ``dyn.step1`` (the one-shot paddle-ball MPC too: its live transition is the pre-impact
-state, the command and the post-impact velocity); the other remedies need the shooting MPC.
+The unguarded MPC is the same controller with every remedy off. The roll back alone works around any controller of
+the :class:`~saml_ros.core.mpc.contract.Controller` protocol (the one-shot paddle-ball MPC too: its live transition is
+the pre-impact state, the command and the post-impact velocity): the monitor predicts with the controller's numpy
+model (``dyn.step1``) where it has one, else with the model itself and the system's f_hat; the other remedies
+need the shooting MPC.
 """
 
 from __future__ import annotations
@@ -192,7 +194,7 @@ class GuardedController:
 
     Args:
         learned: the controller that plans with the learned model (its model is set by :meth:`set_model`); a
-            :class:`ShootingMPC`, or for the roll back alone any controller with ``dyn.step1`` (the paddle ball's).
+            :class:`ShootingMPC`, or for the roll back alone any :class:`~saml_ros.core.mpc.contract.Controller`.
         base: a controller of the same problem planning with f_hat alone (fallback and roll-back target).
         config: the remedies.
 
@@ -358,12 +360,12 @@ class GuardedController:
         u = np.asarray(u, dtype=np.float64)
         if not np.all(np.isfinite(y)) or not np.all(np.isfinite(x)):
             return False
-        e_base = y - self.base.dyn.step1(x, u)
+        e_base = y - self._one_step(self.base, None, x, u)
         self.live_error_base = float(e_base @ e_base)
         if self._active.model is None:
             self.live_error_model = self.live_error_base
             return False
-        e_model = y - self.learned.dyn.step1(x, u)
+        e_model = y - self._one_step(self.learned, self._active.model, x, u)
         self.live_error_model = float(e_model @ e_model)
         if self.last_source != "learned":
             # the step was planned with f_hat (the ensemble disagreed): the learned model did not fly it, and its
@@ -378,6 +380,16 @@ class GuardedController:
         prev, self._previous = self._previous, None
         self._activate(prev if prev is not None and prev.tag not in self._banned else _Active(None, 0, None, None))
         return True
+
+    def _one_step(self, controller: Any, model: DynamicsModel | None, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The prediction ``controller`` plans with for ``(x, u)``: its numpy model's (``dyn.step1``), else
+        ``model``'s (its planning member) or, without a model, the system's f_hat."""
+        dyn = getattr(controller, "dyn", None)
+        if dyn is not None and hasattr(dyn, "step1"):
+            return np.asarray(dyn.step1(x, u), dtype=np.float64)
+        if model is None:
+            return np.asarray(self.system.base_step_np(x, u), dtype=np.float64)
+        return np.asarray(model.predict_np(x, u, int(getattr(controller, "member", 0))), dtype=np.float64)
 
     def values(self) -> dict[str, float]:
         """The guard's counters and the monitor's window means, for ``mpc/status`` (floats)."""
@@ -406,6 +418,4 @@ def make_guarded_controller(system: System, solver: str = "fast", config: GuardC
     learned = make_controller(system, None, solver, **options)
     base_opts = {k: v for k, v in options.items() if k != "member"}
     base = make_controller(system, None, solver, **base_opts)
-    if not all(hasattr(getattr(c, "dyn", None), "step1") for c in (learned, base)):
-        raise ValueError(f"guarded MPC: the {system.name} controller has no one-step model (dyn.step1) to monitor")
     return GuardedController(learned, base, config)  # type: ignore[arg-type]
