@@ -174,6 +174,22 @@ def test_the_monitor_pairs_each_state_with_the_one_answered_a_period_earlier() -
     # f_hat misses only the friction bumps: small one-step errors, never a 3 m jump between the robots
     assert np.isnan(live_base[:2]).all() and max(live_base[2:]) < 0.5, live_base
     assert guarded.tag == 1 and service.counters["rollbacks"] == 0
+    assert len(guarded.monitor._windows) == 2  # one window per robot
+
+
+def test_a_robot_on_which_f_hat_is_far_off_does_not_hide_a_model_worse_on_the_other() -> None:
+    """Each stream has its own window: robot B (wired backwards) makes f_hat look terrible on its transitions, and
+    mixed into one window that hid a model twice as far off as f_hat on robot A."""
+    from saml_ros.core.model_monitor import LiveErrorMonitor
+
+    mixed, per_robot = LiveErrorMonitor(), LiveErrorMonitor()
+    said = []
+    for _ in range(4):
+        for stream, (e_model, e_base) in ((0, (0.1, 0.02)), (2, (1.0, 3.6))):  # A: model worse; B: f_hat worse
+            mixed.add(e_model, e_base)
+            said.append(per_robot.add(e_model, e_base, stream))
+    assert not any(mixed.add(e, b) for e, b in ((0.1, 0.02), (1.0, 3.6)))  # one window: never
+    assert said.index(True) == 4  # robot A's own window: at its third transition (min_samples)
 
 
 

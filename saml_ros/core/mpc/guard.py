@@ -349,12 +349,13 @@ class GuardedController:
         return bool(np.any(np.abs(dyn.mlp.forward(res.plan_x[:-1], res.plan_u)) >= bound))
 
     # ------------------------------------------------------------------------------------------ monitor
-    def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> bool:
+    def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, stream: int = 0) -> bool:
         """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n_y,)``; ``u`` the command solved for ``x``;
         ``x_next`` the target: the next state, or the paddle ball's post-impact velocity): scores the model in use and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`);
         with ``rollback`` on, True when it made the controller roll back (to the previous model or f_hat; the
         rolled-back tag is banned). Only steps the learned model planned enter the monitor's window: a step
-        planned with f_hat on disagreement is counted in ``monitor_skipped``."""
+        planned with f_hat on disagreement is counted in ``monitor_skipped``. ``stream``: which stream of
+        transitions it belongs to (a robot among several on one topic; each has its own window in the monitor)."""
         y = np.asarray(x_next, dtype=np.float64)
         x = np.asarray(x, dtype=np.float64)
         u = np.asarray(u, dtype=np.float64)
@@ -373,7 +374,7 @@ class GuardedController:
             # far starts they never planned (docs/demo.md, "The monitor scores the steps the model planned").
             self.counters["monitor_skipped"] += 1
             return False
-        if not self.config.rollback or not self.monitor.add(self.live_error_model, self.live_error_base):
+        if not self.config.rollback or not self.monitor.add(self.live_error_model, self.live_error_base, stream):
             return False
         self.counters["rollbacks"] += 1
         self._banned.add(self._active.tag)

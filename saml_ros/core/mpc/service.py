@@ -28,7 +28,9 @@ The node decodes messages and publishes; everything in between is here and unit-
   :class:`~saml_ros.core.mpc.guard.GuardedController`: each control step first shows it the live transition that
   just happened (the state answered one period ``dt`` earlier, within a quarter period, the command sent for it,
   this state: a state of another stream interleaved on the topic, such as a second robot's half a period off, is
-  never taken for the next state; nothing across a stamp jump), or, for a system whose target is not the next state
+  never taken for the next state; nothing across a stamp jump; each chain of states a period apart continues its
+  stream, a new chain starts the stream of its stamp's phase, in quarter periods, and the monitor keeps a window
+  per stream), or, for a system whose target is not the next state
   (the paddle ball), :meth:`MPCService.receive_target` shows it the target stamped like a state it answered; a
   roll back changes the model in use (``rollbacks``, logged); its counters go on ``mpc/status`` and
   ``/diagnostics`` (``guard_*``, ``monitor_error_*``).
@@ -87,7 +89,8 @@ class MPCService:
                                               **config.controller_options())
         # stamp (ns) -> (state, command) of the newest steps answered with a solved command (the live monitor's;
         # kept across stamp jumps: two streams interleaved on the topic jump back and forth between their stamps)
-        self._sent: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        # (state, command, stream): a stream is a chain of states a period apart (a robot among several on the topic)
+        self._sent: OrderedDict[int, tuple[np.ndarray, np.ndarray, int]] = OrderedDict()
         self._target_is_state = self.system.target.names == self.system.state.names
         self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
         self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
@@ -170,7 +173,10 @@ class MPCService:
         if self.guarded is not None and self._target_is_state:
             previous = self._previous_step(stamp)
             if previous is not None:
-                self._observe(*previous, x)
+                self._observe(*previous[:2], x, previous[2])
+            stream = previous[2] if previous is not None else self._phase(stamp)
+        else:
+            stream = 0
         swap_ms = 0.0
         ready = self.watcher.take()
         if ready is not None:
@@ -182,7 +188,7 @@ class MPCService:
         self.send(u, stamp)
         # the live monitor scores transitions from solved commands only (a safe command says nothing of the model)
         if not values["safe"] and self.guarded is not None:
-            self._sent[stamp] = (np.array(x, dtype=np.float64), u)
+            self._sent[stamp] = (np.array(x, dtype=np.float64), u, stream)
             while len(self._sent) > SENT_KEPT:
                 self._sent.popitem(last=False)
         if not values["safe"]:
@@ -211,9 +217,16 @@ class MPCService:
             values["model_source"] = 1.0 if self.guarded.last_source == "learned" else 0.0
         return stamp, values
 
-    def _previous_step(self, stamp: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """The (state, command) answered one period before ``stamp`` (within :data:`NEXT_STATE_TOLERANCE` of the
-        period), or None (a stamp jump, a safe command, a state of another stream in between is skipped)."""
+    def _phase(self, stamp: int) -> int:
+        """The stream of a state that continues no chain: its stamp's phase in the period, in quarters (a robot
+        whose clock is half a period off another's starts its own stream)."""
+        dt_ns = int(round(self.system.dt * 1e9))
+        return int(round(4 * (stamp % dt_ns) / dt_ns)) % 4 if dt_ns > 0 else 0
+
+    def _previous_step(self, stamp: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The (state, command, stream) answered one period before ``stamp`` (within
+        :data:`NEXT_STATE_TOLERANCE` of the period), or None (a stamp jump, a safe command; a state of another
+        stream in between is skipped)."""
         dt_ns = self.system.dt * 1e9
         if dt_ns <= 0:
             return None
@@ -233,14 +246,14 @@ class MPCService:
             return
         sent = self._sent.pop(stamp, None)
         if sent is not None:
-            self._observe(*sent, np.asarray(y, dtype=np.float64))
+            self._observe(sent[0], sent[1], np.asarray(y, dtype=np.float64))
 
-    def _observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> None:
+    def _observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, stream: int = 0) -> None:
         """Show the guard the live transition ``(x, u) -> x_next``; on a roll back switch the model in use."""
         assert self.guarded is not None
         old = self.model_version
         try:
-            rolled = self.guarded.observe(x, u, x_next)
+            rolled = self.guarded.observe(x, u, x_next, stream)
         except Exception as exc:  # noqa: BLE001 - the monitor must never stop the control loop
             self.counters["monitor_errors"] += 1
             self.warn_throttled("monitor", f"live monitor raised {type(exc).__name__}: {exc}")
