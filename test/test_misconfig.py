@@ -95,10 +95,41 @@ def residual_model(system_name: str, scale: float, seed: int = 0, offset: float 
     return model
 
 
+def swap(service: Any, model: Any, version: int) -> None:
+    """Hand ``model`` to the MPC service as its watcher hands over a checkpoint it loaded."""
+    from saml_ros.core.model_io import LoadedModel
+    from saml_ros.core.model_watch import ReadyModel
+
+    loaded = LoadedModel(model, None, service.system, None, {}, {})  # type: ignore[arg-type]
+    service.swap(ReadyModel(loaded, Path(f"ckpt-{version}.saml"), version, None, 0.0, "poll"))
+
+
+def test_a_model_worse_than_f_hat_on_the_newest_live_transitions_is_never_flown() -> None:
+    """The MPC has flown a few steps (on f_hat): a new checkpoint that predicts those transitions worse than f_hat
+    is refused before its first step (the version never used); one as good as f_hat is taken."""
+    from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.core.mpc.service import MPCService
+
+    sent: list[tuple[np.ndarray, int]] = []
+    log = _Log()
+    service = MPCService(MPCConfig.from_params({"system": "friction"}), lambda u, s: sent.append((u, s)), log)
+    assert service.guarded is not None
+    x, stamp = np.array([1.5, 0.0]), 10**9
+    for _ in range(6):
+        service.receive(x, stamp, time.perf_counter())
+        x, stamp = service.system.true_step_np(x, sent[-1][0]), stamp + 100_000_000
+    swap(service, residual_model("friction", 3.0, offset=30.0), 1)
+    assert service.model_version == 0 and service.guarded.model is None and service.guarded.banned == {1}
+    assert any("refused model version 1 (ckpt-1.saml) before flying it" in line for line in log.lines), log.lines
+    assert service.guarded.counters["refused_before_flight"] == 1 and service.counters["rollbacks"] == 1
+    swap(service, residual_model("friction", 1e-6), 2)
+    assert service.model_version == 2 and service.guarded.tag == 2
+
+
 def test_the_paddle_balls_mpc_rolls_a_model_back_on_its_post_impact_velocities() -> None:
     """guard.rollback is on by default for the one-shot paddle MPC too: its live transition is (pre-impact state,
-    command, post-impact velocity). A model far off is rolled back to f_hat within min_samples bounces; one as good
-    as f_hat is kept."""
+    command, post-impact velocity). A model as good as f_hat is kept; one far off is refused before it flies once
+    bounces were seen, and rolled back within min_samples bounces when none were."""
     from saml_ros.core.mpc.config import MPCConfig
     from saml_ros.core.mpc.service import MPCService
     from saml_ros.core.systems import get_entry
@@ -125,25 +156,21 @@ def test_the_paddle_balls_mpc_rolls_a_model_back_on_its_post_impact_velocities()
         service.receive_target(truth.step1(x[0], u), stamp[0])
         return guarded.live_error_model, guarded.live_error_base
 
-    def swap(model: Any, version: int) -> None:
-        """The model as the watcher hands over a checkpoint it loaded."""
-        from saml_ros.core.model_io import LoadedModel
-        from saml_ros.core.model_watch import ReadyModel
-
-        loaded = LoadedModel(model, None, service.system, None, {}, {})  # type: ignore[arg-type]
-        service.swap(ReadyModel(loaded, Path(f"ckpt-{version}.saml"), version, None, 0.0, "poll"))
-
-    swap(residual_model("paddle_ball", 1e-6, seed=1), 1)
+    swap(service, residual_model("paddle_ball", 1e-6, seed=1), 1)
     errors = [bounce() for _ in range(8)]
     assert guarded.tag == 1 and service.counters["rollbacks"] == 0, errors
     assert all(np.isfinite(e) for pair in errors for e in pair)
-    swap(residual_model("paddle_ball", 3.0, seed=2), 2)
+    swap(service, residual_model("paddle_ball", 3.0, seed=2), 2)  # refused: the 8 bounces flown show it is wrong
+    assert guarded.tag == 1 and guarded.banned == {2} and service.counters["rollbacks"] == 1, log.lines
+    assert any("refused model version 2 (ckpt-2.saml) before flying it" in line for line in log.lines)
+    guarded.reset_models()  # nothing flown yet: the bad model flies until the monitor has min_samples bounces
+    swap(service, residual_model("paddle_ball", 3.0, seed=3), 3)
     for _ in range(5):
         bounce()
-    assert guarded.tag == 1 and guarded.banned == {2} and service.counters["rollbacks"] == 1, log.lines
-    assert any("rolled back from model version 2" in line for line in log.lines)
+    assert guarded.tag == 0 and guarded.banned == {3} and service.counters["rollbacks"] == 2, log.lines
+    assert any("rolled back from model version 3" in line for line in log.lines)
     service.receive_target(np.zeros(3), 123)  # a target no answer was stamped with: ignored
-    assert service.counters["rollbacks"] == 1
+    assert service.counters["rollbacks"] == 2
 
 
 def test_the_monitor_pairs_each_state_with_the_one_answered_a_period_earlier() -> None:

@@ -17,7 +17,11 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   transition :meth:`GuardedController.observe` is given scores the active model and f_hat; the steps the learned
   model planned (not those planned with f_hat on disagreement) enter the monitor's window, and when the active
   model is worse there, the controller rolls back to the previous model (if it had one that was not rolled back itself),
-  otherwise to f_hat, and that model version is never used again (``rollbacks``).
+  otherwise to f_hat, and that model version is never used again (``rollbacks``). A new model is scored the same
+  way *before* it is flown, on the newest live transitions already seen (the last ``window`` of each stream
+  that the model in use planned, or f_hat when no model was in use): one worse than f_hat there is refused,
+  never flown and never used again (:meth:`GuardedController.set_model` returns False; counted in ``rollbacks``
+  and ``refused_before_flight``).
 
 The unguarded MPC is the same controller with every remedy off. The roll back alone works around any controller of
 the :class:`~saml_ros.core.mpc.contract.Controller` protocol (the one-shot paddle-ball MPC too: its live transition is
@@ -29,13 +33,13 @@ need the shooting MPC.
 from __future__ import annotations
 
 import math
-from collections import Counter
+from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from saml_ros.core.model_monitor import LiveErrorMonitor, MonitorConfig
+from saml_ros.core.model_monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import Jac3, NumpyDynamics
@@ -226,6 +230,10 @@ class GuardedController:
         #: squared one-step errors of the model in use and of f_hat on the last live transition observed
         self.live_error_model = math.nan
         self.live_error_base = math.nan
+        #: stream -> the newest live transitions (x, u, target) a new model is scored on before it flies
+        self._recent: OrderedDict[int, deque[tuple[np.ndarray, np.ndarray, np.ndarray]]] = OrderedDict()
+        #: (the refused model's mean squared error, f_hat's, transitions) of the last refusal before flight
+        self.last_refusal: tuple[float, float, int] | None = None
 
     # ------------------------------------------------------------------------------------------ models
     @property
@@ -247,11 +255,41 @@ class GuardedController:
         return frozenset(self._banned)
 
     def set_model(self, model: DynamicsModel | None, tag: int = 0, meta: dict[str, Any] | None = None) -> None:
+        """:meth:`offer_model` (the Controller protocol's ``set_model``; whether it was taken is not returned)."""
+        self.offer_model(model, tag, meta)
+
+    def offer_model(self, model: DynamicsModel | None, tag: int = 0, meta: dict[str, Any] | None = None) -> bool:
         """Plan with ``model`` (tag ``tag``, e.g. its checkpoint version; ``meta`` its checkpoint meta, where the
-        residual bound is read) from the next solve on; the model in use becomes the roll-back target."""
+        residual bound is read) from the next solve on; the model in use becomes the roll-back target. With the
+        roll back on, a model that predicts the newest live transitions worse than f_hat is refused instead
+        (False; :attr:`last_refusal` says by how much, the tag is never used again)."""
+        if model is not None and self.config.rollback:
+            worse = self._worse_on_recent(model)
+            if worse is not None:
+                self.last_refusal = worse
+                self._banned.add(tag)
+                self.counters["rollbacks"] += 1
+                self.counters["refused_before_flight"] += 1
+                return False
         if self._active.model is not None and self._active.tag not in self._banned:
             self._previous = self._active
         self._activate(self._make_active(model, tag, meta or {}))
+        return True
+
+    def _worse_on_recent(self, model: DynamicsModel) -> tuple[float, float, int] | None:
+        """The monitor's verdict on ``model`` over the newest live transitions of each stream: ``(its mean squared
+        one-step error, f_hat's, transitions)`` of a stream where it says roll back, else None."""
+        rows = [(stream, x, u, y) for stream, window in self._recent.items() for x, u, y in window]
+        if not rows:
+            return None
+        xs, us = np.stack([r[1] for r in rows]), np.stack([r[2] for r in rows])
+        pred = np.asarray(model.predict_np(xs, us, int(getattr(self.learned, "member", 0))), dtype=np.float64)
+        monitor = LiveErrorMonitor(self.config.monitor)
+        for (stream, x, u, y), p in zip(rows, pred, strict=True):
+            e_model, e_base = y - p, y - self._one_step(self.base, None, x, u)
+            if monitor.add(float(e_model @ e_model), float(e_base @ e_base), stream):
+                return monitor.mean_model, monitor.mean_base, monitor.samples
+        return None
 
     def _make_active(self, model: DynamicsModel | None, tag: int, meta: dict[str, Any]) -> _Active:
         if model is None:
@@ -278,6 +316,8 @@ class GuardedController:
         """Back to f_hat with no history and no banned tags (a fresh evaluation run)."""
         self._previous = None
         self._banned.clear()
+        self._recent.clear()
+        self.last_refusal = None
         self._activate(_Active(None, 0, None, None))
 
     # ------------------------------------------------------------------------------------------ solve
@@ -361,6 +401,12 @@ class GuardedController:
         u = np.asarray(u, dtype=np.float64)
         if not np.all(np.isfinite(y)) or not np.all(np.isfinite(x)):
             return False
+        if self._active.model is None or self.last_source == "learned":  # what a new model is scored on first
+            recent = self._recent.pop(stream, None) or deque(maxlen=self.config.monitor.window)
+            recent.append((x.copy(), u.copy(), y.copy()))
+            self._recent[stream] = recent
+            while len(self._recent) > MAX_STREAMS:
+                self._recent.popitem(last=False)
         e_base = y - self._one_step(self.base, None, x, u)
         self.live_error_base = float(e_base @ e_base)
         if self._active.model is None:

@@ -230,12 +230,9 @@ class MPCService:
         dt_ns = self.system.dt * 1e9
         if dt_ns <= 0:
             return None
-        for t in reversed(self._sent):
-            gap = stamp - t
-            if abs(gap - dt_ns) <= NEXT_STATE_TOLERANCE * dt_ns:
+        for t in reversed(self._sent):  # not in stamp order: interleaved streams drift apart in time
+            if abs(stamp - t - dt_ns) <= NEXT_STATE_TOLERANCE * dt_ns:
                 return self._sent[t]
-            if gap > (1 + NEXT_STATE_TOLERANCE) * dt_ns:
-                return None
         return None
 
     def receive_target(self, y: np.ndarray, stamp: int) -> None:
@@ -323,9 +320,17 @@ class MPCService:
         return self.u_safe, out
 
     def swap(self, ready: ReadyModel) -> None:
-        """Plan with the model ``ready`` from now on."""
+        """Plan with the model ``ready`` from now on (with the live monitor on: unless it predicts the newest live
+        transitions worse than f_hat; then it is refused, logged, and never flown)."""
         if self.guarded is not None:
-            self.guarded.set_model(ready.loaded.model, ready.version, ready.loaded.meta)
+            if not self.guarded.offer_model(ready.loaded.model, ready.version, ready.loaded.meta):
+                self.counters["rollbacks"] += 1
+                m, b, n = self.guarded.last_refusal or (math.nan, math.nan, 0)
+                self.logger.warning(
+                    f"refused model version {ready.version} ({ready.path.name}) before flying it: on the last {n} "
+                    f"live transitions its one-step error {m:.4g} is above f_hat's {b:.4g} + margin; model version "
+                    f"{self.model_version} kept, version {ready.version} is not used again")
+                return
             self._paths[ready.version] = str(ready.path)
         else:
             self.controller.set_model(ready.loaded.model)
