@@ -5,10 +5,10 @@ Real processes in a private ROS domain: ``bringup --system friction`` with frict
 learner, MPC: the live monitor's roll back on by default) and a second friction robot (bench/miswired_robot.py)
 publishing ``state`` and ``applied_cmd`` into /friction half a period later, its command's sign flipped. The learner
 pairs both (the refusal is opt-in) and writes models far worse than f_hat. What must show: both the learner and the
-MPC name the two publishers on ``/diagnostics``; a learned model worse than f_hat was flown on the robot wired
-right, the MPC rolled one back, and no episode flown on a learned model ends more than f_hat's worst (from the
-same start states) + 0.1 m. Without the roll back (``mpc.guard.rollback=false``) that robot's episodes ended
-hundreds of metres off (bench misconfig, docs/mpc.md).
+MPC name the two publishers on ``/diagnostics``; a model worse than f_hat was learned, the MPC refused one before
+flying it or rolled one back, and no episode of the robot wired right flown on a learned model ends more than
+f_hat's worst (from the same start states) + 0.1 m. Without the live monitor (``mpc.guard.rollback=false``) that
+robot's episodes ended up to hundreds of metres off (bench misconfig, docs/mpc.md).
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ def test_two_robots_on_one_topic_are_named_and_the_bad_model_is_not_flown_off(ro
     seen: dict[str, Any] = {}
 
     def until(record: Any, observer: Observer) -> bool:
-        """Stop 20 s of simulated time after the first roll back (two more episodes of the robot wired right)."""
+        """Stop 20 s of simulated time after the first roll back or refusal (two more episodes of the robot wired
+        right)."""
         with observer.lock:
             mpc = next((e for n, e in observer.diag.items() if n.endswith("/mpc")), None)
             last = max((t for t, _ in observer.states if t % 100_000_000 == 0), default=0)
@@ -47,10 +48,9 @@ def test_two_robots_on_one_topic_are_named_and_the_bad_model_is_not_flown_off(ro
     for shared in (record.learner_shared, record.mpc_shared):
         assert "/friction/state: /friction/friction_sim, /friction/robot_b" in shared, record.summary()
     assert record.learner_level >= 1 and "several publishers on /friction/state" in record.learner_message
-    # a bad model was learned and flown on the robot wired right, and rolled back
+    # a model worse than f_hat was learned; the MPC refused it before flying it or rolled it back
     assert record.checkpoint_error > record.base_error, record.summary()
-    assert record.learned_steps > 0 and record.rollbacks >= 1, record.summary()
-    # none of its episodes flown on a learned model ends further off than f_hat's worst + 0.1 m
-    assert record.flown_on_learned(), record.summary()
+    assert record.rollbacks >= 1, record.summary()
+    # no episode of the robot wired right flown on a learned model ends further off than f_hat's worst + 0.1 m
     worst = record.base_worst()
     assert all(e["error"] <= worst + MARGIN for e in record.flown_on_learned()), record.summary()

@@ -379,6 +379,7 @@ class MPCService:
             values["guard_fallbacks"] = g.counters["fallbacks"]
             values["guard_base_solves"] = g.counters["solves_base"]
             values["guard_rollbacks"] = g.counters["rollbacks"]
+            values["guard_refused_before_flight"] = g.counters["refused_before_flight"]
             values["guard_bounded_solves"] = g.counters["bounded"]
             values["guard_clipped_solves"] = g.counters["clipped"]
             values["guard_rolled_back_versions"] = ",".join(str(v) for v in sorted(g.banned))
