@@ -295,9 +295,9 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     mpc_log = run_dir / "logs" / "mpc.log"
     if mpc_log.exists():
         record.rollback_lines = [line.split("]: ", 1)[-1] for line in mpc_log.read_text(errors="replace").splitlines()
-                                 if "rolled back from model version" in line]
+                                 if "rolled back from model version" in line or "before flying it" in line]
     for line in record.rollback_lines:  # each rolled-back version on fresh samples (if the learner kept it)
-        version = int(line.split("model version ")[1].split()[0])
+        version = int(line.split("model version ")[1].split()[0])  # rolled back from / refused model version N
         record.rolled_back[version] = _checkpoint_errors(system, run_dir / "checkpoints", version)
     progress(record.summary())
     return record
