@@ -358,8 +358,8 @@ def _observer_hook(ctrl: Any, system: Any, stepped: bool, cpu: list[Any]) -> Cal
     return observe
 
 
-def fly(run_dir: Path, n_starts: int = 30, steps: int = 0, seed: int = 7) -> dict[str, Any]:
-    """The newest checkpoint of ``run_dir`` flown ROS-free from ``n_starts`` fresh starts (``seed``), each
+def fly(run_dir: Path, n_starts: int = 30, steps: int = 0, seed: int = 7, version: int = 0) -> dict[str, Any]:
+    """The newest checkpoint of ``run_dir`` (or ``version``) flown ROS-free from ``n_starts`` fresh starts (``seed``), each
     ``steps`` long (0 = the simulator's episode length; the paddle ball: 20 bounces), with the live monitor's roll
     back off and on, and f_hat from the same starts (the MPC settings of the run's ``bringup.yaml``): per setting
     the final task errors (m; the paddle ball: every bounce's landing error), roll backs and the monitor's CPU time
@@ -379,10 +379,12 @@ def fly(run_dir: Path, n_starts: int = 30, steps: int = 0, seed: int = 7) -> dic
     entry = get_entry(system_name)
     mpc = MPCConfig.from_params({"system": system_name, **config["mpc"]})
     system = entry.make_system()
-    latest = CheckpointStore(run_dir / "checkpoints").latest()
-    if latest is None:
-        raise FileNotFoundError(f"no checkpoint in {run_dir / 'checkpoints'}")
+    store = CheckpointStore(run_dir / "checkpoints")
+    latest = store.latest() if version == 0 else (store.path_for(version), version)
+    if latest is None or not latest[0].exists():
+        raise FileNotFoundError(f"no such checkpoint in {run_dir / 'checkpoints'}")
     model = load_model(latest[0]).model
+    one_step = _checkpoint_errors(system_name, run_dir / "checkpoints", latest[1])
     rng = np.random.default_rng(seed)
     stepped = system.target.names == system.state.names
     if stepped:
@@ -395,7 +397,7 @@ def fly(run_dir: Path, n_starts: int = 30, steps: int = 0, seed: int = 7) -> dic
         starts = list(system.sample_inputs(n_starts, rng)[0])
     goal = goal_position(system_name, config["mpc"])
     out: dict[str, Any] = {"run_dir": str(run_dir), "checkpoint": [str(latest[0]), latest[1]], "steps": steps,
-                           "starts": n_starts}
+                           "starts": n_starts, "one_step_error": one_step}
     for name, rollback in (("f_hat", False), ("roll back off", False), ("roll back on", True)):
         ctrl = make_guarded_controller(system, mpc.solver, GuardConfig(rollback=rollback, monitor=mpc.guard.monitor),
                                        member=mpc.member, **mpc.controller_options())
@@ -415,7 +417,8 @@ def fly(run_dir: Path, n_starts: int = 30, steps: int = 0, seed: int = 7) -> dic
                      "rollbacks": int(ctrl.counters["rollbacks"]), "steps_on_f_hat": int(ctrl.counters["solves_base"]),
                      "monitor_ms_per_step": 1e3 * cpu[0] / max(cpu[1], 1)}
     print(f"{system_name}: checkpoint v{latest[1]} of {run_dir}, {n_starts} starts x {steps} steps "
-          f"({'episodes' if stepped else 'bounces'})")
+          f"({'episodes' if stepped else 'bounces'}); its one-step squared error {one_step[0]:.4g} against f_hat's "
+          f"{one_step[1]:.4g} on fresh samples of the paper's distribution")
     for name in ("f_hat", "roll back off", "roll back on"):
         r = out[name]
         print(f"  {name}: error mean {r['mean']:.4f} m, worst {r['worst']:.4f} m; roll backs {r['rollbacks']}, "
@@ -435,9 +438,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--fly", type=Path, default=None, metavar="RUN_DIR",
                     help="ROS-free: fly RUN_DIR's newest checkpoint with the roll back off and on")
     ap.add_argument("--starts", type=int, default=30, help="--fly: fresh starts")
+    ap.add_argument("--version", type=int, default=0, help="--fly: this checkpoint version (0 = the newest)")
     args = ap.parse_args(argv)
     if args.fly is not None:
-        result = fly(args.fly, args.starts)
+        result = fly(args.fly, args.starts, version=args.version)
         if args.json is not None:
             args.json.write_text(json.dumps(result, indent=1))
         return 0
