@@ -57,6 +57,11 @@ def test_report_names_the_publishers_and_says_what_happens() -> None:
     # matched before the graph shows the second node: still several, the count says how many
     level, parts, values = publisher_report(channels, {"/f/state": ["/f/sim"]}, [2, 1])
     assert level == WARN and values["multiple_publishers"] == "/f/state: /f/sim (2 publishers)"
+    # a publisher whose node the graph has not discovered yet
+    from saml_ros.core.publishers import UNKNOWN_NODE, node_label
+
+    assert node_label("/_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_") == UNKNOWN_NODE
+    assert node_label("/", "sim") == "/sim" and node_label("/f", "sim") == "/f/sim"
     # the MPC: its own cmd publisher and a second controller
     level, parts, values = state_command_report([("state", "/f/state"), ("cmd", "/f/cmd")],
                                                 {"/f/state": ["/f/sim"], "/f/cmd": ["/f/mpc", "/f/teleop"]})
@@ -336,8 +341,9 @@ def test_learner_names_a_second_publisher_and_refuses_its_namespace_until_it_is_
     second = robot_b.create_publisher(JointState, "state", qos)
     try:
         wait_for(lambda: value(diagnostics, "/friction/publishers/state") == "2", 20, what="the second publisher")
-        shared = wait_for(lambda: value(diagnostics, "multiple_publishers"), 20, what="the publishers named")
-        assert shared == f"/friction/state: /friction/robot_b, {ros_node.node.get_fully_qualified_name()}", shared
+        want = f"/friction/state: /friction/robot_b, {ros_node.node.get_fully_qualified_name()}"
+        wait_for(lambda: value(diagnostics, "multiple_publishers") == want, 30,
+                 what=f"the publishers named: {value(diagnostics, 'multiple_publishers')!r}")
         entry = learner_status(diagnostics)
         assert entry is not None and entry.level >= WARN and "not paired while so" in entry.message, entry
         send(20)  # nothing of it is paired: it could be either robot's
@@ -371,21 +377,23 @@ def test_system_file_robot_two_robots_in_one_namespace_are_named_and_refused(
     assert learner.alive(), learner.output()
     robot = launch_script(ros_env, EXAMPLE / "robot.py")
     wander = launch_script(ros_env, EXAMPLE / "wander.py")
-    wait_for(lambda: int(value(diagnostics, "paired") or 0) >= 20, 60, what="the robot's transitions paired")
+    wait_for(lambda: int(value(diagnostics, "paired") or 0) >= 20, 90, what="the robot's transitions paired")
     second = launch_script(ros_env, EXAMPLE / "robot.py", "-r", "__node:=robot_b", "-p", "x0:=-1.0")
     try:
-        shared = wait_for(lambda: value(diagnostics, "multiple_publishers"), 60, what="the publishers named")
-        assert shared == f"{NS}/odom: {NS}/diff_drive_robot, {NS}/robot_b", shared
-        wait_for(lambda: int(value(diagnostics, f"{NS}/refused/state") or 0) >= 50, 30, what="refused odometry")
+        want = f"{NS}/odom: {NS}/diff_drive_robot, {NS}/robot_b"  # (the graph may know the endpoint first)
+        wait_for(lambda: value(diagnostics, "multiple_publishers") == want, 90,
+                 what=f"the publishers named: {value(diagnostics, 'multiple_publishers')!r}")
+        wait_for(lambda: int(value(diagnostics, f"{NS}/refused/state") or 0) >= 100, 60, what="refused odometry")
+        # what was admitted before the switch has been paired by now (the training process's queue drained)
         before = int(value(diagnostics, "paired"))
         refused = int(value(diagnostics, f"{NS}/refused/state"))
-        wait_for(lambda: int(value(diagnostics, f"{NS}/refused/state")) >= refused + 50, 30, what="more refused")
-        assert int(value(diagnostics, "paired")) <= before + 2  # at most the intervals in flight at the switch
+        wait_for(lambda: int(value(diagnostics, f"{NS}/refused/state")) >= refused + 100, 60, what="more refused")
+        assert int(value(diagnostics, "paired")) <= before + 1  # nothing new is paired while both publish
     finally:
         second.stop()
-    wait_for(lambda: value(diagnostics, "multiple_publishers") == "", 30, what="one publisher again")
+    wait_for(lambda: value(diagnostics, "multiple_publishers") == "", 60, what="one publisher again")
     after = int(value(diagnostics, "paired"))
-    wait_for(lambda: int(value(diagnostics, "paired")) >= after + 20, 30, what="pairing again")
+    wait_for(lambda: int(value(diagnostics, "paired")) >= after + 20, 60, what="pairing again")
     for p in (wander, robot):
         p.stop()
 

@@ -27,6 +27,16 @@ OK = 0
 
 #: one subscribed channel: namespace, kind (``state``, ``applied_cmd``, ``target``), full topic name
 ChannelTopic = tuple[str, str, str]
+#: what the ROS graph names an endpoint whose node it has not discovered yet (rmw's placeholders)
+UNKNOWN_NODE = "(node not yet discovered)"
+
+
+def node_label(namespace: str, name: str) -> str:
+    """A publisher's node as ``/namespace/name`` from the ROS graph's endpoint info, or :data:`UNKNOWN_NODE` while
+    the graph knows the endpoint but not its node (rmw's ``_NODE_NAME_UNKNOWN_``; the next report names it)."""
+    if "_UNKNOWN_" in name or "_UNKNOWN_" in namespace:
+        return UNKNOWN_NODE
+    return f"{namespace.rstrip('/')}/{name}"
 
 
 class PublisherGate:

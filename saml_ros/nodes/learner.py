@@ -24,7 +24,6 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 import msg_schemas.telemetry as tele
 from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, get_schema
 from msg_schemas.decode import make_decoder
-from msg_schemas.names import join_topic
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.learner_config import LearnerConfig, learner_params
@@ -35,7 +34,7 @@ from saml_ros.core.learner_report import (
     training_diagnostics,
 )
 from saml_ros.core.lifecycle import TransitionRefused
-from saml_ros.core.publishers import PublisherGate, publisher_report
+from saml_ros.core.publishers import PublisherGate, node_label, publisher_report
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import current_values, declare_params, probe_system
 from saml_ros.nodes.raw_ingest import subscribe_raw
@@ -228,7 +227,7 @@ class LearnerNode(ManagedNode):
         names from the ROS graph), logged when it changes."""
         # the resolved names (a remapped topic) once subscribed
         topics = [sub.topic_name for sub in self._subs] if self._subs else [c[2] for c in self.channels]
-        nodes = {topic: [join_topic(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+        nodes = {topic: [node_label(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
                  for topic in set(topics)}
         matched = [sub.get_publisher_count() for sub in self._subs] if self._subs else []
         level, parts, values = publisher_report([(ns, kind, topic) for (ns, kind, _, _), topic in

@@ -45,7 +45,6 @@ from std_msgs.msg import String
 
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, RCLPY, TELEMETRY_QOS, SchemaError, get_schema
 from msg_schemas.cdr import CdrCodec, NamedVectorCdr
-from msg_schemas.names import join_topic
 from msg_schemas.telemetry import (
     CHECKPOINT_TOPIC,
     DIAGNOSTICS_TOPIC,
@@ -61,7 +60,7 @@ from saml_ros.core.lifecycle import TransitionRefused
 from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
-from saml_ros.core.publishers import state_command_report
+from saml_ros.core.publishers import node_label, state_command_report
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import current_values, declare_params, probe_system
@@ -230,7 +229,7 @@ class MPCNode(ManagedNode):
     def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
         """:func:`~saml_ros.core.publishers.state_command_report` of ``state`` and ``cmd`` from the ROS graph."""
         topics = [("state", self.state_sub.topic_name), ("cmd", self.cmd_pub.topic_name)]
-        nodes = {topic: [join_topic(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+        nodes = {topic: [node_label(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
                  for _, topic in topics}
         return state_command_report(topics, nodes)
 
