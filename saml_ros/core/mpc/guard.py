@@ -20,7 +20,7 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   otherwise to f_hat, and that model version is never used again (``rollbacks``). A new model is scored the same
   way *before* it is flown, on the newest live transitions already seen (the last ``window`` of each stream
   that the model in use planned, or f_hat when no model was in use): one worse than f_hat there is refused,
-  never flown and never used again (:meth:`GuardedController.set_model` returns False; counted in ``rollbacks``
+  never flown and never used again (:meth:`GuardedController.offer_model` returns False; counted in ``rollbacks``
   and ``refused_before_flight``).
 
 The unguarded MPC is the same controller with every remedy off. The roll back alone works around any controller of
@@ -391,7 +391,8 @@ class GuardedController:
     # ------------------------------------------------------------------------------------------ monitor
     def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, stream: int = 0) -> bool:
         """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n_y,)``; ``u`` the command solved for ``x``;
-        ``x_next`` the target: the next state, or the paddle ball's post-impact velocity): scores the model in use and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`);
+        ``x_next`` the target: the next state, or the paddle ball's post-impact velocity): scores the model in use
+        and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`) and keeps it for :meth:`offer_model`;
         with ``rollback`` on, True when it made the controller roll back (to the previous model or f_hat; the
         rolled-back tag is banned). Only steps the learned model planned enter the monitor's window: a step
         planned with f_hat on disagreement is counted in ``monitor_skipped``. ``stream``: which stream of

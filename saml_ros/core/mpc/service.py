@@ -87,9 +87,9 @@ class MPCService:
         else:
             self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
                                               **config.controller_options())
-        # stamp (ns) -> (state, command) of the newest steps answered with a solved command (the live monitor's;
-        # kept across stamp jumps: two streams interleaved on the topic jump back and forth between their stamps)
-        # (state, command, stream): a stream is a chain of states a period apart (a robot among several on the topic)
+        # stamp (ns) -> (state, command, stream) of the newest steps answered with a solved command (the live
+        # monitor's; kept across stamp jumps: two streams interleaved on the topic jump back and forth between their
+        # stamps). A stream is a chain of states a period apart (a robot among several on the topic).
         self._sent: OrderedDict[int, tuple[np.ndarray, np.ndarray, int]] = OrderedDict()
         self._target_is_state = self.system.target.names == self.system.state.names
         self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
