@@ -51,6 +51,7 @@ class LoopRecord:
     system: str
     second: bool
     run_dir: str = ""
+    wiring: str = "reversed"  #: the second robot's miswiring
     sim_time: float = 0.0
     wall_time: float = 0.0
     bringup_rc: int | None = None
@@ -89,7 +90,7 @@ class LoopRecord:
         base_mean = float(np.mean([e["base_error"] for e in self.episodes])) if self.episodes else math.nan
         ratio = self.checkpoint_error / self.base_error if self.base_error > 0 else math.nan
         return "\n".join([
-            f"{self.system}, {'two robots (second wired backwards)' if self.second else 'one robot'}: "
+            f"{self.system}, {f'two robots (the second wired {self.wiring})' if self.second else 'one robot'}: "
             f"{self.sim_time:.0f} s simulated in {self.wall_time:.0f} s wall; run dir {self.run_dir}",
             f"  /diagnostics: learner multiple_publishers = {self.learner_shared!r} (level {self.learner_level}); "
             f"mpc multiple_publishers = {self.mpc_shared!r}",
@@ -215,7 +216,7 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     run_dir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONUNBUFFERED="1",
                PYTHONPATH=os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p))
-    record = LoopRecord(system, second, str(run_dir))
+    record = LoopRecord(system, second, str(run_dir), wiring)
     observer = Observer(system, namespace)
     bringup_cmd = [sys.executable, "-m", "saml_ros.executables", "bringup", "--system", system, "--run-dir",
                    str(run_dir), "--sim-time", repr(float(sim_time)), "--progress-period", "10"]
