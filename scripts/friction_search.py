@@ -1,6 +1,6 @@
 """The search for a friction profile on which a model can matter (issue #11; docs/systems.md has the table).
 
-``./dev python -m saml_ros.experiments.friction_search [--out FILE.jsonl] [--names NAME ...] [--seeds 0 1 2]
+``./dev python -m scripts.friction_search [--out FILE.jsonl] [--names NAME ...] [--seeds 0 1 2]
 [--starts 200]``: for each candidate profile mu(p), the base model's held-out error, the Uniformly Accurate 4-2
 net's held-out error overall / inside / outside the region (the paper's training, one model per seed), and the
 MPC cost of the base model and of the oracle (the true dynamics) from the experiment's starts, i.e. the headroom.
