@@ -62,12 +62,18 @@ def test_bag_transitions_equal_what_the_learner_paired_in_the_closed_loop(ros_en
                                                                           tmp_path: Path) -> None:
     bag, ns, run = tmp_path / "bag", unique_ns(), tmp_path / "run"
     learner = start_learner(ros_env, ns, run)
-    mpc = ros_env.launch("mpc", "-p", "system:=friction", "-p", f"run_dir:={run}", namespace=ns)
     rec = start_recorder(ros_env, bag, "--system", "friction", "--namespace", ns)
-    # the simulator starts once the learner, the MPC and the recorder are all matched (lockstep)
+    # The simulator (lockstep) sends its first state once a controller publishes and the learner, the MPC and the
+    # recorder subscribe. A reader drops what a writer sends before the reader has matched it (the writer may
+    # see the reader first), so the MPC starts only once the recorder has matched the simulator's publishers.
     sim = ros_env.launch("friction_sim", "-p", "mode:=lockstep", "-p", "max_sim_time:=15.0",
                          "-p", "episode_steps:=40", "-p", "seed:=3", "-p", "min_state_subscribers:=3",
                          "-p", "min_applied_cmd_subscribers:=2", namespace=ns)
+    wait_for(lambda: all(f"record: matched {ns}/{t} " in rec.output() for t in ("state", "applied_cmd"))
+             or not rec.alive() or not sim.alive(), what="the recorder to match the simulator's publishers")
+    assert rec.alive() and sim.alive(), rec.output() + sim.output()
+    time.sleep(1.0)  # the learner matches them in the same discovery round; a margin for a loaded machine
+    mpc = ros_env.launch("mpc", "-p", "system:=friction", "-p", f"run_dir:={run}", namespace=ns)
     deadline = time.monotonic() + 150
     while sim.alive() and time.monotonic() < deadline:
         for proc in (learner, mpc, rec):
