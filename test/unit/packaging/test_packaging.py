@@ -83,6 +83,11 @@ def test_entry_rejects_unknown_names_with_the_list(capsys: pytest.CaptureFixture
 _seen_argv: list[list[str]] = []
 
 
+def _probe() -> int:
+    _seen_argv.append(list(sys.argv))
+    return 7
+
+
 def test_entry_dispatches_lazily_with_argv(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     monkeypatch.setitem(executables.EXECUTABLES, "probe", f"{__name__}:_probe")
     monkeypatch.setitem(executables.EXECUTABLES, "ghost", "saml_ros.no_such_module:main")
