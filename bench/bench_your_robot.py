@@ -259,7 +259,7 @@ def report(setup: RobotSetup, result: dict[str, Any], runs: list[dict[str, Any]]
 
         def cell(name: str, where: str, rows: dict[str, Any] = rows) -> str:
             s = rows[name][where]
-            return f"{s['mean']:.5f} +- {s['se']:.5f}" if s["n"] else "-"
+            return f"{s['mean']:.5f} +- {s['se']:.5f}" if s["n"] else "no model"
 
         n_in, n_out = rows["f_hat"]["in"]["n"], rows["f_hat"]["out"]["n"]
         lines += ["", f"| model (one-step {cons['loss']} error, held-out flight) | inside '{cname}' "
@@ -343,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
                                                       args.train_arg), 1)
                 print(f"[run {i + 1}/{args.runs}] offline train: {info['train_s']:.0f} s", flush=True)
             runs.append(info)
-    models = [f"online_{i + 1}={r['run_dir']}" for i, r in enumerate(runs)]
+    # a run whose learner never trained (fewer than min_transitions paired) has no checkpoint: its row says so
+    models = [f"online_{i + 1}={r['run_dir']}" for i, r in enumerate(runs) if r["updates"] is not None]
     if not args.no_offline:
         models += [f"offline_{i + 1}={out / f'run{i + 1}' / 'offline'}" for i in range(len(runs))]
     cmd = [sys.executable, str(EVALUATE), "--system-file", str(setup.system_file), "--bag", str(heldout),
@@ -355,11 +356,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_your_robot: evaluate.py failed ({rc})", file=sys.stderr)
         return 1
     result = json.loads((out / "eval.json").read_text())
-    if args.no_offline:
-        for cons in result["constraints"].values():
-            for i in range(len(runs)):
-                cons["rows"][f"offline_{i + 1}"] = {w: {"mean": float("nan"), "se": float("nan"), "n": 0}
-                                                    for w in ("in", "out", "all")}
+    for cons in result["constraints"].values():  # rows of models not evaluated: empty
+        for i in range(len(runs)):
+            for kind in ("online", "offline"):
+                cons["rows"].setdefault(f"{kind}_{i + 1}", {w: {"mean": float("nan"), "se": float("nan"), "n": 0}
+                                                            for w in ("in", "out", "all")})
     table, verdicts = report(setup, result, runs)
     print("\n" + table)
     print(f"\nbench_your_robot: {time.monotonic() - t_start:.0f} s wall; load average {os.getloadavg()[0]:.1f}")
