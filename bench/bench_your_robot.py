@@ -296,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robot", choices=sorted(ROBOTS), default="arm")
     ap.add_argument("--runs", type=int, default=3, help="independent online runs (seeds --seed, --seed + 1, ...)")
     ap.add_argument("--duration", type=float, default=150.0, help="wall seconds of each training flight")
-    ap.add_argument("--heldout-duration", type=float, default=60.0, help="wall seconds of the held-out flight")
+    ap.add_argument("--heldout-duration", type=float, default=120.0, help="wall seconds of the held-out flight")
     ap.add_argument("--heldout", type=Path, help="reuse this held-out recording instead of flying one")
     ap.add_argument("--seed", type=int, default=0, help="first run's seed (the held-out flight uses seed + 1000)")
     ap.add_argument("--learner-param", action="append", default=[], metavar="NAME:=VALUE",
