@@ -42,11 +42,15 @@ class Reacher:
         task_fraction: share of the targets on the shelf.
         noise: torque noise std (N*m) per joint (Ornstein-Uhlenbeck, correlation time ``noise_tau`` s).
         stale_after: a measured state older than this (s) is stale (see :meth:`command`).
+        homing: seconds of a start-up routine first (0: none): slow small moves around the rest pose (hanging
+            down), as a real arm's homing or calibration does before it starts its task.
     """
 
     def __init__(self, seed: int = 0, task_fraction: float = 0.5, noise: tuple[float, float] = (1.5, 0.6),
-                 noise_tau: float = 0.15, stale_after: float = 0.05) -> None:
+                 noise_tau: float = 0.15, stale_after: float = 0.05, homing: float = 0.0) -> None:
         self.rng = np.random.default_rng(seed)
+        self.homing = homing
+        self.t_start: float | None = None
         self.stale_after = stale_after
         self.stale = 0  # commands computed from a stale state
         self.task_fraction = task_fraction
@@ -67,8 +71,14 @@ class Reacher:
         return np.array([self.rng.uniform(*Q_RANGE[0]), self.rng.uniform(*Q_RANGE[1])])
 
     def plan(self, t: float, q: np.ndarray) -> None:
-        goal = self.new_target()
-        speed = float(self.rng.uniform(0.8, 2.5))  # rad/s, mean joint speed of the move
+        if self.t_start is None:
+            self.t_start = t
+        if t - self.t_start < self.homing:  # start-up: slow, small moves around the rest pose
+            goal = np.array([-np.pi / 2, 0.0]) + self.rng.uniform(-0.3, 0.3, 2)
+            speed = float(self.rng.uniform(0.2, 0.5))
+        else:
+            goal = self.new_target()
+            speed = float(self.rng.uniform(0.8, 2.5))  # rad/s, mean joint speed of the move
         duration = float(np.clip(np.max(np.abs(goal - q)) / speed, 0.4, 3.0))
         omega = float(self.rng.uniform(6.0, 14.0))  # rad/s, closed-loop bandwidth of this move
         self.segment = {"t0": t, "q0": q.copy(), "goal": goal, "T": duration,
@@ -126,7 +136,8 @@ def main() -> int:
             seed = int(self.declare_parameter("seed", 0).value)
             rate = float(self.declare_parameter("rate", 100.0).value)
             fraction = float(self.declare_parameter("task_fraction", 0.5).value)
-            self.reacher = Reacher(seed=seed, task_fraction=fraction)
+            homing = float(self.declare_parameter("homing", 0.0).value)
+            self.reacher = Reacher(seed=seed, task_fraction=fraction, homing=homing)
             qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
             self.pub = self.create_publisher(Float64MultiArray, "effort_controller/commands", qos)
             self.create_subscription(JointState, "joint_states", self.on_state, qos)
