@@ -283,7 +283,7 @@ def report(setup: RobotSetup, result: dict[str, Any], runs: list[dict[str, Any]]
             per_run.append({"online_over_offline": r1, "fhat_over_online": r2, "ok": bool(r1 <= 1.5 and r2 >= 3)})
             c = r["counts"]
             mis = f"{r['pairing_check']['mispaired']}" if r.get("pairing_check") else "not checked"
-            lines.append(f"| {i + 1} | {r1:.2f} {'ok' if r1 <= 1.5 else 'NO'} | {r2:.1f} {'ok' if r2 >= 3 else 'NO'} "
+            lines.append(f"| {i + 1} | {r1:.2f} {'ok' if r1 <= 1.5 else 'NO'} | {r2:.2f} {'ok' if r2 >= 3 else 'NO'} "
                          f"| {r['updates']} | {c.get('paired', 0)} / {c.get('intervals', 0)} | "
                          f"{c.get('ambiguous_cmd', 0)} | {c.get('mixed_cmd', 0)} | {c.get('gap', 0)} | "
                          f"{c.get('late', 0)} | {mis} |")
