@@ -123,6 +123,7 @@ class Reacher:
 
 def main() -> int:
     import rclpy
+    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -133,10 +134,19 @@ def main() -> int:
     class ControllerNode(Node):
         def __init__(self) -> None:
             super().__init__("arm_controller")
+            number = ParameterDescriptor(dynamic_typing=True)  # -p homing:=20 as well as homing:=20.0
+
+            def param(name: str, default: float, ok: Any, what: str) -> float:
+                value = self.declare_parameter(name, default, number).value
+                if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) \
+                        or not ok(value):
+                    raise SystemExit(f"arm_controller: parameter {name!r} must be {what}, got {value!r}")
+                return float(value)
+
             seed = int(self.declare_parameter("seed", 0).value)
-            rate = float(self.declare_parameter("rate", 100.0).value)
-            fraction = float(self.declare_parameter("task_fraction", 0.5).value)
-            homing = float(self.declare_parameter("homing", 0.0).value)
+            rate = param("rate", 100.0, lambda v: v > 0, "a rate > 0 (Hz)")
+            fraction = param("task_fraction", 0.5, lambda v: 0 <= v <= 1, "in [0, 1]")
+            homing = param("homing", 0.0, lambda v: v >= 0, "a duration >= 0 (s)")
             self.reacher = Reacher(seed=seed, task_fraction=fraction, homing=homing)
             qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
             self.pub = self.create_publisher(Float64MultiArray, "effort_controller/commands", qos)

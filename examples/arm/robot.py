@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -39,11 +40,19 @@ from sim import JOINTS, ArmSim  # noqa: E402
 class Robot(Node):
     def __init__(self) -> None:
         super().__init__("arm_robot")
-        self.rate = float(self.declare_parameter("rate", 100.0).value)
-        self.cmd_timeout = float(self.declare_parameter("cmd_timeout", 0.2).value)
+        number = ParameterDescriptor(dynamic_typing=True)  # -p rate:=100 as well as rate:=100.0
+
+        def param(name: str, default: float) -> float:
+            value = self.declare_parameter(name, default, number).value
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise SystemExit(f"arm_robot: parameter {name!r} must be a number, got {value!r}")
+            return float(value)
+
+        self.rate = param("rate", 100.0)
+        self.cmd_timeout = param("cmd_timeout", 0.2)
         seed = int(self.declare_parameter("seed", 0).value)
-        noise = float(self.declare_parameter("noise", 1.0).value)
-        self.settle = float(self.declare_parameter("settle", 0.004).value)
+        noise = param("noise", 1.0)
+        self.settle = param("settle", 0.004)
         if not (math.isfinite(self.rate) and self.rate > 0 and math.isfinite(self.cmd_timeout)
                 and self.cmd_timeout > 0 and math.isfinite(noise) and noise >= 0
                 and math.isfinite(self.settle) and 0 <= self.settle < 0.9 / self.rate):
