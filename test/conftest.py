@@ -78,7 +78,7 @@ def _deselected_by_markexpr(config: pytest.Config, markers: tuple[str, ...]) -> 
     others = sorted(set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", expr)) - {"and", "or", "not", *markers})
     for bits in range(2 ** len(others)):  # every assignment of the other names in the expression
         on = {name for i, name in enumerate(others) if bits >> i & 1} | set(markers)
-        if compiled.evaluate(lambda name, *_, on=on, **__: name in on):  # type: ignore[misc]
+        if compiled.evaluate(lambda name, *_, on=on, **__: name in on):  # type: ignore[arg-type]
             return False
     return True
 

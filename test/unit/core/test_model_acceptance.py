@@ -87,7 +87,7 @@ def test_recent_states_probe_where_the_stored_probe_set_does_not_reach(tmp_path:
         model.net.weights[1][0, 0, QUAD.target.index("vz")] = 25.0 / float(model.out_std[0, 0, QUAD.target.index("vz")])
     loaded = load_model(save_quad_checkpoint(store, model, quad_evidence(px=2.0))[0])
     assert check_model(loaded, bounds) is None  # its own probe set shows nothing wrong
-    recent = np.stack([QUAD.hover_state((5.0, 0.0, 2.0))] * 3), np.full((3, 4), 2.45)  # type: ignore[attr-defined]
+    recent = np.stack([QUAD.hover_state((5.0, 0.0, 2.0))] * 3), np.full((3, 4), 2.45)
     got = check_model(loaded, bounds, recent)
     assert got is not None and got[0] == "residual" and "vz" in got[1]
     # without stored evidence only the recent states' plausibility is checked
@@ -106,7 +106,7 @@ def test_the_mpc_refuses_bad_checkpoints_counts_each_reason_and_keeps_its_model(
     service.start()  # loads version 1 before the first solve
     try:
         assert service.model_version == v1 == 1
-        x = QUAD.hover_state((1.0, -1.0, 2.0))  # type: ignore[attr-defined]
+        x = QUAD.hover_state((1.0, -1.0, 2.0))
         for reason, (model, poison) in (("non_finite", (quad_model(1), "weights")),
                                         ("implausible", (quad_model(2, {"pz": 1e6}), None)),
                                         ("residual", (quad_model(3, {"vz": 30.0}), None))):

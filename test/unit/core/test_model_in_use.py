@@ -74,7 +74,7 @@ def test_a_reannounced_model_in_use_is_a_no_op_and_the_model_in_use_is_rechecked
     service.start()  # no state flown yet: the checkpoint passes on its own probe set and is used
     try:
         assert service.model_version == version == 1
-        far = QUAD.hover_state((5.0, 0.0, 2.0))  # type: ignore[attr-defined]
+        far = QUAD.hover_state((5.0, 0.0, 2.0))
         for k in range(3):  # the vehicle flies where the model is broken
             service.control_step(far, 10**9 + k * 10**8, time.perf_counter())
         # the same model announced again from another directory (a copy): nothing to do, never refused
@@ -115,7 +115,7 @@ def test_a_good_model_in_use_passes_its_rechecks(tmp_path: Path) -> None:
                          lambda u, s: None, log)
     service.start()
     try:
-        x = QUAD.hover_state((1.0, -1.0, 2.0))  # type: ignore[attr-defined]
+        x = QUAD.hover_state((1.0, -1.0, 2.0))
         for k in range(3):
             service.control_step(x, 10**9 + k * 10**8, time.perf_counter())
         time.sleep(3 * RECHECK_PERIOD_S)
@@ -152,8 +152,8 @@ def test_the_mpc_logs_a_roll_back_with_the_numbers_that_caused_it(tmp_path: Path
     service.start()
     try:
         assert service.model_version == 1
-        f = plant(QUAD, 0.0)  # type: ignore[arg-type]
-        x = QUAD.hover_state((0.5, 0.5, 1.5))  # type: ignore[attr-defined]
+        f = plant(QUAD, 0.0)
+        x = QUAD.hover_state((0.5, 0.5, 1.5))
         for k in range(10):
             service.control_step(x, 10**9 + k * 10**8, time.perf_counter())
             x = f(x, sent[-1])
