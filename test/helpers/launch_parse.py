@@ -1,7 +1,7 @@
 """Read saml_ros's ROS 2 launch files (XML) without the ``launch`` package: which nodes they start, with what.
 
-``launch`` is not on PyPI, so the tests evaluate the files here: arguments (``<arg>``, with command-line
-overrides), ``<let>``, ``<include>`` (with ``<arg>`` children), ``<node>`` with ``if`` / ``unless``, ``<param from>``
+``launch`` is not on PyPI, so the tests evaluate the files here: arguments (``<arg>``, with ``<choice>`` and
+command-line overrides), ``<let>``, ``<include>`` (with ``<arg>`` children), ``<node>`` with ``if`` / ``unless``, ``<param from>``
 (ROS parameter files, the sections that match the node) and ``<param name value>``. The substitutions the files
 use are evaluated as launch does: ``$(var NAME)``, ``$(find-pkg-share saml_ros)`` (the source tree, whose
 ``config/`` and ``launch/`` are installed side by side under ``share/saml_ros``) and ``$(eval 'EXPR')`` (Python,
@@ -248,6 +248,12 @@ def _evaluate_file(path: Path, config: dict[str, str], result: LaunchResult) -> 
                 if default is None:
                     raise LaunchParseError(f"{where}: argument {name!r} has no default and was not given")
                 config[name] = substitute(default, config)
+            choices = [c.attrib["value"] for c in el if c.tag == "choice"]
+            if [c for c in el if c.tag != "choice"]:
+                raise LaunchParseError(f"{where}: <arg> may only hold <choice>")
+            if choices and config[name] not in choices:  # as launch's DeclareLaunchArgument refuses it
+                raise LaunchParseError(f"{where}: argument {name!r} provided value {config[name]!r} is not valid; "
+                                       f"valid options are: {choices}")
         elif el.tag == "let":
             _attrs(el, {"name", "value"}, where)
             config[el.attrib["name"]] = substitute(el.attrib["value"], config)

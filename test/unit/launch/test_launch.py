@@ -161,6 +161,24 @@ def test_closed_loop_launch_gives_bringups_parameters(system: str, recording: bo
         assert by_role["record"].args == ["--system", system, "-o", str(tmp_path / "bag")]
 
 
+
+@pytest.mark.parametrize("system", SYSTEMS)
+def test_a_systems_launch_file_shows_its_own_defaults(system: str) -> None:
+    """``ros2 launch saml_ros <system>.launch.xml --show-args`` lists the first declaration of each argument: the
+    system's file declares every argument of loop.launch.xml itself, with this system's defaults, and refuses
+    another system (``<choice>``), so ``--show-args`` never shows loop.launch.xml's ``system`` default."""
+    loop = evaluate(LAUNCH / "loop.launch.xml", {"system": system}).arguments
+    own = evaluate(LAUNCH / f"{system}.launch.xml").arguments  # first declaration of each name wins, as in launch
+    assert list(own) == list(loop)
+    assert own["system"] == system
+    assert own["namespace"] == f"/{system}" and own["run_dir"] == f"runs/launch-{system}"
+    assert own["params_file"] == f"$(find-pkg-share saml_ros)/config/loop_{system}.yaml"
+    others = [s for s in SYSTEMS if s != system]
+    assert not [v for v in own.values() if v and any(o in v for o in others)], own
+    with pytest.raises(LaunchParseError, match="not valid"):
+        evaluate(LAUNCH / f"{system}.launch.xml", {"system": others[0]})
+
+
 @pytest.mark.parametrize("system", SYSTEMS)
 def test_standalone_learner_and_mpc_launch_files(system: str) -> None:
     args = {"system": system, "namespace": "/robot1", "run_dir": "runs/robot1", "spec": "my_spec.yaml"}
