@@ -110,11 +110,29 @@ def test_every_repository_file_and_test_named_exists(page: Path) -> None:
     bad += [f"{_rel(page)}:{n}: no test function {m}" for n, m in _find(TEST_NAME_RE, text)
             if m not in _test_functions() and f"{m}.py" not in _test_files()]  # a test or a test module
     for n, (_, target) in _find_links(text):
-        if target.startswith(("http://", "https://", "mailto:", "#")):
+        if target.startswith(("http://", "https://", "mailto:")):
             continue
-        if not (page.parent / target.split("#")[0]).exists():
+        path, _, anchor = target.partition("#")
+        linked = (page.parent / path).resolve() if path else page
+        if not linked.exists():
             bad.append(f"{_rel(page)}:{n}: link to {target}, no such file")
+        elif anchor and linked.suffix == ".md" and anchor not in _anchors(linked):
+            bad.append(f"{_rel(page)}:{n}: link to {target}, no such heading in {_rel(linked)}")
     assert not bad, "\n".join(bad)
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors GitHub gives the headings of ``page`` (lower case, punctuation dropped, spaces to ``-``,
+    ``-1``, ``-2``, ... for repeated headings)."""
+    seen: dict[str, int] = {}
+    anchors = set()
+    for line in FENCE_RE.sub("", page.read_text(encoding="utf-8")).splitlines():
+        if not re.match(r"#{1,6} ", line):
+            continue
+        slug = re.sub(r"[^\w\- ]", "", line.lstrip("#").strip().lower()).replace(" ", "-")
+        anchors.add(slug if slug not in seen else f"{slug}-{seen[slug]}")
+        seen[slug] = seen.get(slug, 0) + 1
+    return anchors
 
 
 def _find_links(text: str) -> list[tuple[int, tuple[str, str]]]:
@@ -185,6 +203,7 @@ def test_the_checks_catch_what_they_look_for() -> None:
     assert DATE_RE.search("## Issue 15 (3 December 2026)") and DATE_RE.search("## 2026-12-03")
     assert not _exists("test/test_nothing_here.py") and _exists("test/unit/docs/test_docs.py::test_x")
     assert "test_docs.py" in _test_files() and "test_the_checks_catch_what_they_look_for" in _test_functions()
+    assert _anchors(REPO / "docs" / "testing.md") == {"testing"}
     assert not _written_by_a_command(REPO / "docs" / "figures" / "nobody_writes_this.png")
     assert _written_by_a_command(REPO / "x" / "convergence_boxplot.png")  # convergence.py writes it
     assert _written_by_a_command(REPO / "x" / "friction_periodic_error_map_u1.png")  # an f-string in friction.py
