@@ -16,7 +16,7 @@ import platform
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 BENCHES = ("train", "dual", "mpc", "sim", "loop_parts", "learner", "closed_loop", "bags", "health", "soak", "sweep",
@@ -46,7 +46,7 @@ def write_result(directory: Path, name: str, options: list[str], output: str, rc
     """``directory/bench_<name>.md``: the command that rewrites it, where and when it ran, then the output."""
     directory.mkdir(parents=True, exist_ok=True)
     command = " ".join(["./dev bench --results", str(directory), name, *options])
-    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    stamp = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     text = (f"# bench_{name}: latest result\n\n"
             f"Written by `{command}` (rerun it to replace this file).\n\n"
             f"- commit {commit}, {stamp}, exit status {rc}, {seconds:.0f} s\n"
