@@ -1,4 +1,5 @@
-"""The README and docs/*.md describe the repository as it is, for a reader who has only the repository.
+"""The README, docs/*.md and the examples' READMEs describe the repository as it is, for a reader who has only
+the repository.
 
 * no path of a development machine (``/tmp/...``, ``/work/...``, ``/home/...``, ``../shared``): a reader cannot
   open it, and a number that rests on it cannot be checked;
@@ -22,7 +23,7 @@ import pytest
 from helpers import REPO
 
 #: the pages checked: what a user reads (CHANGELOG.md and the generated files under docs/results/ are history)
-PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md")), *sorted((REPO / "examples").glob("*/README.md"))]
 #: top-level folders of the repository whose files the docs name
 REPO_DIRS = ("test", "saml_ros", "bench", "config", "examples", "launch", "layouts", "scripts", "sim_nodes",
              "msg_schemas", "docs")
