@@ -209,3 +209,15 @@ def test_the_checks_catch_what_they_look_for() -> None:
     assert not _written_by_a_command(REPO / "docs" / "figures" / "nobody_writes_this.png")
     assert _written_by_a_command(REPO / "x" / "convergence_boxplot.png")  # convergence.py writes it
     assert _written_by_a_command(REPO / "x" / "friction_periodic_error_map_u1.png")  # an f-string in friction.py
+
+
+def test_the_readmes_claims_table_is_the_one_the_experiments_wrote() -> None:
+    """The README's claims table is `./dev experiment all`'s claims.md, row for row, so it cannot drift from the
+    run it cites (rerun the command, then copy its table into the README)."""
+    written = (REPO / "docs" / "results" / "experiments" / "claims.md").read_text(encoding="utf-8")
+    rows = [line for line in written.splitlines() if line.startswith("|")]
+    readme = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
+    assert len(rows) > 2, "claims.md holds no table"
+    start = readme.index(rows[0]) if rows[0] in readme else -1
+    assert start >= 0 and readme[start:start + len(rows)] == rows, (
+        "README.md's claims table differs from docs/results/experiments/claims.md")
