@@ -100,6 +100,24 @@ def test_prelu_init_sets_only_the_first_hidden_layers_starting_slope() -> None:
         DynamicsModel(system, hidden=(4, 2), prelu_init=float("nan"))
 
 
+@pytest.mark.parametrize("slope", [-1, np.int64(-1), np.float32(-1.0)])
+def test_prelu_init_accepts_an_integer_slope(slope: Any) -> None:
+    """``prelu_init=-1`` (an int, as a user types it) once made an integer slope tensor, which torch refuses as a
+    Parameter; it is the same model as ``-1.0``, float slopes and all, and it trains."""
+    from saml_ros.core.systems import get_system
+
+    system = get_system("friction")
+    model = DynamicsModel(system, hidden=(4, 2), n_models=2, seed=1, prelu_init=slope)
+    ref = DynamicsModel(system, hidden=(4, 2), n_models=2, seed=1, prelu_init=-1.0)
+    assert model.net.slopes[0].dtype == torch.float32 and torch.equal(model.net.slopes[0], ref.net.slopes[0])
+    for a, b in zip(model.state_dict().values(), ref.state_dict().values()):
+        assert torch.equal(a, b)
+    x, u = np.zeros((3, 2)), np.zeros((3, 1))
+    assert np.isfinite(model.predict_np(x, u)).all()
+    with pytest.raises(ValueError, match="prelu_init"):
+        DynamicsModel(system, hidden=(4, 2), prelu_init="-1")  # type: ignore[arg-type]
+
+
 INFEASIBLE_SPEC = {**CONVEX_SPEC, "constraints": list(CONVEX_SPEC["constraints"]) + [
     {"name": "zeros", "loss": "squared_l2", "eps": 0.04, "region": {"box": {"next.y": [None, 0.5]}}},
 ]}
