@@ -11,7 +11,7 @@ import subprocess
 import sys
 import time
 
-BENCHES = ("train", "dual", "mpc", "sim", "loop_parts", "learner", "closed_loop", "bags", "health", "soak", "sweep",
+BENCHES = ("train", "dual", "cooper", "mpc", "sim", "loop_parts", "learner", "closed_loop", "bags", "health", "soak", "sweep",
            "storage", "pairing")
 
 
