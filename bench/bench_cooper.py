@@ -58,6 +58,7 @@ from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions, evaluate_spec
+from saml_ros.core.training.config import make_optimizer
 from saml_ros.core.training.diagnosis import TOL
 from saml_ros.core.training.schedule import schedules_for
 from saml_ros.core.training.selection import select_members
@@ -131,17 +132,29 @@ def base_config(s: Setup, **kw: Any) -> TrainConfig:
 
 
 # ------------------------------------------------------------------------------------------------- ours
+class FormerAugmentedConfig(TrainConfig):
+    """The former ``augmented`` (before it became the method of multipliers), reproduced for the comparison: the
+    augmented Lagrangian's primal weights ``relu(lambda + rho g)``, lambda moved by Adam at ``dual_lr`` along
+    ``rho g`` (see :func:`train_ours`)."""
+
+    @property
+    def dual_lr0(self) -> float:
+        return self.dual_lr
+
+
 def train_ours(s: Setup, cfg: TrainConfig | None) -> tuple[DynamicsModel, np.ndarray]:
     """Train with our trainer (``cfg`` None: UA, the default recipe without the constraint). Returns the model and
-    each member's largest multiplier over the run's history ``(E,)``."""
+    each member's multiplier at the end of every epoch ``(epochs, E)``."""
     model = make_model(s)
     uniform = cfg is None
     spec = s.spec.uniform() if uniform else s.spec
     tr = PrimalDualTrainer(model, spec, base_config(s) if cfg is None else cfg)
+    if isinstance(cfg, FormerAugmentedConfig):  # Adam on rho g: the fast engines run it (the dual Adam merged)
+        tr.dual.optimizer = make_optimizer("adam", [tr.dual.param], cfg.dual_lr, maximize=True)
     tr.fit(Transitions(model, spec, *s.fit))
-    lam = np.zeros(model.n_models)
+    lam = np.zeros((s.epochs, model.n_models))
     if not uniform and tr.history.lambdas:
-        lam = np.max(np.stack([np.asarray(v)[:, 0] for v in tr.history.lambdas]), axis=0)
+        lam = np.stack([np.asarray(v)[:, 0] for v in tr.history.lambdas])[: s.epochs]
     return model, lam
 
 
@@ -194,7 +207,7 @@ def train_cooper(s: Setup, kind: str, dual_lr: float, kp: float = 0.0, penalty: 
     bsz = cfg.batch_size
     per_epoch = n // bsz
     t = 0
-    lam_max = np.zeros(e)
+    trace = []
     model.train()
     for _ in range(cfg.epochs):
         perm = torch.argsort(torch.rand(e, n, generator=rng), dim=1)  # as the trainer's engines draw it
@@ -208,8 +221,8 @@ def train_cooper(s: Setup, kind: str, dual_lr: float, kp: float = 0.0, penalty: 
             batch = (*data.take(idx), data.take_masks(idx))
             opt.roll(compute_cmp_state_kwargs={"batch": batch})
             t += 1
-        lam_max = np.maximum(lam_max, cmp.con.multiplier().detach().double().numpy())
-    return model, lam_max
+        trace.append(cmp.con.multiplier().detach().double().numpy().copy())
+    return model, np.stack(trace)
 
 
 # ------------------------------------------------------------------------------------------------- results
@@ -219,18 +232,28 @@ class Result:
     held_objective: np.ndarray  # (S,) kept member, shared held-out data
     train_objective: np.ndarray  # (S,) kept member, its training split
     held_g: np.ndarray  # (S,) kept member: in-region error - eps on the held-out data
-    lam_max: np.ndarray  # (S,) kept member's largest multiplier during the run
+    lam_trace: np.ndarray  # (epochs, S) kept member's multiplier at the end of each epoch
+
+    @property
+    def lam_max(self) -> np.ndarray:
+        """(S,) the kept member's largest multiplier (at an epoch's end) during the run."""
+        return self.lam_trace.max(axis=0)
+
+    def lam_at(self, frac: float) -> float:
+        """The median over seeds of the kept member's multiplier after ``frac`` of the epochs."""
+        i = min(len(self.lam_trace) - 1, max(0, int(round(frac * len(self.lam_trace))) - 1))
+        return float(np.median(self.lam_trace[i]))
     seconds: float
     best: np.ndarray = field(default_factory=lambda: np.zeros(0))  # filled in by mark_best
 
 
-def evaluate(s: Setup, method: str, model: DynamicsModel, lam_max: np.ndarray, seconds: float) -> Result:
+def evaluate(s: Setup, method: str, model: DynamicsModel, lam_trace: np.ndarray, seconds: float) -> Result:
     sel = select_members(model, s.spec, Transitions(model, s.spec, *s.sel), s.groups)
     kept = np.asarray(sel.chosen)
     held = evaluate_models(model, s.spec, *s.test)
     train = evaluate_spec(model, s.spec, Transitions(model, s.spec, *s.fit))
     g = held.constraints[kept, 0]
-    return Result(method, held.objective[kept], train["objective"][kept], g, lam_max[kept], seconds)
+    return Result(method, held.objective[kept], train["objective"][kept], g, lam_trace[:, kept], seconds)
 
 
 def is_feasible(r: Result, eps: float) -> np.ndarray:
@@ -260,12 +283,14 @@ def report(results: list[Result], s: Setup) -> str:
         lines.append(f"| {r.method} | " + " | ".join(cells) + " |")
     lines += ["", "best feasible held-out objective per seed: " + ", ".join(f"{b:.4f}" for b in cand), "",
               "| method | at the best optimum | feasible (held-out) | held-out objective, median [min - max] | "
-              "in-region g held-out, median [min - max] | largest lambda during the run, median | train s |",
-              "|---|---|---|---|---|---|---|"]
+              "in-region g held-out, median [min - max] | lambda after 5 / 25 / 50 / 100 % of the epochs, median | "
+              "largest lambda, median | train s |",
+              "|---|---|---|---|---|---|---|---|"]
     n = len(s.seeds)
     for r in results:
         lines.append(f"| {r.method} | {int(r.best.sum())}/{n} | {int(is_feasible(r, eps).sum())}/{n} | "
-                     f"{_dist(r.held_objective)} | {_dist(r.held_g, '+.4f')} | {np.median(r.lam_max):.3g} | "
+                     f"{_dist(r.held_objective)} | {_dist(r.held_g, '+.4f')} | "
+                     f"{' / '.join(f'{r.lam_at(q):.3g}' for q in (0.05, 0.25, 0.5, 1.0))} | {np.median(r.lam_max):.3g} | "
                      f"{r.seconds:.0f} |")
     return "\n".join(lines)
 
@@ -282,15 +307,14 @@ def methods(s: Setup) -> dict[str, Callable[[], tuple[DynamicsModel, np.ndarray]
         "ours: default TrainConfig()": base_config(s),
         "ours: UA (no constraint)": None,
     }
-    lag = "lagrangian" if "lagrangian" in _dual_methods() else "paper"
     for lr in (1e-2, 1e-3, 1e-4):
-        ours[f"ours: lagrangian, Adam {lr:g}"] = base_config(s, dual_method=lag, dual_lr=lr, dual_optimizer="adam",
-                                                          primal_schedule="cosine", dual_schedule="cosine")
-    ours["ours: augmented, Adam 1e-2, c 0.01 (the old default)"] = base_config(
-        s, dual_method="augmented", dual_optimizer="adam", dual_lr=1e-2, penalty=0.01)
+        ours[f"ours: lagrangian, Adam {lr:g}"] = base_config(s, dual_method="lagrangian", dual_lr=lr,
+                                                          dual_optimizer="adam")
+    ours["ours: former augmented (Adam 0.01 on rho g, c 0.01)"] = FormerAugmentedConfig(**base_config(
+        s, dual_method="augmented", dual_optimizer="adam", dual_lr=1e-2, penalty=0.01).__dict__)
     for c in (0.01, 0.1, 1.0):
-        ours[f"ours: augmented, SGD 1 (method of multipliers), c {c:g}"] = base_config(
-            s, dual_method="augmented", dual_optimizer="sgd", dual_lr=1.0, penalty=c)
+        ours[f"ours: augmented (method of multipliers), c {c:g}"] = base_config(s, dual_method="augmented",
+                                                                               penalty=c)
     for m in ("nupi", "resilient"):
         ours[f"ours: {m}"] = base_config(s, dual_method=m)
     out: dict[str, Callable[[], tuple[DynamicsModel, np.ndarray]]] = {
@@ -328,12 +352,6 @@ def _print_result(r: Result, s: Setup) -> None:
     print(f"  {r.method:58s} held-out objective {_dist(r.held_objective)}, feasible {int(feas.sum())}/{len(feas)}, "
           f"g {_dist(r.held_g, '+.4f')}, lambda max {np.median(r.lam_max):.3g}, {r.seconds:.0f} s "
           f"(load {os.getloadavg()[0]:.1f})", flush=True)
-
-
-def _dual_methods() -> tuple[str, ...]:
-    from saml_ros.core.training.config import DUAL_METHODS
-
-    return tuple(DUAL_METHODS)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -93,7 +93,7 @@ def recipes(restarts: int, abs_restarts: int) -> dict[str, tuple[TrainConfig | N
     initialisation); None: the paper's config."""
     default = TrainConfig()
     out: dict[str, tuple[TrainConfig | None, int, float]] = {"UA": (None, 1, 0.25), "paper": (None, 1, 0.25)}
-    for method in ("nupi", "augmented", "resilient"):
+    for method in ("lagrangian", "nupi", "augmented", "resilient"):
         cfg = default if method == default.dual_method else method_config(method)
         out[method + (" (default)" if method == default.dual_method else "")] = (cfg, 1, 0.25)
     if restarts > 1:

@@ -591,7 +591,7 @@ def test_learning_rate_schedule_online_follows_the_update_count() -> None:
         config(train=TrainConfig(primal_schedule="cosine"))
 
 
-@pytest.mark.parametrize("method", ["nupi", "augmented", "resilient"])
+@pytest.mark.parametrize("method", ["lagrangian", "nupi", "augmented", "resilient"])
 def test_every_dual_method_trains_online_and_resumes_exactly(tmp_path: Path, method: str) -> None:
     """Each method runs in the learner's step loop; a checkpoint holds its multiplier state (nuPI's smoothed error
     too), so a resumed learner continues exactly like the one that saved it."""

@@ -31,8 +31,10 @@ AUTO_SCHEDULE = "cosine"
 class TrainConfig:
     """Hyper-parameters of a primal-dual run.
 
-    ``TrainConfig()`` is the recommended recipe, chosen by measurement (``bench/bench_dual.py``, docs/training.md):
-    the augmented Lagrangian, Adam 3e-3 / 1e-2 with cosine decay of both rates, batch 128.
+    ``TrainConfig()`` is the recommended recipe, chosen by measurement (``bench/bench_dual.py``,
+    ``bench/bench_cooper.py``, docs/training.md): the Lagrangian with Adam 3e-3 on the network and 1e-2 on the
+    multipliers (fast multipliers: an early push inside the constraint's region), both rates cosine-decayed,
+    batch 128.
     ``TrainConfig.paper()`` is the paper's Algorithm 1 with the paper's double-integrator settings.
 
     Attributes:
@@ -89,7 +91,7 @@ class TrainConfig:
     seed: int = 0
     dtype: str = "float32"
     engine: str = "fast"
-    dual_method: str = "augmented"
+    dual_method: str = "lagrangian"
     nupi_kp: float = 10.0
     nupi_ema: float = 0.0
     penalty: float = 0.01

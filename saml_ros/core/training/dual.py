@@ -38,6 +38,7 @@ and the optimizer (its state is in checkpoints). The fast engine implements each
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -234,6 +235,9 @@ class ResilientDual(DualVariables):
         return torch.sub(g, torch.mul(self.value, self.decay(f)))
 
 
+log = logging.getLogger("saml_ros.trainer")
+_WARNED: list[str] = []  # the once-per-process warning about 'augmented' and an optimizer it does not use
+
 #: ``TrainConfig.dual_method`` -> class
 DUAL_CLASSES: dict[str, type[DualVariables]] = {
     "paper": DualVariables, "lagrangian": LagrangianDual, "nupi": NuPIDual, "augmented": AugmentedDual,
@@ -250,6 +254,13 @@ def make_dual(config: TrainConfig, n_models: int, n_constraints: int,
     if m == "nupi":
         return NuPIDual(n_models, n_constraints, dt, config.dual_lr, eps, config.nupi_kp, config.nupi_ema)
     if m == "augmented":
+        if config.dual_optimizer != AugmentedDual.OPTIMIZER and not _WARNED:
+            _WARNED.append(m)
+            log.warning("dual_method 'augmented' is the augmented Lagrangian method: lambda <- relu(lambda + rho g), "
+                        "rho = penalty / eps (penalty %g); dual_optimizer %r and dual_lr are not used. A configuration "
+                        "written for the former 'augmented' (the multipliers moved by Adam, in effect the Lagrangian) "
+                        "gets that arithmetic as 'lagrangian', the default (docs/training.md). dual_optimizer: sgd "
+                        "(what 'augmented' uses) silences this.", config.penalty, config.dual_optimizer)
         return AugmentedDual(n_models, n_constraints, dt, eps, config.penalty, config.dual_lr0)
     if m == "resilient":
         return ResilientDual(n_models, n_constraints, dt, config.dual_optimizer, config.dual_lr, eps,
