@@ -152,6 +152,23 @@ def test_augmented_is_the_method_of_multipliers(toy_system: Any, given: dict[str
     assert runs[0.004] != runs[0.04]
 
 
+def test_a_config_naming_augmented_with_adam_is_told_what_augmented_is(toy_system: Any,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """A configuration written for the former ``augmented`` (Adam on the multipliers: ``dual_optimizer: adam``, the
+    default) gets one warning per process saying what ``augmented`` is now and that the former arithmetic is
+    ``lagrangian``; one that names the optimizer ``augmented`` uses (SGD) gets none."""
+    from saml_ros.core.training import dual
+
+    dual._WARNED.clear()
+    with caplog.at_level(logging.WARNING, logger="saml_ros.trainer"):
+        _trainer(toy_system, CONVEX_SPEC, TrainConfig(dual_method="augmented", dual_optimizer="sgd"))
+        assert not caplog.records
+        for _ in range(2):
+            _trainer(toy_system, CONVEX_SPEC, TrainConfig(dual_method="augmented"))
+    assert len(caplog.records) == 1 and "'lagrangian'" in caplog.records[0].message
+    assert "augmented Lagrangian method" in caplog.records[0].message
+
+
 INFEASIBLE_SPEC = {**CONVEX_SPEC, "constraints": list(CONVEX_SPEC["constraints"]) + [
     {"name": "zeros", "loss": "squared_l2", "eps": 0.04, "region": {"box": {"next.y": [None, 0.5]}}},
 ]}
