@@ -86,6 +86,7 @@ class Setup:
     test: tuple[np.ndarray, np.ndarray, np.ndarray]  # (N, .): shared held-out data
     epochs: int
     batch: int
+    dtype: str = "float32"
 
     @property
     def inits(self) -> list[int]:
@@ -128,7 +129,7 @@ def make_model(s: Setup) -> DynamicsModel:
 
 def base_config(s: Setup, **kw: Any) -> TrainConfig:
     """The recommended recipe's settings with this run's epochs and batch (and ``kw``)."""
-    return replace(TrainConfig(), epochs=s.epochs, batch_size=s.batch, seed=s.seeds[0], **kw)
+    return replace(TrainConfig(), epochs=s.epochs, batch_size=s.batch, seed=s.seeds[0], dtype=s.dtype, **kw)
 
 
 # ------------------------------------------------------------------------------------------------- ours
@@ -160,21 +161,22 @@ def train_ours(s: Setup, cfg: TrainConfig | None) -> tuple[DynamicsModel, np.nda
 
 # ------------------------------------------------------------------------------------------------- cooper
 def train_cooper(s: Setup, kind: str, dual_lr: float, kp: float = 0.0, penalty: float = 0.0,
-                 dual_cosine: bool = True) -> tuple[DynamicsModel, np.ndarray]:
-    """Train with cooper: ``kind`` ``"lagrangian"`` (SGD on lambda at ``dual_lr``), ``"nupi"`` (cooper's nuPI at
-    ``dual_lr`` with K_P ``kp``, K_I 1) or ``"alm"`` (augmented Lagrangian method: penalty ``penalty`` in g's units,
-    the multiplier's SGD step equal to it, alternating updates). The primal side is ours (Adam, cosine); the dual
-    rate follows the same cosine when ``dual_cosine``."""
+                 dual_cosine: bool = True, dual_adam: bool = False) -> tuple[DynamicsModel, np.ndarray]:
+    """Train with cooper: ``kind`` ``"lagrangian"`` (SGD on lambda at ``dual_lr``; Adam with ``dual_adam``),
+    ``"nupi"`` (cooper's nuPI at ``dual_lr`` with K_P ``kp``, K_I 1) or ``"alm"`` (augmented Lagrangian method:
+    penalty ``penalty`` in g's units, the multiplier's SGD step equal to it, alternating updates). The primal side
+    is ours (Adam, cosine); the dual rate follows the same cosine when ``dual_cosine``. Returns the model and each
+    member's multiplier at the end of every epoch ``(epochs, E)``."""
     import cooper
 
-    model = make_model(s)
+    model = make_model(s).to(torch.float64 if s.dtype == "float64" else torch.float32)
     spec = s.spec
     data = Transitions(model, spec, *s.fit)
     e = model.n_models
     cfg = base_config(s)
     primal_sched, _ = schedules_for(cfg, cfg.epochs * (len(data) // cfg.batch_size))
 
-    multiplier = cooper.multipliers.DenseMultiplier(num_constraints=e)
+    multiplier = cooper.multipliers.DenseMultiplier(num_constraints=e, dtype=model.in_mean.dtype)
 
     class Friction(cooper.ConstrainedMinimizationProblem):
         def __init__(self) -> None:
@@ -182,7 +184,8 @@ def train_cooper(s: Setup, kind: str, dual_lr: float, kp: float = 0.0, penalty: 
             form = cooper.formulations.AugmentedLagrangian if kind == "alm" else cooper.formulations.Lagrangian
             pen = None
             if kind == "alm":
-                pen = cooper.penalty_coefficients.DensePenaltyCoefficient(init=torch.full((e,), penalty))
+                pen = cooper.penalty_coefficients.DensePenaltyCoefficient(
+                    init=torch.full((e,), penalty, dtype=model.in_mean.dtype))
             self.con = cooper.Constraint(cooper.ConstraintType.INEQUALITY, formulation_type=form,
                                          multiplier=multiplier,
                                          penalty_coefficient=pen)
@@ -201,6 +204,8 @@ def train_cooper(s: Setup, kind: str, dual_lr: float, kp: float = 0.0, penalty: 
     if kind == "nupi":
         dual = cooper.optim.nuPI(cmp.dual_parameters(), lr=dual_lr, Kp=torch.tensor(kp), Ki=torch.tensor(1.0),
                                   maximize=True)
+    elif dual_adam:
+        dual = torch.optim.Adam(cmp.dual_parameters(), lr=dual_lr, maximize=True)
     else:
         dual = torch.optim.SGD(cmp.dual_parameters(), lr=dual_lr, maximize=True)
     opt_cls = cooper.optim.AlternatingPrimalDualOptimizer if kind == "alm" else cooper.optim.SimultaneousOptimizer
