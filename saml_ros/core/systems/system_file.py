@@ -52,7 +52,7 @@ _FIELD_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 UNIT_SYMBOLS = frozenset({"m", "s", "rad", "kg", "N", "A", "V", "W", "Pa", "K", "degC", "Hz", "J", "T", "1"})
 _UNIT = re.compile(r"^[A-Za-z0-9]+(\^-?\d+)?([*/][A-Za-z0-9]+(\^-?\d+)?)*$")
 _TOP_KEYS = {"version", "name", "description", "dt", "state", "control", "pairing", "base_model", "model", "spec",
-             "spec_file"}
+             "spec_file", "mpc", "mpc_file"}
 _SECTION_KEYS = {"topic", "type", "fields", "rate", "qos", "frame_id", "child_frame_id", "safe"}
 _FIELD_KEYS = {"name", "unit", "bounds", "path", "angle", "description"}
 _PAIRING_KEYS = {"state", "state_tolerance", "command_guard", "command_timeout", "command_delay", "mixed_command",
@@ -247,7 +247,31 @@ def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = No
         except (OSError, yaml.YAMLError) as exc:
             raise _fail(where, "spec_file", f"cannot read {path}: {exc}") from None
     d.setdefault("spec", {"name": "uniform", "objective": {"loss": "l2"}})
+    if "mpc" in d or "mpc_file" in d:
+        d["mpc"] = _mpc_section(d, where, base_dir)
     return d
+
+
+def _mpc_section(d: dict[str, Any], where: str, base_dir: Path | None) -> dict[str, Any]:
+    """The checked ``mpc:`` section (inline, or the file ``mpc_file`` names); see :mod:`.mpc_section`."""
+    from saml_ros.core.systems.mpc_section import MPCSectionError, parse_mpc_section
+
+    if "mpc" in d and "mpc_file" in d:
+        raise _fail(where, "mpc_file", "give either 'mpc' or 'mpc_file', not both")
+    key, raw = "mpc", d.get("mpc")
+    if "mpc_file" in d:
+        path = Path(str(d.pop("mpc_file")))
+        if not path.is_absolute() and base_dir is not None:
+            path = base_dir / path
+        try:
+            raw = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise _fail(where, "mpc_file", f"cannot read {path}: {exc}") from None
+        key = f"mpc (from {path.name})"
+    try:
+        return parse_mpc_section(raw, d, key)
+    except MPCSectionError as exc:
+        raise SystemFileError(where, exc.key, exc.detail) from None
 
 
 def _pairing(raw: Any, where: str, d: dict[str, Any]) -> dict[str, Any]:

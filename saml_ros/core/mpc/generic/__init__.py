@@ -1,0 +1,43 @@
+"""The generic MPC: plans for any robot described by a system file with an ``mpc:`` section (docs/your_robot.md,
+"Control it"; docs/mpc.md, "The generic planner").
+
+* :mod:`.dynamics`: the prediction model f_hat + phi with exact Jacobians (CasADi for f_hat's array-namespace form,
+  torch autograd for a plain torch f_hat, the network's own for phi);
+* :mod:`.problem`: the task's cost and constraints as numbers;
+* :mod:`.sqp`: :class:`GenericSQP`, the Gauss-Newton SQP (the default path);
+* :mod:`.nlp`: :class:`CasadiNLP`, the whole problem as one CasADi NLP (IPOPT; the network written symbolically
+  with its weights as a parameter vector), the reference path;
+* :func:`generic_controllers`: what a robot's registry entry hands :func:`~saml_ros.core.mpc.factory.make_controller`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from saml_ros.core.mpc.generic.sqp import GenericSQP, system_task
+
+
+def make_generic(system: Any, model: Any = None, **options: Any) -> Any:
+    """The planner the robot's ``mpc.solver`` names (``sqp`` or ``ipopt``) with ``options``."""
+    if system_task(system).planner == "ipopt":
+        from saml_ros.core.mpc.generic.nlp import CasadiNLP
+
+        return CasadiNLP(system, model, **options)
+    return GenericSQP(system, model, **options)
+
+
+def make_reference(system: Any, model: Any = None, **options: Any) -> Any:
+    """The reference path: the whole problem as one CasADi NLP solved by IPOPT."""
+    from saml_ros.core.mpc.generic.nlp import CasadiNLP
+
+    return CasadiNLP(system, model, **options)
+
+
+def generic_controllers() -> Mapping[str, Any]:
+    """The controllers of a robot with an ``mpc:`` section, by the MPC node's ``solver`` name: ``fast`` = the path
+    its ``mpc.solver`` names (default the SQP), ``slsqp`` = the reference (IPOPT on the whole NLP)."""
+    return {"fast": make_generic, "slsqp": make_reference}
+
+
+__all__ = ["GenericSQP", "generic_controllers", "make_generic", "make_reference", "system_task"]
