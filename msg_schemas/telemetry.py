@@ -63,8 +63,9 @@ CHECKPOINT_REFUSAL_REASONS: tuple[str, ...] = (
 #: why the MPC answered a state with the system's safe command (``safe_commands/<reason>``): the solver raised,
 #: returned a non-finite result, planned through states outside the plausible range (``implausible``: the model
 #: predicts nonsense there), the state itself was outside the plausible range (``bounds``), or (only with
-#: ``safe_on_infeasible``) the plan violated a constraint
-SAFE_COMMAND_REASONS: tuple[str, ...] = ("solver_error", "non_finite", "implausible", "bounds", "infeasible")
+#: ``safe_on_infeasible``) the plan violated a constraint, or the state was older than ``state_timeout`` (``stale``:
+#: also sent while no state arrives for that long)
+SAFE_COMMAND_REASONS: tuple[str, ...] = ("solver_error", "non_finite", "implausible", "bounds", "infeasible", "stale")
 #: why a training step was skipped and the last healthy state kept (``train_health/skipped/<reason>``): a non-finite
 #: or exploding minibatch loss, gradient, or updated weights (``saml_ros.core.training.health``)
 TRAINING_SKIP_REASONS: tuple[str, ...] = ("loss", "gradient", "weights")

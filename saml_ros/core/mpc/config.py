@@ -41,6 +41,9 @@ def choose_executor(executor: str, mode: str) -> str:
 #: the parameters of every MPC node (``system``'s default is the node's own system)
 PARAMS: tuple[Param, ...] = (
     Param("system", "friction", "system name: friction | quadrotor | paddle_ball (read before the node starts)"),
+    Param("system_file", "", "a robot described by a system file with an 'mpc:' section (docs/your_robot.md, "
+                             "'Control it'): planned by the generic planner, commanded on its own topic and type; "
+                             "the system is the file's name (read before the node starts)"),
     Param("solver", "fast", "MPC solver: fast (SQP, warm-started) | slsqp (scipy reference, slow)"),
     Param("horizon", 10, "planning horizon T (steps; ignored by the one-shot paddle problem)"),
     Param("member", 0, "ensemble member of the checkpoint's model used for planning"),
@@ -86,6 +89,9 @@ PARAMS: tuple[Param, ...] = (
     Param("safe_on_infeasible", False, "also answer with the safe command when the plan is finite but violates a "
                                        "constraint (by default only failed or non-finite solves and implausible "
                                        "states are)"),
+    Param("state_timeout", 0.0, "s: answer a state older than this (by its stamp, on the node's clock) with the safe "
+                                "command, and send it while no state arrives for this long (0 = off; a system "
+                                "file's mpc.state_timeout by default)"),
 )
 
 
@@ -135,12 +141,16 @@ class MPCConfig:
     accept_residual_factor: float = 4.0
     safe_on_infeasible: bool = False
     executor: str = "single"  #: the resolved executor (:func:`choose_executor`)
+    state_timeout: float = 0.0  #: s, 0 = off
+    system_file: str = ""
 
     @staticmethod
     def params(system: str) -> list[Param]:
         """The parameter table of an MPC node for ``system``: :data:`PARAMS`, then ``goal.*`` and ``task.*``."""
         entry = get_entry(system)
         table = [replace(PARAMS[0], default=system), *PARAMS[1:]]
+        table = [replace(p, default=type(p.default)(entry.mpc_defaults[p.name])) if p.name in entry.mpc_defaults
+                 else p for p in table]  # a system file's mpc: section sets the horizon, rate, state timeout
         table += [replace(g, name=f"goal.{g.name}") for g in entry.goal_params]
         table += [replace(t, name=f"task.{t.name}") for t in entry.task_params]
         return table
@@ -186,6 +196,7 @@ class MPCConfig:
         check(not guard.enabled or entry.mpc_task is not None, "guard.*", "off for a one-shot MPC (paddle_ball)",
               "on")
         check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
+        check(p["state_timeout"] >= 0, "state_timeout", ">= 0 (0 = off)", p["state_timeout"])
         try:
             parse_overrides(p["plausible_bounds"])
         except ValueError as exc:
@@ -200,6 +211,7 @@ class MPCConfig:
             task={t.name: p[f"task.{t.name}"] for t in entry.task_params}, guard=guard,
             plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
             safe_on_infeasible=p["safe_on_infeasible"], executor=choose_executor(p["executor"], p["mode"]),
+            state_timeout=p["state_timeout"], system_file=p["system_file"],
         )
 
     def controller_options(self) -> dict[str, Any]:

@@ -251,7 +251,11 @@ class GuardedController:
         self._active = act
         self.learned.set_model(act.model)
         if act.bound is not None:
-            self.learned.dyn = BoundedDynamics(self.learned.dyn, act.bound)  # type: ignore[assignment]
+            set_bound = getattr(self.learned, "set_residual_bound", None)  # the generic planner clips phi itself
+            if set_bound is not None:
+                set_bound(act.bound)
+            else:
+                self.learned.dyn = BoundedDynamics(self.learned.dyn, act.bound)  # type: ignore[assignment]
         self.monitor.reset()
 
     def reset(self) -> None:
@@ -329,6 +333,9 @@ class GuardedController:
         """Whether the bound clipped phi anywhere on the learned plan ``res`` flies."""
         dyn = self.learned.dyn
         bound = self._active.bound
+        clipped = getattr(self.learned, "phi_clipped", None)  # the generic planner
+        if clipped is not None and bound is not None:
+            return bool(clipped(res))
         if not isinstance(dyn, BoundedDynamics) or bound is None or not np.all(np.isfinite(res.plan_x)):
             return False
         return bool(np.any(np.abs(dyn.mlp.forward(res.plan_x[:-1], res.plan_u)) >= bound))
@@ -385,12 +392,14 @@ class GuardedController:
 def make_guarded_controller(system: System, solver: str = "fast", config: GuardConfig | None = None,
                             **options: Any) -> GuardedController:
     """A :class:`GuardedController` of two :func:`~saml_ros.core.mpc.factory.make_controller` controllers of the
-    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat."""
+    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat. The controllers are
+    shooting MPCs (friction, quadrotor) or the generic planner of a robot's ``mpc:`` section."""
     from saml_ros.core.mpc.factory import make_controller
 
     learned = make_controller(system, None, solver, **options)
     base_opts = {k: v for k, v in options.items() if k != "member"}
     base = make_controller(system, None, solver, **base_opts)
-    if not isinstance(learned, ShootingMPC) or not isinstance(base, ShootingMPC):
-        raise ValueError(f"guarded MPC: only the shooting MPC (friction, quadrotor) can be guarded, not {system.name}")
+    if not all(hasattr(c, "warm_start_plan") and hasattr(c, "set_warm_start") for c in (learned, base)):
+        raise ValueError(f"guarded MPC: only the shooting MPC (friction, quadrotor) and the generic planner of a "
+                         f"robot's 'mpc:' section can be guarded, not {system.name}")
     return GuardedController(learned, base, config or GuardConfig())

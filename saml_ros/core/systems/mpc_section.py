@@ -55,8 +55,12 @@ _GOAL_KEYS = frozenset({"fields", "default", "bounds", "topic", "type", "paths"}
 _REF_KEYS = frozenset({"topic", "type", "paths", "timeout"})
 _COST_KEYS = frozenset({"stage", "terminal", "effort", "rate"})
 _CONSTRAINT_KINDS = ("box", "norm", "keep_out")
-#: the planner paths a section may choose (``saml_ros.core.mpc.generic``)
+#: the planner paths a section may choose (``saml_ros.core.mpc.generic``) and the options each takes
 PLANNERS = ("sqp", "ipopt")
+PLANNER_OPTIONS: dict[str, frozenset[str]] = {
+    "sqp": frozenset({"max_iter", "tol", "max_time", "rho0", "lm_floor", "feas_tol", "qp_backend"}),
+    "ipopt": frozenset({"max_iter", "tol", "max_time", "feas_tol", "linear_solver"}),
+}
 #: what ``rate`` accepts besides a number of Hz: answer every state
 ON_STATE = "state"
 #: largest horizon accepted (the condensed QP grows with T^2)
@@ -365,6 +369,10 @@ def parse_mpc_section(raw: Any, definition: Mapping[str, Any], key: str = "mpc")
     if not isinstance(so, Mapping) or not all(isinstance(k, str) and isinstance(v, int | float | str | bool)
                                               for k, v in so.items()):
         raise MPCSectionError(f"{key}.solver_options", f"expected a mapping of option names to scalars, got {so!r}")
+    unknown = sorted(set(so) - PLANNER_OPTIONS[planner])
+    if unknown:
+        raise MPCSectionError(f"{key}.solver_options", f"unknown option(s) {unknown} for solver {planner!r}; valid: "
+                                                       f"{sorted(PLANNER_OPTIONS[planner])}")
     out["solver_options"] = dict(so)
     return out
 

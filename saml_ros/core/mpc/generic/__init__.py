@@ -18,26 +18,13 @@ from typing import Any
 from saml_ros.core.mpc.generic.sqp import GenericSQP, system_task
 
 
-def make_generic(system: Any, model: Any = None, **options: Any) -> Any:
-    """The planner the robot's ``mpc.solver`` names (``sqp`` or ``ipopt``) with ``options``."""
-    if system_task(system).planner == "ipopt":
-        from saml_ros.core.mpc.generic.nlp import CasadiNLP
-
-        return CasadiNLP(system, model, **options)
-    return GenericSQP(system, model, **options)
-
-
-def make_reference(system: Any, model: Any = None, **options: Any) -> Any:
-    """The reference path: the whole problem as one CasADi NLP solved by IPOPT."""
+def generic_controllers(planner: str = "sqp") -> Mapping[str, Any]:
+    """The controllers of a robot with an ``mpc:`` section, by the MPC node's ``solver`` name: ``fast`` = the path
+    its ``mpc.solver`` names (``planner``: ``sqp``, the default, or ``ipopt``), ``slsqp`` = the reference (IPOPT on
+    the whole NLP, :class:`~saml_ros.core.mpc.generic.nlp.CasadiNLP`)."""
     from saml_ros.core.mpc.generic.nlp import CasadiNLP
 
-    return CasadiNLP(system, model, **options)
+    return {"fast": CasadiNLP if planner == "ipopt" else GenericSQP, "slsqp": CasadiNLP}
 
 
-def generic_controllers() -> Mapping[str, Any]:
-    """The controllers of a robot with an ``mpc:`` section, by the MPC node's ``solver`` name: ``fast`` = the path
-    its ``mpc.solver`` names (default the SQP), ``slsqp`` = the reference (IPOPT on the whole NLP)."""
-    return {"fast": make_generic, "slsqp": make_reference}
-
-
-__all__ = ["GenericSQP", "generic_controllers", "make_generic", "make_reference", "system_task"]
+__all__ = ["GenericSQP", "generic_controllers", "system_task"]

@@ -60,29 +60,37 @@ class GenericSQP:
         model: the learned model (member ``member``) or None (f_hat alone); swap with :meth:`set_model`.
         horizon: T (default: the section's ``horizon``).
         task: the control task (default: the system's ``mpc:`` section).
-        max_iter: SQP iterations per solve; tol: stop when the predicted merit decrease is below
-            ``tol * (1 + merit)``; max_time: optional wall-clock budget per solve (s).
-        rho0: initial Levenberg-Marquardt weight, relative to the mean diagonal of the Gauss-Newton Hessian;
-            lm_floor: absolute term added to it.
-        feas_tol: largest constraint value (state units) of a plan still called a success.
+        max_iter: SQP iterations per solve (15); tol: stop when the predicted merit decrease is below
+            ``tol * (1 + merit)`` (1e-4); max_time: optional wall-clock budget per solve (s).
+        rho0: initial Levenberg-Marquardt weight, relative to the mean diagonal of the Gauss-Newton Hessian (1e-4);
+            lm_floor: absolute term added to it (1e-6).
+        feas_tol: largest constraint value (state units) of a plan still called a success (1e-3).
         qp_backend: ``daqp`` or ``ipm`` (:func:`~saml_ros.core.mpc.shooting.qp.solve_qp`).
+        The solver options not given here come from the section's ``mpc.solver_options``.
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
             controller; not used (this planner builds f_hat from the system file, :func:`make_base`).
     """
 
     def __init__(self, system: System, model: DynamicsModel | None = None, horizon: int | None = None,
-                 member: int = 0, *, task: MPCTask | None = None, max_iter: int = 15, tol: float = 1e-4,
-                 max_time: float | None = None, rho0: float = 1e-4, lm_floor: float = 1e-6, feas_tol: float = 1e-3,
-                 qp_backend: str | None = None, base: Any = None, true: Any = None) -> None:
+                 member: int = 0, *, task: MPCTask | None = None, max_iter: int | None = None,
+                 tol: float | None = None, max_time: float | None = None, rho0: float | None = None,
+                 lm_floor: float | None = None, feas_tol: float | None = None, qp_backend: str | None = None,
+                 base: Any = None, true: Any = None) -> None:
         self.system = system
         self.task = task if task is not None else system_task(system)
         self.problem = GenericProblem(self.task, system.state.size, system.control.size, horizon)
         self.horizon = self.problem.T
         self.member = int(member)
         self.n, self.m = system.state.size, system.control.size
-        self.max_iter, self.tol, self.max_time = int(max_iter), float(tol), max_time
-        self.rho0, self.lm_floor, self.feas_tol = float(rho0), float(lm_floor), float(feas_tol)
-        self.qp_backend = qp_backend or DEFAULT_BACKEND
+        opt = _options(self.task, max_iter=max_iter, tol=tol, max_time=max_time, rho0=rho0, lm_floor=lm_floor,
+                       feas_tol=feas_tol, qp_backend=qp_backend)
+        self.max_iter, self.tol = int(opt.get("max_iter", 15)), float(opt.get("tol", 1e-4))
+        self.max_time = None if opt.get("max_time") is None else float(opt["max_time"])
+        self.rho0, self.lm_floor = float(opt.get("rho0", 1e-4)), float(opt.get("lm_floor", 1e-6))
+        self.feas_tol = float(opt.get("feas_tol", 1e-3))
+        self.qp_backend = str(opt.get("qp_backend") or DEFAULT_BACKEND)
+        if self.max_iter < 1 or not self.tol > 0 or not self.feas_tol > 0:
+            raise ValueError(f"{system.name} MPC: max_iter must be >= 1, tol and feas_tol > 0")
         self.penalty = float(self.task.penalty)
         self._base: SymbolicBase | TorchBase = make_base(system)
         self._base_params: Any = _base_params(system)
@@ -286,6 +294,13 @@ class GenericSQP:
         return MPCResult(u=plan_u[0].copy(), plan_u=plan_u, plan_x=np.full((T + 1, self.n), np.nan), cost=math.nan,
                          solve_time=time.perf_counter() - start, iterations=iters, success=False, message=why,
                          constraint_violation=math.inf, converged=False)
+
+
+def _options(task: MPCTask, **given: Any) -> dict[str, Any]:
+    """Solver options: those given explicitly (not None), else the section's ``mpc.solver_options``."""
+    out = dict(task.solver_options)
+    out.update({k: v for k, v in given.items() if v is not None})
+    return out
 
 
 def _condense(a_mat: np.ndarray, b_mat: np.ndarray) -> np.ndarray:
