@@ -190,7 +190,8 @@ class MPCNode(ManagedNode):
         now_ns = self.get_clock().now().nanoseconds
         try:
             if self._unstamped_state:
-                x, stamp = self.schema.state.from_msg(msg, self.schema.state_topic, receipt_ns=now_ns)
+                codec: Any = self.schema.state  # a FieldPathCodec: an unstamped message takes its receipt time
+                x, stamp = codec.from_msg(msg, self.schema.state_topic, receipt_ns=now_ns)
             else:
                 x, stamp = self._state_cdr.decode(msg, self.schema.state_topic)
         except SchemaError as exc:

@@ -402,4 +402,4 @@ def make_guarded_controller(system: System, solver: str = "fast", config: GuardC
     if not all(hasattr(c, "warm_start_plan") and hasattr(c, "set_warm_start") for c in (learned, base)):
         raise ValueError(f"guarded MPC: only the shooting MPC (friction, quadrotor) and the generic planner of a "
                          f"robot's 'mpc:' section can be guarded, not {system.name}")
-    return GuardedController(learned, base, config or GuardConfig())
+    return GuardedController(learned, base, config or GuardConfig())  # type: ignore[arg-type]  # shooting-like

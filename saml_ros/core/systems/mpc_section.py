@@ -223,8 +223,15 @@ def _topic(raw: Any, key: str, fields: Sequence[str], field_units: Mapping[str, 
            *, element: str | None = None) -> dict[str, Any]:
     """A goal / reference topic: ``topic``, ``type`` and ``paths`` (field -> field path) checked against the message
     type (for a reference: against the type of the array ``element`` it carries, e.g. ``poses[]``)."""
-    from msg_schemas.field_path import _ARRAY, _NAME_T, _SEQUENCE, FieldPathError, check_message_type, message_fields, \
-        resolve
+    from msg_schemas.field_path import (
+        _ARRAY,
+        _NAME_T,
+        _SEQUENCE,
+        FieldPathError,
+        check_message_type,
+        message_fields,
+        resolve,
+    )
 
     d = _keys(raw, key, allowed, ("topic", "type", "paths"))
     topic = d["topic"]

@@ -100,13 +100,13 @@ def casadi_dynamics(system: Any, kind: str | None, hidden: Sequence[int], *, sym
     from saml_ros.core.mpc.generic.dynamics import SymbolicBase, make_base
 
     n, m = system.state.size, system.control.size
-    sym = ca.SX if symbolic == "SX" else ca.MX
+    sym: Any = ca.SX if symbolic == "SX" else ca.MX
     x, u, b = sym.sym("x", n), sym.sym("u", m), sym.sym("bound", n)
     n_theta = theta_size(n + m, hidden, n) if kind is not None else 0
     theta = sym.sym("theta", n_theta)
     angles = [int(i) for i in getattr(system, "angle_indices", ())]
     xw = wrap_casadi(x, angles)
-    y = 0
+    y: Any = 0
     if kind != "full":
         base = make_base(system)
         if not isinstance(base, SymbolicBase):

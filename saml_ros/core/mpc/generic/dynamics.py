@@ -207,6 +207,7 @@ class GenericDynamics:
                 xs[t + 1] = self.step(xs[t][None], us[t][None])[0]
             return xs
         base, mlp, bound = self.base, self.mlp, self.bound
+        assert isinstance(base, SymbolicBase)
         angles = [int(i) for i in self.angles]
         two_pi = 2.0 * np.pi
         xl = [float(v) for v in x0]

@@ -136,7 +136,7 @@ class CasadiNLP:
             prev = x[:, t]
         w = ca.vertcat(ca.vec(u), ca.vec(x), ca.vec(s))
         p = ca.vertcat(x0, ca.vec(ref), u_prev, has_prev, theta, bound)
-        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": self.max_iter,
+        opts: dict[str, Any] = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": self.max_iter,
                 "ipopt.tol": self.tol, "ipopt.linear_solver": self.linear_solver}
         if self.max_time is not None:
             opts["ipopt.max_cpu_time"] = self.max_time

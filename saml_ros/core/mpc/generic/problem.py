@@ -61,15 +61,15 @@ class GenericProblem:
                 rows.append(r)
         #: the control residuals' Jacobian ``(R_u, T m)`` and the first step's rate rows (their u_{-1} term)
         self.ju = np.array(rows).reshape(len(rows), T * m)
-        self._rate0 = [(self._n_effort + j, i, sr[i]) for j, i in enumerate(ir)]
+        self._rate0 = [(self._n_effort + j, int(i), float(sr[i])) for j, i in enumerate(ir)]
         # constraint rows per step
         self.cons = task.constraints
         self.rows_per_step = sum(c.rows for c in self.cons)
         self.row_names: list[str] = []
         for c in self.cons:
             if c.kind == "box":
-                for i, lo, hi in zip(c.idx, c.low, c.high, strict=True):
-                    name = task.state_names[i] if task.state_names else str(i)
+                for fi, lo, hi in zip(c.idx, c.low, c.high, strict=True):
+                    name = task.state_names[fi] if task.state_names else str(fi)
                     if math.isfinite(lo):
                         self.row_names.append(f"{c.name} ({name} >= {lo:g})")
                     if math.isfinite(hi):

@@ -128,9 +128,11 @@ class GenericSQP:
         return self.dyn.clipped(res.plan_x[:-1], res.plan_u)
 
     def reset(self) -> None:
-        """Drop the warm start and the last command (the rate cost of the first control)."""
+        """Drop the warm start, the last command (the rate cost of the first control) and the adapted
+        Levenberg-Marquardt weight: the next solve is a cold start."""
         self._plan_u = self._plan_x = None
         self._u_last = None
+        self._rho = self.rho0
 
     def warm_start_plan(self) -> tuple[np.ndarray, np.ndarray] | None:
         if self._plan_u is None or self._plan_x is None:
@@ -206,7 +208,7 @@ class GenericSQP:
                   start: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
         """The SQP iterations (module docstring): ``(U, predicted states, iterations, converged, message)``."""
         pb, dyn = self.problem, self.dyn
-        T, m, n, k = pb.T, self.m, self.n, pb.k
+        T, m, k = pb.T, self.m, pb.k
         lo, hi = pb.u_low, pb.u_high
         xs = dyn.rollout(x0, us)
         merit = self._merit(xs, us, ref, u_prev)
