@@ -307,7 +307,7 @@ def test_learner_calls_a_form_with_torch(user_module: str) -> None:
 def test_planner_reaches_the_goal_the_short_way_and_keeps_constraints() -> None:
     sys.path.insert(0, str(EXAMPLE.parent))
     try:
-        from dynamics import DiffDrive
+        from dynamics import DiffDrive  # type: ignore[import-not-found]
     finally:
         sys.path.remove(str(EXAMPLE.parent))
     raw = example()
@@ -344,11 +344,12 @@ def test_hot_swap_changes_the_plan_not_the_solver() -> None:
     ctrl = GenericSQP(s, fitted_model(s, seed=1))
     x = np.array([0.2, 0.3, 0.4, 0.1, 0.0])
     first = ctrl.solve(x)
-    jac_fn = ctrl.dyn.base._jac
+    jac_fn = ctrl.dyn.base._jac  # type: ignore[union-attr]
     ctrl.reset()
     ctrl.set_model(fitted_model(s, seed=2))
     second = ctrl.solve(x)
-    assert ctrl.dyn.base._jac is jac_fn  # f_hat's CasADi Jacobian was not rebuilt
+    assert ctrl.dyn.base._jac is jac_fn  # type: ignore[union-attr]
+    #  # f_hat's CasADi Jacobian was not rebuilt
     assert np.abs(first.plan_u - second.plan_u).max() > 1e-3  # the new weights plan differently
     ctrl.reset()
     ctrl.set_model(fitted_model(s, seed=1))
@@ -383,7 +384,8 @@ def test_guarded_generic_planner_falls_back_where_the_ensemble_disagrees() -> No
     g.set_model(model, tag=3, meta={"learner": {"residual_bound": [0.01] * 5}})
     res = g.solve(np.array([0.2, 0.3, 0.4, 0.1, 0.0]))
     assert res.success and g.counters["fallbacks"] >= 1 and g.last_source == "base"
-    assert g.learned.dyn.bound is not None  # the generic planner clips phi itself
+    assert g.learned.dyn.bound is not None  # type: ignore[attr-defined]
+    #  # the generic planner clips phi itself
     g2 = make_guarded_controller(s, "fast", GuardConfig(max_disagreement=1e6), horizon=20)
     g2.set_model(model, tag=3)
     assert g2.solve(np.array([0.2, 0.3, 0.4, 0.1, 0.0])).success and g2.last_source == "learned"
