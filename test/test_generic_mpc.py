@@ -349,7 +349,7 @@ def test_hot_swap_changes_the_plan_not_the_solver() -> None:
     ctrl.set_model(fitted_model(s, seed=2))
     second = ctrl.solve(x)
     assert ctrl.dyn.base._jac is jac_fn  # type: ignore[union-attr]
-    #  # f_hat's CasADi Jacobian was not rebuilt
+    # f_hat's CasADi Jacobian was not rebuilt
     assert np.abs(first.plan_u - second.plan_u).max() > 1e-3  # the new weights plan differently
     ctrl.reset()
     ctrl.set_model(fitted_model(s, seed=1))
@@ -385,7 +385,7 @@ def test_guarded_generic_planner_falls_back_where_the_ensemble_disagrees() -> No
     res = g.solve(np.array([0.2, 0.3, 0.4, 0.1, 0.0]))
     assert res.success and g.counters["fallbacks"] >= 1 and g.last_source == "base"
     assert g.learned.dyn.bound is not None  # type: ignore[attr-defined]
-    #  # the generic planner clips phi itself
+    # the generic planner clips phi itself
     g2 = make_guarded_controller(s, "fast", GuardConfig(max_disagreement=1e6), horizon=20)
     g2.set_model(model, tag=3)
     assert g2.solve(np.array([0.2, 0.3, 0.4, 0.1, 0.0])).success and g2.last_source == "learned"
