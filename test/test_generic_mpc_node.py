@@ -209,3 +209,67 @@ def test_wrong_mpc_section_or_parameters_exit_2_naming_them(ros_env: RosDomain, 
     goal = ros_env.launch("mpc", "-p", f"system_file:={SYSTEM_FILE}", "-p", "goal.setpoint:=[9.0, 0.0, 0.0, 0.0, 0.0]")
     assert goal.wait(90) == 2, goal.output()
     assert "goal.setpoint: goal field 'x' = 9 is outside its bounds" in goal.output()
+
+
+def test_checkpoints_of_a_robot_with_its_own_base_model_are_taken_and_swapped(
+        ros_env: RosDomain, ros_node: TestNode, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The robot's f_hat is the user's own torch function (differentiated by autograd in the planner); the
+    learner's checkpoints (here written by the same trainer code) are accepted and hot-swapped between two solves,
+    with the guard on (5-member ensembles)."""
+    import textwrap
+
+    import numpy as np
+    import torch
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
+    from saml_ros.user_code import load_system_file
+
+    (tmp_path / "dd_user_model.py").write_text(textwrap.dedent("""
+        import torch
+
+        def unicycle(x, u, *, dt, tau=0.12):
+            a = 1.0 - torch.exp(torch.tensor(-dt / tau, dtype=x.dtype))
+            out = x.clone()
+            mid = x[:, 2] + 0.5 * u[:, 1] * dt
+            out[:, 0] = x[:, 0] + u[:, 0] * torch.cos(mid) * dt
+            out[:, 1] = x[:, 1] + u[:, 0] * torch.sin(mid) * dt
+            out[:, 2] = x[:, 2] + u[:, 1] * dt
+            out[:, 3] = x[:, 3] + a * (u[:, 0] - x[:, 3])
+            out[:, 4] = x[:, 4] + a * (u[:, 1] - x[:, 4])
+            return out
+        """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    raw = yaml.safe_load(SYSTEM_FILE.read_text())
+    raw["base_model"] = {"function": "dd_user_model:unicycle"}
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    system = load_system_file(path)
+    store = CheckpointStore(tmp_path / "run")
+
+    def save(seed: int) -> None:
+        model = DynamicsModel(system, (32, 32), n_models=5, seed=seed)
+        x, u = system.sample_inputs(512, np.random.default_rng(seed))
+        model.fit_normalization(x, u, system.base_step_np(x, u) + 0.001)
+        with torch.no_grad():
+            model.net.weights[-1].normal_(0.0, 1e-3, generator=torch.Generator().manual_seed(seed))
+        trainer = PrimalDualTrainer(model, ProblemSpec.for_system(system.paper_spec(), system), TrainConfig())
+        save_checkpoint(store, trainer)
+
+    save(1)
+    diag = ros_node.subscribe(DiagnosticArray, "/diagnostics")
+    launch_robot(ros_env)  # its states: a checkpoint is swapped in right before a solve
+    mpc = ros_env.launch("mpc", "-p", f"system_file:={path}", "-p", f"run_dir:={store.run_dir}",
+                         "-p", "poll_period:=0.2", "-p", "guard.max_disagreement:=0.05", namespace=NS,
+                         env={"PYTHONPATH": os.pathsep.join([str(REPO), str(tmp_path)])})
+    info = wait_for(lambda: diagnostics_of(diag, "dd/mpc").get("model_version") == "1" and diagnostics_of(diag, "dd/mpc")
+                    or not mpc.alive(), timeout=90, what="checkpoint 1 in use")
+    assert mpc.alive(), mpc.output()
+    assert info["checkpoints_refused"] == "0", info.get("last_refusal")
+    assert "torch autograd" in info["planner"] and "dd_user_model:unicycle" in info["planner"], info["planner"]
+    save(2)
+    wait_for(lambda: diagnostics_of(diag, "dd/mpc").get("model_version") == "2", timeout=60, what="the hot swap")
+    assert mpc.stop() == 0

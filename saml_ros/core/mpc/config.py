@@ -193,7 +193,7 @@ class MPCConfig:
                                       ratio=p["guard.ratio"], margin=p["guard.margin"]))
         except ValueError as exc:
             raise ValueError(f"parameters 'guard.*': {exc}") from None
-        check(not guard.enabled or entry.mpc_task is not None, "guard.*", "off for a one-shot MPC (paddle_ball)",
+        check(not guard.enabled or entry.mpc_horizon, "guard.*", "off for a one-shot MPC (paddle_ball)",
               "on")
         check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
         check(p["state_timeout"] >= 0, "state_timeout", ">= 0 (0 = off)", p["state_timeout"])
