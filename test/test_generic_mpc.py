@@ -492,3 +492,53 @@ def test_service_stale_state_and_goals() -> None:
     assert diag["goal"].startswith("x=1, y=0.2") and diag["rejected/goal"] == 1 and "Gauss-Newton" in diag["planner"]
     with pytest.raises(ValueError, match=r"goal.setpoint: goal field 'x' = 7 is outside its bounds"):
         MPCConfig.from_params({"system": "diff_drive", "goal.setpoint": [7.0, 0.0, 0.0, 0.0, 0.0]})
+
+
+# ------------------------------------------------------------------------------------------ CasADi export
+def test_casadi_export_equals_the_model_and_solves_an_ocp(tmp_path: Path) -> None:
+    """``./dev export`` writes model.casadi + theta.npy; loaded back, it predicts what the model predicts, and an
+    OCP built once on it takes another checkpoint's weights as new parameter values (no rebuild)."""
+    import json
+
+    import casadi as ca
+
+    from saml_ros.core.export import export_model
+
+    s = build(example())
+    model = fitted_model(s, members=2, scale=0.05).float()  # the learner's dtype
+    res = export_model(model, tmp_path / "out", ["casadi"], member=1)
+    meta = json.loads((tmp_path / "out" / "model.json").read_text())
+    assert meta["casadi_base_exported"] and res.max_abs_error["casadi"] < 1e-5
+    assert meta["casadi"]["theta_size"] == np.load(tmp_path / "out" / "theta.npy").size
+    theta = np.load(tmp_path / "out" / "theta.npy")
+    # a small OCP for IPOPT (the kinks of the network rounded by 1e-3: it does not converge on the exact ones):
+    # drive from the origin to (0.08, 0) in 15 steps, the exported model as the dynamics
+    smooth = ca.Function.load(str(tmp_path / "out" / "model_smooth.casadi"))
+    opti = ca.Opti()
+    T, x0 = 15, np.zeros(5)
+    xs, us, th = opti.variable(5, T + 1), opti.variable(2, T), opti.parameter(theta.size)
+    opti.subject_to(xs[:, 0] == x0)
+    for t in range(T):
+        opti.subject_to(xs[:, t + 1] == smooth(xs[:, t], us[:, t], th, 1e-3)[0])
+        opti.subject_to(opti.bounded(-0.5, us[0, t], 0.5))
+        opti.subject_to(opti.bounded(-1.5, us[1, t], 1.5))
+    opti.minimize(100 * ca.sumsqr(xs[:2, T] - np.array([0.08, 0.0])) + 1e-2 * ca.sumsqr(us))
+    opti.solver("ipopt", {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "expand": True})
+    opti.set_value(th, theta)
+    sol = opti.solve()
+    plan_u, plan_x = np.asarray(sol.value(us)).T, np.asarray(sol.value(xs)).T
+    assert np.hypot(plan_x[-1, 0] - 0.08, plan_x[-1, 1]) < 0.01
+    # the plan's states are the model's own predictions (float32 model; the rounding moves them by < 1e-4)
+    xt = x0
+    for u in plan_u:
+        with torch.no_grad():
+            xt = model(torch.tensor(xt[None], dtype=torch.float32), torch.tensor(u[None], dtype=torch.float32))[1]
+        xt = xt.double().numpy()[0]
+    np.testing.assert_allclose(xt, plan_x[-1], atol=1e-4)
+    # another member's weights: new numbers for the same OCP
+    from saml_ros.core.mpc.generic.casadi_model import mlp_theta
+
+    opti.set_value(th, mlp_theta(model, 0))
+    other = np.asarray(opti.solve().value(us)).T
+    assert np.abs(other - plan_u).max() > 1e-4
+

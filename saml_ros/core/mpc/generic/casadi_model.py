@@ -7,7 +7,10 @@ expressions (the IPOPT path of the generic planner, :mod:`.nlp`; a user's acados
 and any solver or generated code built on it, stays as it is.
 
 The PReLU is written ``0.5 (1 + a) h + 0.5 (1 - a) |h|`` (equal to ``h`` for ``h >= 0`` and ``a h`` below, for any
-slope ``a``), so the graph has no branch.
+slope ``a``), so the graph has no branch. Its kinks defeat an interior point method with exact Hessians (IPOPT:
+3000 iterations without convergence on the export test's OCP, docs/your_robot.md); with ``smooth = eps > 0`` the
+kinks are rounded, ``|h| -> sqrt(h^2 + eps^2)`` (IPOPT: 13 iterations at eps = 1e-3, the same plan to 1e-5 m). An
+SQP with a Gauss-Newton Hessian (the generic planner's, acados' SQP / RTI) takes the exact network.
 """
 
 from __future__ import annotations
@@ -55,8 +58,9 @@ def mlp_theta(model: DynamicsModel, member: int = 0) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def casadi_mlp(z: Any, theta: Any, n_in: int, hidden: Sequence[int], n_out: int) -> Any:
-    """phi as a CasADi column ``(n_out, 1)`` of the input column ``z (n_in, 1)`` and ``theta`` (SX or MX)."""
+def casadi_mlp(z: Any, theta: Any, n_in: int, hidden: Sequence[int], n_out: int, smooth: Any = 0.0) -> Any:
+    """phi as a CasADi column ``(n_out, 1)`` of the input column ``z (n_in, 1)`` and ``theta`` (SX or MX); ``smooth``
+    (a number or a symbol): the PReLU's rounding ``eps`` (0 = exact; see the module docstring)."""
     import casadi as ca
 
     k = 0
@@ -75,7 +79,8 @@ def casadi_mlp(z: Any, theta: Any, n_in: int, hidden: Sequence[int], n_out: int)
         h = ca.mtimes(w.T, h) + take(b)
         if i < len(dims) - 2:
             s = take(1)
-            h = 0.5 * (1 + s) * h + 0.5 * (1 - s) * ca.fabs(h)
+            mag = ca.fabs(h) if isinstance(smooth, int | float) and smooth == 0 else ca.sqrt(h * h + smooth * smooth)
+            h = 0.5 * (1 + s) * h + 0.5 * (1 - s) * mag
     return h * take(n_out)
 
 
@@ -89,7 +94,8 @@ def wrap_casadi(x: Any, angles: Sequence[int]) -> Any:
     return ca.vertcat(*parts)
 
 
-def casadi_dynamics(system: Any, kind: str | None, hidden: Sequence[int], *, symbolic: str = "SX") -> Any:
+def casadi_dynamics(system: Any, kind: str | None, hidden: Sequence[int], *, symbolic: str = "SX",
+                    wrap: bool = True, smooth: float = 0.0) -> Any:
     """``F(x (n,), u (m,), theta, bound (n,)) -> y (n,)``: the model ``kind`` (``residual``: f_hat + phi, ``full``:
     phi, None: f_hat alone; theta and bound unused then) of ``system`` as a CasADi Function, with phi clipped to
     ``+-bound`` (pass ``inf`` for none) and the angle fields handled as the planner does (the model sees them
@@ -104,7 +110,7 @@ def casadi_dynamics(system: Any, kind: str | None, hidden: Sequence[int], *, sym
     x, u, b = sym.sym("x", n), sym.sym("u", m), sym.sym("bound", n)
     n_theta = theta_size(n + m, hidden, n) if kind is not None else 0
     theta = sym.sym("theta", n_theta)
-    angles = [int(i) for i in getattr(system, "angle_indices", ())]
+    angles = [int(i) for i in getattr(system, "angle_indices", ())] if wrap else []
     xw = wrap_casadi(x, angles)
     y: Any = 0
     if kind != "full":
@@ -115,7 +121,42 @@ def casadi_dynamics(system: Any, kind: str | None, hidden: Sequence[int], *, sym
                              "docs/your_robot.md)")
         y = base.function(xw, u)
     if kind is not None:
-        phi = casadi_mlp(ca.vertcat(xw, u), theta, n + m, hidden, n)
+        phi = casadi_mlp(ca.vertcat(xw, u), theta, n + m, hidden, n, smooth)
         y = y + ca.fmin(ca.fmax(phi, -b), b)
     y = y + (x - xw)
     return ca.Function("model", [x, u, theta, b], [y], ["x", "u", "theta", "bound"], ["y"])
+
+
+def export_function(model: DynamicsModel, member: int = 0, *, smooth: bool = False) -> tuple[Any, np.ndarray, bool, str]:
+    """The CasADi export of ``model`` (member ``member``): ``(F, theta, base_exported, why_not)`` with
+    ``F(x (n,), u (m,), theta) -> (y, residual)`` (``y`` = f_hat + phi, or phi alone when f_hat has no symbolic
+    form: ``base_exported`` False and ``why_not`` says why; a ``full`` model's ``y`` is phi), exactly the model's
+    prediction for the inputs as given (no angle wrapping). With ``smooth``, ``F`` takes a fourth input ``eps``, the
+    PReLU's rounding (module docstring; ``eps = 0`` is the exact network)."""
+    import casadi as ca
+
+    from saml_ros.core.mpc.generic.dynamics import SymbolicBase, make_base
+
+    system = model.system
+    n, m = system.state.size, system.control.size
+    hidden = tuple(model.hidden)
+    x, u = ca.SX.sym("x", n), ca.SX.sym("u", m)
+    theta = ca.SX.sym("theta", theta_size(n + m, hidden, n))
+    eps = ca.SX.sym("eps")
+    phi = casadi_mlp(ca.vertcat(x, u), theta, n + m, hidden, n, eps if smooth else 0.0)
+    y, base_ok, why = phi, model.kind == "full", ""
+    if model.kind == "residual":
+        try:
+            base = make_base(system)
+        except Exception as exc:  # noqa: BLE001 - a system without a system file's base model
+            base, why = None, f"{type(exc).__name__}: {exc}"
+        if isinstance(base, SymbolicBase):
+            y, base_ok = base.function(x, u) + phi, True
+        elif not why:
+            why = (f"f_hat ({getattr(base, 'label', system.name)}) has no CasADi form: only the array-namespace forms "
+                   "of a system file's base models have one (saml_ros.core.systems.base_forms)")
+    if smooth:
+        fn = ca.Function("model_smooth", [x, u, theta, eps], [y, phi], ["x", "u", "theta", "eps"], ["y", "residual"])
+    else:
+        fn = ca.Function("model", [x, u, theta], [y, phi], ["x", "u", "theta"], ["y", "residual"])
+    return fn, mlp_theta(model, member), base_ok, why

@@ -33,13 +33,16 @@ from saml_ros.core.systems.mpc_section import MPCTask
 
 class CasadiNLP:
     """See the module docstring; the arguments are :class:`~saml_ros.core.mpc.generic.sqp.GenericSQP`'s, with
-    ``max_iter`` (IPOPT iterations, 200), ``tol`` (IPOPT's ``tol``, 1e-8), ``max_time`` (IPOPT's ``max_cpu_time``) and
-    ``linear_solver`` (IPOPT's, default ``mumps``)."""
+    ``max_iter`` (IPOPT iterations, 200), ``tol`` (IPOPT's ``tol``, 1e-8), ``max_time`` (IPOPT's ``max_cpu_time``),
+    ``linear_solver`` (IPOPT's, default ``mumps``) and ``smoothing`` (the rounding of the network's PReLU kinks in the
+    NLP, default 1e-3, :mod:`~saml_ros.core.mpc.generic.casadi_model`: IPOPT does not converge on the exact kinks;
+    the returned plan is rolled out with the exact network)."""
 
     def __init__(self, system: System, model: DynamicsModel | None = None, horizon: int | None = None,
                  member: int = 0, *, task: MPCTask | None = None, max_iter: int | None = None,
                  tol: float | None = None, max_time: float | None = None, feas_tol: float | None = None,
-                 linear_solver: str | None = None, base: Any = None, true: Any = None) -> None:
+                 linear_solver: str | None = None, smoothing: float | None = None, base: Any = None,
+                 true: Any = None) -> None:
         self.system = system
         self.task = task if task is not None else system_task(system)
         self.problem = GenericProblem(self.task, system.state.size, system.control.size, horizon)
@@ -47,7 +50,8 @@ class CasadiNLP:
         self.member = int(member)
         self.n, self.m = system.state.size, system.control.size
         opt = _options(self.task, max_iter=max_iter, tol=tol, max_time=max_time, feas_tol=feas_tol,
-                       linear_solver=linear_solver)
+                       linear_solver=linear_solver, smoothing=smoothing)
+        self.smoothing = float(opt.get("smoothing", 1e-3))
         self.max_iter, self.tol = int(opt.get("max_iter", 200)), float(opt.get("tol", 1e-8))
         self.max_time = None if opt.get("max_time") is None else float(opt["max_time"])
         self.feas_tol = float(opt.get("feas_tol", 1e-3))
@@ -100,8 +104,9 @@ class CasadiNLP:
         self._u_last = self._plan_u[0].copy()
 
     def describe(self) -> str:
-        return (f"generic CasADi NLP (IPOPT, exact Hessian, linear solver {self.linear_solver}), T={self.horizon}; "
-                f"model as CasADi expressions with the network's weights a parameter vector; {self.dyn.describe()}")
+        return (f"generic CasADi NLP (IPOPT, exact Hessian, linear solver {self.linear_solver}, PReLU kinks rounded "
+                f"by {self.smoothing:g}), T={self.horizon}; model as CasADi expressions with the network's weights a "
+                f"parameter vector; {self.dyn.describe()}")
 
     # ------------------------------------------------------------------------------------------ the NLP
     def _solver(self) -> Any:
@@ -113,7 +118,7 @@ class CasadiNLP:
         import casadi as ca
 
         pb, T, n, m, k = self.problem, self.horizon, self.n, self.m, self.problem.k
-        f = casadi_dynamics(self.system, key[0], key[1])
+        f = casadi_dynamics(self.system, key[0], key[1], smooth=self.smoothing)
         n_theta = f.size1_in(2)
         R = pb.rows_per_step
         u, x, s = ca.SX.sym("u", m, T), ca.SX.sym("x", n, T), ca.SX.sym("s", R, T)
