@@ -273,3 +273,25 @@ def test_checkpoints_of_a_robot_with_its_own_base_model_are_taken_and_swapped(
     save(2)
     wait_for(lambda: diagnostics_of(diag, "dd/mpc").get("model_version") == "2", timeout=60, what="the hot swap")
     assert mpc.stop() == 0
+
+
+def test_launch_file_takes_a_system_file() -> None:
+    """``ros2 launch saml_ros mpc.launch.xml system_file:=... namespace:=/dd``: one MPC with the file (no system,
+    parameter file, mode or rate: the file's), every parameter one the node declares; without it, as before."""
+    from launch_parse import evaluate
+
+    from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.user_code import load_system_file
+
+    load_system_file(SYSTEM_FILE)
+    result = evaluate(REPO / "launch" / "mpc.launch.xml", {"system_file": str(SYSTEM_FILE), "namespace": NS,
+                                                            "run_dir": "runs/dd"})
+    (mpc,) = [n for n in result.nodes if n.executable == "mpc"]
+    (manager,) = [n for n in result.nodes if n.executable == "lifecycle_manager"]
+    assert mpc.fqn == "/dd/mpc" and manager.namespace == NS and not [s for s in mpc.params if s.path is not None]
+    assert mpc.parameters() == {"system_file": str(SYSTEM_FILE), "run_dir": "runs/dd/checkpoints",
+                                "use_sim_time": False, "autostart": False}
+    assert set(mpc.parameters()) - {"use_sim_time"} <= {p.name for p in MPCConfig.params("diff_drive")} | {"autostart"}
+    (plain,) = [n for n in evaluate(REPO / "launch" / "mpc.launch.xml", {"system": "quadrotor"}).nodes
+                if n.executable == "mpc"]
+    assert plain.parameters()["system"] == "quadrotor" and "system_file" not in plain.parameters()
