@@ -14,9 +14,9 @@ ensemble of 32-32 residual networks trained here on transitions of the robot's o
    residual, live monitor with roll back; each step's time includes the guard's checks and the monitor's scoring),
    the same ensemble unguarded, and f_hat alone: mean / p95 CPU time per step, the rate by CPU time (the target:
    100 Hz or more with the guard on), the guard's counters, and the final distance to the dock;
-3. **identical problems**: states the guarded planner visited, each solved from the same warm start (the plan
-   from that state, shifted one step) by the SQP with f_hat's CasADi form, the SQP with torch autograd for f_hat,
-   and the IPOPT path (the whole NLP in CasADi): CPU time per solve and the plans' mean cost ratio.
+3. **identical problems**: states the unguarded ensemble planner visited, each solved from the warm start it had
+   there (the previous plan) by the SQP with f_hat's CasADi form, the SQP with torch autograd for f_hat, and the
+   IPOPT path (the whole NLP in CasADi): CPU time per solve and the plans' mean cost ratio.
 
 CPU time (``time.process_time``) is reported beside wall time: on a shared machine wall time also counts the other
 processes' turns. The load average is printed.
@@ -85,7 +85,18 @@ def train(system: Any, n: int, epochs: int, seed: int = 0) -> tuple[Any, float, 
     t0 = time.perf_counter()
     trainer.fit(Transitions(model, spec, x, u, y))
     bound = 1.5 * np.abs(y - system.base_step_np(x, u)).max(0)
-    return model.double(), time.perf_counter() - t0, bound
+    secs = time.perf_counter() - t0
+    model = model.double()
+    xh, uh, yh = transitions(5000, seed + 1000)  # held out: other starts and commands
+    dock = (xh[:, 0] >= 0.7) & (xh[:, 0] <= 1.9) & (np.abs(xh[:, 1]) <= 0.5)
+    with torch.no_grad():
+        pred = model(torch.from_numpy(xh), torch.from_numpy(uh)).numpy()  # (E, N, n)
+    e_base = np.linalg.norm(system.base_step_np(xh, uh) - yh, axis=1)
+    e_model = np.linalg.norm(pred - yh[None], axis=2)
+    print(f"held-out one-step error (l2, {len(xh)} transitions, {int(dock.sum())} in the dock approach): f_hat "
+          f"{e_base[dock].mean():.4f} in the dock approach / {e_base[~dock].mean():.4f} elsewhere; learned (mean over "
+          f"members) {e_model[:, dock].mean():.4f} / {e_model[:, ~dock].mean():.4f}")
+    return model, secs, bound
 
 
 def cpu_per_call(fn: Any, reps: int) -> float:
@@ -150,11 +161,15 @@ def starts(k: int, seed: int) -> list[np.ndarray]:
     return out
 
 
-def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int) -> list[np.ndarray]:
-    """Part 2; returns the states the guarded planner visited (part 3 re-solves them)."""
+Visit = tuple[np.ndarray, np.ndarray, np.ndarray]  # a state and the previous plan (plan_u, plan_x) it warm-starts from
+
+
+def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int) -> list[Visit]:
+    """Part 2; returns the states the unguarded ensemble planner visited with the plan each solve warm-started from
+    (part 3 re-solves them)."""
+    from saml_ros.core.model_monitor import MonitorConfig
     from saml_ros.core.mpc.generic import GenericSQP
     from saml_ros.core.mpc.guard import RESIDUAL_BOUND_KEY, GuardConfig, make_guarded_controller
-    from saml_ros.core.model_monitor import MonitorConfig
 
     dyn = _robot()
     guarded = make_guarded_controller(system, "fast", GuardConfig(max_disagreement=0.02, bound_residual=True,
@@ -164,7 +179,7 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
     plain, base = GenericSQP(system, model), GenericSQP(system)
     runs: dict[str, dict[str, list[float]]] = {n: {"cpu": [], "wall": [], "err": []}
                                               for n in ("guarded", "ensemble, unguarded", "f_hat alone")}
-    visited: list[np.ndarray] = []
+    visited: list[Visit] = []
     for x0 in starts(k, 7):
         for name, ctrl in (("guarded", guarded), ("ensemble, unguarded", plain), ("f_hat alone", base)):
             ctrl.reset()
@@ -172,14 +187,15 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
             prev: tuple[np.ndarray, np.ndarray] | None = None
             for _ in range(steps):
                 x = robot.state()
+                warm = ctrl.warm_start_plan() if ctrl is plain else None
                 t0, c0 = time.perf_counter(), time.process_time()
                 if name == "guarded" and prev is not None:
                     ctrl.observe(prev[0], prev[1], x)
                 res = ctrl.solve(x)
                 runs[name]["cpu"].append(time.process_time() - c0)
                 runs[name]["wall"].append(time.perf_counter() - t0)
-                if name == "guarded":
-                    visited.append(x)
+                if warm is not None:
+                    visited.append((x, *warm))
                 prev = (x, res.u)
                 robot.step(res.u, system.dt)
             s = robot.state()
@@ -198,7 +214,7 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
     return visited
 
 
-def identical(system: Any, model: Any, visited: list[np.ndarray], n: int) -> None:
+def identical(system: Any, model: Any, visited: list[Visit], n: int) -> None:
     from saml_ros.core.mpc.generic import GenericSQP
     from saml_ros.core.mpc.generic.dynamics import GenericDynamics, TorchBase
     from saml_ros.core.mpc.generic.nlp import CasadiNLP
@@ -210,20 +226,17 @@ def identical(system: Any, model: Any, visited: list[np.ndarray], n: int) -> Non
     picks = [visited[i] for i in rng.choice(len(visited), size=min(n, len(visited)), replace=False)]
     rows: dict[str, tuple[list[float], list[float]]] = {k: ([], []) for k in ("SQP, CasADi f_hat", "SQP, torch f_hat",
                                                                                "IPOPT (CasADi NLP)")}
-    for x in picks:
-        casadi_sqp.reset()
-        warm = casadi_sqp.solve(x)  # the warm start all three get: the plan from this state
+    for x, warm_u, warm_x in picks:
         for name, ctrl in (("SQP, CasADi f_hat", casadi_sqp), ("SQP, torch f_hat", torch_sqp),
                            ("IPOPT (CasADi NLP)", ipopt)):
             ctrl.reset()
-            ctrl.set_warm_start(np.vstack([warm.plan_u[1:], warm.plan_u[-1:]]), np.vstack([warm.plan_x[1:],
-                                                                                            warm.plan_x[-1:]]))
+            ctrl.set_warm_start(warm_u, warm_x)  # the previous plan, as in the closed loop
             c0 = time.process_time()
             res = ctrl.solve(x)
             rows[name][0].append(time.process_time() - c0)
             rows[name][1].append(res.cost)
     ref = np.array(rows["SQP, CasADi f_hat"][1])
-    print(f"\n3. identical problems: {len(picks)} states of part 2, each from the same warm start, one core")
+    print(f"\n3. identical problems: {len(picks)} states of part 2, each from the warm start it had there, one core")
     print(f"  {'path':22s} {'cpu ms':>8s} {'Hz (cpu)':>9s} {'cost / SQP-CasADi':>18s}")
     for name, (cpu, cost) in rows.items():
         print(f"  {name:22s} {1e3 * np.mean(cpu):8.2f} {1 / np.mean(cpu):9.0f} {np.mean(np.array(cost) / ref):18.4f}")
@@ -239,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     t_all = time.perf_counter()
     print(f"load average {os.getloadavg()[0]:.1f} (2 cores)")
     system = load_system_file(EXAMPLE / "system.yaml")
-    model, secs, bound = train(system, 8000 if args.quick else 30000, 5 if args.quick else 30)
+    model, secs, bound = train(system, 8000 if args.quick else 30000, 5 if args.quick else 100)
     print(f"trained a 5-member 32-32 residual ensemble for {secs:.0f} s")
     derivatives(system, model, args.quick)
     visited = closed_loops(system, model, bound, 2 if args.quick else 6, 100 if args.quick else 250)
