@@ -46,7 +46,7 @@ EXAMPLE = REPO / "examples" / "diff_drive"
 def _robot() -> Any:
     sys.path.insert(0, str(EXAMPLE))
     try:
-        import dynamics
+        import dynamics  # type: ignore[import-not-found]
     finally:
         sys.path.remove(str(EXAMPLE))
     return dynamics
@@ -56,7 +56,9 @@ def transitions(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` transitions of the robot's simulator at dt = 0.02 s: random starts, commands held 0.1-1 s."""
     dyn = _robot()
     rng = np.random.default_rng(seed)
-    xs, us, ys = [], [], []
+    xs: list[np.ndarray] = []
+    us: list[np.ndarray] = []
+    ys: list[np.ndarray] = []
     while len(xs) < n:
         r = dyn.DiffDrive(rng.uniform(-2.0, 2.0), rng.uniform(-2.0, 2.0), rng.uniform(-math.pi, math.pi))
         for _ in range(int(rng.integers(5, 50))):
@@ -66,7 +68,9 @@ def transitions(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 r.step(u, 0.02)
                 y = r.state()
                 y[2] = x[2] + (y[2] - x[2] + math.pi) % (2 * math.pi) - math.pi  # the target unwrapped (learner)
-                xs.append(x), us.append(u), ys.append(y)
+                xs.append(x)
+                us.append(u)
+                ys.append(y)
     return np.array(xs[:n]), np.array(us[:n]), np.array(ys[:n])
 
 
@@ -181,6 +185,7 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
                                               for n in ("guarded", "ensemble, unguarded", "f_hat alone")}
     visited: list[Visit] = []
     for x0 in starts(k, 7):
+        ctrl: Any
         for name, ctrl in (("guarded", guarded), ("ensemble, unguarded", plain), ("f_hat alone", base)):
             ctrl.reset()
             robot = dyn.DiffDrive(*x0[:3])
@@ -189,8 +194,8 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
                 x = robot.state()
                 warm = ctrl.warm_start_plan() if ctrl is plain else None
                 t0, c0 = time.perf_counter(), time.process_time()
-                if name == "guarded" and prev is not None:
-                    ctrl.observe(prev[0], prev[1], x)
+                if ctrl is guarded and prev is not None:
+                    guarded.observe(prev[0], prev[1], x)
                 res = ctrl.solve(x)
                 runs[name]["cpu"].append(time.process_time() - c0)
                 runs[name]["wall"].append(time.perf_counter() - t0)
