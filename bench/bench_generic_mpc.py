@@ -53,15 +53,20 @@ def _robot() -> Any:
 
 
 def transitions(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` transitions of the robot's simulator at dt = 0.02 s: random starts, commands held 0.1-1 s."""
+    """``n`` transitions of the robot's simulator at dt = 0.02 s: random starts (half of them in the dock approach,
+    x in [0.7, 1.9], |y| <= 0.5), 2-10 commands held 0.1-1 s each."""
     dyn = _robot()
     rng = np.random.default_rng(seed)
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
     ys: list[np.ndarray] = []
     while len(xs) < n:
-        r = dyn.DiffDrive(rng.uniform(-2.0, 2.0), rng.uniform(-2.0, 2.0), rng.uniform(-math.pi, math.pi))
-        for _ in range(int(rng.integers(5, 50))):
+        if rng.random() < 0.5:
+            start = (rng.uniform(0.7, 1.9), rng.uniform(-0.5, 0.5))
+        else:
+            start = (rng.uniform(-2.0, 2.0), rng.uniform(-2.0, 2.0))
+        r = dyn.DiffDrive(*start, rng.uniform(-math.pi, math.pi))
+        for _ in range(int(rng.integers(2, 10))):
             u = rng.uniform([-0.5, -1.5], [0.5, 1.5])
             for _ in range(int(rng.integers(5, 50))):
                 x = r.state()
