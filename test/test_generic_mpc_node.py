@@ -295,3 +295,24 @@ def test_launch_file_takes_a_system_file() -> None:
     (plain,) = [n for n in evaluate(REPO / "launch" / "mpc.launch.xml", {"system": "quadrotor"}).nodes
                 if n.executable == "mpc"]
     assert plain.parameters()["system"] == "quadrotor" and "system_file" not in plain.parameters()
+
+
+def test_bringup_takes_a_system_file(tmp_path: Path) -> None:
+    """``bringup --system-file FILE --robot CMD``: the learner and the MPC get the file (never ``system`` beside it),
+    realtime (no simulated time); wrong combinations of options exit 2."""
+    from saml_ros.bringup.cli import main
+    from saml_ros.bringup.config import apply_sets, node_params, robot_config
+
+    config = apply_sets(robot_config(SYSTEM_FILE, ["python examples/diff_drive/robot.py"]), ["mpc.guard.rollback=true"])
+    params = node_params(config, tmp_path)
+    for node in ("learner", "mpc"):
+        assert params[node]["system_file"] == str(SYSTEM_FILE) and "system" not in params[node]
+        assert params[node]["run_dir"] == str(tmp_path / "checkpoints") and "use_sim_time" not in params[node]
+    assert params["mpc"]["guard.rollback"] is True and config["robot"] == ["python examples/diff_drive/robot.py"]
+    assert main(["--system-file", str(SYSTEM_FILE), "--system", "quadrotor"]) == 2
+    assert main(["--robot", "python robot.py"]) == 2
+    bad = tmp_path / "bad.yaml"
+    raw = yaml.safe_load(SYSTEM_FILE.read_text())
+    raw["mpc"]["horizon"] = 0
+    bad.write_text(yaml.safe_dump(raw))
+    assert main(["--system-file", str(bad)]) == 2

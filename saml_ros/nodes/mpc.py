@@ -153,10 +153,14 @@ class MPCNode(ManagedNode):
                                    f"{self.resolve_topic_name(self.schema.cmd_topic)}")
 
     def activate_node(self) -> None:
+        qos = self._qos(self.schema.state_topic)
+        if self.service is not None and self.service.config.system_file:
+            # a robot does not wait for answers: a planner slower than the state stream answers the newest state,
+            # never a backlog of old ones (which would only get the safe command as stale)
+            qos.depth = 1
         # raw: the CDR bytes are read without a message object (msg_schemas.cdr; malformed ones as before)
         self.state_sub = self.create_subscription(RCLPY.cls(self.schema.state.msg_type), self.schema.state_topic,
-                                                  self._on_state, self._qos(self.schema.state_topic),
-                                                  raw=not self._unstamped_state)
+                                                  self._on_state, qos, raw=not self._unstamped_state)
 
     def deactivate_node(self) -> None:
         if self.state_sub is not None:
