@@ -12,7 +12,8 @@ Per iteration, from the controls ``U (T, m)`` and their predicted states:
 5. a backtracking line search on the exact l1 merit ``cost + penalty * sum max(c, 0)``; the Levenberg-Marquardt
    weight follows the ratio of actual to predicted decrease (kept between solves).
 
-It stops when the QP predicts a merit decrease below ``tol * (1 + merit)``, at ``max_iter`` or ``max_time``. Each
+It stops when the QP predicts a merit decrease below ``tol * (1 + merit)`` (with a heavily damped step, only after
+the same check with the initial weight), at ``max_iter`` or ``max_time``. Each
 solve warm-starts from the previous plan (shifted one step when the state moved on), else from the last command
 held. A hot swap of the network (:meth:`GenericSQP.set_model`) copies its weights into the prediction model;
 nothing is rebuilt or recompiled.
@@ -216,6 +217,7 @@ class GenericSQP:
         hu = ju.T @ ju
         eye = np.eye(T * m)
         msg, converged, it = "max_iter", False, 0
+        undamped = False
         for it in range(1, self.max_iter + 1):  # noqa: B007
             _, a_mat, b_mat = dyn.step_jac(xs[:-1], us)
             sens = _condense(a_mat, b_mat)  # (T, n, T m): d x_{t+1} / d U
@@ -243,6 +245,11 @@ class GenericSQP:
                 msg = "QP failed"
                 break
             if pred <= self.tol * (1.0 + abs(merit)):
+                if self._rho > 10.0 * self.rho0 and not undamped:
+                    # a heavily damped step predicts little even far from a minimum (the network's kinks make
+                    # the Levenberg-Marquardt weight grow): check once with the initial weight before stopping
+                    self._rho, undamped = self.rho0, True
+                    continue
                 msg, converged = "converged", True
                 break
             d = qp.d.reshape(T, m)
