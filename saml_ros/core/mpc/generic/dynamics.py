@@ -230,6 +230,16 @@ class GenericDynamics:
             xl = y
         return xs
 
+    def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """Predicted states ``(K, T+1, n)`` of ``K`` control sequences ``us (K, T, m)`` from ``x0 (n,)``: one batched
+        step per time step (as cheap for a few sequences as for one)."""
+        k, horizon = us.shape[0], us.shape[1]
+        xs = np.empty((k, horizon + 1, x0.shape[0]))
+        xs[:, 0] = x0
+        for t in range(horizon):
+            xs[:, t + 1] = self.step(xs[:, t], us[:, t])
+        return xs
+
     def clipped(self, xs: np.ndarray, us: np.ndarray) -> bool:
         """Whether the residual bound clips phi anywhere along states ``xs (T, n)`` and controls ``us (T, m)``."""
         if self.bound is None or self.mlp is None:

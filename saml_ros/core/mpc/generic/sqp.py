@@ -9,7 +9,8 @@ Per iteration, from the controls ``U (T, m)`` and their predicted states:
    plus a Levenberg-Marquardt term, and the linearised state constraints;
 4. one QP in the step (box on the controls, the state rows in elastic mode: always feasible), solved by DAQP
    (:func:`saml_ros.core.mpc.shooting.qp.solve_qp`, the same QP code as the built-in systems' fast solver);
-5. a backtracking line search on the exact l1 merit ``cost + penalty * sum max(c, 0)``; the Levenberg-Marquardt
+5. a backtracking line search on the exact l1 merit ``cost + penalty * sum max(c, 0)`` (the full step, then all
+   shorter ones in one batched rollout); the Levenberg-Marquardt
    weight follows the ratio of actual to predicted decrease (kept between solves).
 
 It stops when the QP predicts a merit decrease below ``tol * (1 + merit)`` (with a heavily damped step, only after
@@ -253,14 +254,20 @@ class GenericSQP:
                 msg, converged = "converged", True
                 break
             d = qp.d.reshape(T, m)
-            accepted = False
-            for alpha in _ALPHAS:
-                ut = np.clip(us + alpha * d, lo, hi)
-                xt = dyn.rollout(x0, ut)
-                mt = self._merit(xt, ut, ref, u_prev)
-                if np.isfinite(mt) and mt <= merit - 1e-4 * alpha * pred:
-                    accepted = True
-                    break
+            # the full step first (usually taken); if refused, every shorter step in one batched rollout
+            ut = np.clip(us + d, lo, hi)
+            xt = dyn.rollout(x0, ut)
+            mt = self._merit(xt, ut, ref, u_prev)
+            accepted = bool(np.isfinite(mt) and mt <= merit - 1e-4 * pred)
+            if not accepted:
+                alphas = np.asarray(_ALPHAS[1:])
+                uts = np.clip(us[None] + alphas[:, None, None] * d[None], lo, hi)
+                xts = dyn.rollout_batch(x0, uts)
+                for j, alpha in enumerate(alphas):
+                    mj = self._merit(xts[j], uts[j], ref, u_prev)
+                    if np.isfinite(mj) and mj <= merit - 1e-4 * alpha * pred:
+                        ut, xt, mt, accepted = uts[j], xts[j], mj, True
+                        break
             if not accepted:
                 self._rho = min(self._rho * 10.0, 1e6)
                 if self._rho >= 1e6:
