@@ -544,3 +544,26 @@ def test_casadi_export_equals_the_model_and_solves_an_ocp(tmp_path: Path) -> Non
     other = np.asarray(opti.solve().value(us)).T
     assert np.abs(other - plan_u).max() > 1e-4
 
+
+
+# ------------------------------------------------------------------------------------------ evaluation
+def test_robot_evaluation_pairs_starts_and_reports_headroom(tmp_path: Path) -> None:
+    """The closed-loop evaluation on the example robot's own simulator: base, oracle (its true dynamics, torch) and
+    a model, on the same starts; paired statistics, the report, the figure."""
+    sys.path.insert(0, str(EXAMPLE.parent))
+    try:
+        import dynamics as dd  # type: ignore[import-not-found]
+    finally:
+        sys.path.remove(str(EXAMPLE.parent))
+    from saml_ros.experiments.robot_eval import evaluate_robot
+
+    s = build(example())
+    starts = dd.sample_starts(2, np.random.default_rng(0))
+    ev = evaluate_robot(s, dd.make_robot, {"m": fitted_model(s, scale=0.0)}, starts, 30, oracle=dd.true_step)
+    assert set(ev.errors) == {"base", "oracle", "m", "pooled"} and ev.errors["base"].shape == (2,)
+    # a model whose residual is zero plans exactly as f_hat: the same episodes
+    np.testing.assert_allclose(ev.errors["m"], ev.errors["base"], atol=1e-9)
+    assert ev.stats["m"].n == 2 and ev.stats["m"].diff == pytest.approx(0.0, abs=1e-9)
+    assert math.isfinite(ev.headroom) and "headroom (base - oracle)" in ev.report()
+    ev.figure(tmp_path / "e.png")
+    assert (tmp_path / "e.png").stat().st_size > 1000

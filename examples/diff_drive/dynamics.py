@@ -12,6 +12,7 @@ saml_ros never sees this file: it learns from the topics the robot node (``robot
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -66,3 +67,52 @@ class DiffDrive:
             else:
                 self.pose[0], self.pose[1] = nx, ny
             self.pose[2] = (yaw + w * h + math.pi) % (2.0 * math.pi) - math.pi
+
+
+# ------------------------------------------------------------------------------------------ evaluation hooks
+# (saml_ros.experiments.robot_eval: the robot's simulator, start states and, for the headroom, its true dynamics)
+def make_robot(x0: np.ndarray) -> DiffDrive:
+    """The simulator at state ``x0 = [x, y, yaw, v, w]`` (the wheels moving at the speeds ``v, w`` imply there)."""
+    r = DiffDrive(float(x0[0]), float(x0[1]), float(x0[2]))
+    kv, kw = traction(float(x0[0]), float(x0[1]))
+    r.wheel[:] = (float(x0[3]) / kv, float(x0[4]) / kw)
+    return r
+
+
+def sample_starts(n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` starts at rest, 1-2.5 m from the dock, heading anywhere, inside the arena."""
+    out = np.zeros((n, 5))
+    for i in range(n):
+        while True:
+            r, a = rng.uniform(1.0, 2.5), rng.uniform(math.pi / 2, 3 * math.pi / 2)
+            x, y = 1.5 + r * math.cos(a), r * math.sin(a)
+            if abs(x) < ARENA - 0.3 and abs(y) < ARENA - 0.3:
+                break
+        out[i, :3] = x, y, rng.uniform(-math.pi, math.pi)
+    return out
+
+
+def true_step(x: Any, u: Any, *, dt: float, substeps: int = 10) -> Any:
+    """The true dynamics on the measured state, batched torch ``(B, 5), (B, 2) -> (B, 5)`` (differentiable; the
+    walls are left out): the oracle the evaluation plans with."""
+    import torch
+
+    def trac(px: Any, py: Any) -> tuple[Any, Any]:
+        wet = torch.exp(-((px - WET_CENTER[0]) ** 2 + (py - WET_CENTER[1]) ** 2) / (2.0 * WET_RADIUS**2))
+        return DRY_TRACTION * (1.0 - WET_LOSS_V * wet), DRY_TRACTION * (1.0 - WET_LOSS_W * wet)
+
+    px, py, yaw = x[:, 0], x[:, 1], x[:, 2]
+    kv, kw = trac(px, py)
+    wv, ww = x[:, 3] / kv, x[:, 4] / kw
+    uv = torch.clamp(u[:, 0], -V_MAX, V_MAX)
+    uw = torch.clamp(u[:, 1], -W_MAX, W_MAX)
+    h = dt / substeps
+    a = 1.0 - math.exp(-h / TAU)
+    for _ in range(substeps):
+        wv = wv + a * (uv - wv)
+        ww = ww + a * (uw - ww)
+        kv, kw = trac(px, py)
+        v, w = kv * wv, kw * ww
+        px, py, yaw = px + v * torch.cos(yaw + 0.5 * w * h) * h, py + v * torch.sin(yaw + 0.5 * w * h) * h, yaw + w * h
+    kv, kw = trac(px, py)
+    return torch.stack([px, py, yaw, kv * wv, kw * ww], dim=1)
