@@ -552,7 +552,7 @@ def test_robot_evaluation_pairs_starts_and_reports_headroom(tmp_path: Path) -> N
     a model, on the same starts; paired statistics, the report, the figure."""
     sys.path.insert(0, str(EXAMPLE.parent))
     try:
-        import dynamics as dd  # type: ignore[import-not-found]
+        import dynamics as dd
     finally:
         sys.path.remove(str(EXAMPLE.parent))
     from saml_ros.experiments.robot_eval import evaluate_robot
