@@ -92,20 +92,19 @@ def sample_starts(n: int, rng: np.random.Generator) -> np.ndarray:
     return out
 
 
-def true_step(x: Any, u: Any, *, dt: float, substeps: int = 10) -> Any:
-    """The true dynamics on the measured state, batched torch ``(B, 5), (B, 2) -> (B, 5)`` (differentiable; the
-    walls are left out): the oracle the evaluation plans with."""
-    import torch
+def true_step(x: Any, u: Any, *, dt: float, xp: Any, substeps: int = 10) -> Any:
+    """The true dynamics on the measured state, ``(B, 5), (B, 2) -> (B, 5)``, written once for any array namespace
+    ``xp`` (numpy, torch, CasADi: saml_ros.core.systems.base_forms; the walls are left out): the oracle the
+    evaluation plans with, differentiated exactly by CasADi."""
 
     def trac(px: Any, py: Any) -> tuple[Any, Any]:
-        wet = torch.exp(-((px - WET_CENTER[0]) ** 2 + (py - WET_CENTER[1]) ** 2) / (2.0 * WET_RADIUS**2))
+        wet = xp.exp(-((px - WET_CENTER[0]) ** 2 + (py - WET_CENTER[1]) ** 2) / (2.0 * WET_RADIUS**2))
         return DRY_TRACTION * (1.0 - WET_LOSS_V * wet), DRY_TRACTION * (1.0 - WET_LOSS_W * wet)
 
     px, py, yaw = x[:, 0], x[:, 1], x[:, 2]
     kv, kw = trac(px, py)
     wv, ww = x[:, 3] / kv, x[:, 4] / kw
-    uv = torch.clamp(u[:, 0], -V_MAX, V_MAX)
-    uw = torch.clamp(u[:, 1], -W_MAX, W_MAX)
+    uv, uw = xp.clip(u[:, 0], -V_MAX, V_MAX), xp.clip(u[:, 1], -W_MAX, W_MAX)
     h = dt / substeps
     a = 1.0 - math.exp(-h / TAU)
     for _ in range(substeps):
@@ -113,6 +112,6 @@ def true_step(x: Any, u: Any, *, dt: float, substeps: int = 10) -> Any:
         ww = ww + a * (uw - ww)
         kv, kw = trac(px, py)
         v, w = kv * wv, kw * ww
-        px, py, yaw = px + v * torch.cos(yaw + 0.5 * w * h) * h, py + v * torch.sin(yaw + 0.5 * w * h) * h, yaw + w * h
+        px, py, yaw = px + v * xp.cos(yaw + 0.5 * w * h) * h, py + v * xp.sin(yaw + 0.5 * w * h) * h, yaw + w * h
     kv, kw = trac(px, py)
-    return torch.stack([px, py, yaw, kv * wv, kw * ww], dim=1)
+    return xp.stack([px, py, yaw, kv * wv, kw * ww])
