@@ -12,7 +12,8 @@ ensemble of 32-32 residual networks trained here on transitions of the robot's o
    autograd; and of a rollout on floats against numpy arrays;
 2. **closed loop** on the robot's simulator from the same starts: the guarded planner (ensemble disagreement, bounded
    residual, live monitor with roll back; each step's time includes the guard's checks and the monitor's scoring),
-   the same ensemble unguarded, and f_hat alone: mean / p95 CPU time per step and SQP iterations, the rate by CPU
+   the same with the network's PReLU kinks rounded by 0.5 in the planner (option ``smoothing``), the same ensemble
+   unguarded, and f_hat alone: mean / p95 CPU time per step and SQP iterations, the rate by CPU
    time (the target: 100 Hz or more with the guard on), the guard's counters, and the distance to the dock at the
    end (15 s);
 3. **identical problems**: states the unguarded ensemble planner visited, each solved from the warm start it had
@@ -55,7 +56,7 @@ def _robot() -> Any:
 
 def transitions(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``n`` transitions of the robot's simulator at dt = 0.02 s: random starts (half of them in the dock approach,
-    x in [0.7, 1.9], |y| <= 0.5), 2-10 commands held 0.1-1 s each."""
+    x in [0.7, 1.9], |y| <= 0.5), 2-10 commands held 0.1-1 s each, a fifth of them stops."""
     dyn = _robot()
     rng = np.random.default_rng(seed)
     xs: list[np.ndarray] = []
@@ -68,7 +69,8 @@ def transitions(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             start = (rng.uniform(-2.0, 2.0), rng.uniform(-2.0, 2.0))
         r = dyn.DiffDrive(*start, rng.uniform(-math.pi, math.pi))
         for _ in range(int(rng.integers(2, 10))):
-            u = rng.uniform([-0.5, -1.5], [0.5, 1.5])
+            # a fifth of the commands stop the robot: a robot's log has it standing still too (at its dock)
+            u = np.zeros(2) if rng.random() < 0.2 else rng.uniform([-0.5, -1.5], [0.5, 1.5])
             for _ in range(int(rng.integers(5, 50))):
                 x = r.state()
                 r.step(u, 0.02)
@@ -187,12 +189,18 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
                                       horizon=20)
     guarded.set_model(model, 1, {"learner": {RESIDUAL_BOUND_KEY: bound.tolist()}})
     plain, base = GenericSQP(system, model), GenericSQP(system)
+    rounded = make_guarded_controller(system, "fast", GuardConfig(max_disagreement=0.02, bound_residual=True,
+                                                                  rollback=True, monitor=MonitorConfig()),
+                                      horizon=20, smoothing=0.5)
+    rounded.set_model(model, 1, {"learner": {RESIDUAL_BOUND_KEY: bound.tolist()}})
     runs: dict[str, dict[str, list[float]]] = {n: {"cpu": [], "wall": [], "err": [], "its": []}
-                                              for n in ("guarded", "ensemble, unguarded", "f_hat alone")}
+                                              for n in ("guarded", "guarded, kinks 0.5", "ensemble, unguarded",
+                                                        "f_hat alone")}
     visited: list[Visit] = []
     for x0 in starts(k, 7):
         ctrl: Any
-        for name, ctrl in (("guarded", guarded), ("ensemble, unguarded", plain), ("f_hat alone", base)):
+        for name, ctrl in (("guarded", guarded), ("guarded, kinks 0.5", rounded), ("ensemble, unguarded", plain),
+                           ("f_hat alone", base)):
             ctrl.reset()
             robot = dyn.DiffDrive(*x0[:3])
             prev: tuple[np.ndarray, np.ndarray] | None = None
@@ -200,8 +208,8 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
                 x = robot.state()
                 warm = ctrl.warm_start_plan() if ctrl is plain else None
                 t0, c0 = time.perf_counter(), time.process_time()
-                if ctrl is guarded and prev is not None:
-                    guarded.observe(prev[0], prev[1], x)
+                if ctrl in (guarded, rounded) and prev is not None:
+                    ctrl.observe(prev[0], prev[1], x)
                 res = ctrl.solve(x)
                 runs[name]["cpu"].append(time.process_time() - c0)
                 runs[name]["wall"].append(time.perf_counter() - t0)
@@ -233,21 +241,24 @@ def identical(system: Any, model: Any, visited: list[Visit], n: int) -> None:
     from saml_ros.core.mpc.generic.nlp import CasadiNLP
 
     casadi_sqp, torch_sqp, ipopt = GenericSQP(system, model), GenericSQP(system, model), CasadiNLP(system, model)
+    rounded = GenericSQP(system, model, smoothing=0.5)
     torch_sqp._base = TorchBase(system.base_step, "torch")  # the same planner, f_hat differentiated by autograd
     torch_sqp.dyn = GenericDynamics(system, torch_sqp._base, model, 0)
     rng = np.random.default_rng(3)
     picks = [visited[i] for i in rng.choice(len(visited), size=min(n, len(visited)), replace=False)]
-    rows: dict[str, tuple[list[float], list[float]]] = {k: ([], []) for k in ("SQP, CasADi f_hat", "SQP, torch f_hat",
-                                                                               "IPOPT (CasADi NLP)")}
+    rows: dict[str, tuple[list[float], list[float]]] = {k: ([], []) for k in (
+        "SQP, CasADi f_hat", "SQP, torch f_hat", "SQP, kinks 0.5", "IPOPT (CasADi NLP)")}
     for x, warm_u, warm_x in picks:
         for name, ctrl in (("SQP, CasADi f_hat", casadi_sqp), ("SQP, torch f_hat", torch_sqp),
-                           ("IPOPT (CasADi NLP)", ipopt)):
+                           ("SQP, kinks 0.5", rounded), ("IPOPT (CasADi NLP)", ipopt)):
             ctrl.reset()
             ctrl.set_warm_start(warm_u, warm_x)  # the previous plan, as in the closed loop
             c0 = time.process_time()
             res = ctrl.solve(x)
             rows[name][0].append(time.process_time() - c0)
-            rows[name][1].append(res.cost)
+            # every plan's cost under the exact model (the rounded SQP and IPOPT plan on rounded kinks)
+            rows[name][1].append(casadi_sqp.problem.cost(casadi_sqp.dyn.rollout(x, res.plan_u), res.plan_u,
+                                                         casadi_sqp.problem.reference(x, None), warm_u[0]))
     ref = np.array(rows["SQP, CasADi f_hat"][1])
     print(f"\n3. identical problems: {len(picks)} states of part 2, each from the warm start it had there, one core")
     print(f"  {'path':22s} {'cpu ms':>8s} {'Hz (cpu)':>9s} {'cost / SQP-CasADi':>18s}")

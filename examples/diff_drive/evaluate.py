@@ -42,7 +42,8 @@ def transitions(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             start = (rng.uniform(-2.0, 2.0), rng.uniform(-2.0, 2.0))
         r = dynamics.DiffDrive(*start, rng.uniform(-math.pi, math.pi))
         for _ in range(int(rng.integers(2, 10))):
-            u = rng.uniform([-0.5, -1.5], [0.5, 1.5])
+            # a fifth of the commands stop the robot: a robot's log has it standing still too (at its dock)
+            u = np.zeros(2) if rng.random() < 0.2 else rng.uniform([-0.5, -1.5], [0.5, 1.5])
             for _ in range(int(rng.integers(5, 50))):
                 x = r.state()
                 r.step(u, 0.02)

@@ -126,6 +126,39 @@ def make_base(system: System) -> SymbolicBase | TorchBase:
     return TorchBase(system.base_step, str(label))
 
 
+class SmoothMLP:
+    """The network of a :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP` with its PReLU kinks rounded by ``eps`` (in the
+    units of the pre-activations, which the folded input normalisation makes order 1): ``act(h) = 0.5 (1 + a) h +
+    0.5 (1 - a) sqrt(h^2 + eps^2)``, which differs from PReLU by at most ``0.5 |1 - a| eps`` per unit; smooth
+    Jacobians let the Gauss-Newton SQP converge where the exact kinks make it zig-zag. Same interface."""
+
+    def __init__(self, mlp: NumpyMLP, eps: float) -> None:
+        self.mlp, self.eps2 = mlp, float(eps) ** 2
+        self.w_x, self.w_u, self.weights, self.biases, self.slopes = mlp.w_x, mlp.w_u, mlp.weights, mlp.biases, mlp.slopes
+        self._wt = [np.ascontiguousarray(w.T) for w in mlp.weights]
+        self._wxt, self._wut = np.ascontiguousarray(mlp.w_x.T), np.ascontiguousarray(mlp.w_u.T)
+
+    def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        h = np.dot(x, self.w_x) + np.dot(u, self.w_u) + self.biases[0]
+        for i in range(1, len(self.weights)):
+            a = self.slopes[i - 1]
+            h = np.dot(0.5 * (1 + a) * h + 0.5 * (1 - a) * np.sqrt(h * h + self.eps2), self.weights[i]) + self.biases[i]
+        return h
+
+    def forward_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        h = np.dot(x, self.w_x) + np.dot(u, self.w_u) + self.biases[0]
+        grads = []
+        for i in range(1, len(self.weights)):
+            a = self.slopes[i - 1]
+            r = np.sqrt(h * h + self.eps2)
+            grads.append(0.5 * (1 + a) + 0.5 * (1 - a) * h / r)
+            h = np.dot(0.5 * (1 + a) * h + 0.5 * (1 - a) * r, self.weights[i]) + self.biases[i]
+        g = self._wt[-1] * grads[-1][:, None, :]
+        for i in range(len(self.weights) - 2, 0, -1):
+            g = np.dot(g, self._wt[i]) * grads[i - 1][:, None, :]
+        return h, np.dot(g, self._wxt), np.dot(g, self._wut)
+
+
 class GenericDynamics:
     """``f_hat + phi`` (``kind`` ``"residual"``), ``phi`` alone (``"full"``) or ``f_hat`` alone (``"base"``, no model);
     see the module docstring.
@@ -136,14 +169,19 @@ class GenericDynamics:
         model: the learned model, or None.
         member: the ensemble member planned with.
         bound: per-field residual bound ``(n,)`` (phi clipped to +-bound), or None.
+        smoothing: round the network's PReLU kinks by this (:class:`SmoothMLP`; 0 = the exact network).
     """
 
     def __init__(self, system: System, base: SymbolicBase | TorchBase, model: DynamicsModel | None = None,
-                 member: int = 0, bound: np.ndarray | None = None) -> None:
+                 member: int = 0, bound: np.ndarray | None = None, smoothing: float = 0.0) -> None:
         self.system = system
         self.base = base
         self.kind = "base" if model is None else model.kind
-        self.mlp = None if model is None else NumpyMLP(model, member)
+        mlp: Any = None if model is None else NumpyMLP(model, member)
+        if mlp is not None and smoothing > 0:
+            mlp = SmoothMLP(mlp, smoothing)
+        self.mlp = mlp
+        self.smoothing = float(smoothing) if mlp is not None else 0.0
         self.bound = None if bound is None or self.mlp is None else np.asarray(bound, dtype=np.float64)
         self.angles = np.asarray(getattr(system, "angle_indices", ()), dtype=int)
 
@@ -252,4 +290,6 @@ class GenericDynamics:
         phi = {"base": "no phi (f_hat alone)", "residual": "phi: numpy PReLU network (exact Jacobians)",
                "full": "phi alone (full model), numpy PReLU network"}[self.kind]
         bound = ", phi clipped to the residual bound" if self.bound is not None else ""
+        if self.smoothing > 0:
+            bound += f", its PReLU kinks rounded by {self.smoothing:g}"
         return f"f_hat {self.base.label} ({self.base.derivatives} derivatives); {phi}{bound}"

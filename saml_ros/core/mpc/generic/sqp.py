@@ -77,7 +77,7 @@ class GenericSQP:
                  member: int = 0, *, task: MPCTask | None = None, max_iter: int | None = None,
                  tol: float | None = None, max_time: float | None = None, rho0: float | None = None,
                  lm_floor: float | None = None, feas_tol: float | None = None, qp_backend: str | None = None,
-                 base: Any = None, true: Any = None) -> None:
+                 smoothing: float | None = None, base: Any = None, true: Any = None) -> None:
         self.system = system
         self.task = task if task is not None else system_task(system)
         self.problem = GenericProblem(self.task, system.state.size, system.control.size, horizon)
@@ -85,7 +85,8 @@ class GenericSQP:
         self.member = int(member)
         self.n, self.m = system.state.size, system.control.size
         opt = _options(self.task, max_iter=max_iter, tol=tol, max_time=max_time, rho0=rho0, lm_floor=lm_floor,
-                       feas_tol=feas_tol, qp_backend=qp_backend)
+                       feas_tol=feas_tol, qp_backend=qp_backend, smoothing=smoothing)
+        self.smoothing = float(opt.get("smoothing", 0.0))
         self.max_iter, self.tol = int(opt.get("max_iter", 15)), float(opt.get("tol", 1e-4))
         self.max_time = None if opt.get("max_time") is None else float(opt["max_time"])
         self.rho0, self.lm_floor = float(opt.get("rho0", 1e-4)), float(opt.get("lm_floor", 1e-6))
@@ -116,12 +117,12 @@ class GenericSQP:
             self._base, self._base_params = make_base(model.system), _base_params(model.system)
         self.model = model
         self._bound = None
-        self.dyn = GenericDynamics(self.system, self._base, model, self.member)
+        self.dyn = GenericDynamics(self.system, self._base, model, self.member, smoothing=self.smoothing)
 
     def set_residual_bound(self, bound: np.ndarray | None) -> None:
         """Clip phi to ``+-bound`` ``(n,)`` per field (the guard's ``bound_residual``); None = unclipped."""
         self._bound = None if bound is None else np.asarray(bound, dtype=np.float64)
-        self.dyn = GenericDynamics(self.system, self._base, self.model, self.member, self._bound)
+        self.dyn = GenericDynamics(self.system, self._base, self.model, self.member, self._bound, self.smoothing)
 
     def phi_clipped(self, res: MPCResult) -> bool:
         """Whether the residual bound clipped phi anywhere on plan ``res``."""
