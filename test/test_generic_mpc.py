@@ -289,6 +289,22 @@ def test_derivatives_are_exact(user_module: str, fn: str | None, kind: type) -> 
         np.testing.assert_allclose(dyn.rollout(x[0], u), _steps(dyn, x[0], u), rtol=1e-12, atol=1e-12)
 
 
+def test_rounded_kinks_have_exact_derivatives_and_stay_close() -> None:
+    s = build(example())
+    model = fitted_model(s, members=2)
+    exact = GenericDynamics(s, make_base(s), model, member=1)
+    smooth = GenericDynamics(s, make_base(s), model, member=1, smoothing=0.5)
+    x, u = s.sample_inputs(6, np.random.default_rng(9))
+    _, a, b = smooth.step_jac(x, u)
+    for i in range(len(x)):
+        fa, fb = _fd_jac(smooth.step, x[i:i + 1], u[i:i + 1])
+        np.testing.assert_allclose(a[i], fa, atol=2e-6)
+        np.testing.assert_allclose(b[i], fb, atol=2e-6)
+    np.testing.assert_allclose(smooth.rollout(x[0], u), _steps(smooth, x[0], u), rtol=1e-12, atol=1e-12)
+    gap = np.abs(smooth.step(x, u) - exact.step(x, u)).max()
+    assert 0 < gap < 0.05 and "kinks rounded by 0.5" in smooth.describe()
+
+
 def _steps(dyn: GenericDynamics, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
     xs = [x0]
     for u in us:
