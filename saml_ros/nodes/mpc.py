@@ -1,7 +1,9 @@
 """The MPC node (``ros2 run saml_ros mpc``): answers every ``state`` with a ``cmd`` from the newest model.
 
-Subscribes ``state`` (DATA_QOS) and ``learner/checkpoint`` (CHECKPOINT_QOS, transient local); publishes
-``cmd`` (stamped with the state it answers), ``mpc/status`` (one message per solve) and ``/diagnostics``.
+Subscribes ``state`` (DATA_QOS) and ``learner/checkpoint`` (CHECKPOINT_QOS, transient local), and the paddle
+ball's ``post_impact`` while the live monitor's roll back is on (``guard.rollback``, the default); publishes
+``cmd`` (stamped with the state it answers), ``mpc/status`` (one message per solve) and ``/diagnostics``
+(several publishers on ``state`` or ``cmd`` are named there, WARN).
 
 * ``mode: lockstep``: every state is answered at once, in the subscription callback (a lockstep simulator
   waits for that answer). ``mode: realtime``: a steady-clock timer at ``rate_hz`` answers the newest state
@@ -62,17 +64,20 @@ from msg_schemas.telemetry import (
     diagnostics_to_msg,
     mpc_status_values,
 )
-from saml_ros.core.lifecycle import TransitionRefused
-from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, PARAMS, MPCConfig, choose_executor
+from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
+from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
+from saml_ros.core.publishers import node_label, state_command_report
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
-from saml_ros.nodes.params import current_values, declare_params, probe_system
+from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help
 
 #: exit code for invalid parameters (as argparse's usage errors)
 USAGE_ERROR = 2
+#: parameters that cannot both be given (a system file names its system)
+EXCLUSIVE = (("system", "system_file"),)
 
 
 class MPCNode(ManagedNode):
@@ -82,7 +87,9 @@ class MPCNode(ManagedNode):
         super().__init__("mpc", namespace)
         self.system_name = system_name
         self.table = MPCConfig.params(system_name)
-        declare_params(self, self.table)
+        start_params(self, self.table, MPCConfig.from_params, EXCLUSIVE, earlier=self.param_problems)
+        self.params_guard = ParamGuard(self, self.table, MPCConfig.from_params, self._apply_live, exclusive=EXCLUSIVE,
+                                       extra=LIFECYCLE_PARAMS)
         self.schema = get_schema(system_name)
         # state and cmd as CDR bytes without message objects (msg_schemas.cdr), the lockstep path's cost
         self._state_cdr, self._control_cdr = CdrCodec(self.schema.state), CdrCodec(self.schema.control)
@@ -91,6 +98,7 @@ class MPCNode(ManagedNode):
         self._status_cdr = NamedVectorCdr()
         self.service: MPCService | None = None
         self.state_sub: Any = None
+        self.target_sub: Any = None  # the paddle ball's post_impact, for the live monitor (guard.rollback)
         self._entities: list[tuple[Callable[[Any], Any], Any]] = []  # (destroy, entity) made by configure
 
     # ------------------------------------------------------------------------------------------ lifecycle
@@ -123,9 +131,9 @@ class MPCNode(ManagedNode):
             (self.destroy_publisher, self.diag_pub),
             (self.destroy_subscription, self.create_subscription(String, CHECKPOINT_TOPIC, self._on_checkpoint,
                                                                  CHECKPOINT_QOS.to_rclpy())),
-            (self.destroy_timer, self.create_timer(1.0 / max(config.diagnostics_rate, 1e-3),
-                                                   self._publish_diagnostics, clock=steady)),
         ]
+        self._diag_timer = self.create_timer(1.0 / config.diagnostics_rate, self._publish_diagnostics, clock=steady)
+        self._entities.append((self.destroy_timer, self._diag_timer))
         if config.mode == "realtime":
             self._entities.append((self.destroy_timer, self.create_timer(1.0 / config.rate_hz, self._on_tick,
                                                                          clock=steady)))
@@ -152,6 +160,18 @@ class MPCNode(ManagedNode):
             self.get_logger().info(f"planner: {planner}; commands {self.schema.control.msg_type} on "
                                    f"{self.resolve_topic_name(self.schema.cmd_topic)}")
 
+    def _apply_live(self, live: dict[str, Any]) -> None:
+        """Parameters that apply at once: the goal, ``safe_on_infeasible``, ``deadline_ms``, ``poll_period`` and
+        ``diagnostics_rate``; an unconfigured node reads them at configure."""
+        service = self.service
+        if service is None:
+            return
+        config = MPCConfig.from_params(current_values(self, self.table))
+        service.config = config  # read by every solve (goal, safe_on_infeasible)
+        service.deadline_s = config.deadline_s(service.system.dt)
+        service.watcher.poll_period = config.poll_period
+        self._diag_timer.timer_period_ns = int(1e9 / config.diagnostics_rate)
+
     def activate_node(self) -> None:
         qos = self._qos(self.schema.state_topic)
         if self.service is not None and self.service.config.system_file:
@@ -161,11 +181,18 @@ class MPCNode(ManagedNode):
         # raw: the CDR bytes are read without a message object (msg_schemas.cdr; malformed ones as before)
         self.state_sub = self.create_subscription(RCLPY.cls(self.schema.state.msg_type), self.schema.state_topic,
                                                   self._on_state, qos, raw=not self._unstamped_state)
+        if self.service is not None and self.service.guarded is not None and \
+                self.schema.target_topic != self.schema.state_topic:
+            self.target_sub = self.create_subscription(RCLPY.cls(self.schema.target.msg_type),
+                                                       self.schema.target_topic, self._on_target, DATA_QOS.to_rclpy())
 
     def deactivate_node(self) -> None:
         if self.state_sub is not None:
             self.destroy_subscription(self.state_sub)
             self.state_sub = None
+        if self.target_sub is not None:
+            self.destroy_subscription(self.target_sub)
+            self.target_sub = None
         if self.service is not None:
             self.service.pending = None  # realtime: a state received while active is not answered later
 
@@ -202,6 +229,15 @@ class MPCNode(ManagedNode):
             self.service.reject(exc.reason, str(exc))
             return
         self._publish_status(self.service.receive(x, stamp, t_arrival, now_ns))
+
+    def _on_target(self, msg: Any) -> None:
+        assert self.service is not None
+        try:
+            y, stamp = self.schema.target_from_msg(msg)
+        except SchemaError as exc:
+            self.service.reject(exc.reason, str(exc))
+            return
+        self.service.receive_target(y, stamp)
 
     def _on_tick(self) -> None:
         if self.service is not None and self.state_sub is not None:
@@ -247,6 +283,7 @@ class MPCNode(ManagedNode):
         # before it matched is dropped by DDS, whatever the publisher's subscription count says)
         values["state_publishers"] = self.state_sub.get_publisher_count() if self.state_sub is not None else 0
         values["invalid_transitions"] = self.invalid_transitions
+        values["parameter_changes_refused"] = self.params_guard.refused
         refused = values["checkpoints_refused"]
         version = self.service.model_version
         rollbacks = self.service.counters["rollbacks"]
@@ -261,10 +298,21 @@ class MPCNode(ManagedNode):
         if rollbacks:
             message += (f"; {rollbacks} roll back(s) by the live monitor (versions "
                         f"{values.get('guard_rolled_back_versions', '')} not used again)")
+        if self.state_sub is not None:  # two robots on state, a second controller on cmd: named (WARN)
+            p_level, parts, p_values = self._check_publishers()
+            level, message = max(level, p_level), "; ".join([message, *parts])
+            values.update(p_values)
         if state != "active":
             message = f"{state}: {message}"
         entry = DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.diag_pub.publish(diagnostics_to_msg([entry], self.get_clock().now().nanoseconds))
+
+    def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
+        """:func:`~saml_ros.core.publishers.state_command_report` of ``state`` and ``cmd`` from the ROS graph."""
+        topics = [("state", self.state_sub.topic_name), ("cmd", self.cmd_pub.topic_name)]
+        nodes = {topic: [node_label(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+                 for _, topic in topics}
+        return state_command_report(topics, nodes)
 
     def destroy_node(self) -> None:
         if self.service is not None:
@@ -278,19 +326,15 @@ def create_node() -> MPCNode:
 
     The node lives in ``/<system>`` unless the command line remaps ``__ns``: a probe node reads ``system`` (and
     ``system_file``) first, because the namespace must be known when the node is created. A system file is loaded
-    here (its robot registered; ``ValueError`` naming the file and key when it is wrong, or when ``system`` names
-    another system).
+    here (its robot registered; ``ValueError`` naming the file and key when it is wrong); ``system`` next to
+    ``system_file`` is refused by the node's start-up check (both named).
     """
-    system, remapped = probe_system("mpc")
+    system, remapped = probe_system("mpc", file_param="system_file")
     path, _ = _probe_system_file()
     if path:
         from saml_ros.user_code import load_robot_param
 
-        robot = load_robot_param(path)
-        if system not in (PARAMS[0].default, robot.name):
-            raise ValueError(f"parameters 'system' ({system!r}) and 'system_file' ({path}, robot {robot.name!r}) "
-                             "name different systems: give one of them")
-        system = robot.name
+        system = load_robot_param(path).name
     get_entry(system)  # a clear error for an unknown name
     return MPCNode(system, None if remapped else f"/{system}")
 

@@ -7,7 +7,7 @@ clip`` and ``stack(columns) -> (B, k)``. The planner evaluates it with numpy (ba
 Jacobians once with CasADi (``x`` is then a ``(1, n_x)`` symbol row); the learner calls it with torch.
 
 * Every built-in base model of :mod:`saml_ros.core.systems.base_models` has a form here (:func:`builtin_form`),
-  checked against the torch built-in on random inputs (``test/test_generic_mpc.py``).
+  checked against the torch built-in on random inputs (``test/unit/core/mpc/test_generic_mpc.py``).
 * A user's base model opts in by taking the keyword ``xp`` (:func:`is_form`); such a function is differentiated
   symbolically like a built-in. A plain torch function (the contract of docs/your_robot.md) is differentiated by
   torch autograd instead (:class:`saml_ros.core.mpc.generic.dynamics.TorchBase`): exact too, slower.
