@@ -201,7 +201,7 @@ def test_wrong_mpc_section_or_parameters_exit_2_naming_them(ros_env: RosDomain, 
     assert "mpc.cost.stage.yw: 'yw' is not a goal field (did you mean 'yaw'?)" in mpc.output()
     both = ros_env.launch("mpc", "-p", "system:=quadrotor", "-p", f"system_file:={SYSTEM_FILE}")
     assert both.wait(90) == 2, both.output()
-    assert "'system' ('quadrotor') and 'system_file'" in both.output()
+    assert "parameters 'system' and 'system_file' were both given" in both.output()
     goal = ros_env.launch("mpc", "-p", f"system_file:={SYSTEM_FILE}", "-p", "goal.setpoint:=[9.0, 0.0, 0.0, 0.0, 0.0]")
     assert goal.wait(90) == 2, goal.output()
     assert "goal.setpoint: goal field 'x' = 9 is outside its bounds" in goal.output()
