@@ -132,6 +132,94 @@ class RobotEvaluation:
         plt.close(fig)
 
 
+@dataclass
+class NestedEvaluation:
+    """Learned models trained with independent seeds, each flown from its own starts (starts nested in seeds):
+    one :class:`RobotEvaluation` per seed (base, that seed's model and the oracle on the same starts).
+
+    The claim "the learned model docks better than f_hat" is about learning, so the **seed is the unit**: the
+    per-seed mean of learned - base over its starts, then a Student-t interval over the seeds
+    (:attr:`seed_level`); each seed's paired interval over its own starts and the pooled (seed, start) pairs
+    (pseudo-replication, for comparison only) are reported beside it (docs/experiments.md, "How to read it")."""
+
+    runs: dict[str, RobotEvaluation]  #: seed label -> its evaluation (one learned model, label = seed label)
+
+    @property
+    def seed_level(self) -> Paired:
+        """learned - base: per-seed means over the starts, paired over the seeds."""
+        return paired([np.mean(ev.errors["base"]) for ev in self.runs.values()],
+                      [np.mean(ev.errors[k]) for k, ev in self.runs.items()])
+
+    @property
+    def pooled(self) -> Paired:
+        """learned - base over every (seed, start) pair (pseudo-replication: for comparison only)."""
+        return paired(np.concatenate([ev.errors["base"] for ev in self.runs.values()]),
+                      np.concatenate([ev.errors[k] for k, ev in self.runs.items()]))
+
+    @property
+    def worse_than_base_worst(self) -> int:
+        """Learned episodes that ended worse than the base model's worst over the same starts (per seed)."""
+        return int(sum(ev.worse_than_base_worst for ev in self.runs.values()))
+
+    def headroom(self) -> tuple[float, float, float]:
+        """``(base mean, oracle mean, (base - oracle) / base)`` over every start (NaN without an oracle)."""
+        base = float(np.mean(np.concatenate([ev.errors["base"] for ev in self.runs.values()])))
+        if not all("oracle" in ev.errors for ev in self.runs.values()):
+            return base, math.nan, math.nan
+        oracle = float(np.mean(np.concatenate([ev.errors["oracle"] for ev in self.runs.values()])))
+        return base, oracle, (base - oracle) / base if base else math.nan
+
+    def report(self) -> str:
+        """The evaluation as markdown: per seed, then seed-level and pooled."""
+        first = next(iter(self.runs.values()))
+        starts = sum(len(ev.starts) for ev in self.runs.values())
+        lines = [f"{len(self.runs)} training seeds x {len(first.starts)} starts each (nested: {starts} episodes per "
+                 f"controller), {first.steps} steps of {first.dt:g} s; error at the last state (goal fields' units)",
+                 "", "| seed | base mean | base worst | learned mean | learned worst | oracle mean | learned - base "
+                     "[95 % CI over the starts] | learned better | learned worse than base's worst |",
+                 "|---|---|---|---|---|---|---|---|---|"]
+        for label, ev in self.runs.items():
+            st, e, b = ev.stats[label], ev.errors[label], ev.errors["base"]
+            o = ev.errors.get("oracle")
+            lines.append(f"| {label} | {b.mean():.4f} | {b.max():.4f} | {e.mean():.4f} | {e.max():.4f} | "
+                         f"{'n/a' if o is None else f'{o.mean():.4f}'} | {st.diff:+.4f} [{st.ci_low:+.4f}, "
+                         f"{st.ci_high:+.4f}] | {100 * st.frac_b_better:.0f}% | {ev.worse_than_base_worst} |")
+        seed, pooled = self.seed_level, self.pooled
+        base, oracle, rel = self.headroom()
+        lines += ["", f"seed level (unit: the training seed, n = {seed.n}): learned - base {seed.diff:+.4f} "
+                      f"[{seed.ci_low:+.4f}, {seed.ci_high:+.4f}] ({100 * seed.diff / base:+.0f} % of the base "
+                      f"model's mean error)",
+                  f"pooled (seed, start) pairs, for comparison only (pseudo-replication, n = {pooled.n}): "
+                  f"{pooled.diff:+.4f} [{pooled.ci_low:+.4f}, {pooled.ci_high:+.4f}], paired t p "
+                  f"{pooled.p_ttest:.2g}, Wilcoxon p {pooled.p_wilcoxon:.2g}",
+                  f"headroom: base {base:.4f}, oracle {oracle:.4f}: (base - oracle) / base = {100 * rel:.0f} %",
+                  f"learned episodes worse than the base model's worst over the same starts: "
+                  f"{self.worse_than_base_worst}"]
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        base, oracle, rel = self.headroom()
+        return {"runs": {k: ev.to_json() for k, ev in self.runs.items()}, "seed_level": self.seed_level.to_dict(),
+                "pooled": self.pooled.to_dict(), "headroom": {"base": base, "oracle": oracle, "relative": rel},
+                "worse_than_base_worst": self.worse_than_base_worst}
+
+
+def evaluate_nested(system: Any, simulator: Callable[[np.ndarray], Any], models: Mapping[str, Any],
+                    sample_starts: Callable[[int, np.random.Generator], np.ndarray], n_starts: int, steps: int, *,
+                    seed: int = 0, progress: Callable[[str], None] | None = None,
+                    **options: Any) -> NestedEvaluation:
+    """:func:`evaluate_robot` once per learned model (label -> model, e.g. one per training seed), each from its own
+    ``n_starts`` starts (``sample_starts(n, rng)``, ``rng`` seeded ``seed + i`` for the i-th model); ``options`` as
+    there (``oracle``, ``task``, ...)."""
+    runs: dict[str, RobotEvaluation] = {}
+    for i, (label, model) in enumerate(models.items()):
+        starts = np.asarray(sample_starts(n_starts, np.random.default_rng(seed + i)), dtype=np.float64)
+        if progress is not None:
+            progress(f"{label}: {n_starts} starts")
+        runs[label] = evaluate_robot(system, simulator, {label: model}, starts, steps, progress=progress, **options)
+    return NestedEvaluation(runs)
+
+
 def default_error(system: Any, task: Any) -> Callable[[np.ndarray, np.ndarray], float]:
     """Distance of a state from the goal over the goal fields that are not angles."""
     idx = [i for i, a in zip(task.goal_idx, task.goal_angle, strict=True) if not a]
@@ -146,16 +234,18 @@ def default_error(system: Any, task: Any) -> Callable[[np.ndarray, np.ndarray], 
 def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: Mapping[str, Any],
                    starts: np.ndarray, steps: int, *, goal: np.ndarray | None = None,
                    oracle: Callable[..., Any] | None = None, error: Callable[[np.ndarray, np.ndarray], float] | None = None,
-                   member: int = 0, progress: Callable[[str], None] | None = None,
+                   member: int = 0, progress: Callable[[str], None] | None = None, task: Any = None,
                    **planner_options: Any) -> RobotEvaluation:
     """See the module docstring. ``models``: label -> a :class:`~saml_ros.core.models.DynamicsModel` of ``system``
     (ensemble member ``member`` plans); the base model f_hat (label ``base``) and, with ``oracle``, the true dynamics
-    (label ``oracle``) fly the same starts."""
+    (label ``oracle``) fly the same starts. ``task``: an :class:`~saml_ros.core.systems.mpc_section.MPCTask` to plan
+    and score instead of the file's (e.g. :func:`task_from_file`)."""
     from saml_ros.core.mpc.generic import GenericSQP, system_task
     from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase
     from saml_ros.core.systems.base_forms import is_form
 
-    task = system_task(system)
+    task = system_task(system) if task is None else task
+    planner_options["task"] = task
     goal = task.goal_default if goal is None else task.check_goal(goal)
     err = error or default_error(system, task)
     controllers: dict[str, Any] = {"base": GenericSQP(system, None, member=member, **planner_options)}
@@ -197,6 +287,24 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
                            list(models), goal, steps, system.dt)
 
 
+def task_from_file(system: Any, path: str | Path) -> Any:
+    """The :class:`~saml_ros.core.systems.mpc_section.MPCTask` of a YAML file holding an ``mpc:`` mapping (the
+    file's section with some keys changed, e.g. another goal or horizon), checked as the system file's is."""
+    import copy
+
+    import yaml
+
+    from saml_ros.core.systems.mpc_section import mpc_task
+
+    definition = copy.deepcopy(system.definition)
+    raw = yaml.safe_load(Path(path).read_text())
+    definition["mpc"] = raw.get("mpc", raw) if isinstance(raw, dict) else raw
+    task = mpc_task(definition)
+    if task is None:
+        raise ValueError(f"{path}: no mpc: mapping")
+    return task
+
+
 def _load(target: str) -> Any:
     """``module:attribute`` (a module path or a ``.py`` file path before the colon)."""
     module, _, attr = target.partition(":")
@@ -222,6 +330,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--oracle", help="module:function, the true dynamics (x, u, *, dt) -> next x (torch or xp form)")
     p.add_argument("--member", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--nested", action="store_true", help="each learned model (e.g. one per training seed) flies its "
+                   "own --n-starts starts (seeded --seed + i); statistics with the seed as the unit")
+    p.add_argument("--task", type=Path, help="a YAML file with an mpc: mapping to plan and score instead of the "
+                   "system file's")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args(argv)
     import torch
@@ -231,14 +343,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     from saml_ros.user_code import load_system_file
 
     system = load_system_file(args.system_file)
+    task = task_from_file(system, args.task) if args.task else None
+    models = {Path(r).name: load_model(r).loaded.model.double() for r in args.runs}
+    if args.nested:
+        if not args.starts or not models:
+            p.error("--nested needs --starts and --runs")
+        nested = evaluate_nested(system, _load(args.simulator), models, _load(args.starts), args.n_starts,
+                                 args.steps, seed=args.seed, oracle=_load(args.oracle) if args.oracle else None,
+                                 member=args.member, task=task, progress=lambda s: print(s, flush=True))
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "results.json").write_text(json.dumps(nested.to_json(), indent=1))
+        (args.out / "results.md").write_text(nested.report() + "\n")
+        print(nested.report())
+        return 0
     rng = np.random.default_rng(args.seed)
     if args.starts:
         starts = np.asarray(_load(args.starts)(args.n_starts, rng), dtype=np.float64)
     else:
         starts = rng.uniform(system.state_low, system.state_high, (args.n_starts, system.state.size))
-    models = {Path(r).name: load_model(r).loaded.model.double() for r in args.runs}
     ev = evaluate_robot(system, _load(args.simulator), models, starts, args.steps,
-                        oracle=_load(args.oracle) if args.oracle else None, member=args.member,
+                        oracle=_load(args.oracle) if args.oracle else None, member=args.member, task=task,
                         progress=lambda s: print(s, flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
