@@ -110,10 +110,10 @@ def sample_starts(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def sample_approach_starts(n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` starts at rest on the dock's approach: 0.7-1.3 m in front of it (before the wet patch), within 0.1 m
+    """``n`` starts at rest on the dock's approach: 0.7-1.1 m in front of it (at the wet patch's edge), within 0.1 m
     of its axis, heading within 0.2 rad of it (the docking manoeuvre's last stretch, straight through the patch)."""
     out = np.zeros((n, 5))
-    out[:, 0] = rng.uniform(0.2, 0.8, n)
+    out[:, 0] = rng.uniform(0.4, 0.8, n)
     out[:, 1] = rng.uniform(-0.1, 0.1, n)
     out[:, 2] = rng.uniform(-0.2, 0.2, n)
     return out

@@ -192,7 +192,8 @@ class NestedEvaluation:
                   f"pooled (seed, start) pairs, for comparison only (pseudo-replication, n = {pooled.n}): "
                   f"{pooled.diff:+.4f} [{pooled.ci_low:+.4f}, {pooled.ci_high:+.4f}], paired t p "
                   f"{pooled.p_ttest:.2g}, Wilcoxon p {pooled.p_wilcoxon:.2g}",
-                  f"headroom: base {base:.4f}, oracle {oracle:.4f}: (base - oracle) / base = {100 * rel:.0f} %",
+                  (f"headroom: base {base:.4f}, oracle {oracle:.4f}: (base - oracle) / base = {100 * rel:.0f} %"
+                   if math.isfinite(oracle) else "headroom: not measured (no oracle)"),
                   f"learned episodes worse than the base model's worst over the same starts: "
                   f"{self.worse_than_base_worst}"]
         return "\n".join(lines)
