@@ -312,3 +312,46 @@ def test_bringup_takes_a_system_file(tmp_path: Path) -> None:
     raw["mpc"]["horizon"] = 0
     bad.write_text(yaml.safe_dump(raw))
     assert main(["--system-file", str(bad)]) == 2
+
+
+def test_mpc_reaches_shelf_targets_with_the_arm(ros_env: RosDomain, ros_node: TestNode) -> None:
+    """The MuJoCo arm (examples/arm/robot.py: JointState in, Float64MultiArray effort out) under the generic MPC of
+    its system file: it lifts the arm from hanging down to the file's shelf target, then to a target sent on its
+    goal topic (a JointState by joint name)."""
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    arm = REPO / "examples" / "arm"
+    goal_q = yaml.safe_load((arm / "system.yaml").read_text())["mpc"]["goal"]["default"][:2]
+    states = ros_node.subscribe(JointState, "/arm/joint_states")
+    cmds = ros_node.subscribe(Float64MultiArray, "/arm/effort_controller/commands")
+    # state_timeout 0.5 s (the file's: 0.1 s): on a loaded CI machine a state can wait that long for the node
+    mpc = ros_env.launch("mpc", "-p", f"system_file:={arm / 'system.yaml'}", "-p", "state_timeout:=0.5",
+                         namespace="/arm")
+    log = ros_env.log_dir / f"arm-{time.monotonic_ns()}.log"
+    with open(log, "wb") as out:
+        popen = subprocess.Popen([sys.executable, str(arm / "robot.py"), "--ros-args", "-r", "__ns:=/arm"],
+                                 stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                                 cwd=REPO, start_new_session=True)
+    robot = Process("arm", popen, log)
+    ros_env.processes.append(robot)
+
+    def near(q: list[float]) -> bool:
+        return bool(states) and max(abs(a - b) for a, b in zip(states[-1].position, q, strict=True)) < 0.15
+
+    try:
+        wait_for(lambda: len(cmds) > 20 or not mpc.alive(), timeout=120, what="effort commands on /arm")
+        assert mpc.alive(), mpc.output()
+        assert len(cmds[-1].data) == 2
+        wait_for(lambda: near(goal_q), timeout=60, what=f"the arm at the file's shelf target {goal_q}")
+        goals = ros_node.publisher(JointState, "/arm/reach_goal")
+        wait_for(lambda: goals.get_subscription_count() > 0, timeout=30, what="the MPC's goal subscription")
+        target = [1.0485, -1.8595]  # the gripper at x 0.5 m, z 0.1 m
+        msg = JointState()
+        msg.name, msg.position = ["elbow", "shoulder"], [target[1], target[0]]  # by name, in any order
+        goals.publish(msg)
+        wait_for(lambda: near(target), timeout=60, what=f"the arm at the new target {target}")
+        assert mpc.alive() and robot.alive()
+    finally:
+        code = mpc.stop()
+    assert code == 0, mpc.output()
