@@ -7,8 +7,9 @@ by start state (docs/your_robot.md, "Evaluate it").
     print(ev.report())
 
     ./dev python -m saml_ros.experiments.robot_eval --system-file examples/diff_drive/system.yaml \\
-        --simulator examples.diff_drive.dynamics:make_robot --starts dynamics:sample_starts --n-starts 30 \\
-        --runs runs/dd_seed0 runs/dd_seed1 runs/dd_seed2 --oracle examples.diff_drive.dynamics:true_step -o out/
+        --simulator examples/diff_drive/dynamics.py:make_robot --starts examples/diff_drive/dynamics.py:sample_starts \\
+        --n-starts 30 --runs runs/dd_seed0 runs/dd_seed1 runs/dd_seed2 \\
+        --oracle examples/diff_drive/dynamics.py:true_step -o out/     # --nested: each run from its own starts
 
 Every controller flies the same starts in the robot's own simulator (``simulator(x0)`` returns an object with
 ``state() -> (n,)`` and ``step(u, dt)``; the simulator knows nothing of saml_ros) with the planner of the file's
@@ -24,6 +25,9 @@ file's units), or ``error(x, goal)``. Reported, as the demo does:
   fraction of starts where the learned model did better (:func:`saml_ros.experiments.common.paired`);
 * whether any learned-model episode ended worse than the base model's worst over the same starts;
 * a figure (``errors.png``): each start's error per controller, and the paired differences.
+
+With independently trained models (one per training seed), :func:`evaluate_nested` (``--nested``) flies each from
+its own starts and reports the difference with the **seed as the unit** (:class:`NestedEvaluation`).
 """
 
 from __future__ import annotations
