@@ -1,7 +1,7 @@
 """Does the learned model make saml_ros's MPC reach the shelf better than the arm's own rigid-body model? A
 closed-loop evaluation of ``system.yaml``'s ``mpc:`` section (docs/your_robot.md, "Control it").
 
-    ./dev python examples/arm/control_eval.py --seeds 3 --starts 30 -o runs/arm_control
+    ./dev python examples/arm/control_eval.py --seeds 3 --starts 10 -o runs/arm_control
 
 Trains ``--seeds`` residual models (the file's 32-32 network and shelf spec, one training seed and one flight
 each) on transitions the arm's own controller (``controller.Reacher``: reaching moves, half of them to the shelf,
@@ -78,7 +78,7 @@ def flight(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--starts", type=int, default=30, help="starts per seed")
+    p.add_argument("--starts", type=int, default=10, help="starts per seed")
     p.add_argument("--steps", type=int, default=200, help="periods of 10 ms per episode")
     p.add_argument("--transitions", type=int, default=30000)
     p.add_argument("--epochs", type=int, default=60)
