@@ -422,3 +422,32 @@ def test_all_terminates_its_children_on_sigterm(tmp_path: Path) -> None:
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+# ------------------------------------------------------------------------------------------------ capacity sweep
+def test_capacity_sweep_quick(tmp_path: Path) -> None:
+    """``./dev experiment capacity --quick``: recorded data, SA and UA of two sizes (single nets and ensembles) for two
+    seeds, flown with the demo's guard from the same starts beside f_hat and the oracle, solve times, the table,
+    the figure and the recommendation."""
+    from saml_ros.experiments.capacity import CapacitySettings, run
+    from saml_ros.experiments.cli import settings_for
+
+    s = settings_for("capacity", True, None)
+    assert s == CapacitySettings.quick()
+    data = run(s, tmp_path, progress=False)
+    saved = check_outputs(tmp_path, data)
+    assert data["world"].get("wind", 0.0) > 0  # the demo's world: the wind above the pad's shelter
+    rows = {(r["size"], r["kind"]): r for r in data["rows"]}
+    assert set(rows) == {(size, kind) for size in ("4-4", "8-8") for kind in ("single", "ens")}
+    for r in rows.values():
+        assert r["solve_ms"]["mean_ms"] > 0 and r["solve_ms"]["native"]  # the C kernel solved them
+        for m in ("SA", "UA"):
+            assert len(r["per_seed_captured"][m]) == 2 and math.isfinite(r["landing"][m].value)
+        assert r["verdict"] in ("holds", "does not hold", "cannot show")
+    # the ensemble arm flew with the disagreement check (it has members), the single net without it
+    assert rows[("4-4", "single")]["guard"]["SA"].get("fallbacks", 0) == 0
+    assert rows[("4-4", "ens")]["guard"]["SA"]["solves"] == rows[("4-4", "single")]["guard"]["SA"]["solves"]
+    assert np.asarray(saved["per_start"]["base"]).shape == np.asarray(saved["per_start"]["oracle"]).shape == (2,)
+    assert set(saved["recommendation"]) == {"SA single", "UA single", "SA ens", "UA ens"}
+    for sd in ("0", "1"):
+        assert saved["data"][sd]["transitions"] > 0
