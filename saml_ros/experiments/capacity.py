@@ -38,6 +38,7 @@ Writes ``results.json``, ``results.md``, ``capacity.png`` (landing error against
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -111,6 +112,8 @@ class Flight:
     y: np.ndarray
     contacts: int = 0
     episodes: int = 0
+    #: row of each episode's first transition
+    starts: list[int] = field(default_factory=list)
 
 
 def demo_task_and_guard() -> tuple[Any, Any, float]:
@@ -137,10 +140,12 @@ def record_flight(task: Any, seed: int, sim_time: float, progress: Any = None) -
     n_steps = int(round(sim_time / system.dt))
     xs, us, ys = [], [], []
     contacts = episodes = 0
+    first: list[int] = []
     k = 0
     while k < n_steps:
         x = quadrotor_start(system, rng)
         episodes += 1
+        first.append(len(xs))
         ctrl.reset()
         for _ in range(task.steps):
             if k >= n_steps:
@@ -158,7 +163,7 @@ def record_flight(task: Any, seed: int, sim_time: float, progress: Any = None) -
             k += 1
             if progress is not None:
                 progress.update(1)
-    return Flight(np.array(xs), np.array(us), np.array(ys), contacts, episodes)
+    return Flight(np.array(xs), np.array(us), np.array(ys), contacts, episodes, first)
 
 
 def residual_bound(system: Any, flight: Flight) -> np.ndarray:
@@ -236,42 +241,50 @@ def heldout_errors(paths: dict[str, str], system: Any, flight: Flight) -> dict[s
     return out
 
 
-def time_solves(task: Any, guard: Any, models: dict[str, str | None], starts: np.ndarray,
+def time_solves(task: Any, guard: Any, models: dict[str, str | None], episodes: list[np.ndarray],
                 progress: Any = None) -> dict[str, dict[str, float]]:
-    """CPU time per solve (ms) of the guarded MPC with each model (name -> checkpoint path; None: f_hat alone,
-    ``"oracle"``: the true dynamics), flying ``starts`` on the true system; the models take turns start by start
-    (interleaved: the machine's load affects them alike). Returns per name: mean and median CPU ms per solve,
-    the solves, and whether the C kernel solved them."""
+    """CPU time per solve (ms) of the MPC with each model (name -> checkpoint path, guarded as the demo; None: f_hat
+    alone; ``"oracle"``: the true dynamics) on the SAME states: each episode of ``episodes`` (``(steps, 13)`` states
+    of a recorded flight) is solved state after state, warm-started from the previous solve as in the closed loop.
+    The models take turns episode by episode (interleaved: the machine's load affects them alike). Returns per
+    name: mean and median CPU ms per solve, mean SQP iterations, ms per iteration, the solves, and whether the C
+    kernel solved them."""
     from saml_ros.core.model_io import load_model
-    from saml_ros.core.mpc import closed_loop, make_controller
+    from saml_ros.core.mpc import make_controller
     from saml_ros.core.mpc.guard import make_guarded_controller
-    from saml_ros.demo.landing import plant
 
     system = task.system()
-    f = plant(system, task.landing_height)
     ctrls: dict[str, Any] = {}
-    loaded: dict[str, Any] = {}
     for name, path in models.items():
         if path is None or path == "oracle":
             ctrls[name] = make_controller(system, "oracle" if path == "oracle" else None, "fast", **task.mpc_options())
         else:
-            loaded[name] = load_model(path, expect=system)
-            ctrls[name] = make_guarded_controller(system, "fast", guard, **task.mpc_options())
+            loaded = load_model(path, expect=system)
+            ctrl = make_guarded_controller(system, "fast", guard, **task.mpc_options())
+            ctrl.set_model(loaded.model, 1, loaded.meta)
+            ctrls[name] = ctrl
     times: dict[str, list[float]] = {name: [] for name in models}
+    iters: dict[str, list[int]] = {name: [] for name in models}
     native: dict[str, bool] = {}
-    for x0 in starts:
+    for states in episodes:
         for name, ctrl in ctrls.items():
-            if name in loaded:
-                ctrl.reset_models()
-                ctrl.set_model(loaded[name].model, 1, loaded[name].meta)
-            run = closed_loop(system, ctrl, x0, task.steps, goal=task.goal, true_step=f)
-            times[name].extend(run.cpu_times.tolist())
+            ctrl.reset()
+            for x in states:
+                t0 = time.process_time()
+                res = ctrl.solve(x, task.goal)
+                times[name].append(time.process_time() - t0)
+                iters[name].append(int(res.iterations))
             inner = getattr(ctrl, "learned", ctrl)
             native[name] = getattr(inner, "native_reason", "n/a") is None
             if progress is not None:
                 progress.update(1)
-    return {name: {"mean_ms": 1e3 * float(np.mean(t)), "median_ms": 1e3 * float(np.median(t)), "solves": len(t),
-                   "native": native.get(name, False)} for name, t in times.items()}
+    out: dict[str, dict[str, float]] = {}
+    for name, t in times.items():
+        mean_ms, it = 1e3 * float(np.mean(t)), float(np.mean(iters[name]))
+        out[name] = {"mean_ms": mean_ms, "median_ms": 1e3 * float(np.median(t)), "iterations": it,
+                     "ms_per_iteration": mean_ms / it if it > 0 else math.nan, "solves": len(t),
+                     "native": native.get(name, False)}
+    return out
 
 
 def _per_seed(res: dict[str, Any], names: list[str], metric: str) -> np.ndarray:
@@ -336,10 +349,12 @@ def run(settings: CapacitySettings, out: Path, progress: bool = True) -> dict[st
         for kind in s.kinds:
             timing_models[f"{size_name(hidden)} {kind}"] = paths[arm_name("SA", hidden, kind, s.seeds[0])]
     timing_models["oracle"] = "oracle"
-    tstarts = starts[: s.timing_starts]
-    bar = progress_bar(len(timing_models) * len(tstarts), "capacity: solve times", progress)
+    bounds = [*heldout.starts, len(heldout.x)]
+    episodes = [heldout.x[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=False)][: s.timing_starts]
+    episodes = [e for e in episodes if len(e)]
+    bar = progress_bar(len(timing_models) * len(episodes), "capacity: solve times", progress)
     with timer("timing"):
-        timing = time_solves(task, guard, timing_models, tstarts, bar)
+        timing = time_solves(task, guard, timing_models, episodes, bar)
     bar.close()
 
     base = np.asarray(res["base"].metrics[TASK_METRIC], dtype=float)
@@ -441,13 +456,13 @@ def markdown(data: dict[str, Any], s: CapacitySettings, timer: Timer) -> str:
         f"{data['oracle']['landing']:.4f} m; headroom (base - oracle) / base = {hr.pct()}.",
         "",
     ]
-    header = ["size", "kind", "solve (ms CPU)", "SA landing (m)", "UA landing (m)", "SA captured", "UA captured",
+    header = ["size", "kind", "solve, ms CPU [iterations]", "SA landing (m)", "UA landing (m)", "SA captured", "UA captured",
               "SA − UA (m)", "verdict", "held-out error in / out of region, SA", "UA"]
     table = []
     for r in data["rows"]:
         d = r["sa_minus_ua"]
         ho = {m: f"{r['heldout'][m]['inside'].value:.1e} / {r['heldout'][m]['outside'].value:.1e}" for m in METHODS}
-        table.append([r["size"], r["kind"], f"{r['solve_ms']['mean_ms']:.2f}",
+        table.append([r["size"], r["kind"], f"{r['solve_ms']['mean_ms']:.2f} [{r['solve_ms']['iterations']:.1f}]",
                       r["landing"]["SA"].text(4), r["landing"]["UA"].text(4), _pct(r["captured"]["SA"]),
                       _pct(r["captured"]["UA"]), f"{fmt(d.diff, 4)} [{fmt(d.ci_low, 4)}, {fmt(d.ci_high, 4)}]",
                       r["verdict"], ho["SA"], ho["UA"]])
@@ -455,8 +470,9 @@ def markdown(data: dict[str, Any], s: CapacitySettings, timer: Timer) -> str:
     lines += ["Verdict: *holds* when the seed-level interval of SA − UA lies below 0; *does not hold* otherwise.",
               f"f_hat's held-out error: {data['heldout_base']['inside']:.1e} inside / "
               f"{data['heldout_base']['outside']:.1e} outside the region. Solve time: the guarded MPC with the "
-              f"C kernel, CPU ms per solve over {s.timing_starts} starts x {data['task']['steps']} steps, all sizes interleaved; f_hat "
-              f"alone {data['solve_times']['f_hat']['mean_ms']:.2f} ms, the oracle (numpy path) "
+              f"C kernel (learned models guarded as the demo), CPU ms per solve on the same states: "
+              f"{s.timing_starts} episodes of the held-out recording, solved state after state with warm starts, all "
+              f"models interleaved; in brackets the mean SQP iterations per solve; f_hat alone {data['solve_times']['f_hat']['mean_ms']:.2f} ms, the oracle (numpy path) "
               f"{data['solve_times']['oracle']['mean_ms']:.2f} ms.", ""]
     lines.append("Smallest net capturing >= 90 % of the headroom:")
     for key, rec in data["recommendation"].items():
@@ -467,6 +483,12 @@ def markdown(data: dict[str, Any], s: CapacitySettings, timer: Timer) -> str:
                          f"{rec['largest_solve_ms']:.2f} ms for {rec['largest']}; captures {rec['captured'].pct(0)})")
     lines += ["", "![capacity](capacity.png)", "", timer.markdown(), ""]
     return "\n".join(lines)
+
+
+def _n_params(hidden: list[int]) -> int:
+    """Weights of a quadrotor residual net with these hidden sizes (17 inputs, 13 outputs): orders the sizes."""
+    dims = [17, *hidden, 13]
+    return sum(a * b + b for a, b in zip(dims[:-1], dims[1:], strict=False))
 
 
 def plot_capacity(data: dict[str, Any], path: Path) -> Path:
@@ -481,8 +503,9 @@ def plot_capacity(data: dict[str, Any], path: Path) -> Path:
 
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
     colors = {"SA": "tab:blue", "UA": "tab:gray"}
+    floor = 1e-4  # intervals reaching below it (e.g. below 0) end there on the log axis
     for kind, ls, marker in (("single", "-", "o"), ("ens", "--", "s")):
-        rows = sorted((r for r in data["rows"] if r["kind"] == kind), key=lambda r: r["solve_ms"]["mean_ms"])
+        rows = sorted((r for r in data["rows"] if r["kind"] == kind), key=lambda r: _n_params(r["hidden"]))
         if not rows:
             continue
         t = np.array([r["solve_ms"]["mean_ms"] for r in rows])
@@ -492,17 +515,20 @@ def plot_capacity(data: dict[str, Any], path: Path) -> Path:
             lo = np.array([e.ci_low for e in est])
             hi = np.array([e.ci_high for e in est])
             shift = t * (1.0 + 0.015 * (i - 0.5))  # SA and UA side by side at the same solve time
-            err = np.vstack((np.nan_to_num(y - lo), np.nan_to_num(hi - y)))
+            lo = np.where(np.isfinite(lo), np.maximum(lo, floor), y)
+            hi = np.where(np.isfinite(hi), hi, y)
+            err = np.vstack((np.maximum(y - lo, 0.0), np.maximum(hi - y, 0.0)))
             label = f"{m}, {'single net' if kind == 'single' else 'ensemble'}"
             ax.errorbar(shift, y, yerr=err, color=colors[m], ls=ls, marker=marker, ms=5, capsize=3, label=label)
             if i == 0:
                 for r, tx, ty in zip(rows, shift, y, strict=True):
                     ax.annotate(r["size"], (tx, ty), textcoords="offset points", xytext=(4, 6), fontsize=7)
     ax.axhline(data["base"]["landing"], color="tab:orange", ls=":", label="base model f_hat")
-    ax.axhline(max(data["oracle"]["landing"], 1e-5), color="tab:green", ls=":", label="oracle (true dynamics)")
+    ax.axhline(max(data["oracle"]["landing"], floor), color="tab:green", ls=":",
+               label=f"oracle (true dynamics){' (below the axis)' if data['oracle']['landing'] < floor else ''}")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("guarded MPC solve time with the C kernel (ms CPU per solve)")
+    ax.set_xlabel("guarded MPC solve time with the C kernel (ms CPU per solve; labels: net size)")
     ax.set_ylabel("landing error |p_T - pad| (m), mean over starts, 95 % CI over seeds")
     ax.set_title("capacity: landing error against solve time (demo task, demo guard)")
     ax.legend(fontsize=8)
