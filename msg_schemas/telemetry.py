@@ -344,11 +344,23 @@ DIAGNOSTICS_REASON_DOCS: tuple[tuple[str, str, str], ...] = (
      "reason: " + ", ".join(TRAINING_SKIP_REASONS) + "; train_health/skipped (all), train_health/restores (weights "
      "restored), train_health/unhealthy_streak (consecutive skipped steps: WARN after one, ERROR from "
      "health.error_after on), checkpoints_unhealthy (checkpoints not written: the model was not healthy)"),
+    ("checkpoint_write_error", "1", "learner: while checkpoint writes fail (a full or read-only disk; level ERROR): "
+     "the OS message, the path, the failed writes in a row, the time since the last good checkpoint and until the "
+     "next attempt (text; \"\" while writes succeed); checkpoint_write_failures (in a row), checkpoint_write_errors "
+     "(so far), checkpoint_age_s, checkpoint_write_seconds, unsaved_updates (docs/learner.md)"),
     ("feasibility/<k>", "1", "learner: met, not converged, likely infeasible or pending, for constraint k (text, "
      "not plottable; docs/training.md); it sets the level: met OK, not converged WARN, likely infeasible ERROR"),
     ("reachable/<k>", "loss", "learner: the left-hand side g_k + eps_k the model reaches now"),
-    ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback) to the previous model, else "
-     "f_hat; guard_rolled_back_versions lists the versions never used again"),
+    ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback, on by default) to the "
+     "previous model, else f_hat, and checkpoints refused before flying them (guard_refused_before_flight: worse "
+     "than f_hat on the newest live transitions); guard_rolled_back_versions lists the versions never used again"),
+    ("models_retired", "count", "mpc: models in use that failed the acceptance re-check on the states flown (not "
+     "used any more); checkpoints_reannounced: checkpoints holding the model in use again (nothing done)"),
+    ("multiple_publishers", "1", "learner, mpc: '<topic>: <node>, <node>; ...' for every subscribed state / command "
+     "topic (the MPC: state and cmd) with more than one publisher, the nodes named from the ROS graph (text; WARN "
+     "while not empty); <ns>/publisher_nodes/<kind> (learner) and publisher_nodes/<kind> (mpc) name each topic's"),
+    ("<ns>/refused/<kind>", "count", "learner, with pairing.refuse_multiple_publishers: messages not paired because "
+     "a topic of the namespace had several publishers"),
 )
 
 

@@ -94,6 +94,9 @@ _TAIL: tuple[Param, ...] = (
     Param("pairing.window", 1000, "newest states (per namespace) whose stamps are remembered for pairing; older "
                                   "incomplete entries are dropped (counted)"),
     Param("pairing.tolerance", 1e-6, "s: stamps closer than this are the same stamp"),
+    Param("pairing.refuse_multiple_publishers", False,
+          "refuse (count, do not pair) a namespace's messages while its state or command topic has more than one "
+          "publisher (two robots in one namespace); off: paired, and only named on /diagnostics (WARN)"),
     Param("training_niceness", 10, "nice increment of the training process (0-19): the OS runs ingest, simulators "
                                    "and the MPC first when CPUs are short"),
     Param("training_idle", False, "run the training process under Linux's SCHED_IDLE policy: it gets only CPU time "
@@ -162,6 +165,7 @@ class LearnerConfig:
     health_explode_ratio: float = 1e4
     health_max_weight: float = 1e6
     health_error_after: int = 100
+    refuse_multiple_publishers: bool = False
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -261,6 +265,7 @@ class LearnerConfig:
             uniform=p["uniform"], plausible_bounds=p["plausible_bounds"],
             health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
             health_error_after=p["health.error_after"],
+            refuse_multiple_publishers=p["pairing.refuse_multiple_publishers"],
         )
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.clock import Clock, ClockType
 
 import msg_schemas.telemetry as tele
 from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, get_schema
@@ -35,6 +36,8 @@ from saml_ros.core.learner_report import (
     training_diagnostics,
 )
 from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
+from saml_ros.core.publishers import PublisherGate, node_label, publisher_report
+from saml_ros.core.recent_counts import RecentCounts
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.raw_ingest import subscribe_raw
@@ -90,6 +93,8 @@ class LearnerNode(ManagedNode):
         self.channels = p.channels(self.schema)
         self.unstamped, self.channel_qos = p.channel_traits(self.schema)  # no header: stamped on receipt
         self.received = [0] * len(self.channels)
+        self.gate = PublisherGate([ns for ns, _, _, _ in self.channels], p.refuse_multiple_publishers)
+        self._shared = ""  # the last multiple_publishers value logged
         launched, self._launched = self._launched, None
         from saml_ros.core.online import StartCancelled
 
@@ -120,7 +125,7 @@ class LearnerNode(ManagedNode):
             paused = self.trainer.pause()
             if paused is None:
                 raise RuntimeError("the training process did not pause within 30 s")
-            self.get_logger().info(paused_message(paused))
+            self.get_logger().info(paused_message(paused, int(self.trainer.status.get("unsaved_updates", 0))))
 
     def cleanup_node(self, step: str = "cleanup") -> None:
         self._unsubscribe()
@@ -175,16 +180,21 @@ class LearnerNode(ManagedNode):
         self.pub_ckpt = self.create_publisher(RCLPY.cls(tele.STRING), tele.CHECKPOINT_TOPIC, CHECKPOINT_QOS.to_rclpy())
         self.pub_diag = self.create_publisher(RCLPY.cls(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, telemetry_qos)
         self._pubs = [self.pub_error, self.pub_ckpt, self.pub_diag]
+        self._recent = RecentCounts()  # the /diagnostics level: what the counters did in the last minute
+        # wall-clock (steady) timers: with use_sim_time a lockstep loop at 10x real time would publish 10x as often
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timers = [
-            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group),
-            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group),
+            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group,
+                              clock=steady),
+            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group,
+                              clock=steady),
         ]
         self._telemetry_timer, self._diagnostics_timer = self._timers  # periods change with their parameters
 
     def _subscribe(self) -> None:
         assert self.trainer is not None
         self._subs = subscribe_raw(self, self.channels, self.channel_qos, self.unstamped, self.trainer.submit_raw,
-                                   self.received, self.data_group)
+                                   self.received, self.data_group, self.gate.admit, self.gate.set_count)
 
     def _unsubscribe(self) -> None:
         for sub in self._subs:
@@ -214,7 +224,8 @@ class LearnerNode(ManagedNode):
         if final is not None and final[0] is not None:
             self._announce(final[0], final[1])
         error, text = stopped_message(final, self.trainer.status.get("updates", 0),
-                                      self.trainer.counts().get("paired", 0), self.p.min_transitions, step)
+                                      self.trainer.counts().get("paired", 0), self.p.min_transitions, step,
+                                      int(self.trainer.status.get("unsaved_updates", 0)))
         log_at(self.get_logger(), logging.ERROR if error else logging.INFO, text)
 
     # ---------------------------------------------------------------------------------------------- telemetry
@@ -226,8 +237,11 @@ class LearnerNode(ManagedNode):
 
         if not self.active or self.trainer is None:
             return
+        stamp = self._stamp_ns()
+        if stamp == 0:  # use_sim_time and no /clock yet: nothing to stamp it with (as the ROS-time timer did)
+            return
         values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self.trainer.counts())
-        self.pub_error.publish(tele.model_error_to_msg(values, self._stamp_ns()))
+        self.pub_error.publish(tele.model_error_to_msg(values, stamp))
 
     def _publish_diagnostics(self) -> None:
         tr = self.trainer
@@ -236,10 +250,30 @@ class LearnerNode(ManagedNode):
         channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count() if self._subs else 0)
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
         level, message, values = training_diagnostics(tr, self.p, self.spec, channels, self.state_label,
-                                                      self.invalid_transitions, self.active)
+                                                      self.invalid_transitions, self.active, self._recent)
         values["parameter_changes_refused"] = self.params_guard.refused
+        p_level, parts, p_values = self._check_publishers()
+        level, values = max(level, p_level), {**values, **p_values}
+        message = "; ".join([message, *parts])
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
+
+    def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
+        """Several publishers on a subscribed topic (:func:`~saml_ros.core.publishers.publisher_report`; the node
+        names from the ROS graph), logged when it changes."""
+        # the resolved names (a remapped topic) once subscribed
+        topics = [sub.topic_name for sub in self._subs] if self._subs else [c[2] for c in self.channels]
+        nodes = {topic: [node_label(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+                 for topic in set(topics)}
+        matched = [sub.get_publisher_count() for sub in self._subs] if self._subs else []
+        level, parts, values = publisher_report([(ns, kind, topic) for (ns, kind, _, _), topic in
+                                                 zip(self.channels, topics, strict=True)], nodes,
+                                                matched, self.gate.refuse, self.gate.refused)
+        if values["multiple_publishers"] != self._shared:
+            self._shared = values["multiple_publishers"]
+            log_at(self.get_logger(), logging.WARNING if parts else logging.INFO,
+                   parts[0] if parts else "one publisher per topic again")
+        return level, parts, values
 
 
 def create_node(launched: Any = None) -> LearnerNode:

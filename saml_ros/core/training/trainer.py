@@ -111,21 +111,6 @@ class PrimalDualTrainer:
         """Append the mean of the minibatch values since the last log point to :attr:`history`."""
         self.log.point(self.steps, self.epochs_done, self.lam)
 
-    def train_steps(
-        self, sample: Callable[[], tuple[Any, Any, Any]], n_steps: int
-    ) -> SpecValues | None:
-        """Online mode: ``n_steps`` updates on minibatches drawn by ``sample() -> (x, u, y)`` (numpy or
-        torch ``(B, .)``), e.g. from a growing :class:`~saml_ros.core.buffer.ReplayBuffer`."""
-        last = None
-        dt = self.config.torch_dtype
-        log_every = self.config.log_every or 100
-        for _ in range(n_steps):
-            x, u, y = (torch.as_tensor(np.asarray(a), dtype=dt) for a in sample())
-            last = self.step(x, u, y)
-            if self.steps % log_every == 0:
-                self.log_point()
-        return last
-
     # ----------------------------------------------------------------------------------- offline
     def fit(
         self,
@@ -134,9 +119,12 @@ class PrimalDualTrainer:
         progress: bool = False,
         desc: str = "training",
         callback: Callable[[PrimalDualTrainer], None] | None = None,
+        diagnose: bool = True,
     ) -> History:
         """Run ``epochs`` passes of Algorithm 1 over a fixed dataset; every member sees its own shuffle.
-        ``callback(self)`` runs after each epoch.
+        ``callback(self)`` runs after each epoch. The learning-rate schedules span ``config.epochs`` whatever
+        ``epochs`` is, so a run may be fitted in parts (``diagnose=False`` for all but the last: no diagnosis, no
+        warnings).
 
         Runs on the engine named by ``config.engine`` (see :class:`TrainConfig`), or on the plain one where that
         engine does not apply; :attr:`engine_used` says which one ran. At the end the feasibility diagnosis on
@@ -161,6 +149,8 @@ class PrimalDualTrainer:
             if bar is not None:
                 bar.close()
         # the dataset-level values at the end: the fused kernel's own pass over the data where it ran
+        if not diagnose:
+            return self.history
         evaluation = getattr(engine, "evaluation", None) if self.kernel_used else None
         self.diagnosis = self.diagnose(data, evaluation)
         for c in self.diagnosis.constraints:
