@@ -138,7 +138,9 @@ def record_flight(task: Any, seed: int, sim_time: float, progress: Any = None) -
     step = FastStep(system)
     rng = np.random.default_rng(seed)
     n_steps = int(round(sim_time / system.dt))
-    xs, us, ys = [], [], []
+    xs: list[np.ndarray] = []
+    us: list[np.ndarray] = []
+    ys: list[np.ndarray] = []
     contacts = episodes = 0
     first: list[int] = []
     k = 0

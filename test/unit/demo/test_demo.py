@@ -163,7 +163,7 @@ def test_the_demo_world_is_in_the_simulator_the_oracle_and_the_evaluation(tmp_pa
     from saml_ros.bringup.config import node_params
     from saml_ros.core.mpc.dynamics_np import NumpyDynamics
     from saml_ros.core.systems.registry import get_entry
-    from saml_ros.core.worlds.sim_core import SimConfig
+    from saml_ros.core.worlds.sim_core import SimConfig, SteppedSim
     from saml_ros.demo.cli import demo_config
     from saml_ros.demo.evaluation import run_task_and_guard
     from saml_ros.demo.landing import plant
@@ -180,6 +180,7 @@ def test_the_demo_world_is_in_the_simulator_the_oracle_and_the_evaluation(tmp_pa
     assert isinstance(sim_system, Quadrotor)
     assert sim_system.params() == task.system().params()
     sim = get_entry("quadrotor").simulator(sim_system, SimConfig(mode="lockstep", seed=0), p)
+    assert isinstance(sim, SteppedSim)
     # a state in the wind (3 m up, between the wind's extremes), a state in the ground effect, one in between
     rng = np.random.default_rng(0)
     xs = np.stack([sim_system.hover_state((0.3, -0.2, z)) for z in (3.0, 1.7, 0.6)])
