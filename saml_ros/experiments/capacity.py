@@ -23,7 +23,8 @@ and on the demo's task, closed loop:
   (1.5 x the largest residual in the seed's data, as the online learner records it).
 * **Closed loop**: every model flies the demo's evaluation starts (``eval_starts`` from the simulator's sampler,
   the demo's seeds) with the demo's guard (ensembles: disagreement, bound, roll back, infeasible-plan fallback;
-  single nets: the same without the disagreement check, which needs members), beside the base model f_hat and the
+  single nets: the same without the disagreement check, which needs members; the MPC plans with member 0 in both,
+  as the demo's, so an ensemble costs the solve nothing and differs from its single net only by the check), beside the base model f_hat and the
   oracle (the true dynamics in the same MPC) on the same starts. Reported per size, method and kind: the landing
   error (mean over the starts per seed, then a t interval over the seeds: starts are nested in seeds), the share of
   the oracle's headroom captured ((base - model) / (base - oracle) per seed, t interval over seeds), SA - UA with
@@ -72,7 +73,8 @@ class CapacitySettings:
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     #: members of each seed's ensemble (the demo learner's ``model.ensemble``); member 0 is the single net
     ensemble: int = 5
-    #: what is flown: ``"single"`` (member 0, guarded without the disagreement check) and ``"ens"`` (the ensemble)
+    #: what is flown: ``"single"`` (member 0, guarded without the disagreement check) and ``"ens"`` (the ensemble
+    #: as the demo flies it: the MPC plans with member 0, the other members feed the guard's disagreement check)
     kinds: tuple[str, ...] = ("single", "ens")
     #: simulated seconds of recorded flight per seed (the demo's live loop: 180 s, 36 episodes)
     data_time: float = 180.0
