@@ -418,17 +418,17 @@ def _guard_sum(res: dict[str, Any], names: list[str]) -> dict[str, float]:
 
 
 def recommend(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per method and kind, the smallest size (in solve time) whose captured share of the headroom is >= ENOUGH,
-    and its solve time beside the largest size's."""
+    """Per method and kind, the smallest net (fewest weights; the small nets' solve times differ by less than the
+    timing noise) whose captured share of the headroom is >= ENOUGH, and its solve time beside the largest's."""
     out: dict[str, Any] = {}
     for kind in ("single", "ens"):
         mine = [r for r in rows if r["kind"] == kind]
         if not mine:
             continue
-        largest = max(mine, key=lambda r: r["solve_ms"]["mean_ms"])
+        largest = max(mine, key=lambda r: _n_params(r["hidden"]))
         for m in METHODS:
             ok = [r for r in mine if r["captured"][m].value >= ENOUGH]
-            best = min(ok, key=lambda r: r["solve_ms"]["mean_ms"]) if ok else None
+            best = min(ok, key=lambda r: _n_params(r["hidden"])) if ok else None
             out[f"{m} {kind}"] = None if best is None else {
                 "size": best["size"], "solve_ms": best["solve_ms"]["mean_ms"],
                 "captured": best["captured"][m], "largest": largest["size"],
