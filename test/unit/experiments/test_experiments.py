@@ -393,3 +393,22 @@ def test_capacity_sweep_quick(tmp_path: Path) -> None:
     assert set(saved["recommendation"]) == {"SA single", "UA single", "SA ens", "UA ens"}
     for sd in ("0", "1"):
         assert saved["data"][sd]["transitions"] > 0
+
+
+def test_capacity_recommends_the_smallest_net_by_weights_not_by_noisy_solve_time() -> None:
+    """Small nets solve in the same time within noise: the recommendation is the net with the fewest weights among
+    those capturing >= 90 % of the headroom (here 8-8, although 16-8 measured faster), per method and kind."""
+    from saml_ros.experiments.capacity import recommend
+    from saml_ros.experiments.headroom import Estimate
+
+    def row(hidden: list[int], ms: float, sa: float, ua: float) -> dict[str, Any]:
+        return {"size": "-".join(map(str, hidden)), "hidden": hidden, "kind": "single", "solve_ms": {"mean_ms": ms},
+                "captured": {"SA": Estimate(sa, sa - 0.05, sa + 0.05, 5), "UA": Estimate(ua, ua - 0.05, ua + 0.05, 5)}}
+
+    rows = [row([4, 4], 3.9, 0.5, 0.5), row([8, 8], 4.1, 0.93, 0.82), row([16, 8], 3.8, 0.91, 0.92),
+            row([64, 64], 10.7, 0.96, 0.97)]
+    rec = recommend(rows)
+    assert rec["SA single"]["size"] == "8-8" and rec["UA single"]["size"] == "16-8"
+    assert rec["SA single"]["largest"] == "64-64" and rec["SA single"]["largest_solve_ms"] == 10.7
+    assert "SA ens" not in rec  # no ensemble rows
+    assert recommend([row([4, 4], 3.9, 0.5, 0.5)])["SA single"] is None
