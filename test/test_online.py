@@ -19,6 +19,7 @@ from msg_schemas.telemetry import REJECT_REASONS, model_error_names
 from saml_ros.core.checkpoint import CheckpointStore, atomic_write
 from saml_ros.core.child_launch import launch_child
 from saml_ros.core.online import (
+    HeldoutConfig,
     LearnerSetup,
     LoopConfig,
     OnlineConfig,
@@ -43,6 +44,7 @@ def config(**kw: object) -> OnlineConfig:
         "train": TrainConfig(batch_size=64, primal_lr=3e-3, dual_lr=1e-2),
         "buffer_capacity": 5000,
         "telemetry_window": 300,
+        "heldout": HeldoutConfig(fraction=0.0),  # these tests count transitions: none held out (test_heldout_online)
     }
     base.update(kw)
     return OnlineConfig(**base)  # type: ignore[arg-type]
