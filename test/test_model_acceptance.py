@@ -68,7 +68,7 @@ def _save(store: CheckpointStore, model: DynamicsModel, evidence: DataEvidence |
 
 def test_the_reasons_are_the_documented_ones() -> None:
     assert REFUSAL_REASONS == CHECKPOINT_REFUSAL_REASONS
-    assert ACCEPTANCE_REASONS == ("non_finite", "implausible", "residual")
+    assert ACCEPTANCE_REASONS == ("non_finite", "implausible", "residual", "heldout")
 
 
 def test_evidence_statistics_merge_and_round_trip(tmp_path: Path) -> None:

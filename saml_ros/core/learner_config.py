@@ -12,6 +12,7 @@ Importing this module imports no torch: the learner node imports it before its t
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -76,8 +77,21 @@ _HEAD: tuple[Param, ...] = (
 _TAIL: tuple[Param, ...] = (
     Param("buffer.capacity", 100_000, "replay buffer capacity (transitions)"),
     Param("buffer.policy", "fifo", "eviction when full: 'fifo' (keep the newest) or 'reservoir'"),
-    Param("min_transitions", 1000, "transitions before training starts; the input/output normalisation is "
-                                   "fitted on them once and frozen"),
+    Param("min_transitions", 1000, "training transitions before training starts; the input/output normalisation is "
+                                   "fitted on them (and refitted when the data drifts, normalization.refit)"),
+    Param("normalization.refit", True, "refit the input/output normalisation on the replay buffer when its spread or "
+                                       "centre moved by more than a factor 2 / one spread, keeping the model's "
+                                       "function; false: fitted once on the first min_transitions and frozen"),
+    Param("heldout.period", 10.0, "s of stream time per held-out cycle: the last heldout.fraction of every cycle "
+                                  "is held out (never trained on) and the verdicts are read on it"),
+    Param("heldout.fraction", 0.2, "share of every heldout.period held out, in [0, 0.5]; 0 = none (no held-out "
+                                   "verdict)"),
+    Param("heldout.capacity", 25_000, "held-out transitions kept (the newest)"),
+    Param("heldout.eval_period", 1.0, "s (wall clock) between two evaluations on the held-out stretches (telemetry, "
+                                      "/diagnostics); every checkpoint is evaluated when written"),
+    Param("updates_per_transition", 0.0, "at most this many primal-dual updates per training transition received "
+                                         "since training started (0 = no limit): training waits for new data "
+                                         "instead of memorising the buffer"),
     Param("updates_per_second", 0.0, "primal-dual updates per wall-clock second (0 = as fast as possible)"),
     Param("checkpoint_period", 10.0, "wall-clock seconds between checkpoints (only when there are new updates)"),
     Param("checkpoint_keep", 5, "checkpoint files kept in run_dir (older ones are pruned)"),
@@ -160,6 +174,12 @@ class LearnerConfig:
     health_explode_ratio: float = 1e4
     health_max_weight: float = 1e6
     health_error_after: int = 100
+    normalization_refit: bool = True
+    heldout_period: float = 10.0
+    heldout_fraction: float = 0.2
+    heldout_capacity: int = 25_000
+    heldout_eval_period: float = 1.0
+    updates_per_transition: float = 0.0
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -189,6 +209,12 @@ class LearnerConfig:
         check(p["pairing.window"] >= 2, "pairing.window", ">= 2", p["pairing.window"])
         check(1 <= p["model.ensemble"] <= 64, "model.ensemble", "in 1..64", p["model.ensemble"])
         check(0 <= p["training_niceness"] <= 19, "training_niceness", "in 0..19", p["training_niceness"])
+        for name in ("heldout.period", "heldout.eval_period"):
+            check(math.isfinite(p[name]) and p[name] > 0, name, "> 0 s", p[name])
+        check(0 <= p["heldout.fraction"] <= 0.5, "heldout.fraction", "in [0, 0.5]", p["heldout.fraction"])
+        check(p["heldout.capacity"] >= 1, "heldout.capacity", ">= 1", p["heldout.capacity"])
+        check(math.isfinite(p["updates_per_transition"]) and p["updates_per_transition"] >= 0,
+              "updates_per_transition", ">= 0 (0 = no limit)", p["updates_per_transition"])
         nss = [normalize_namespace(n) for n in p["namespaces"]] or [normalize_namespace(node_namespace)]
         check(len(set(nss)) == len(nss), "namespaces", "a list without repetitions", nss)
         config = cls(
@@ -205,7 +231,10 @@ class LearnerConfig:
             train_threads=p["train_threads"], system_file=p["system_file"], model_ensemble=p["model.ensemble"],
             uniform=p["uniform"], plausible_bounds=p["plausible_bounds"],
             health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
-            health_error_after=p["health.error_after"],
+            health_error_after=p["health.error_after"], normalization_refit=p["normalization.refit"],
+            heldout_period=p["heldout.period"], heldout_fraction=p["heldout.fraction"],
+            heldout_capacity=p["heldout.capacity"], heldout_eval_period=p["heldout.eval_period"],
+            updates_per_transition=p["updates_per_transition"],
         )
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
@@ -330,7 +359,7 @@ class LearnerConfig:
             ValueError: an invalid learner, buffer, pairing or loop setting.
         """
         from saml_ros.core.model_io import system_params
-        from saml_ros.core.online import LearnerSetup, LoopConfig, OnlineConfig
+        from saml_ros.core.online import HeldoutConfig, LearnerSetup, LoopConfig, OnlineConfig
         from saml_ros.core.pairing import PairingConfig
 
         bounds = self.plausibility(system)
@@ -341,6 +370,10 @@ class LearnerConfig:
                 min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
                 checkpoint_keep=self.checkpoint_keep, n_models=self.model_ensemble,
                 plausible_bounds=self.plausible_bounds, health=self.health_config(),
+                heldout=HeldoutConfig(period=self.heldout_period, fraction=self.heldout_fraction,
+                                      capacity=self.heldout_capacity),
+                heldout_period=self.heldout_eval_period, updates_per_transition=self.updates_per_transition,
+                renormalize=self.normalization_refit,
             )
             own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
             pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(

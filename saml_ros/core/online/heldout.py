@@ -183,11 +183,12 @@ class HeldoutReport:
 
         ob = self.objective
         out = {"heldout_size": float(self.n), "heldout_objective": ob.model[member].mean,
-               "heldout_objective_base": ob.base.mean}
+               "heldout_objective_base": ob.base.mean, "heldout_updates": float(self.updates)}
         for t in self.constraints:
             est = t.model[member]
             out[f"heldout/{t.name}"] = est.mean
             out[f"heldout_se/{t.name}"] = est.se
+            out[f"heldout_upper/{t.name}"] = est.upper()
             out[f"heldout_n/{t.name}"] = float(est.n)
             out[f"heldout_base/{t.name}"] = t.base.mean
             out[f"training_lhs/{t.name}"] = t.training[member]

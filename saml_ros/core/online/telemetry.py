@@ -46,6 +46,8 @@ EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
     ("heldout", "loss", "the left-hand side of constraint k (e.g. the in-region error) on the held-out stretches "
                         "(member 0; NaN: none in the region yet)"),
     ("heldout_se", "loss", "its standard error (batch means over the held-out stretches)"),
+    ("heldout_upper", "loss", "the upper end of its one-sided 95 % interval, heldout + 1.645 heldout_se: met when "
+                              "at most eps_k"),
     ("heldout_n", "count", "held-out transitions inside region k"),
     ("heldout_base", "loss", "f_hat's left-hand side on the same held-out stretches"),
     ("training_lhs", "loss", "the same left-hand side on the training buffer (a sample of it)"),
