@@ -134,7 +134,8 @@ def test_a_model_that_fits_its_stream_but_fails_the_heldout_stretches_is_never_r
     learner2.add_batch(x, u, y, stamp=stamp, source=0)
     learner2.update(4000)
     rep = learner2.evaluate_heldout()
-    assert rep is not None and rep.constraints[0].verdicts == [MET], rep.constraints[0]
+    assert rep is not None
+    assert rep.constraints[0].verdicts == [MET], rep.constraints[0]
 
 
 def test_checkpoint_records_model_and_f_hat_on_the_same_heldout_stretches(tmp_path: Path) -> None:
@@ -293,7 +294,8 @@ def test_model_inputs_chosen_in_the_system_file() -> None:
            for a in (x, shifted)]
     torch.testing.assert_close(phi[0], phi[1])
     np.testing.assert_allclose(NumpyMLP(model).forward(x, u), phi[0][0].detach().double().numpy(), atol=1e-5)
-    bad = [({"inputs": ["yaw", "speed"]}, "model.inputs[1]", "'speed' is not a state or control field"),
+    bad: list[tuple[dict[str, Any], str, str]] = [
+           ({"inputs": ["yaw", "speed"]}, "model.inputs[1]", "'speed' is not a state or control field"),
            ({"inputs": ["yaw", "yaw"]}, "model.inputs[1]", "listed twice"),
            ({"inputs": []}, "model.inputs", "non-empty list"),
            ({"inputs": "yaw"}, "model.inputs", "non-empty list")]

@@ -34,8 +34,8 @@ from saml_ros.core.spec import ProblemSpec, Term
 from saml_ros.core.training.heldout import (
     NO_HELDOUT,
     STREAM_BLOCKS,
-    Z,
     Estimate,
+    Z,
     constraint_estimate,
     heldout_verdict,
 )
