@@ -79,9 +79,10 @@ _TAIL: tuple[Param, ...] = (
     Param("buffer.policy", "fifo", "eviction when full: 'fifo' (keep the newest) or 'reservoir'"),
     Param("min_transitions", 1000, "training transitions before training starts; the input/output normalisation is "
                                    "fitted on them (and refitted when the data drifts, normalization.refit)"),
-    Param("normalization.refit", True, "refit the input/output normalisation on the replay buffer when its spread or "
-                                       "centre moved by more than a factor 2 / one spread, keeping the model's "
-                                       "function; false: fitted once on the first min_transitions and frozen"),
+    Param("normalization.refit", True, "refit the input/output normalisation on the replay buffer when a spread grew "
+                                       "by more than a factor 2 or a centre moved by more than one spread, keeping "
+                                       "the model's function; false: fitted once on the first min_transitions and "
+                                       "frozen"),
     Param("heldout.period", 10.0, "s of stream time per held-out cycle: the last heldout.fraction of every cycle "
                                   "is held out (never trained on) and the verdicts are read on it"),
     Param("heldout.fraction", 0.2, "share of every heldout.period held out, in [0, 0.5]; 0 = none (no held-out "

@@ -231,15 +231,19 @@ class DynamicsModel(nn.Module):
         self.out_std.copy_(ostd.expand_as(self.out_std).to(dt))
 
     @torch.no_grad()
-    def normalization_of(self, x: Any, u: Any, y: Any, min_std: float = 1e-6) -> tuple[
+    def normalization_of(self, x: Any, u: Any, y: Any, min_std: float = 1e-6, robust: bool = False) -> tuple[
             torch.Tensor, torch.Tensor, torch.Tensor]:
         """What :meth:`fit_normalization` would set, from ``(N, .)`` or ``(E, N, .)`` data, float64: input mean and
-        std ``(..., 1, n_in)`` and output scale ``(..., 1, n_y)``; nothing is changed."""
+        std ``(..., 1, n_in)`` and output scale ``(..., 1, n_y)``; nothing is changed. ``robust``: each column is
+        first clipped to its 1st..99th percentile, so a few absurd rows (a sensor glitch the plausible range let
+        through) do not set the scale."""
         xt, ut, yt = (torch.as_tensor(np.asarray(a), dtype=torch.float64) for a in (x, u, y))
         if xt.shape[-2] < 2:
             raise ValueError("fit_normalization needs at least 2 samples")
         z = self.select_inputs(torch.cat([xt, ut], -1))
         resid = yt - self.base(xt, ut).double() if self.kind == "residual" else yt
+        if robust:
+            z, resid = _clip_tails(z), _clip_tails(resid)
         std = z.std(-2, keepdim=True).clamp_min(min_std)
         floor = self.input_floor()
         if floor is not None:
@@ -321,6 +325,14 @@ class DynamicsModel(nn.Module):
         src = self.state_dict()
         m.load_state_dict({k: v[i : i + 1].clone() for k, v in src.items()})
         return m.to(self.in_mean.dtype)
+
+
+def _clip_tails(a: torch.Tensor, q: float = 0.01) -> torch.Tensor:
+    """``a`` ``(..., N, d)`` with each column clipped to its ``q`` .. ``1 - q`` quantiles (non-finite values too)."""
+    a = torch.nan_to_num(a, nan=0.0, posinf=torch.finfo(a.dtype).max, neginf=-torch.finfo(a.dtype).max)
+    lo = torch.quantile(a, q, dim=-2, keepdim=True)
+    hi = torch.quantile(a, 1.0 - q, dim=-2, keepdim=True)
+    return torch.minimum(torch.maximum(a, lo), hi)
 
 
 @torch.no_grad()

@@ -59,8 +59,8 @@ RESIDUAL_FLOOR = 1e-3
 #: the ``meta["learner"]`` key it is recorded under (read by :func:`saml_ros.core.mpc.guard.residual_bound`)
 RESIDUAL_BOUND_KEY = "residual_bound"
 #: the normalisation is refitted (the function kept, :meth:`DynamicsModel.renormalize`) when the training buffer's
-#: spread of an input or of the residual differs from the fitted one by more than this factor, or the mean of an
-#: input moved by more than the fitted spread
+#: spread of an input or of the residual grew beyond this factor times the fitted one, or the mean of an input moved
+#: by more than the fitted spread (statistics clipped to the 1st..99th percentiles; a spread never shrinks)
 RENORM_FACTOR = 2.0
 
 
@@ -310,13 +310,22 @@ class OnlineLearner:
         if tr is None or not self.config.renormalize or len(rows.x) < self.config.min_transitions:
             return False
         model = self.model
-        mean, std, ostd = model.normalization_of(rows.x, rows.u, rows.y)
+        mean, std, ostd = model.normalization_of(rows.x, rows.u, rows.y, robust=True)
         old_m, old_s, old_o = (b[0].double() for b in (model.in_mean, model.in_std, model.out_std))
         ratio = torch.cat([(std / old_s).reshape(-1), (ostd / old_o).reshape(-1)])
         moved = ((mean - old_m).abs() / old_s).max()
-        if not (ratio.max() > RENORM_FACTOR or ratio.min() < 1.0 / RENORM_FACTOR or moved > 1.0):
+        if not (bool(torch.isfinite(ratio).all()) and bool(torch.isfinite(mean).all())):
             return False
+        if not (ratio.max() > RENORM_FACTOR or moved > 1.0):
+            return False
+        # a spread only grows: a narrower stretch of data must not blow up a field the model has seen move more
+        std, ostd = torch.maximum(std, old_s), torch.maximum(ostd, old_o)
+        saved = {k: v.clone() for k, v in model.state_dict().items()}
         rows_f, cols_f = model.renormalize(mean, std, ostd)
+        if not all(bool(torch.isfinite(v).all()) for v in model.state_dict().values()):
+            model.load_state_dict(saved)
+            log.warning("normalisation not refitted: the refitted weights would not be finite")
+            return False
         net = model.net
         for param, factor in ((net.weights[0], rows_f), (net.weights[-1], cols_f), (net.biases[-1], cols_f)):
             state = tr.primal_opt.state.get(param, {})
