@@ -182,7 +182,10 @@ def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, ru
                else "fresh start")
             + f"; training process pid {pid} ({ready.threads} torch thread(s), subnormals "
             + ("flushed" if ready.flush_denormal else "not flushed")
-            + f"); training starts after {p.min_transitions} transitions once active")
+            + f"); training starts after {p.min_transitions} transitions once active; "
+            + (f"held out (never trained on, verdicts read there): the last {p.heldout_fraction * p.heldout_period:g} s "
+               f"of every {p.heldout_period:g} s of the stream" if p.heldout_fraction > 0 else
+               "no held-out stretches (heldout.fraction 0): no held-out verdict"))
 
 
 def paused_message(paused: Saved) -> str:
