@@ -345,6 +345,10 @@ DIAGNOSTICS_REASON_DOCS: tuple[tuple[str, str, str], ...] = (
      "reason: " + ", ".join(TRAINING_SKIP_REASONS) + "; train_health/skipped (all), train_health/restores (weights "
      "restored), train_health/unhealthy_streak (consecutive skipped steps: WARN after one, ERROR from "
      "health.error_after on), checkpoints_unhealthy (checkpoints not written: the model was not healthy)"),
+    ("checkpoint_write_error", "1", "learner: while checkpoint writes fail (a full or read-only disk; level ERROR): "
+     "the OS message, the path, the failed writes in a row, the time since the last good checkpoint and until the "
+     "next attempt (text; \"\" while writes succeed); checkpoint_write_failures (in a row), checkpoint_write_errors "
+     "(so far), checkpoint_age_s, checkpoint_write_seconds, unsaved_updates (docs/learner.md)"),
     ("feasibility/<k>", "1", "learner: the verdict on constraint k read on the held-out stretches of the stream (text, "
      "not plottable; docs/learner.md): met (the upper end of the 95 % interval at most eps_k) OK; unconfirmed, met on "
      "training data only, no held-out data WARN; not met WARN while training has not converged, else ERROR; pending "
@@ -355,6 +359,8 @@ DIAGNOSTICS_REASON_DOCS: tuple[tuple[str, str, str], ...] = (
     ("reachable/<k>", "loss", "learner: the left-hand side g_k + eps_k the model reaches now"),
     ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback) to the previous model, else "
      "f_hat; guard_rolled_back_versions lists the versions never used again"),
+    ("models_retired", "count", "mpc: models in use that failed the acceptance re-check on the states flown (not "
+     "used any more); checkpoints_reannounced: checkpoints holding the model in use again (nothing done)"),
 )
 
 

@@ -11,9 +11,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from saml_ros.core.params import Param
+from saml_ros.core.params import LIVE, Param, Problems, read_params
+from saml_ros.core.plausibility import parse_overrides
 from saml_ros.core.systems import default_params
-from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS, SimConfig
+from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS, MODES, SimConfig
 
 #: parameters of every simulator node (a binding may override a default by listing the same name)
 COMMON_PARAMS: tuple[Param, ...] = (
@@ -27,9 +28,9 @@ COMMON_PARAMS: tuple[Param, ...] = (
                                    "applying the held command / safe default (counted as a miss)"),
     Param("max_speed", 0.0, "lockstep: at most this many simulated seconds per wall second (0 = as fast as the "
                             "slowest participant); keeps the CPU share of processes beside the loop, such as "
-                            "learners, per simulated second independent of the controller's speed"),
+                            "learners, per simulated second independent of the controller's speed", when=LIVE),
     Param("max_sim_time", 0.0, "simulated seconds after which the node exits (0 = run forever)"),
-    Param("episode_steps", 0, "steps per episode, then a new start state (0 = one endless episode)"),
+    Param("episode_steps", 0, "steps per episode, then a new start state (0 = one endless episode)", when=LIVE),
     Param("initial_state", [], "start state of every episode (the system's state vector); empty = drawn by "
                                "the start sampler"),
     Param("seed", 0, "seed of the start sampler (negative: fresh entropy)"),
@@ -44,7 +45,7 @@ COMMON_PARAMS: tuple[Param, ...] = (
                                             "subscriptions to wait for (learner, recorder) before the first state"),
     Param("cmd_reject_margin", 0.5, "commands further outside the control bounds than this fraction of the "
                                     "bounds' width are rejected; closer ones are clipped"),
-    Param("diagnostics_period", 1.0, "seconds between /diagnostics messages (wall clock)"),
+    Param("diagnostics_period", 1.0, "seconds between /diagnostics messages (wall clock)", when=LIVE),
     Param("executor", "events", "rclpy executor the node spins on: events (rclpy.experimental.EventsExecutor, "
                                 "faster per lockstep step, docs/performance.md) | single (SingleThreadedExecutor); "
                                 "the environment variable SAML_EXECUTOR overrides it"),
@@ -100,19 +101,34 @@ def as_param_default(value: Any) -> Any:
     return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
 
 
-def check_params(p: dict[str, Any]) -> None:
-    """Raise ``ValueError`` naming the first parameter of ``p`` out of range."""
+def check_params(p: dict[str, Any], problems: Problems | None = None) -> None:
+    """Check the ranges of the converted values ``p``: each problem recorded in ``problems``, or without it
+    ``ParamErrors`` naming every parameter out of range."""
     from saml_ros.nodes.runtime import EXECUTORS
 
-    if p["executor"] not in EXECUTORS:
-        raise ValueError(f"parameter 'executor' must be one of {list(EXECUTORS)}, got {p['executor']!r}")
+    own = Problems() if problems is None else problems
+    check = own.check
+    check(p["executor"] in EXECUTORS, "executor", f"one of {list(EXECUTORS)}", p["executor"])
+    check(p["mode"] in MODES, "mode", f"one of {list(MODES)}", p["mode"])
     for name in ("rate_hz", "diagnostics_period", "lockstep_timeout"):
-        if not p[name] > 0:
-            raise ValueError(f"parameter {name!r} must be > 0, got {p[name]}")
-    if p["start_delay"] < 0:
-        raise ValueError(f"parameter 'start_delay' must be >= 0, got {p['start_delay']}")
-    if not (math.isfinite(p["max_speed"]) and p["max_speed"] >= 0):
-        raise ValueError(f"parameter 'max_speed' must be >= 0 (0 = no limit), got {p['max_speed']}")
+        check(p[name] > 0, name, "> 0", p[name])
+    for name in ("start_delay", "cmd_timeout", "max_sim_time", "episode_steps", "cmd_reject_margin"):
+        check(p[name] >= 0, name, ">= 0", p[name])
+    check(math.isfinite(p["max_speed"]) and p["max_speed"] >= 0, "max_speed", ">= 0 (0 = no limit)", p["max_speed"])
+    with own.capture("plausible_bounds", prefix="parameter 'plausible_bounds': "):
+        parse_overrides(p["plausible_bounds"])
+    if problems is None:
+        own.raise_if_any()
+
+
+def read_sim_params(binding: SimBinding, values: dict[str, Any]) -> dict[str, Any]:
+    """The simulator node's parameter values ``values`` (by name) converted to their types and checked
+    (:func:`check_params`); ``ParamErrors`` naming every bad one."""
+    problems = Problems()
+    p = read_params(binding.param_table(), values, problems)
+    check_params(p, problems)
+    problems.raise_if_any()
+    return p
 
 
 def config_from_params(p: dict[str, Any], t0_ns: int = LOCKSTEP_T0_NS) -> SimConfig:

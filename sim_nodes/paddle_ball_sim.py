@@ -7,7 +7,7 @@ these parameters by :func:`saml_ros.core.worlds.paddle_sim.paddle_ball_simulator
 
 from __future__ import annotations
 
-from saml_ros.core.params import Param
+from saml_ros.core.params import LIVE, Param
 from sim_nodes.binding import SimBinding
 from sim_nodes.sim_node import run
 
@@ -16,7 +16,7 @@ BINDING = SimBinding(
     node_name="paddle_ball_sim",
     params=(
         Param("rate_hz", 100.0, "realtime: world updates per wall second (each advances 1 / rate_hz simulated s)"),
-        Param("episode_steps", 0, "impacts per episode, then a new drop (0 = until the ball is lost)"),
+        Param("episode_steps", 0, "impacts per episode, then a new drop (0 = until the ball is lost)", when=LIVE),
         Param("initial_state", [], "ball [px, py, pz (m), vx, vy, vz (m/s)] at every episode start; empty = a "
                                    "random bounce (PaddleBallWorld.reset_random)"),
         Param("timestep", 0.002, "MuJoCo physics step (s)"),

@@ -17,6 +17,7 @@ entry builds the core (``SystemEntry.simulator``).
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections.abc import Sequence
@@ -38,13 +39,13 @@ from msg_schemas.telemetry import (
     DiagnosticEntry,
     diagnostics_to_msg,
 )
-from saml_ros.core.params import coerce_param
 from saml_ros.core.systems import get_entry
 from saml_ros.core.worlds.pacing import Pacer
 from saml_ros.core.worlds.sim_core import (
     LOCKSTEP_T0_NS,
     Output,
 )
+from saml_ros.nodes.params import ParamGuard, start_params
 from saml_ros.nodes.runtime import (
     catch_stop_signals,
     exit_process,
@@ -52,7 +53,7 @@ from saml_ros.nodes.runtime import (
     shutdown,
     spin_until_stopped,
 )
-from sim_nodes.binding import SimBinding, check_params, config_from_params
+from sim_nodes.binding import SimBinding, config_from_params, read_sim_params
 from sim_nodes.emitters import make_emitters
 
 #: exit code for invalid parameters (as argparse's usage errors)
@@ -104,7 +105,8 @@ class SimNode(Node):
             self.create_timer(1.0 / p["rate_hz"], self._on_tick, clock=steady)
         # lockstep deadline and end-of-run checks; few timers, as each one costs time in every executor wait
         self.create_timer(min(0.05, p["lockstep_timeout"] / 4), self._on_housekeeping, clock=steady)
-        self.create_timer(p["diagnostics_period"], self._publish_diagnostics, clock=steady)
+        self._diag_timer = self.create_timer(p["diagnostics_period"], self._publish_diagnostics, clock=steady)
+        self.params_guard = ParamGuard(self, binding.param_table(), self._check_values, self._apply_live)
         self.get_logger().info(
             f"{binding.system} simulator, {p['mode']}"
             + (f" at {p['rate_hz']:g} Hz" if not self.lockstep else f" (lockstep_timeout {p['lockstep_timeout']} s"
@@ -114,14 +116,24 @@ class SimNode(Node):
 
     # ---------------------------------------------------------------------------------------- parameters
     def _declare_parameters(self) -> dict[str, Any]:
-        descriptor_cls = RCLPY.cls("rcl_interfaces/msg/ParameterDescriptor")
-        out: dict[str, Any] = {}
-        for spec in self.binding.param_table():
-            descriptor = descriptor_cls(description=spec.description, dynamic_typing=True)
-            value = self.declare_parameter(spec.name, spec.default, descriptor).value
-            out[spec.name] = coerce_param(spec.name, value, spec.default, spec.item_type)
-        check_params(out)
-        return out
+        """Declare the binding's parameters (dynamically typed: each value is converted by the core), check them
+        and what the command line gives; ``ParamErrors`` naming every problem."""
+        return read_sim_params(self.binding, start_params(self, self.binding.param_table(), self._check_values,
+                                                          dynamic_typing=True))
+
+    def _check_values(self, values: dict[str, Any]) -> dict[str, Any]:
+        return read_sim_params(self.binding, values)
+
+    def _apply_live(self, live: dict[str, Any]) -> None:
+        """Parameters that apply at once: ``episode_steps`` (from the current episode on), ``max_speed`` (lockstep)
+        and ``diagnostics_period``."""
+        self.params.update(live)
+        if "episode_steps" in live:
+            self.core.config = dataclasses.replace(self.core.config, episode_steps=live["episode_steps"])
+        if "max_speed" in live and self.lockstep:
+            self._pacer.set_speed(live["max_speed"])
+        if "diagnostics_period" in live:
+            self._diag_timer.timer_period_ns = int(live["diagnostics_period"] * 1e9)
 
     # ---------------------------------------------------------------------------------------- publishing
     def _publish(self, outputs: list[Output]) -> None:
@@ -202,6 +214,7 @@ class SimNode(Node):
         steps = int(values.get("steps", 0))
         rate = (steps - int(self._last_diag.get("steps", 0))) / max(now - self._last_diag_time, 1e-9)
         values["steps_per_second"] = f"{rate:.1f}"
+        values["parameter_changes_refused"] = self.params_guard.refused
         if self._pacer.max_speed > 0:
             values["max_speed_waited_s"] = f"{self._pacer.waited_s:.2f}"
         warn = any(k.startswith(_WARN_PREFIXES) and values[k] != self._last_diag.get(k, 0) for k in values)

@@ -119,12 +119,14 @@ class Process:
 
 
 def launch(executable: str, *ros_args: str, env: dict[str, str] | None = None, namespace: str | None = None,
-           params_file: str | Path | None = None, log_dir: Path | None = None, args: Sequence[str] = ()) -> Process:
+           params_file: str | Path | None = None, log_dir: Path | None = None, args: Sequence[str] = (),
+           cwd: Path | None = None) -> Process:
     """Start saml_ros executable ``executable`` (see ``saml_ros/executables.py``) in a new process group.
 
     ``ros_args`` go after ``--ros-args`` (e.g. ``"-p", "mode:=lockstep"``); ``namespace`` adds
     ``-r __ns:=<namespace>`` and ``params_file`` ``--params-file``. ``args`` come before ``--ros-args``.
-    The environment is ``os.environ`` (so the test's ROS domain) updated with ``env``.
+    The environment is ``os.environ`` (so the test's ROS domain) updated with ``env``; the working directory is
+    the repository unless ``cwd`` is given.
     """
     cmd = [sys.executable, "-m", "saml_ros.executables", executable, *args]
     ros = list(ros_args)
@@ -141,7 +143,7 @@ def launch(executable: str, *ros_args: str, env: dict[str, str] | None = None, n
     log_dir = log_dir if log_dir is not None else Path(tempfile.mkdtemp(prefix="saml_ros_logs_"))
     log_path = log_dir / f"{executable}-{time.monotonic_ns()}.log"
     with open(log_path, "wb") as log:
-        popen = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=full_env, cwd=REPO,
+        popen = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=full_env, cwd=cwd or REPO,
                                  start_new_session=True)
     return Process(executable, popen, log_path)
 

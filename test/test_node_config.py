@@ -162,9 +162,9 @@ def test_learner_config_defaults_namespaces_system_and_spec(tmp_path: Path) -> N
     ({"train_threads": -1}, "parameter 'train_threads' must be >= 0"),
     ({"dt": math.inf}, "parameter 'dt': expected float"),
     ({"resume": 1}, "parameter 'resume': expected bool"),
-    ({"train.batch_size": 0}, r"parameters 'train\.\*': batch_size must be >= 1"),
+    ({"train.batch_size": 0}, r"parameter 'train\.batch_size': batch_size must be >= 1"),
     ({"train.epochs": 3}, r"unknown learner parameter\(s\) \['train.epochs'\]"),
-    ({"train.dual_method": "lagrange"}, r"parameters 'train\.\*': dual_method must be one of"),
+    ({"train.dual_method": "lagrange"}, r"parameter 'train\.dual_method': dual_method must be one of"),
     ({"train.primal_schedule": "cosine"}, r"parameters 'train\.\*': primal_schedule 'cosine' needs schedule_steps"),
 ])
 def test_learner_config_names_the_bad_parameter(values: dict, message: str) -> None:

@@ -164,6 +164,7 @@ BAD: list[tuple[str, Any, str]] = [
     ("base_model.builtin", "bicycle", r"base_model: .*unknown built-in 'bicycle'"),
     ("pairing.command_guard", 0.015, r"pairing: cmd_guard_ns .* must be less than half of dt_ns"),
     ("pairing.state", "cubic", r"pairing.state: expected one of"),
+    ("pairing.command", "latest", r"pairing.command: expected one of \['hold', 'answer_next_step', 'answer'\]"),
     ("colour", "red", r"unknown key\(s\) \['colour'\]"),
     ("control.topic", "odom", r"control.topic: the state and the control come on the same topic"),
     ("state.topic", "odom//x", r"state.topic: 'odom//x' is not a valid ROS topic name"),
@@ -175,6 +176,19 @@ BAD: list[tuple[str, Any, str]] = [
 def test_bad_configuration_names_the_problem(path: str, value: Any, message: str) -> None:
     with pytest.raises(SystemFileError, match=message):
         build(mutate(path, value))
+
+
+def test_pairing_command_rule() -> None:
+    """``pairing.command`` picks the rule for which command each interval gets (docs/your_robot.md)."""
+    assert build(example()).pairing().cmd_rule == "hold"  # the default: zero-order hold
+    raw = mutate("pairing.command", "answer")
+    s = build(raw)
+    assert s.pairing().cmd_rule == "answer" and s.definition["pairing"]["command"] == "answer"
+    assert system_from_params(s.params()).pairing().cmd_rule == "answer"  # a checkpoint keeps it
+    raw["dt"] = 0.01  # the odometry comes at 50 Hz: "answer" needs one state message per interval
+    with pytest.raises(SystemFileError, match=r"pairing: cmd_rule 'answer' pairs each state message with its "
+                                              r"answer: the state period \(0.02 s\) must equal dt \(0.01 s\)"):
+        build(raw)
 
 
 def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:

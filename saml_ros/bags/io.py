@@ -484,9 +484,11 @@ def repair_bag(src: str | Path, dst: str | Path | None = None) -> RepairResult:
     problems = []
     for mcap in files:
         got_footer = False
+        good_end = 0  # the byte offset after the last complete record
         try:
             with mcap.open("rb") as f:
                 for rec in StreamReader(f, record_size_limit=2**31).records:
+                    good_end = f.tell()
                     if isinstance(rec, Schema):
                         schemas[rec.id] = rec
                     elif isinstance(rec, Channel):
@@ -497,7 +499,7 @@ def repair_bag(src: str | Path, dst: str | Path | None = None) -> RepairResult:
                             recovered.append((ch, rec))
                 got_footer = True
         except Exception as exc:  # EndOfFile, bad record, ...: keep everything read before it
-            problems.append(f"{mcap.name}: {type(exc).__name__} {exc}".strip())
+            problems.append(_stopped_early(mcap, exc, good_end))
         complete = complete and got_footer
     if not recovered:
         raise BagError(f"bag {src_p}: no complete message could be recovered"
@@ -521,6 +523,24 @@ def repair_bag(src: str | Path, dst: str | Path | None = None) -> RepairResult:
             writer.write(ch.topic, msg_type, msg.data, msg.log_time)
             counts[ch.topic] = counts.get(ch.topic, 0) + 1
     return RepairResult(dst_p, sum(counts.values()), counts, complete, "; ".join(problems))
+
+
+def _stopped_early(mcap: Path, exc: Exception, good_end: int) -> str:
+    """Why reading ``mcap`` stopped before its footer, in words (not the MCAP reader's internal text, e.g. "unpack
+    requires a buffer of 8 bytes"); ``good_end``: the offset after the last complete record."""
+    import struct
+
+    from mcap.exceptions import EndOfFile
+
+    try:
+        size = f" of {mcap.stat().st_size}"
+    except OSError:
+        size = ""
+    if isinstance(exc, EndOfFile | struct.error):
+        return (f"{mcap.name}: the file ends inside a record after byte {good_end}{size} (the recording was cut off: "
+                "a killed recorder or a full disk); the records before it are recovered")
+    return (f"{mcap.name}: the data after byte {good_end}{size} is damaged ({type(exc).__name__}: {exc}); the records "
+            "before it are recovered")
 
 
 # ------------------------------------------------------------------------- rclpy conversions (lazy)

@@ -175,6 +175,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.node import Node
     from rclpy.utilities import remove_ros_args
 
+    from saml_ros.nodes.params import check_startup
+
     full = full_argv("play", argv)
     args = build_parser().parse_args(remove_ros_args(full)[1:])
     if args.rate < 0:
@@ -202,6 +204,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = catch_stop_signals()
     node = Node("play")
     try:
+        try:  # the player's options are its command-line arguments; ROS parameters only rclpy's own
+            check_startup(node, ())
+        except ValueError as exc:
+            print(f"play: {exc}", file=sys.stderr)
+            return 2
         player = Player(node, bag, topics, clock=clock)
         for t in player.skipped:
             print(f"play: skipping {t}: message type {bag.topics[t].msg_type} is not available", file=sys.stderr)

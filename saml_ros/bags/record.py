@@ -3,6 +3,7 @@
     record --system friction                       # /friction/** + /clock + /diagnostics -> rosbag2_<time>/
     record --system quadrotor --namespace /q1 /q2 -o runs/flight1
     record --topics /friction/state /clock -o bag  # exactly these topics
+    record --topics /dd/odom:nav_msgs/msg/Odometry -o bag   # ... subscribed at once, before anyone publishes
     record --all -o bag                            # every topic
 
 Messages are recorded with *raw* subscriptions: the CDR bytes DDS delivered are written as they are
@@ -10,6 +11,16 @@ Messages are recorded with *raw* subscriptions: the CDR bytes DDS delivered are 
 polled every ``--poll-period`` s, so topics that appear late are picked up; topics that disappear keep
 their subscription (and resume if they come back). Each topic is subscribed with the QoS its publishers
 offer (reliable / transient local when all of them are), and their offered profiles go into metadata.yaml.
+
+Topics that appear after the recorder started keep their first message when the recorder can subscribe
+*before* their publisher starts, as a subscriber that was there first does: a selected topic whose type is
+known, from ``--topics NAME:TYPE`` or from another node's subscription seen in the graph (the learner
+listening for the robot's odometry), is subscribed at once (reliable, volatile, keep all: the QoS every reliable
+publisher matches, volatile or transient local); the publisher then finds the recorder when it starts. When the
+publishers show up, a subscription they cannot match (they offer best effort) is made again with their QoS,
+and one that has received nothing yet from transient-local publishers is made again transient local (so it
+gets their history). A topic seen only once it is published is subscribed at the next poll: its first
+messages may be lost.
 Each new publisher is announced (``record: matched TOPIC ...``, counted as ``publishers_matched`` on
 /diagnostics): a publisher that starts sending before that line may lose its first messages to DDS (it
 sees the recorder a moment before the recorder sees it, and a volatile reader drops what comes between).
@@ -18,7 +29,9 @@ The log time of a message is when it arrived at the recorder (the middleware's r
 clock; the recorder's simulated time with ``--use-sim-time`` or ``--ros-args -p use_sim_time:=true``). ``play`` replays with those times.
 
 Durability: the pending MCAP chunk is written and the file flushed every ``--flush-period`` s (default
-0.5), so a crash (SIGKILL, power cut aside) loses at most that much. SIGINT / SIGTERM first write what the
+0.5), so a crash (SIGKILL, power cut aside) loses at most that much. A write that fails (a full or read-only disk)
+stops the recording at once (one error line, ERROR on /diagnostics) and the recorder exits 1; where the bag can no
+longer be finished it says so and the messages flushed before are recovered with ``bag_info --repair``. SIGINT / SIGTERM first write what the
 middleware already delivered (until nothing new arrived for 0.3 s, at most 5 s), then finish the bag
 (footer + metadata.yaml) and exit 0. A bag of a killed recorder is recovered with ``bag_info --repair``.
 """
@@ -63,7 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "default namespace /<system>; stored in metadata.yaml custom_data")
     p.add_argument("--namespace", nargs="+", default=[], metavar="NS",
                    help="system namespace(s) to record (every topic under each, plus /clock and /diagnostics)")
-    p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="record exactly these topics")
+    p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
+                   help="record exactly these topics; TOPIC:TYPE (e.g. /odom:nav_msgs/msg/Odometry) subscribes at "
+                        "once, before the topic has a publisher, so its first message is kept")
     p.add_argument("--regex", help="also record topics matching this regular expression")
     p.add_argument("--all", action="store_true", help="record every topic")
     p.add_argument("--exclude", help="never record topics matching this regular expression")
@@ -82,7 +97,20 @@ class TopicSelector:
     def __init__(self, *, namespaces: Sequence[str], topics: Sequence[str], regex: str | None,
                  all_topics: bool, exclude: str | None) -> None:
         self.prefixes = tuple(normalize_namespace(ns).rstrip("/") + "/" for ns in namespaces)
-        self.exact = set(topics) | (set(GLOBAL_DEFAULT_TOPICS) if namespaces else set())
+        #: ``--topics NAME:TYPE``: the types given (subscribed before the topic exists in the graph)
+        self.types: dict[str, str] = {}
+        names = []
+        for t in topics:
+            name, sep, msg_type = str(t).partition(":")
+            if sep:
+                from msg_schemas.field_path import FieldPathError, check_message_type
+
+                try:
+                    self.types[name] = check_message_type(msg_type)
+                except FieldPathError as exc:
+                    raise ValueError(f"--topics {t}: {exc}") from None
+            names.append(name)
+        self.exact = set(names) | (set(GLOBAL_DEFAULT_TOPICS) if namespaces else set())
         self.regex = re.compile(regex) if regex else None
         self.all = all_topics
         self.exclude = re.compile(exclude) if exclude else None
@@ -116,6 +144,9 @@ class Recorder:
         self.select = select
         self.queue_depth = int(queue_depth)
         self.subscriptions: dict[tuple[str, str], Any] = {}
+        #: subscriptions made before their topic had a publisher: their QoS is settled when publishers show up
+        self.early: dict[tuple[str, str], str] = {}
+        self.received: dict[tuple[str, str], int] = {}
         self.skipped: set[tuple[str, str]] = set()
         self.counters: dict[str, int] = {"messages": 0, "bytes": 0, "topics": 0, "skipped_topics": 0,
                                          "write_errors": 0, "publishers_matched": 0}
@@ -141,19 +172,47 @@ class Recorder:
 
     # -- discovery
     def poll(self) -> None:
-        """Subscribe to every selected topic that has a publisher and is not yet subscribed."""
-        for topic, types in self.node.get_topic_names_and_types():
+        """Subscribe to every selected topic with a known type that is not yet subscribed: with its publishers'
+        QoS if it has publishers, else at once (see the module docstring); settle early subscriptions' QoS."""
+        graph = {topic: list(types) for topic, types in self.node.get_topic_names_and_types()}
+        for topic, msg_type in self.select.types.items():
+            if msg_type not in graph.setdefault(topic, []):
+                graph[topic].append(msg_type)
+        for topic, types in graph.items():
             if not self.select(topic):
                 continue
             for msg_type in types:
                 key = (topic, msg_type)
-                if key in self.subscriptions or key in self.skipped:
+                if key in self.skipped or (key in self.subscriptions and key not in self.early):
                     continue
                 publishers = self.node.get_publishers_info_by_topic(topic)
                 publishers = [p for p in publishers if p.topic_type == msg_type]
-                if not publishers:
-                    continue  # only subscribers so far: the offered QoS is unknown; look again next poll
-                self._subscribe(topic, msg_type, publishers)
+                if key in self.early:
+                    if publishers:
+                        self._settle(topic, msg_type, publishers)
+                elif publishers:
+                    self._subscribe(topic, msg_type, publishers)
+                else:  # nobody publishes it yet: be there when its publisher starts
+                    self._subscribe(topic, msg_type, [])
+
+    def _settle(self, topic: str, msg_type: str, publishers: list[Any]) -> None:
+        """An early subscription's publishers have shown up: make it again with their QoS if it cannot match them
+        (best effort), or to get their history (transient local) while it has received nothing."""
+        from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+        key = (topic, msg_type)
+        offered = [p.qos_profile for p in publishers]
+        # before any publisher (offered = []): reliable, volatile, the default of ROS 2 publishers
+        reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+        transient = bool(offered) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+        del self.early[key]
+        if reliable and not (transient and not self.received.get(key)):
+            return
+        self.node.destroy_subscription(self.subscriptions.pop(key))
+        self.counters["topics"] -= 1
+        why = "best effort" if not reliable else "transient local (for their history)"
+        print(f"record: subscribing {topic} again: its publishers offer {why}", flush=True)
+        self._subscribe(topic, msg_type, publishers)
 
     def _subscribe(self, topic: str, msg_type: str, publishers: list[Any]) -> None:
         from rclpy.event_handler import SubscriptionEventCallbacks
@@ -167,8 +226,9 @@ class Recorder:
             self.node.get_logger().warning(f"not recording {topic}: message type {msg_type} is not available")
             return
         offered = [p.qos_profile for p in publishers]
+        # before any publisher (offered = []): reliable, volatile, the default of ROS 2 publishers
         reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
-        transient = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+        transient = bool(offered) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
         # Reliable topics are read KEEP_ALL: DDS then acknowledges a sample only once it fits in the queue,
         # so a writer that waits for acknowledgements (``play --rate 0``) is slowed down instead of losing data.
         qos = QoSProfile(
@@ -177,14 +237,7 @@ class Recorder:
             reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
         )
-        type_hash = str(getattr(publishers[0], "topic_type_hash", "") or "")
-        try:
-            self.writer.add_topic(topic, msg_type, [qos_from_rclpy(q) for q in offered],
-                                  type_hash=type_hash if type_hash.startswith("RIHS01_") else None)
-        except BagError as exc:
-            self.skipped.add(key)
-            self.counters["skipped_topics"] += 1
-            self.node.get_logger().warning(f"not recording {topic}: {exc}")
+        if publishers and not self._declare(key, publishers):
             return
 
         def on_message(data: bytes, info: Any, _key: tuple[str, str] = key) -> None:
@@ -196,8 +249,34 @@ class Recorder:
         self.subscriptions[key] = self.node.create_subscription(
             cls, topic, on_message, qos, raw=True, event_callbacks=SubscriptionEventCallbacks(matched=on_matched))
         self.counters["topics"] += 1
+        if not publishers:
+            self.early[key] = ""
         print(f"record: recording {topic} ({msg_type}, {'reliable' if reliable else 'best effort'}"
-              f"{', transient local' if transient else ''})", flush=True)
+              f"{', transient local' if transient else ''}{'' if publishers else ', before it has a publisher'})",
+              flush=True)
+
+    def _declare(self, key: tuple[str, str], publishers: list[Any]) -> bool:
+        """Declare the topic in the bag with its publishers' offered QoS (once); ``False`` if it cannot be."""
+        topic, msg_type = key
+        if self.writer.has_topic(topic, msg_type):
+            return True
+        from rclpy.qos import QoSProfile
+
+        offered = [p.qos_profile for p in publishers] or [QoSProfile(depth=10)]  # unknown yet: ROS 2's default
+        type_hash = str(getattr(publishers[0], "topic_type_hash", "") or "") if publishers else ""
+        try:
+            self.writer.add_topic(topic, msg_type, [qos_from_rclpy(q) for q in offered],
+                                  type_hash=type_hash if type_hash.startswith("RIHS01_") else None)
+        except BagError as exc:
+            self.skipped.add(key)
+            self.counters["skipped_topics"] += 1
+            self.node.get_logger().warning(f"not recording {topic}: {exc}")
+            if key in self.subscriptions:
+                self.node.destroy_subscription(self.subscriptions.pop(key))
+                self.counters["topics"] -= 1
+                self.early.pop(key, None)
+            return False
+        return True
 
     def _matched(self, topic: str, status: Any) -> None:
         """The subscription's matched status changed. Only from a "matched" line on is a publisher's data recorded:
@@ -216,6 +295,11 @@ class Recorder:
         # (a robot's cmd_vel) are paired on it, as the learner does live
         use_rmw = info is not None and not getattr(self._clock, "ros_time_is_active", False)
         t = int(info["received_timestamp"]) if use_rmw else self._clock.now().nanoseconds
+        self.received[key] = self.received.get(key, 0) + 1
+        if not self.writer.has_topic(*key):  # subscribed before its publisher: declared with the first message
+            publishers = [p for p in self.node.get_publishers_info_by_topic(key[0]) if p.topic_type == key[1]]
+            if not self._declare(key, publishers):
+                return
         try:
             self.writer.write(key[0], key[1], data, t)
         except Exception as exc:  # disk full, ...: stop cleanly so the data already written stays readable
@@ -258,6 +342,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.parameter import Parameter
     from rclpy.utilities import remove_ros_args
 
+    from saml_ros.nodes.params import check_startup
+
     full = full_argv("record", argv)
     args = build_parser().parse_args(remove_ros_args(full)[1:])
     init_rclpy(full)
@@ -265,6 +351,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     node = Node("record")
     writer: BagWriter | None = None
     try:
+        try:  # the recorder's options are its command-line arguments; ROS parameters only rclpy's own
+            check_startup(node, ())
+        except ValueError as exc:
+            print(f"record: {exc}", file=sys.stderr)
+            return 2
         if args.use_sim_time:
             node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
         namespaces = list(args.namespace)
@@ -285,14 +376,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ValueError as exc:
                 print(f"record: {exc}", file=sys.stderr)
                 return 2
+        try:
+            select = TopicSelector(namespaces=namespaces, topics=args.topics, regex=args.regex,
+                                   all_topics=args.all, exclude=args.exclude)
+        except ValueError as exc:
+            print(f"record: {exc}", file=sys.stderr)
+            return 2
         out = args.output or default_output()
         try:
             writer = BagWriter(out, custom_data=custom, flush_period=args.flush_period)
         except BagError as exc:
             print(f"record: {exc}", file=sys.stderr)
             return 1
-        select = TopicSelector(namespaces=namespaces, topics=args.topics, regex=args.regex,
-                               all_topics=args.all, exclude=args.exclude)
         rec = Recorder(node, writer, select, poll_period=args.poll_period, flush_period=args.flush_period,
                        queue_depth=args.queue_depth)
         print(f"record: writing {out} (Ctrl-C to stop)", flush=True)
@@ -300,7 +395,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # after the stop, what DDS already delivered (acknowledged to the publishers) is still written
         spin_until_stopped(node, stop, lambda: rec.error is None and time.monotonic() < deadline, announce=False,
                            drain=lambda: sum(writer.counts.values()) if rec.error is None else -1)
-        writer.close()
+        try:
+            writer.close()
+        except OSError as exc:  # a full or read-only disk: the footer and metadata.yaml cannot be written either
+            why = f"{rec.error}; the bag cannot be finished either" if rec.error else f"the bag cannot be finished ({exc})"
+            print(f"record: {why}: the messages flushed before the error are recovered with `bag_info --repair {out}`",
+                  file=sys.stderr, flush=True)
+            return 1
         counts = writer.counts
         print(f"record: wrote {sum(counts.values())} messages on {len(counts)} topics to {out}", flush=True)
         return 1 if rec.error else 0

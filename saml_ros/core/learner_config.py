@@ -15,14 +15,14 @@ import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, get_args
 
 from msg_schemas.names import join_topic, normalize_namespace
-from saml_ros.core.params import Param, check, read_params
+from saml_ros.core.params import LIVE, Param, Problems, memory_problems, read_params
 
 if TYPE_CHECKING:
     from msg_schemas.base import QosSpec, SystemSchema
-    from saml_ros.core.online import LearnerSetup, TrainingProcess
+    from saml_ros.core.online import LearnerSetup, LoopConfig, TrainingProcess
     from saml_ros.core.online.process import DecoderFactory
     from saml_ros.core.plausibility import Plausibility
     from saml_ros.core.spec import ProblemSpec
@@ -93,15 +93,17 @@ _TAIL: tuple[Param, ...] = (
     Param("updates_per_transition", 0.0, "at most this many primal-dual updates per training transition received "
                                          "since training started (0 = no limit): training waits for new data "
                                          "instead of memorising the buffer"),
-    Param("updates_per_second", 0.0, "primal-dual updates per wall-clock second (0 = as fast as possible)"),
-    Param("checkpoint_period", 10.0, "wall-clock seconds between checkpoints (only when there are new updates)"),
+    Param("updates_per_second", 0.0, "primal-dual updates per wall-clock second (0 = as fast as possible)",
+          when=LIVE),
+    Param("checkpoint_period", 10.0, "wall-clock seconds between checkpoints (only when there are new updates)",
+          when=LIVE),
     Param("checkpoint_keep", 5, "checkpoint files kept in run_dir (older ones are pruned)"),
     Param("run_dir", "", "checkpoint directory; empty = runs/<system> in the working directory"),
     Param("resume", True, "load the newest valid checkpoint of run_dir (weights, normalisation, lambda, optimizer "
                           "state, update count)"),
-    Param("telemetry_rate", 5.0, "learner/model_error messages per second (Hz)"),
+    Param("telemetry_rate", 5.0, "learner/model_error messages per second (Hz)", when=LIVE),
     Param("telemetry_window", 1000, "most recent transitions the live model error is computed on"),
-    Param("diagnostics_rate", 1.0, "/diagnostics messages per second (Hz)"),
+    Param("diagnostics_rate", 1.0, "/diagnostics messages per second (Hz)", when=LIVE),
     Param("dt", 0.0, "sampling period of the simulator / robot in s (0 = the system's default); pairs x_t with "
                      "x_{t+dt} and sets the base model's step"),
     Param("pairing.window", 1000, "newest states (per namespace) whose stamps are remembered for pairing; older "
@@ -188,20 +190,63 @@ class LearnerConfig:
         ``namespaces`` means the node's own namespace ``node_namespace``.
 
         Raises:
-            ValueError: an unknown system or parameter, or a value of the wrong type or out of range; the
-                message names the parameter.
+            ParamErrors (a ValueError): an unknown system or parameter, values of the wrong type or out of range; every bad
+                parameter is named.
         """
+        problems = Problems()
+        config = cls._read(values, node_namespace, problems)
+        problems.raise_if_any()
+        return config
+
+    @classmethod
+    def validated(cls, values: Mapping[str, Any], node_namespace: str = "/",
+                  load_file: Callable[[str], str] | None = None) -> tuple[LearnerConfig, System, ProblemSpec]:
+        """Every check of the parameter values the learner node makes at configure before it starts training:
+        :meth:`from_params`, :meth:`make_system`, :meth:`load_spec`, :meth:`plausibility` and the memory the
+        buffer, the minibatches and the telemetry window need (:meth:`memory_needs`). ``load_file(path)``: the
+        system name of a ``system_file`` (the node loads the file; the core imports no user code).
+
+        Raises:
+            ParamErrors: every problem found, each naming its parameter.
+        """
+        problems = Problems()
+        values = dict(values)
+        if values.get("system_file") and load_file is not None:
+            with problems.capture("system_file", "system"):
+                values["system"] = load_file(str(values["system_file"]))
+        config = cls._read(values, node_namespace, problems)
+        system: Any = None
+        spec: Any = None
+        if not problems.has("system", "dt"):
+            with problems.capture("system", "dt"):
+                system = config.make_system()
+        if system is not None:
+            with problems.capture("spec_file"):
+                spec = config.load_spec(system)
+            with problems.capture("plausible_bounds"):
+                config.plausibility(system)
+            if not problems.has("buffer.capacity", "train.batch_size", "model.ensemble", "model.hidden",
+                                "telemetry_window", "train.dtype", "heldout.capacity"):
+                for message in memory_problems(config.memory_needs(system)):
+                    problems.add(message)
+        problems.raise_if_any()
+        return config, system, spec
+
+    @classmethod
+    def _read(cls, values: Mapping[str, Any], node_namespace: str, problems: Problems) -> LearnerConfig:
+        """:meth:`from_params`, its problems recorded in ``problems`` (a bad value is replaced by its default)."""
+        from saml_ros.core.buffer import Policy
+        from saml_ros.core.models import MODEL_KINDS
         from saml_ros.core.systems.registry import get_entry
 
+        check = problems.check
         table = learner_params()
         unknown = sorted(set(values) - {p.name for p in table})
         if unknown:
-            raise ValueError(f"unknown learner parameter(s) {unknown}")
-        p = read_params(table, values)
-        try:
+            problems.add(f"unknown learner parameter(s) {unknown}", *unknown)
+        p = read_params(table, values, problems)
+        with problems.capture("system", prefix="parameter 'system': "):
             get_entry(p["system"])
-        except ValueError as exc:
-            raise ValueError(f"parameter 'system': {exc}") from None
         for name in ("telemetry_rate", "diagnostics_rate", "checkpoint_period"):
             check(p[name] > 0, name, "> 0", p[name])
         for name in ("updates_per_second", "dt", "pairing.tolerance", "train_threads"):
@@ -210,6 +255,16 @@ class LearnerConfig:
         check(p["pairing.window"] >= 2, "pairing.window", ">= 2", p["pairing.window"])
         check(1 <= p["model.ensemble"] <= 64, "model.ensemble", "in 1..64", p["model.ensemble"])
         check(0 <= p["training_niceness"] <= 19, "training_niceness", "in 0..19", p["training_niceness"])
+        # what the training process's OnlineConfig refuses, named here as parameters
+        check(p["model.kind"] in MODEL_KINDS, "model.kind", f"one of {list(MODEL_KINDS)}", p["model.kind"])
+        check(all(h >= 1 for h in p["model.hidden"]), "model.hidden", "a list of sizes >= 1", p["model.hidden"])
+        policies = list(get_args(Policy))
+        check(p["buffer.policy"] in policies, "buffer.policy", f"one of {policies}", p["buffer.policy"])
+        check(p["min_transitions"] >= 2, "min_transitions", ">= 2 (the normalisation needs a spread)",
+              p["min_transitions"])
+        check(p["buffer.capacity"] >= p["min_transitions"], "buffer.capacity",
+              f">= min_transitions ({p['min_transitions']})", p["buffer.capacity"])
+        check(p["telemetry_window"] >= 1, "telemetry_window", ">= 1", p["telemetry_window"])
         for name in ("heldout.period", "heldout.eval_period"):
             check(math.isfinite(p[name]) and p[name] > 0, name, "> 0 s", p[name])
         check(0 <= p["heldout.fraction"] <= 0.5, "heldout.fraction", "in [0, 0.5]", p["heldout.fraction"])
@@ -239,17 +294,51 @@ class LearnerConfig:
         )
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
-        config.train_config()  # validates train.*
-        config.health_config()
+        with problems.capture(*(n for n in p if n.startswith("train."))):
+            config.train_config()  # validates train.*
+        with problems.capture("health.explode_ratio", "health.max_weight", "health.error_after"):
+            config.health_config()
         return config
+
+    def memory_needs(self, system: System) -> list[tuple[str, str, int]]:
+        """``(parameter, what, bytes)`` of the learner's allocations that grow with a parameter (lower bounds):
+        the replay buffer (``buffer.capacity`` rows of x, u, y, stamp, source, sequence in float64 / int64), the
+        minibatches of one update (``train.batch_size`` x ``model.ensemble`` rows, drawn in float64 and converted,
+        with the network's activations and their gradients) and the telemetry window."""
+        width = system.state.size + system.control.size + system.target.size
+        hidden = sum(self.model_hidden or system.paper_hidden)
+        itemsize = 8 if self.train.get("dtype") == "float64" else 4
+        batch = int(self.train.get("batch_size", 1))
+        return [
+            ("buffer.capacity", f"a replay buffer of {self.buffer_capacity} transitions",
+             self.buffer_capacity * (width + 3) * 8),
+            ("train.batch_size", f"minibatches of {batch} transitions x {self.model_ensemble} ensemble member(s)",
+             batch * self.model_ensemble * (width * (8 + itemsize) + 3 * hidden * itemsize)),
+            ("telemetry_window", f"a window of {self.telemetry_window} transitions",
+             self.telemetry_window * width * 8),
+            ("heldout.capacity", f"a held-out set of {self.heldout_capacity} transitions",
+             self.heldout_capacity * (width + 3) * 8),
+        ]
+
+    def loop_config(self) -> LoopConfig:
+        """The training loop's pacing (``updates_per_second``, ``telemetry_rate``, ``checkpoint_period``: the
+        parameters a running learner applies at once, :meth:`TrainingProcess.set_loop
+        <saml_ros.core.online.TrainingProcess.set_loop>`)."""
+        from saml_ros.core.online import LoopConfig
+
+        return LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry_rate,
+                          checkpoint_period=self.checkpoint_period)
 
     def health_config(self) -> HealthConfig:
         """The :class:`~saml_ros.core.training.health.HealthConfig` of ``health.*``; ``ValueError`` naming them."""
         from saml_ros.core.training.health import HealthConfig
 
+        problems = Problems()
+        check = problems.check
         check(self.health_explode_ratio > 1, "health.explode_ratio", "> 1", self.health_explode_ratio)
         check(self.health_max_weight > 0, "health.max_weight", "> 0", self.health_max_weight)
         check(self.health_error_after >= 1, "health.error_after", ">= 1", self.health_error_after)
+        problems.raise_if_any()
         return HealthConfig(explode_ratio=self.health_explode_ratio, max_weight=self.health_max_weight,
                             error_after=self.health_error_after)
 
@@ -263,10 +352,19 @@ class LearnerConfig:
             raise ValueError(f"parameter 'plausible_bounds': {exc}") from None
 
     def train_config(self) -> TrainConfig:
-        """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; ``ValueError`` naming them if invalid."""
+        """The :class:`~saml_ros.core.training.TrainConfig` of ``train.*``; :class:`ParamErrors` naming every field
+        TrainConfig refuses on its own (``parameter 'train.<field>': ...``), else ``ValueError`` about their
+        combination (``parameters 'train.*': ...``)."""
         from saml_ros.core.training import TrainConfig
         from saml_ros.core.training.schedule import schedules_for
 
+        defaults = TrainConfig()
+        problems = Problems()
+        for name, value in self.train.items():  # each field alone: TrainConfig reports only its first problem
+            if name in TrainConfig.__dataclass_fields__ and value != getattr(defaults, name):
+                with problems.capture(f"train.{name}", prefix=f"parameter 'train.{name}': "):
+                    TrainConfig.from_dict({name: value})
+        problems.raise_if_any()
         try:
             config = TrainConfig.from_dict(self.train)
             schedules_for(config, 0)  # online: a step / cosine schedule needs train.schedule_steps
@@ -360,7 +458,7 @@ class LearnerConfig:
             ValueError: an invalid learner, buffer, pairing or loop setting.
         """
         from saml_ros.core.model_io import system_params
-        from saml_ros.core.online import HeldoutConfig, LearnerSetup, LoopConfig, OnlineConfig
+        from saml_ros.core.online import HeldoutConfig, LearnerSetup, OnlineConfig
         from saml_ros.core.pairing import PairingConfig
 
         bounds = self.plausibility(system)
@@ -381,8 +479,7 @@ class LearnerConfig:
                 system, target_pairing, tolerance=self.pairing_tolerance, window=self.pairing_window,
                 max_slots=max(10_000, 10 * self.pairing_window))
             pairing = dataclasses.replace(pairing, bounds=bounds)
-            loop = LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry_rate,
-                              checkpoint_period=self.checkpoint_period)
+            loop = self.loop_config()
         except TypeError as exc:
             raise ValueError(str(exc)) from None
         params = system_params(system)

@@ -28,6 +28,7 @@ HEALTH_KEYS: tuple[str, ...] = (
 if TYPE_CHECKING:
     from saml_ros.core.learner_config import LearnerConfig
     from saml_ros.core.online import ReadyInfo, TrainingProcess
+    from saml_ros.core.recent_counts import RecentCounts
     from saml_ros.core.spec import ProblemSpec
 
 #: ``(path of a checkpoint just written or None, model version, updates)``, as the training process reports a
@@ -98,6 +99,21 @@ def feasibility_report(status: Mapping[str, float], constraints: Sequence[tuple[
     return level, parts, values
 
 
+#: the counters whose recent increase sets the level (see :func:`learner_diagnostics`)
+LEVEL_COUNTERS: tuple[str, ...] = ("train_errors", "dropped", "rejected", "train_health/skipped",
+                                   "checkpoints_unhealthy")
+
+
+def level_counters(totals: Mapping[str, int], status: Mapping[str, float], process: Mapping[str, int]) -> dict[
+        str, float]:
+    """The cumulative counters of :data:`LEVEL_COUNTERS` (``rejected``: every reason summed), for a
+    :class:`~saml_ros.core.recent_counts.RecentCounts` whose increases :func:`learner_diagnostics` takes."""
+    return {"train_errors": float(process.get("train_errors", 0)), "dropped": float(process.get("dropped", 0)),
+            "rejected": float(sum(totals.get(r, 0) for r in REJECT_REASONS)),
+            "train_health/skipped": float(status.get("train_health/skipped", 0)),
+            "checkpoints_unhealthy": float(status.get("checkpoints_unhealthy", 0))}
+
+
 def learner_diagnostics(
     totals: Mapping[str, int],
     status: Mapping[str, float],
@@ -107,17 +123,25 @@ def learner_diagnostics(
     channels: Sequence[ChannelCount],
     constraints: Sequence[tuple[str, float]] = (),
     error_after: int = 100,
+    recent: Mapping[str, float] | None = None,
+    notes: Mapping[str, str] | None = None,
 ) -> tuple[int, str, dict[str, Any]]:
     """``(level, message, values)`` of the learner's diagnostics.
 
-    Level: ERROR when the training process failed or dropped data, or while ``error_after`` or more consecutive
-    training steps were skipped as unhealthy (``train_health/unhealthy_streak``), or a checkpoint could not be
-    written because the model was unhealthy; WARN once any message was rejected or any training step skipped;
-    OK otherwise.
+    The values report counters as counters (they only grow); the level says how the learner is now, from the
+    counters' increase over a recent window (``recent``) and the current state. Level: ERROR while checkpoint
+    writes fail (``checkpoint_write_failures`` > 0: a full or read-only disk; the message starts with the cause,
+    ``checkpoint_write_error``), while ``error_after`` or more consecutive training steps were skipped as unhealthy
+    (``train_health/unhealthy_streak``), or when recently the training process failed or restarted
+    (``train_errors``), data was dropped between the node and its training process (``dropped``) or a checkpoint
+    could not be written because the model was unhealthy (``checkpoints_unhealthy``); WARN when recently a message
+    was rejected or a training step skipped; OK otherwise. The feasibility verdict of each constraint sets the level
+    too (:func:`feasibility_report`).
 
     Args:
         totals: pairing counts summed over the sources (``paired`` and each reject reason, ``time_resets``, ...).
-        status: the learner's status (``buffer_size``, ``updates``, ``model_version``, ...).
+        status: the learner's status (``buffer_size``, ``updates``, ``model_version``, the checkpoint-write numbers
+            of :meth:`~saml_ros.core.online.storage.WriteBackoff.values`, ...).
         process: the training process's counters: ``train_errors``, ``train_restarts``, ``queued``, ``dropped``
             and, once it is ready, ``train_threads`` and ``train_flush_denormal``.
         by_source: pairing counts per namespace.
@@ -125,9 +149,13 @@ def learner_diagnostics(
         channels: one :data:`ChannelCount` per subscription.
         constraints: ``(name, eps)`` of the spec's constraints (their verdicts: :func:`feasibility_report`).
         error_after: the ``health.error_after`` parameter.
+        recent: the increase of each :data:`LEVEL_COUNTERS` counter over the recent window
+            (:class:`~saml_ros.core.recent_counts.RecentCounts`); ``None``: since the start (the counters themselves).
+        notes: the training process's text values (``checkpoint_write_error``).
     """
     values: dict[str, Any] = {"paired": totals.get("paired", 0)}
-    for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written", "checkpoints_skipped"):
+    for key in ("buffer_size", "updates", "model_version", "training", "checkpoints_written", "checkpoints_skipped",
+                "unsaved_updates"):
         values[key] = int(status.get(key, 0))
     values.update(process)
     for reason in REJECT_REASONS:
@@ -136,6 +164,14 @@ def learner_diagnostics(
         values[key] = totals.get(key, 0)
     for key in HEALTH_KEYS:
         values[key] = int(status.get(key, 0))
+    write_error = (notes or {}).get("checkpoint_write_error", "")
+    failing = int(status.get("checkpoint_write_failures", 0))
+    values["checkpoint_write_error"] = write_error
+    values["checkpoint_write_errors"] = int(status.get("checkpoint_write_errors", 0))
+    values["checkpoint_write_failures"] = failing
+    values["checkpoint_write_seconds"] = round(float(status.get("checkpoint_write_seconds", 0.0)), 3)
+    age = status.get("checkpoint_age_s", math.nan)
+    values["checkpoint_age_s"] = round(age, 1) if math.isfinite(age) else "nan"
     for key in RESAMPLE_COUNTERS:  # a robot's own topics (resampled): intervals, gaps, jitter, unstamped, ...
         if key in totals and key not in values and not key.startswith("received/"):
             values[key] = totals[key]
@@ -147,13 +183,18 @@ def learner_diagnostics(
     for ns, kind, received, publishers in channels:
         values[f"{ns}/received/{kind}"] = received
         values[f"{ns}/publishers/{kind}"] = publishers
-    rejected = sum(totals.get(r, 0) for r in REJECT_REASONS)
-    failed = process.get("train_errors", 0) or process.get("dropped", 0)
+    counts = level_counters(totals, status, process)
+    grew = counts if recent is None else recent
+    rejected = int(counts["rejected"])
     skipped, streak = values["train_health/skipped"], values["train_health/unhealthy_streak"]
-    sick = streak >= error_after or values["checkpoints_unhealthy"] > 0
-    level = ERROR if failed or sick else (WARN if rejected or skipped else OK)
+    failed = grew.get("train_errors", 0) > 0 or grew.get("dropped", 0) > 0
+    sick = streak >= error_after or grew.get("checkpoints_unhealthy", 0) > 0
+    warned = grew.get("rejected", 0) > 0 or grew.get("train_health/skipped", 0) > 0
+    level = ERROR if failed or sick or failing else (WARN if warned else OK)
     message = (f"paired {values['paired']}, buffer {values['buffer_size']}, updates {values['updates']}, "
                f"version {values['model_version']}, rejected {rejected}")
+    if failing:
+        message = f"checkpoint writes failing: {write_error or 'see checkpoint_write_errors'}; {message}"
     f_level, parts, f_values = feasibility_report(status, constraints)
     values.update(f_values)
     if skipped:
@@ -165,8 +206,9 @@ def learner_diagnostics(
 
 def process_counters(trainer: TrainingProcess) -> dict[str, int]:
     """The training process's own counters for :func:`learner_diagnostics` (``process``)."""
-    out = {"train_errors": trainer.errors, "train_restarts": trainer.restarts, "queued": trainer.queued,
-           "dropped": trainer.dropped}
+    # failed checkpoint writes have their own values (checkpoint_write_*): train_errors are training and process errors
+    out = {"train_errors": trainer.errors - trainer.error_counts["checkpoint"], "train_restarts": trainer.restarts,
+           "queued": trainer.queued, "dropped": trainer.dropped}
     if trainer.ready is not None:
         out.update(train_threads=trainer.ready.threads, train_flush_denormal=int(trainer.ready.flush_denormal))
     return out
@@ -188,22 +230,30 @@ def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, ru
                "no held-out stretches (heldout.fraction 0): no held-out verdict"))
 
 
-def paused_message(paused: Saved) -> str:
-    """The log line of a ``deactivate``."""
+def paused_message(paused: Saved, unsaved: int = 0) -> str:
+    """The log line of a ``deactivate`` (``unsaved``: updates not in a checkpoint, the status'
+    ``unsaved_updates``)."""
     path, version, updates = paused
+    if path is None and unsaved > 0:
+        return (f"deactivated: training paused after {updates} updates; their checkpoint could not be written "
+                f"({unsaved} updates not saved, checkpoint version {version} stays the latest)")
     written = "written" if path is not None else "is current"
     return f"deactivated: training paused after {updates} updates (checkpoint version {version} {written})"
 
 
 def stopped_message(final: Saved | None, updates: float, paired: int, min_transitions: int,
-                    step: str = "shutdown") -> tuple[bool, str]:
+                    step: str = "shutdown", unsaved: int = 0) -> tuple[bool, str]:
     """``(is an error, log line)`` of the training process's end in lifecycle ``step`` (``shutdown`` or
-    ``cleanup``); ``final`` None: it did not stop in time."""
+    ``cleanup``); ``final`` None: it did not stop in time; ``unsaved``: updates not in a checkpoint after the
+    final write (its status' ``unsaved_updates``: the final checkpoint could not be written)."""
     if final is None:
         return True, f"{step}: the training process did not stop in time; it was killed"
     path, version, done = final
     if path is not None:
         return False, f"{step}: final checkpoint version {version} ({done} updates)"
+    if unsaved > 0:
+        return True, (f"{step}: the final checkpoint could not be written (the cause is logged above): {unsaved} "
+                      f"updates are not saved; checkpoint version {version} stays the latest")
     if updates > 0 or version > 0:
         return False, f"{step}: checkpoint version {version} is current ({done} updates)"
     return False, (f"{step}: no checkpoint written, training never started ({paired}/{min_transitions} "
@@ -212,12 +262,15 @@ def stopped_message(final: Saved | None, updates: float, paired: int, min_transi
 
 def training_diagnostics(trainer: TrainingProcess, p: LearnerConfig, spec: ProblemSpec,
                          channels: Sequence[ChannelCount], lifecycle: str, invalid_transitions: int,
-                         active: bool) -> tuple[int, str, dict[str, Any]]:
+                         active: bool, recent: RecentCounts | None = None) -> tuple[int, str, dict[str, Any]]:
     """:func:`learner_diagnostics` of a running training process, with the node's lifecycle state
-    (``lifecycle``, prefixed to the message while not ``active``) and its refused transitions."""
+    (``lifecycle``, prefixed to the message while not ``active``) and its refused transitions; ``recent`` (updated
+    here, once per report) sets the level from the counters' increase over its window."""
+    totals, process = trainer.counts(), process_counters(trainer)
+    grew = None if recent is None else recent.update(level_counters(totals, trainer.status, process))
     level, message, values = learner_diagnostics(
-        trainer.counts(), trainer.status, process_counters(trainer), trainer.source_counts, p.namespaces, channels,
-        [(t.name, t.eps) for t in spec.constraints], p.health_error_after)
+        totals, trainer.status, process, trainer.source_counts, p.namespaces, channels,
+        [(t.name, t.eps) for t in spec.constraints], p.health_error_after, grew, trainer.notes)
     values["lifecycle"] = lifecycle
     values["invalid_transitions"] = invalid_transitions
     return level, (message if active else f"{lifecycle}: {message}"), values

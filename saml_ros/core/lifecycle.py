@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import traceback
 from collections.abc import Callable
-from typing import Literal
+from typing import Any, Literal
 
-from saml_ros.core.params import Param
+from saml_ros.core.params import START, Param, Problems, read_params
 
 AUTOSTART = Param(
     "autostart", True,
     "walk configure and activate at start-up (a node nobody manages); false: start unconfigured and wait for "
-    "lifecycle transitions (lifecycle_msgs/srv/ChangeState: bringup, lifecycle_manager, ros2 lifecycle set)")
+    "lifecycle transitions (lifecycle_msgs/srv/ChangeState: bringup, lifecycle_manager, ros2 lifecycle set)",
+    when=START)
 #: the parameters every managed saml_ros node declares besides its own table
 LIFECYCLE_PARAMS: tuple[Param, ...] = (AUTOSTART,)
 
@@ -62,6 +63,19 @@ MANAGER_PARAMS: tuple[Param, ...] = (
                                                     f"({', '.join(TRANSITION_LABELS)})", item_type=str),
     Param("timeout", 120.0, "s to wait for the nodes' lifecycle services, and for each transition"),
 )
+
+
+def check_manager_params(values: dict[str, Any]) -> list[str]:
+    """The ``lifecycle_manager``'s parameters (:data:`MANAGER_PARAMS`) converted and checked: the transitions
+    (:func:`check_transitions`); ``ParamErrors`` naming every bad one."""
+    problems = Problems()
+    p = read_params(MANAGER_PARAMS, values, problems)
+    transitions: list[str] = []
+    with problems.capture("transitions", prefix="parameter 'transitions': "):
+        transitions = check_transitions(list(p["transitions"]))
+    problems.check(p["timeout"] > 0, "timeout", "> 0", p["timeout"])
+    problems.raise_if_any()
+    return transitions
 
 
 def check_transitions(labels: list[str]) -> list[str]:

@@ -62,11 +62,23 @@ class LiveErrorMonitor:
         #: the newest pair of errors added (NaN before the first)
         self.last_model = math.nan
         self.last_base = math.nan
+        #: the window that last said roll back, ``(mean model error, mean base error, samples)``; kept by
+        #: :meth:`reset` (the roll back resets the window before anyone logs why)
+        self.verdict: tuple[float, float, int] | None = None
 
     def reset(self) -> None:
-        """Forget the window (a new model became active)."""
+        """Forget the window (a new model became active); :attr:`verdict` stays."""
         self._model.clear()
         self._base.clear()
+
+    def describe_verdict(self) -> str:
+        """Why the monitor last said roll back, in words (``""`` if it never did)."""
+        if self.verdict is None:
+            return ""
+        mean_model, mean_base, n = self.verdict
+        c = self.config
+        return (f"its live one-step squared error, mean {mean_model:.4g} over the last {n} steps it planned, exceeded "
+                f"f_hat's {mean_base:.4g} on the same steps (x {c.ratio:g} + margin {c.margin:g})")
 
     @property
     def samples(self) -> int:
@@ -92,4 +104,7 @@ class LiveErrorMonitor:
         self._model.append(err_model if math.isfinite(err_model) else math.inf)
         self._base.append(err_base)
         c = self.config
-        return self.samples >= c.min_samples and self.mean_model > c.ratio * self.mean_base + c.margin
+        worse = self.samples >= c.min_samples and self.mean_model > c.ratio * self.mean_base + c.margin
+        if worse:
+            self.verdict = (self.mean_model, self.mean_base, self.samples)
+        return worse

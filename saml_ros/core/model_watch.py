@@ -35,11 +35,21 @@ enough yet* (e.g. the learner's own estimate says the accuracy constraints are n
 
 Only checkpoints *newer* than the newest one loaded are considered: a higher version in the same directory,
 or any version in a directory other than the current model's (a new learner run starts again at 1).
+
+**The model in use** (:meth:`ModelWatcher.set_in_use`, told by the controller's side whenever it changes):
+
+* a checkpoint whose weights are those of the model in use (a re-announcement, a copy in another directory) is a
+  no-op: neither loaded again nor vetted nor refused (counted ``reannounced``);
+* the model in use is re-checked with the ``vet`` hook every :data:`RECHECK_PERIOD_S` s on the background thread,
+  as a new checkpoint is: the MPC's hook probes it on the states it flies (the recent states answered). A model that
+  no longer passes is refused (``in_use_refused``, its reason counted like a checkpoint's) and handed to the control
+  side once (:meth:`ModelWatcher.take_retired`), which stops planning with it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 import os
 import threading
@@ -57,6 +67,8 @@ from saml_ros.core.systems.base import System
 
 #: refusal reasons, in the order the counters are reported
 REFUSAL_REASONS: tuple[str, ...] = ("incompatible", "corrupt", "missing", "error", *ACCEPTANCE_REASONS)
+#: seconds between two re-checks of the model in use (see the module docstring)
+RECHECK_PERIOD_S = 1.0
 
 
 class Logger(Protocol):
@@ -99,6 +111,27 @@ class Refusal:
 
 
 _FileId = tuple[str, int, int]  # (resolved path, size, mtime_ns)
+
+
+def model_digest(model: Any) -> str:
+    """A digest of a model's weights and normalisation (its ``state_dict``: names, dtypes, shapes, values) and kind:
+    equal for the same model read from two files."""
+    h = hashlib.sha256(str(getattr(model, "kind", "")).encode())
+    for name, value in sorted(model.state_dict().items()):
+        t = value.detach().cpu().contiguous()
+        h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
+        h.update(t.numpy().tobytes())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Retired:
+    """The model in use failed its re-check: ``version`` (its tag), ``reason`` (one of :data:`REFUSAL_REASONS`)
+    and ``message``."""
+
+    version: int
+    reason: str
+    message: str
 
 
 class ModelWatcher:
@@ -157,6 +190,11 @@ class ModelWatcher:
         self.notifications = 0
         self.gated = 0
         self.last_gated = ""
+        self.reannounced = 0
+        self.in_use_refused = 0
+        self._in_use: tuple[LoadedModel, int, str] | None = None  # (model, version, digest)
+        self._retired: Retired | None = None
+        self._next_recheck = 0.0
 
     # ------------------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -198,6 +236,20 @@ class ModelWatcher:
             ready, self._ready = self._ready, None
             return ready
 
+    def set_in_use(self, loaded: LoadedModel | None, version: int = 0) -> None:
+        """The model the controller plans with from now on (``None``: the base model f_hat), with its ``version``;
+        the watcher skips checkpoints holding it and re-checks it (see the module docstring)."""
+        entry = None if loaded is None else (loaded, int(version), model_digest(loaded.model))
+        with self._cond:
+            self._in_use = entry
+            self._next_recheck = time.monotonic() + RECHECK_PERIOD_S
+
+    def take_retired(self) -> Retired | None:
+        """The model in use that failed its re-check since the last call, or ``None`` (never blocks)."""
+        with self._cond:
+            retired, self._retired = self._retired, None
+            return retired
+
     def wait_ready(self, timeout: float) -> ReadyModel | None:
         """Like :meth:`take`, but waits up to ``timeout`` seconds for a model (for start-up and tests)."""
         deadline = time.monotonic() + timeout
@@ -223,6 +275,8 @@ class ModelWatcher:
             out["last_refusal"] = self.last_refusal.message if self.last_refusal else ""
             out["gated"] = self.gated
             out["last_gated"] = self.last_gated
+            out["reannounced"] = self.reannounced
+            out["in_use_refused"] = self.in_use_refused
             return out
 
     # ------------------------------------------------------------------------------- loading side
@@ -243,7 +297,38 @@ class ModelWatcher:
                     break
             if self.run_dir is not None:
                 got = self._poll_dir(source) or got
+            self._recheck_in_use()
             return got
+
+    def _recheck_in_use(self) -> None:
+        """Vet the model in use again (every :data:`RECHECK_PERIOD_S` s); a refusal retires it."""
+        with self._cond:
+            entry = self._in_use
+            if entry is None or self._vet is None or time.monotonic() < self._next_recheck:
+                return
+            self._next_recheck = time.monotonic() + RECHECK_PERIOD_S
+        loaded, version, _ = entry
+        try:
+            refused = self._vet(loaded)
+        except Exception as exc:  # noqa: BLE001 - a check that cannot run says nothing against the model
+            if self._log is not None:
+                self._log.warning(f"re-check of the model in use (version {version}) raised {type(exc).__name__}: {exc}")
+            return
+        if refused is None:
+            return
+        reason, message = refused
+        with self._cond:
+            if self._in_use is not entry:  # the controller changed models meanwhile
+                return
+            self._in_use = None
+            self._retired = Retired(version, reason, message)
+            self.in_use_refused += 1
+            self.refusals[reason] += 1
+            self.last_refusal = Refusal(str(loaded.path or "?"), version, reason,
+                                        f"the model in use: {message}", time.time())
+        if self._log is not None:
+            self._log.warning(f"the model in use (version {version}) no longer passes the acceptance check on the "
+                              f"states it flies ({reason}): {message}; it is not used any more")
 
     def _run(self) -> None:
         next_poll = 0.0
@@ -325,6 +410,9 @@ class ModelWatcher:
         t0 = time.perf_counter()
         try:
             loaded = self._loader(path, self.system)
+            if self._is_in_use(loaded):
+                self._noop(path, loaded.version)
+                return None
             refused = self._vet(loaded) if self._vet is not None else None
             if refused is not None:
                 self._refuse(str(path), loaded.version, *refused)
@@ -362,6 +450,18 @@ class ModelWatcher:
             self._log.info(f"loaded checkpoint version {version} from {path} ({1e3 * ready.load_seconds:.1f} ms, "
                            f"via {source})")
         return ready
+
+    def _is_in_use(self, loaded: LoadedModel) -> bool:
+        with self._cond:
+            entry = self._in_use
+        return entry is not None and model_digest(loaded.model) == entry[2]
+
+    def _noop(self, path: Path, version: int) -> None:
+        with self._cond:
+            self.reannounced += 1
+            in_use = self._in_use[1] if self._in_use is not None else 0
+        if self._log is not None:
+            self._log.info(f"{path} (version {version}) holds the model in use (version {in_use}): nothing to do")
 
     def _hold_back(self, path: Path, version: int, reason: str) -> None:
         text = f"{path.name} (version {version}) held back: {reason}"

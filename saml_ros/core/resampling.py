@@ -19,6 +19,38 @@ unstamped. One :class:`ResamplingPairer` per source turns those two streams into
   (``ambiguous_cmd``). A change strictly inside the interval is counted ``mixed_cmd``; with ``mixed="hold"``
   (default: the robot samples commands when it samples its state, as most base controllers do) the transition
   keeps ``u_k``, with ``mixed="drop"`` it is dropped. A repeated command with the same value is no change.
+
+**Which command an interval gets** (``cmd_rule``) depends on when the robot applies a command it receives:
+
+* ``"hold"`` (default): at its control step, which is the stamp of the state it publishes (a free-running driver
+  loop: read the sensors, publish the state, apply the last command received). ``u_k`` is the command held at
+  ``t_k`` (above). Right for a controller at any rate and phase, including one on its own timer at the state's
+  rate. A change within ``cmd_guard`` of ``t_k`` (either side: the learner's stamp of a command is not the
+  robot's) is ``ambiguous_cmd``: a controller whose timer runs in phase with the robot's loop races it, and no
+  one can tell which step applied the commands that arrived within the stamps' uncertainty of a step.
+* ``"answer_next_step"``: the same robot with a controller **triggered by each state message**: the answer to
+  ``x_k`` arrives after ``t_k`` and is applied at the next step, over ``[t_{k+1}, t_{k+2})``. The rule is
+  ``"hold"``, but a command stamped just after ``t_k`` is known to be that answer (it cannot have reached the
+  robot before the state it answers was published) when every earlier state has been answered (counted as for
+  ``"answer"`` below), the last one before ``t_k - cmd_guard``: the guard applies only before ``t_k`` then.
+  While the controller lags (answers owed), or where a late answer may have crossed a step, the guard applies
+  on both sides, as for ``"hold"``.
+* ``"answer"``: a controller triggered by each state message and a robot that applies the answer to the state
+  stamped ``t_k`` over ``[t_k, t_k + dt)`` (a simulator in lockstep, a loop that waits for the controller, a
+  driver that applies commands as they arrive with answers much faster than ``dt``). It needs one state message
+  per grid interval (``dt`` = the state period). ``u_k`` is the command stamped in the interval's *window*
+  ``[s_k, s_{k+1})`` between the state messages at ``t_k`` and ``t_{k+1}``, wherever in the window it came
+  (arrival jitter does not matter; a command stamped with the stamp of the state it answers falls in it at any
+  latency): one command (or several with one value) is ``u_k``; several different commands are
+  ``ambiguous_cmd``; an empty window is ``no_answer`` (not answered within the period: what the robot applied
+  instead is its own business). The controller answers each state once, in order, so after an empty window the
+  first commands to come answer the unanswered states: the windows are ``ambiguous_cmd`` (or ``no_answer``)
+  until one holds one command more than there are unanswered states (the answers caught up; its last command
+  is its state's answer, paired). Answers owed for longer than ``latency`` are taken as never coming (a
+  controller that skipped a state) and the next window pairs again: an answer later than ``latency`` looks like
+  the next state's. An interval whose state message is
+  missing (bridged by interpolation) is a ``gap``.
+
 * **angle fields** (``angle_indices``): the target is unwrapped relative to ``x(t_k)``
   (``y = x + wrap(x' - x)``), so a yaw crossing +-pi is a small step, not a 2 pi jump.
 
@@ -34,8 +66,9 @@ stamps increase among themselves are a new clock (a restarted robot or simulator
 dropped (``time_resets``) and the grid restarts at the first of them.
 
 Every decided grid interval is counted once in ``intervals`` and is exactly one of: ``paired``, ``gap``,
-``no_cmd``, ``stale_cmd``, ``ambiguous_cmd``, or (with ``mixed="drop"``) ``mixed_cmd``; so
-``intervals == paired + gap + no_cmd + stale_cmd + ambiguous_cmd (+ mixed_cmd when dropped)``.
+``no_cmd``, ``stale_cmd``, ``ambiguous_cmd``, ``no_answer`` (``answer`` only), or (with ``mixed="drop"``)
+``mixed_cmd``; so ``intervals == paired + gap + no_cmd + stale_cmd + ambiguous_cmd + no_answer (+ mixed_cmd when
+dropped)``.
 
 Stream statistics (for /diagnostics): ``missing/<kind>`` estimates messages that never came from the intervals
 between consecutive stamps (``round(interval / period) - 1`` when an interval exceeds 1.5 periods),
@@ -62,11 +95,13 @@ from saml_ros.core.plausibility import Plausibility
 KINDS: tuple[str, ...] = ("state", "applied_cmd")
 STATE_RULES: tuple[str, ...] = ("interpolate", "nearest")
 MIXED_POLICIES: tuple[str, ...] = ("hold", "drop")
+#: which command an interval gets (see the module docstring)
+COMMAND_RULES: tuple[str, ...] = ("hold", "answer_next_step", "answer")
 #: every counter a :class:`ResamplingPairer` keeps (all start at 0); see the module docstring
 COUNTERS: tuple[str, ...] = (
     "received/state", "received/applied_cmd", "unstamped/state", "unstamped/applied_cmd", "intervals", "paired",
     "stamp", "shape", "nan", "bounds", "duplicate", "out_of_order", "late",
-    "gap", "no_cmd", "stale_cmd", "ambiguous_cmd", "mixed_cmd",
+    "gap", "no_cmd", "stale_cmd", "ambiguous_cmd", "mixed_cmd", "no_answer",
     "missing/state", "missing/applied_cmd", "jitter/state", "jitter/applied_cmd",
     "max_interval_us/state", "max_interval_us/applied_cmd", "time_resets",
 )  # fmt: skip
@@ -86,7 +121,10 @@ class ResampleConfig:
         cmd_guard_ns: a command change this close to a grid time makes its interval ambiguous.
         cmd_timeout_ns: a held command older than this is stale (0 = commands never go stale).
         cmd_delay_ns: command latency added to every command stamp.
-        mixed: ``"hold"`` or ``"drop"`` for intervals with a command change inside.
+        mixed: ``"hold"`` or ``"drop"`` for intervals with a command change inside (``cmd_rule="hold"``).
+        cmd_rule: ``"hold"`` (zero-order hold at the grid time), ``"answer_next_step"`` (the same for a
+            controller triggered by each state) or ``"answer"`` (the command answering the state that starts the
+            interval; needs ``state_period_ns`` 0 or ``dt_ns``).
         latency_ns: how far (in state stamps) the newest state must be past an interval before it is decided.
         angle_indices: state fields that are angles in rad (wrapped interpolation, unwrapped targets).
         state_period_ns, cmd_period_ns: nominal message periods for the missing / jitter counters
@@ -107,6 +145,7 @@ class ResampleConfig:
     cmd_timeout_ns: int = 0
     cmd_delay_ns: int = 0
     mixed: str = "hold"
+    cmd_rule: str = "hold"
     latency_ns: int = 100_000_000
     angle_indices: tuple[int, ...] = ()
     state_period_ns: int = 0
@@ -126,6 +165,11 @@ class ResampleConfig:
             raise ValueError(f"state_rule must be one of {STATE_RULES}, got {self.state_rule!r}")
         if self.mixed not in MIXED_POLICIES:
             raise ValueError(f"mixed must be one of {MIXED_POLICIES}, got {self.mixed!r}")
+        if self.cmd_rule not in COMMAND_RULES:
+            raise ValueError(f"cmd_rule must be one of {COMMAND_RULES}, got {self.cmd_rule!r}")
+        if self.cmd_rule != "hold" and self.state_period_ns and abs(self.state_period_ns - self.dt_ns) > 0.01 * self.dt_ns:
+            raise ValueError(f"cmd_rule {self.cmd_rule!r} pairs each state message with its answer: the state period "
+                             f"({self.state_period_ns / NS_PER_S:g} s) must equal dt ({self.dt_ns / NS_PER_S:g} s)")
         for name in ("state_tolerance_ns", "cmd_guard_ns", "cmd_timeout_ns", "latency_ns", "state_period_ns",
                      "cmd_period_ns"):
             if getattr(self, name) < 0:
@@ -222,6 +266,9 @@ class ResamplingPairer:
         self._last_stamp: dict[str, int | None] = dict.fromkeys(KINDS, None)
         self._t0: int | None = None
         self._k = 0  # next grid interval to decide: [t0 + k dt, t0 + (k + 1) dt]
+        # cmd_rule "answer": stamps of earlier states whose answer has not come yet (answers come in order)
+        self._unanswered: list[int] = []
+        self._owed_since = 0  # the window where the answers started to be owed
 
     # ------------------------------------------------------------------------------------------ public
     @property
@@ -335,6 +382,7 @@ class ResamplingPairer:
                 self.counts["gap"] += int(skip)
                 self.counts["intervals"] += int(skip)
                 self._k += int(skip)
+                self._unanswered = []
                 continue
             tr = self._form(t_a, t_b)
             self.counts["intervals"] += 1
@@ -357,7 +405,16 @@ class ResamplingPairer:
         xb = self._state_at(t_b) if xa is not None else None
         if xa is None or xb is None:
             self.counts["gap"] += 1
+            self._unanswered = []
             return None
+        if cfg.cmd_rule == "answer":
+            u = self._answer(t_a, t_b)
+            return None if u is None else Transition(xa, u, self._target(xa, xb), t_a, self.source)
+        # "answer_next_step": a change stamped just after t_a is the answer to the state at t_a, which the robot
+        # cannot have applied at t_a, when every earlier state's answer came before t_a - guard
+        after = cfg.cmd_guard_ns
+        if cfg.cmd_rule == "answer_next_step" and self._answered_before(t_a):
+            after = 0
         cs, cv = self._cmds.stamps, self._cmds.values
         i = bisect.bisect_right(cs, t_a) - 1  # last command at or before t_a
         if i < 0:
@@ -372,7 +429,7 @@ class ResamplingPairer:
         mixed = False
         while j < len(cs) and cs[j] < t_b - g:
             if j > 0 and not np.array_equal(cv[j], cv[j - 1]):
-                if cs[j] <= t_a + g:
+                if cs[j] <= t_a + after:
                     self.counts["ambiguous_cmd"] += 1
                     return None
                 mixed = True
@@ -381,11 +438,77 @@ class ResamplingPairer:
             self.counts["mixed_cmd"] += 1
             if cfg.mixed == "drop":
                 return None
+        return Transition(xa, cv[i].copy(), self._target(xa, xb), t_a, self.source)
+
+    def _target(self, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
+        """``x(t_k + dt)`` with its angle fields unwrapped relative to ``x(t_k)``."""
         y = xb.copy()
         if len(self._angles):
             a = self._angles
             y[a] = xa[a] + wrap_angle(xb[a] - xa[a])
-        return Transition(xa, cv[i].copy(), y, t_a, self.source)
+        return y
+
+    # ------------------------------------------------------------------------------------------ "answer"
+    def _anchor(self, t: int) -> int | None:
+        """Stamp of the state message at grid time ``t`` (the nearest, within half a period), else ``None``."""
+        st = self._states.stamps
+        half = (self.config.state_period_ns or self.config.dt_ns) // 2
+        i = bisect.bisect_left(st, t - half)
+        best = None
+        for j in (i, i + 1):
+            if j < len(st) and abs(st[j] - t) <= half and (best is None or abs(st[j] - t) < abs(best - t)):
+                best = st[j]
+        return best
+
+    def _window(self, start: int, end: int) -> list[int]:
+        """Indices of the commands stamped in ``[start, end)``."""
+        cs = self._cmds.stamps
+        return list(range(bisect.bisect_left(cs, start), bisect.bisect_left(cs, end)))
+
+    def _answer(self, t_a: int, t_b: int) -> np.ndarray | None:
+        """The command answering the state at ``t_a`` (rules in the module docstring), or ``None`` (counted)."""
+        wa, wb = self._anchor(t_a), self._anchor(t_b)
+        if wa is None or wb is None:  # a state message is missing: whose window is whose is unknown
+            self.counts["gap"] += 1
+            self._unanswered = []
+            return None
+        index, reason = self._account(wa, wb)
+        if index is None:
+            self.counts[reason] += 1
+            return None
+        return self._cmds.values[index].copy()
+
+    def _account(self, start: int, end: int) -> tuple[int | None, str]:
+        """Book the commands stamped in the window ``[start, end)`` of the state stamped ``start`` as answers
+        (each state is answered once, in order; the first commands answer states still owed an answer). Returns
+        the index of the command answering this state, or ``None`` and why (``no_answer``, ``ambiguous_cmd``)."""
+        cv = self._cmds.values
+        now = self._window(start, end)
+        if self._unanswered and start - self._owed_since > self.config.latency_ns:
+            self._unanswered = []  # owed for longer than an answer may take: a state was skipped, not answered late
+        owed, self._unanswered = self._unanswered, []
+        if owed:  # the first commands here answer earlier states
+            if len(now) == len(owed) + 1:  # caught up: the last one answers this state
+                return now[-1], ""
+            if len(now) <= len(owed):
+                self._unanswered = owed[len(now):] + [start]
+            return None, "ambiguous_cmd" if now else "no_answer"
+        if not now:
+            self._unanswered, self._owed_since = [start], start
+            return None, "no_answer"
+        if any(not np.array_equal(cv[j], cv[now[0]]) for j in now[1:]):
+            return None, "ambiguous_cmd"  # several answers to one state
+        return now[0], ""
+
+    def _answered_before(self, t: int) -> bool:
+        """``"answer_next_step"``: whether every state before ``t`` has been answered, the last one before
+        ``t - cmd_guard`` (then a command stamped just after ``t`` is the answer to the state at ``t``)."""
+        prev, cur = self._anchor(t - self.config.dt_ns), self._anchor(t)
+        if prev is None or cur is None:
+            self._unanswered = []
+            return False
+        index, _ = self._account(prev, cur)
+        return index is not None and self._cmds.stamps[index] < t - self.config.cmd_guard_ns
 
     def _state_at(self, t: int) -> np.ndarray | None:
         cfg = self.config
@@ -412,11 +535,16 @@ class ResamplingPairer:
         """Drop what no undecided interval (starting at ``t_next``) can use."""
         cfg = self.config
         st = self._states.stamps
-        keep = bisect.bisect_right(st, t_next - cfg.state_tolerance_ns) - 1
+        reach = cfg.state_tolerance_ns
+        if cfg.cmd_rule != "hold":  # the state messages anchoring the windows of t_next and the interval before it
+            reach = max(reach, cfg.dt_ns + (cfg.state_period_ns or cfg.dt_ns) // 2)
+        keep = bisect.bisect_right(st, t_next - reach) - 1
         self._states.drop_before(max(0, keep))
         cs = self._cmds.stamps
         # the held command at t_next and every change that may still matter to the guard checks
         keep_c = bisect.bisect_right(cs, t_next - cfg.cmd_guard_ns - 1) - 1
+        if cfg.cmd_rule != "hold":  # and the windows of the states at t_next and one period before
+            keep_c = min(keep_c, bisect.bisect_left(cs, t_next - cfg.dt_ns - cfg.dt_ns // 2))
         self._cmds.drop_before(max(0, keep_c))
 
     def _drop(self, reason: str, detail: str) -> AddResult:

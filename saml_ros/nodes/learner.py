@@ -13,6 +13,7 @@ has started the training interpreter (both import it at once, which halves the s
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.clock import Clock, ClockType
 
 import msg_schemas.telemetry as tele
 from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, get_schema
@@ -33,9 +35,10 @@ from saml_ros.core.learner_report import (
     stopped_message,
     training_diagnostics,
 )
-from saml_ros.core.lifecycle import TransitionRefused
+from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
+from saml_ros.core.recent_counts import RecentCounts
 from saml_ros.nodes.managed import ManagedNode, run_managed
-from saml_ros.nodes.params import current_values, declare_params, probe_system
+from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.raw_ingest import subscribe_raw
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, log_at, process_main, shutdown, wants_help
 
@@ -45,6 +48,8 @@ if TYPE_CHECKING:
 #: exit status for configuration errors (the node never starts)
 CONFIG_ERROR = 2
 NODE_NAME = "learner"
+#: parameters that cannot both be given
+EXCLUSIVE = (("system", "system_file"),)
 
 
 class ConfigError(Exception):
@@ -58,12 +63,14 @@ class LearnerNode(ManagedNode):
     def __init__(self, namespace: str | None, launched: Any = None) -> None:
         super().__init__(NODE_NAME, namespace)
         self._table = learner_params()
+        self.trainer: TrainingProcess | None = None
         try:
-            declare_params(self, self._table)
+            start_params(self, self._table, self._check_values, EXCLUSIVE, earlier=self.param_problems)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        self.params_guard = ParamGuard(self, self._table, self._check_values, self._apply_live, exclusive=EXCLUSIVE,
+                                       extra=LIFECYCLE_PARAMS)
         self._launched = launched
-        self.trainer: TrainingProcess | None = None
         self._subs: list[Any] = []
         self._pubs: list[Any] = []  # made by configure, destroyed by cleanup
         self._timers: list[Any] = []
@@ -72,16 +79,10 @@ class LearnerNode(ManagedNode):
     # ---------------------------------------------------------------------------------------------- lifecycle
     def configure_node(self) -> None:
         try:
-            values = current_values(self, self._table)
-            if values.get("system_file"):
-                from saml_ros.user_code import load_robot_param
-
-                values["system"] = load_robot_param(values["system_file"]).name
-            self.p = p = LearnerConfig.from_params(values, self.get_namespace())
-            self.system = p.make_system()
-            self.spec = p.load_spec(self.system)
+            self.p, self.system, self.spec = self._check_values(current_values(self, self._table))
         except ValueError as exc:
             raise TransitionRefused(str(exc)) from None
+        p = self.p
         self.schema = get_schema(p.system)
         self.run_dir = run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
         try:
@@ -121,7 +122,7 @@ class LearnerNode(ManagedNode):
             paused = self.trainer.pause()
             if paused is None:
                 raise RuntimeError("the training process did not pause within 30 s")
-            self.get_logger().info(paused_message(paused))
+            self.get_logger().info(paused_message(paused, int(self.trainer.status.get("unsaved_updates", 0))))
 
     def cleanup_node(self, step: str = "cleanup") -> None:
         self._unsubscribe()
@@ -138,6 +139,30 @@ class LearnerNode(ManagedNode):
     def shutdown_node(self, state: str) -> None:
         self.cleanup_node("shutdown")  # active: no pause first, the stop writes the final checkpoint at once
 
+    def _check_values(self, values: dict[str, Any]) -> tuple[LearnerConfig, Any, Any]:
+        """Configure's validation of parameter values (also of a change on the running node): a configured node
+        checks against the robot it runs, and loads a system file only when unconfigured, as configure does."""
+        configured = self.trainer is not None
+
+        def system_of(path: str) -> str:
+            if configured:
+                return self.p.system
+            from saml_ros.user_code import load_robot_param
+
+            return load_robot_param(path).name
+
+        return LearnerConfig.validated(values, self.get_namespace(), system_of)
+
+    def _apply_live(self, live: dict[str, Any]) -> None:
+        """Parameters that apply at once (the training loop's pacing, the telemetry and diagnostics rates); an
+        unconfigured node reads them at configure."""
+        if self.trainer is None:
+            return
+        self.p = dataclasses.replace(self.p, **{name.replace(".", "_"): value for name, value in live.items()})
+        self.trainer.set_loop(self.p.loop_config())
+        self._telemetry_timer.timer_period_ns = int(1e9 / self.p.telemetry_rate)
+        self._diagnostics_timer.timer_period_ns = int(1e9 / self.p.diagnostics_rate)
+
     def discard_prelaunched(self) -> None:
         """Let an unused pre-launched training interpreter exit."""
         if self._launched is not None:
@@ -152,10 +177,16 @@ class LearnerNode(ManagedNode):
         self.pub_ckpt = self.create_publisher(RCLPY.cls(tele.STRING), tele.CHECKPOINT_TOPIC, CHECKPOINT_QOS.to_rclpy())
         self.pub_diag = self.create_publisher(RCLPY.cls(tele.DIAGNOSTIC_ARRAY), tele.DIAGNOSTICS_TOPIC, telemetry_qos)
         self._pubs = [self.pub_error, self.pub_ckpt, self.pub_diag]
+        self._recent = RecentCounts()  # the /diagnostics level: what the counters did in the last minute
+        # wall-clock (steady) timers: with use_sim_time a lockstep loop at 10x real time would publish 10x as often
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timers = [
-            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group),
-            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group),
+            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group,
+                              clock=steady),
+            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group,
+                              clock=steady),
         ]
+        self._telemetry_timer, self._diagnostics_timer = self._timers  # periods change with their parameters
 
     def _subscribe(self) -> None:
         assert self.trainer is not None
@@ -190,7 +221,8 @@ class LearnerNode(ManagedNode):
         if final is not None and final[0] is not None:
             self._announce(final[0], final[1])
         error, text = stopped_message(final, self.trainer.status.get("updates", 0),
-                                      self.trainer.counts().get("paired", 0), self.p.min_transitions, step)
+                                      self.trainer.counts().get("paired", 0), self.p.min_transitions, step,
+                                      int(self.trainer.status.get("unsaved_updates", 0)))
         log_at(self.get_logger(), logging.ERROR if error else logging.INFO, text)
 
     # ---------------------------------------------------------------------------------------------- telemetry
@@ -202,8 +234,11 @@ class LearnerNode(ManagedNode):
 
         if not self.active or self.trainer is None:
             return
+        stamp = self._stamp_ns()
+        if stamp == 0:  # use_sim_time and no /clock yet: nothing to stamp it with (as the ROS-time timer did)
+            return
         values = assemble_telemetry(self.spec.constraint_names, self.trainer.status, self.trainer.counts())
-        self.pub_error.publish(tele.model_error_to_msg(values, self._stamp_ns()))
+        self.pub_error.publish(tele.model_error_to_msg(values, stamp))
 
     def _publish_diagnostics(self) -> None:
         tr = self.trainer
@@ -212,7 +247,8 @@ class LearnerNode(ManagedNode):
         channels = [(ns, kind, self.received[ch], self._subs[ch].get_publisher_count() if self._subs else 0)
                     for ch, (ns, kind, _, _) in enumerate(self.channels)]
         level, message, values = training_diagnostics(tr, self.p, self.spec, channels, self.state_label,
-                                                      self.invalid_transitions, self.active)
+                                                      self.invalid_transitions, self.active, self._recent)
+        values["parameter_changes_refused"] = self.params_guard.refused
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 

@@ -17,9 +17,9 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from msg_schemas.names import join_topic
-from saml_ros.core.lifecycle import MANAGER_PARAMS, check_transitions
+from saml_ros.core.lifecycle import MANAGER_PARAMS, check_manager_params
 from saml_ros.nodes.lifecycle_client import drive
-from saml_ros.nodes.params import declare_params
+from saml_ros.nodes.params import ParamGuard, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help
 
 #: exit code for invalid parameters
@@ -38,11 +38,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     node = Node("lifecycle_manager")
     try:
         try:
-            p = declare_params(node, MANAGER_PARAMS)
-            transitions = check_transitions(list(p["transitions"]))
+            p = start_params(node, MANAGER_PARAMS, check_manager_params)
+            transitions = check_manager_params(p)
         except ValueError as exc:
             node.get_logger().fatal(f"configuration error: {exc}")
             return USAGE_ERROR
+        ParamGuard(node, MANAGER_PARAMS, check_manager_params)  # every parameter is read at start-up
         fqns = [join_topic(node.get_namespace(), n) for n in p["node_names"]]
         executor = SingleThreadedExecutor()
         executor.add_node(node)

@@ -24,7 +24,8 @@ from typing import Any
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, Outcome, run_transition
+from saml_ros.core.lifecycle import AUTOSTART, LIFECYCLE_PARAMS, Outcome, run_transition
+from saml_ros.core.params import problems_of
 from saml_ros.nodes.params import declare_params
 from saml_ros.nodes.runtime import StopFlag, spin_until_stopped
 
@@ -42,7 +43,12 @@ class ManagedNode(LifecycleNode):
 
     def __init__(self, node_name: str, namespace: str | None) -> None:
         super().__init__(node_name, namespace=namespace)
-        self.autostart = bool(declare_params(self, LIFECYCLE_PARAMS)["autostart"])
+        #: problems of the parameters declared here (``autostart``), reported with the subclass's at start-up
+        self.param_problems: list[str] = []
+        try:
+            self.autostart = bool(declare_params(self, LIFECYCLE_PARAMS)["autostart"])
+        except ValueError as exc:
+            self.autostart, self.param_problems = bool(AUTOSTART.default), problems_of(exc)
         #: ``change_state`` requests refused because the current state has no such transition
         self.invalid_transitions = 0
         #: the log line of the newest failed or raising step

@@ -54,13 +54,13 @@ from msg_schemas.telemetry import (
     diagnostics_to_msg,
     mpc_status_values,
 )
-from saml_ros.core.lifecycle import TransitionRefused
+from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
-from saml_ros.nodes.params import current_values, declare_params, probe_system
+from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help
 
 #: exit code for invalid parameters (as argparse's usage errors)
@@ -74,7 +74,9 @@ class MPCNode(ManagedNode):
         super().__init__("mpc", namespace)
         self.system_name = system_name
         self.table = MPCConfig.params(system_name)
-        declare_params(self, self.table)
+        start_params(self, self.table, MPCConfig.from_params, earlier=self.param_problems)
+        self.params_guard = ParamGuard(self, self.table, MPCConfig.from_params, self._apply_live,
+                                       extra=LIFECYCLE_PARAMS)
         self.schema = get_schema(system_name)
         # state and cmd as CDR bytes without message objects (msg_schemas.cdr), the lockstep path's cost
         self._state_cdr, self._control_cdr = CdrCodec(self.schema.state), CdrCodec(self.schema.control)
@@ -106,9 +108,9 @@ class MPCNode(ManagedNode):
             (self.destroy_publisher, self.diag_pub),
             (self.destroy_subscription, self.create_subscription(String, CHECKPOINT_TOPIC, self._on_checkpoint,
                                                                  CHECKPOINT_QOS.to_rclpy())),
-            (self.destroy_timer, self.create_timer(1.0 / max(config.diagnostics_rate, 1e-3),
-                                                   self._publish_diagnostics, clock=steady)),
         ]
+        self._diag_timer = self.create_timer(1.0 / config.diagnostics_rate, self._publish_diagnostics, clock=steady)
+        self._entities.append((self.destroy_timer, self._diag_timer))
         if config.mode == "realtime":
             self._entities.append((self.destroy_timer, self.create_timer(1.0 / config.rate_hz, self._on_tick,
                                                                          clock=steady)))
@@ -119,6 +121,18 @@ class MPCNode(ManagedNode):
             f"deadline {1e3 * service.deadline_s:.0f} ms), goal {config.goal!r}, run_dir "
             f"{config.run_dir or '(none)'}; commands once active"
         )
+
+    def _apply_live(self, live: dict[str, Any]) -> None:
+        """Parameters that apply at once: the goal, ``safe_on_infeasible``, ``deadline_ms``, ``poll_period`` and
+        ``diagnostics_rate``; an unconfigured node reads them at configure."""
+        service = self.service
+        if service is None:
+            return
+        config = MPCConfig.from_params(current_values(self, self.table))
+        service.config = config  # read by every solve (goal, safe_on_infeasible)
+        service.deadline_s = config.deadline_s(service.system.dt)
+        service.watcher.poll_period = config.poll_period
+        self._diag_timer.timer_period_ns = int(1e9 / config.diagnostics_rate)
 
     def activate_node(self) -> None:
         # raw: the CDR bytes are read without a message object (msg_schemas.cdr; malformed ones as before)
@@ -183,6 +197,7 @@ class MPCNode(ManagedNode):
         # before it matched is dropped by DDS, whatever the publisher's subscription count says)
         values["state_publishers"] = self.state_sub.get_publisher_count() if self.state_sub is not None else 0
         values["invalid_transitions"] = self.invalid_transitions
+        values["parameter_changes_refused"] = self.params_guard.refused
         refused = values["checkpoints_refused"]
         version = self.service.model_version
         rollbacks = self.service.counters["rollbacks"]

@@ -25,10 +25,30 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from saml_ros.core.params import Param, Problems, read_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, spin_until_stopped
 
 NODE_NAME = "foxglove_server"
 USAGE_ERROR = 2
+#: the server's parameters (all read at start-up)
+PARAMS: tuple[Param, ...] = (
+    Param("system", "friction", "system whose loop topics are served: friction | quadrotor | paddle_ball"),
+    Param("host", "127.0.0.1", "address the WebSocket server listens on"),
+    Param("port", 8765, "TCP port of the WebSocket server (0 = any free port)"),
+)
+
+
+def check_params(values: dict[str, Any]) -> dict[str, Any]:
+    """The server's parameter values (by name) converted and checked; ``ParamErrors`` naming every bad one."""
+    from msg_schemas import get_schema
+
+    problems = Problems()
+    p = read_params(PARAMS, values, problems)
+    with problems.capture("system", prefix="parameter 'system': "):
+        get_schema(p["system"])
+    problems.check(0 <= p["port"] <= 65535, "port", "in 0..65535", p["port"])
+    problems.raise_if_any()
+    return p
 
 
 @dataclass(frozen=True)
@@ -73,24 +93,21 @@ def _run(argv: Sequence[str] | None) -> int:
         return USAGE_ERROR
     from rclpy.node import Node
 
-    from msg_schemas import RCLPY, get_schema
+    from msg_schemas import RCLPY
+    from saml_ros.nodes.params import ParamGuard, start_params
 
     init_rclpy(args)
     node = None
     server = None
     try:
         node = Node(NODE_NAME)
-        system = node.declare_parameter("system", "friction").value
-        host = node.declare_parameter("host", "127.0.0.1").value
-        port = node.declare_parameter("port", 8765).value
         try:
-            get_schema(system)
+            p = check_params(start_params(node, PARAMS, check_params))
         except ValueError as exc:
-            node.get_logger().fatal(f"parameter 'system': {exc}")
+            node.get_logger().fatal(f"configuration error: {exc}")
             return USAGE_ERROR
-        if not isinstance(port, int) or not 0 <= port <= 65535:
-            node.get_logger().fatal(f"parameter 'port' must be in 0..65535, got {port!r}")
-            return USAGE_ERROR
+        ParamGuard(node, PARAMS, check_params)  # every parameter is read at start-up
+        system, host, port = p["system"], p["host"], p["port"]
         namespace = node.get_namespace() if node.get_namespace() != "/" else f"/{system}"
         try:
             server = foxglove.start_server(name=f"saml_ros {system}", host=host, port=port)

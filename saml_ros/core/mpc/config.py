@@ -17,7 +17,7 @@ import yaml
 from saml_ros.core.model_monitor import MonitorConfig
 from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.mpc.guard import GuardConfig
-from saml_ros.core.params import Param, check, read_params
+from saml_ros.core.params import LIVE, START, Param, Problems, memory_problems, read_params
 from saml_ros.core.plausibility import parse_overrides
 from saml_ros.core.systems.registry import get_entry
 
@@ -40,7 +40,8 @@ def choose_executor(executor: str, mode: str) -> str:
 
 #: the parameters of every MPC node (``system``'s default is the node's own system)
 PARAMS: tuple[Param, ...] = (
-    Param("system", "friction", "system name: friction | quadrotor | paddle_ball (read before the node starts)"),
+    Param("system", "friction", "system name: friction | quadrotor | paddle_ball (read before the node starts)",
+          when=START),
     Param("solver", "fast", "MPC solver: fast (SQP, warm-started) | slsqp (scipy reference, slow)"),
     Param("horizon", 10, "planning horizon T (steps; ignored by the one-shot paddle problem)"),
     Param("member", 0, "ensemble member of the checkpoint's model used for planning"),
@@ -49,14 +50,15 @@ PARAMS: tuple[Param, ...] = (
     Param("rate_hz", 10.0, "control rate in realtime mode (Hz)"),
     Param("deadline_ms", 0.0, "a control step longer than this is a deadline miss (ms); 0 = the period: "
                               "1000 / rate_hz in realtime, the system's dt in lockstep (100 ms for the event-based "
-                              "paddle ball)"),
+                              "paddle ball)", when=LIVE),
     Param("run_dir", "", "run directory whose `latest` checkpoint is polled ('' = follow learner/checkpoint only)"),
-    Param("poll_period", 0.5, "seconds between polls of run_dir"),
-    Param("diagnostics_rate", 1.0, "/diagnostics publication rate (Hz, wall clock)"),
+    Param("poll_period", 0.5, "seconds between polls of run_dir", when=LIVE),
+    Param("diagnostics_rate", 1.0, "/diagnostics publication rate (Hz, wall clock)", when=LIVE),
     Param("executor", "auto", "rclpy executor the node spins on: auto (events in lockstep, single in realtime) | "
                               "single (SingleThreadedExecutor) | events (rclpy.experimental.EventsExecutor: a "
                               "shorter round trip, 27-29x instead of 21-22x real time in bench closed_loop; "
-                              "docs/performance.md); the environment variable SAML_EXECUTOR overrides it"),
+                              "docs/performance.md); the environment variable SAML_EXECUTOR overrides it",
+          when=START),
     Param("gate.max_constraint", math.inf, "hold back checkpoints whose recorded constraint estimates "
                                            "(E[l | region] - eps, learner's live window) exceed this; inf = take "
                                            "every valid checkpoint", finite=False),
@@ -85,7 +87,7 @@ PARAMS: tuple[Param, ...] = (
                                          "residual its training data showed (0 = no residual check)"),
     Param("safe_on_infeasible", False, "also answer with the safe command when the plan is finite but violates a "
                                        "constraint (by default only failed or non-finite solves and implausible "
-                                       "states are)"),
+                                       "states are)", when=LIVE),
 )
 
 
@@ -105,6 +107,17 @@ def make_goal(system: str, values: Mapping[str, Any]) -> Any:
     """The ``goal`` argument of ``Controller.solve`` from the ``goal.*`` values of ``system`` (without the
     prefix; defaults filled in). ``ValueError``: wrong size, not finite, or a bound pair inverted."""
     return get_entry(system).make_goal(values)
+
+
+def horizon_memory(system: str, horizon: int) -> tuple[str, str, int]:
+    """``(parameter, what, bytes)`` for :func:`~saml_ros.core.params.memory_problems`: a lower bound of what the
+    shooting MPC of ``system`` allocates for ``horizon`` steps (its dense QP over the T m controls: the Hessian
+    and the state Jacobian T n x T m, in float64)."""
+    schema = get_entry(system).schema()
+    n, m = schema.state.size, schema.control.size
+    cols = horizon * m
+    return ("horizon", f"the plan's dense matrices for a horizon of {horizon} steps",
+            8 * cols * (cols + horizon * n))
 
 
 @dataclass(frozen=True)
@@ -141,7 +154,7 @@ class MPCConfig:
         """The parameter table of an MPC node for ``system``: :data:`PARAMS`, then ``goal.*`` and ``task.*``."""
         entry = get_entry(system)
         table = [replace(PARAMS[0], default=system), *PARAMS[1:]]
-        table += [replace(g, name=f"goal.{g.name}") for g in entry.goal_params]
+        table += [replace(g, name=f"goal.{g.name}", when=LIVE) for g in entry.goal_params]
         table += [replace(t, name=f"task.{t.name}") for t in entry.task_params]
         return table
 
@@ -153,6 +166,8 @@ class MPCConfig:
             ValueError: an unknown system or parameter, or a value of the wrong type or out of range; the
                 message names the parameter.
         """
+        problems = Problems()
+        check = problems.check
         system = values.get("system", PARAMS[0].default)
         if not isinstance(system, str):
             raise ValueError(f"parameter 'system' must be a string, got {system!r}")
@@ -163,40 +178,46 @@ class MPCConfig:
         table = cls.params(system)
         unknown = sorted(set(values) - {p.name for p in table})
         if unknown:
-            raise ValueError(f"unknown MPC parameter(s) {unknown} for system {system!r}")
-        p = read_params(table, values)
+            problems.add(f"unknown MPC parameter(s) {unknown} for system {system!r}", *unknown)
+        p = read_params(table, values, problems)
         check(p["mode"] in MODES, "mode", f"one of {MODES}", p["mode"])
         check(p["executor"] in EXECUTOR_CHOICES, "executor", f"auto or one of {EXECUTORS}", p["executor"])
         check(p["solver"] in SOLVERS, "solver", f"one of {SOLVERS}", p["solver"])
-        for name in ("rate_hz", "poll_period"):
+        for name in ("rate_hz", "poll_period", "diagnostics_rate"):
             check(p[name] > 0, name, "> 0", p[name])
         check(p["deadline_ms"] >= 0, "deadline_ms", ">= 0", p["deadline_ms"])
         check(p["member"] >= 0, "member", ">= 0", p["member"])
         check(p["horizon"] >= 1 or not entry.mpc_horizon, "horizon", ">= 1", p["horizon"])
+        if entry.mpc_horizon and p["horizon"] >= 1:
+            for message in memory_problems([horizon_memory(system, p["horizon"])]):
+                problems.add(message, "horizon")
         check(p["guard.max_disagreement"] > 0, "guard.max_disagreement", "> 0 (inf = off)",
               p["guard.max_disagreement"])
-        try:
+        guard = GuardConfig()
+        with problems.capture("guard.window", prefix="parameters 'guard.*': "):
             guard = GuardConfig(
                 max_disagreement=p["guard.max_disagreement"], bound_residual=p["guard.bound_residual"],
                 rollback=p["guard.rollback"], infeasible=p["guard.infeasible"],
                 monitor=MonitorConfig(window=p["guard.window"], min_samples=p["guard.min_samples"],
                                       ratio=p["guard.ratio"], margin=p["guard.margin"]))
-        except ValueError as exc:
-            raise ValueError(f"parameters 'guard.*': {exc}") from None
         check(not guard.enabled or entry.mpc_task is not None, "guard.*", "off for a one-shot MPC (paddle_ball)",
               "on")
         check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
-        try:
+        with problems.capture("plausible_bounds", prefix="parameter 'plausible_bounds': "):
             parse_overrides(p["plausible_bounds"])
-        except ValueError as exc:
-            raise ValueError(f"parameter 'plausible_bounds': {exc}") from None
+        solver_options: dict[str, Any] = {}
+        with problems.capture("solver_options"):
+            solver_options = parse_solver_options(p["solver_options"])
+        goal: Any = None
+        with problems.capture(*(f"goal.{g.name}" for g in entry.goal_params)):
+            goal = entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params})
+        problems.raise_if_any()
         return cls(
             system=system, solver=p["solver"], horizon=p["horizon"], member=p["member"],
-            solver_options=parse_solver_options(p["solver_options"]), mode=p["mode"], rate_hz=p["rate_hz"],
+            solver_options=solver_options, mode=p["mode"], rate_hz=p["rate_hz"],
             deadline_ms=p["deadline_ms"], run_dir=p["run_dir"], poll_period=p["poll_period"],
             diagnostics_rate=p["diagnostics_rate"], gate_max_constraint=p["gate.max_constraint"],
-            gate_min_updates=p["gate.min_updates"],
-            goal=entry.make_goal({g.name: p[f"goal.{g.name}"] for g in entry.goal_params}),
+            gate_min_updates=p["gate.min_updates"], goal=goal,
             task={t.name: p[f"task.{t.name}"] for t in entry.task_params}, guard=guard,
             plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
             safe_on_infeasible=p["safe_on_infeasible"], executor=choose_executor(p["executor"], p["mode"]),

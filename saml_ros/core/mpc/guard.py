@@ -361,10 +361,18 @@ class GuardedController:
         if not self.config.rollback or not self.monitor.add(self.live_error_model, self.live_error_base):
             return False
         self.counters["rollbacks"] += 1
-        self._banned.add(self._active.tag)
+        self.retire()
+        return True
+
+    def retire(self) -> int:
+        """Stop planning with the model in use for good (its tag is banned): back to the previous model, else f_hat.
+        Returns the tag now in use (0 = f_hat). What a roll back does; also called when the model in use fails the
+        acceptance re-check (:mod:`saml_ros.core.model_watch`)."""
+        if self._active.model is not None:
+            self._banned.add(self._active.tag)
         prev, self._previous = self._previous, None
         self._activate(prev if prev is not None and prev.tag not in self._banned else _Active(None, 0, None, None))
-        return True
+        return self._active.tag
 
     def values(self) -> dict[str, float]:
         """The guard's counters and the monitor's window means, for ``mpc/status`` (floats)."""

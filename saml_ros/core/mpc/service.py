@@ -27,7 +27,11 @@ The node decodes messages and publishes; everything in between is here and unit-
 * with any ``guard.*`` remedy on, the controller is a :class:`~saml_ros.core.mpc.guard.GuardedController`: each
   control step first shows it the live transition that just happened (previous state, the command sent, this
   state; not across a stamp jump) and a roll back changes the model in use (``rollbacks``, logged); its counters
-  go on ``mpc/status`` and ``/diagnostics`` (``guard_*``, ``monitor_error_*``).
+  go on ``mpc/status`` and ``/diagnostics`` (``guard_*``, ``monitor_error_*``);
+* the watcher knows the model in use (:meth:`~saml_ros.core.model_watch.ModelWatcher.set_in_use`): a checkpoint
+  holding it again is a no-op (``checkpoints_reannounced``), and it is re-checked on the states flown as a new
+  checkpoint is; one that fails is not used any more (``models_retired``, logged): the previous model (with the
+  guard) or f_hat takes over before the next solve.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -44,7 +48,8 @@ import numpy as np
 
 from msg_schemas.telemetry import SAFE_COMMAND_REASONS
 from saml_ros.core.model_acceptance import AcceptanceConfig, Probe, acceptance_hook
-from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, checkpoint_gate
+from saml_ros.core.model_io import LoadedModel
+from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, Retired, checkpoint_gate
 from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import make_controller
@@ -55,6 +60,8 @@ from saml_ros.core.systems.registry import get_entry
 
 #: recent (state, command) pairs kept as the acceptance check's probe rows
 RECENT_PROBES = 256
+#: loaded models kept by version (the model in use and those the guard may roll back to)
+KEPT_MODELS = 4
 
 #: one answer: the stamp of the state it answered (ns) and the ``mpc/status`` values
 Answer = tuple[int, dict[str, float]]
@@ -79,6 +86,7 @@ class MPCService:
                                               **config.controller_options())
         self._last_sent: tuple[np.ndarray, np.ndarray] | None = None  # (state, command) of the last step
         self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
+        self._models: OrderedDict[int, LoadedModel] = OrderedDict()  # the newest loaded ones, by version
         self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
         self.u_high = np.asarray(self.system.control_high, dtype=np.float64)
         self.u_safe = np.clip(self.system.safe_control(), self.u_low, self.u_high)
@@ -160,6 +168,9 @@ class MPCService:
         self.last_stamp = stamp
         if self.guarded is not None and self._last_sent is not None and not jumped:
             self._observe(*self._last_sent, x)
+        retired = self.watcher.take_retired()
+        if retired is not None:
+            self._retire(retired)
         swap_ms = 0.0
         ready = self.watcher.take()
         if ready is not None:
@@ -211,11 +222,27 @@ class MPCService:
             self.counters["rollbacks"] += 1
             self.model_version = self.guarded.tag
             self.model_path = self._paths.get(self.model_version, "")
-            m = self.guarded.monitor
+            self.watcher.set_in_use(self._models.get(self.model_version), self.model_version)
             self.logger.warning(
-                f"rolled back from model version {old} to {self.model_version or 'the base model f_hat'}: its live "
-                f"one-step error {m.last_model:.4g} (window mean above f_hat's {m.mean_base:.4g} + margin); "
-                f"version {old} is not used again")
+                f"rolled back from model version {old} to {self.model_version or 'the base model f_hat'}: "
+                f"{self.guarded.monitor.describe_verdict()}; version {old} is not used again")
+
+    def _retire(self, retired: Retired) -> None:
+        """The model in use failed the watcher's re-check on the states flown: plan without it from now on (the
+        previous model with the guard, else f_hat)."""
+        if retired.version != self.model_version:
+            return  # swapped out meanwhile
+        old = self.model_version
+        if self.guarded is not None:
+            self.model_version = self.guarded.retire()
+        else:
+            self.controller.set_model(None)
+            self.model_version = 0
+        self.model_path = self._paths.get(self.model_version, "") if self.model_version else ""
+        self.watcher.set_in_use(self._models.get(self.model_version), self.model_version)
+        self.counters["models_retired"] += 1
+        self.logger.warning(f"model version {old} retired ({retired.reason} on the states flown); planning with "
+                            f"{f'version {self.model_version}' if self.model_version else 'the base model f_hat'}")
 
     def recent_probe(self) -> Probe | None:
         """The recent states answered with a solved (not safe) command, and those commands: the acceptance
@@ -279,6 +306,10 @@ class MPCService:
         else:
             self.controller.set_model(ready.loaded.model)
         old, self.model_version, self.model_path = self.model_version, ready.version, str(ready.path)
+        self._models[ready.version] = ready.loaded
+        while len(self._models) > KEPT_MODELS:
+            self._models.popitem(last=False)
+        self.watcher.set_in_use(ready.loaded, ready.version)
         self.counters["swaps"] += 1
         self.logger.info(f"model version {old} -> {ready.version} ({ready.path.name})")
 
@@ -310,6 +341,8 @@ class MPCService:
         values["last_refusal"] = stats["last_refusal"]
         values["checkpoints_gated"] = stats["gated"]
         values["last_gated"] = stats["last_gated"]
+        values["checkpoints_reannounced"] = stats["reannounced"]
+        values["models_retired"] = self.counters["models_retired"]
         values["max_step_ms_during_swap"] = round(self.step_ms_max_swap, 3)
         solver: Any = self.controller
         if self.guarded is not None:  # the learned model's solver once it has solved, else f_hat's

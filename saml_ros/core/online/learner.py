@@ -37,6 +37,7 @@ from saml_ros.core.online.heldout import META_KEY as HELDOUT_KEY
 from saml_ros.core.online.heldout import HeldoutConfig, HeldoutReport, HeldoutSet, evaluate
 from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.online.resume import ResumeInfo, resume_newest
+from saml_ros.core.online.storage import WriteBackoff
 from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, feasibility_metrics, model_metrics
 from saml_ros.core.online.updates import OnlineUpdates
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition
@@ -187,6 +188,8 @@ class OnlineLearner:
         self.checkpoints_skipped = 0
         #: checkpoints not written because the model had non-finite values
         self.checkpoints_unhealthy = 0
+        #: failed checkpoint writes (full or read-only disk, ...): when to try again, what /diagnostics says
+        self.writes = WriteBackoff(clock)
         self._evidence: DataEvidence | None = None
         self.resumed: ResumeInfo | None = None
         self._metrics: dict[str, float] = {}
@@ -394,6 +397,8 @@ class OnlineLearner:
             checkpoints_written=float(self.checkpoints_written),
             checkpoints_skipped=float(self.checkpoints_skipped),
             checkpoints_unhealthy=float(self.checkpoints_unhealthy),
+            unsaved_updates=float(self.unsaved_updates),
+            **self.writes.values(),
         )
         tr = self.trainer
         if tr is not None:
@@ -412,9 +417,17 @@ class OnlineLearner:
         """True when the trainer has updates not yet in a checkpoint."""
         return self.trainer is not None and self.updates != self._saved_updates
 
+    @property
+    def unsaved_updates(self) -> int:
+        """Updates not yet in a checkpoint (all of them before the first one)."""
+        return 0 if self.trainer is None else self.updates - (self._saved_updates or 0)
+
     def checkpoint_due(self, period_s: float) -> bool:
-        """True when ``period_s`` seconds passed since the last save (or start) and there is something new."""
-        return self.dirty and self._clock() - self._saved_at >= period_s
+        """True when ``period_s`` seconds passed since the last save (or start) and there is something new, and,
+        after a failed write, the back-off allows the next attempt (:class:`~saml_ros.core.online.storage.WriteBackoff`:
+        1, 2, 4, ... periods after the failure)."""
+        now = self._clock()
+        return self.dirty and now - self._saved_at >= period_s and self.writes.may_write(period_s, now)
 
     def save_checkpoint(self, extra: Mapping[str, Any] | None = None) -> tuple[Path, int] | None:
         """Write the next checkpoint into the store (``None`` if no store or no trainer yet, or if the model is not
@@ -426,11 +439,24 @@ class OnlineLearner:
         (:class:`~saml_ros.core.model_evidence.DataEvidence` of the replay buffer, its residual maximum merged with
         that of every earlier checkpoint of this process, and a probe set drawn from the buffer).
 
+        A write that fails with an ``OSError`` (a full or read-only disk) is recorded in :attr:`writes` (which
+        makes :meth:`checkpoint_due` back off) and raised; nothing already written changes (``latest`` keeps naming
+        the last good checkpoint). The first good write after failures is logged.
+
         Raises:
-            OSError: the run directory is not writable (the caller logs and retries later).
+            OSError: the run directory is not writable (the caller logs it; :meth:`checkpoint_due` says when to
+                try again).
         """
         if self.store is None or self.trainer is None:
             return None
+        t0 = time.perf_counter()
+        try:
+            return self._save(extra)
+        finally:
+            self.writes.spent(time.perf_counter() - t0)
+
+    def _save(self, extra: Mapping[str, Any] | None) -> tuple[Path, int] | None:
+        assert self.store is not None and self.trainer is not None
         with self._lock:
             rows = self.buffer.arrays()
             fresh = DataEvidence.from_data(self.system, rows.x, rows.u, rows.y, np.random.default_rng([0, self.updates]))
@@ -459,6 +485,13 @@ class OnlineLearner:
                 self._saved_at = self._clock()  # retry at the next period, not at once
                 log.error("checkpoint not written: %s", exc)
                 return None
+            except OSError as exc:
+                self.writes.failed(exc, str(self.store.run_dir))
+                raise
+            ended, outage = self.writes.succeeded()
+            if ended:
+                log.warning("checkpoint version %d written to %s: writing works again after %d failed write(s), "
+                            "%.1f s without a good checkpoint", version, path, ended, outage)
             self._evidence = evidence
             self.model_version = version
             self._saved_updates = self.trainer.steps

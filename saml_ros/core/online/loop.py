@@ -52,12 +52,15 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
 
     ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
     (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``), ``("pause",)``,
-    ``("resume",)`` and ``("stop",)``.
+    ``("resume",)``, ``("loop", LoopConfig)`` (pace by it from now on) and ``("stop",)``.
     The whole inbox is handled before every chunk of updates, so ingest goes first (a backlog longer than one
     telemetry period is handled a period at a time, with a status report in between). ``send`` reports
-    ``("status", status, {source name: counters})`` at ``loop.telemetry_rate``, ``("checkpoint", path,
-    version)`` after each save, ``("error", what, message)`` and, on stop, ``("stopped", path | None, version,
-    updates)`` after a final checkpoint (when there are updates not yet saved). Returns after a stop.
+    ``("status", status, {source name: counters}, notes)`` at ``loop.telemetry_rate`` (``notes``: text values,
+    :func:`status_notes`), ``("checkpoint", path, version)`` after each save, ``("error", what, message)`` and, on
+    stop, ``("stopped", path | None, version, updates)`` after a final checkpoint (when there are updates not yet
+    saved). A checkpoint write that fails is reported as ``("error", "checkpoint", message)`` and tried again after
+    a back-off of 1, 2, 4, ... checkpoint periods (:mod:`~saml_ros.core.online.storage`); training goes on
+    meanwhile. Returns after a stop.
     ``stop_requested()`` True (the training process got
     :data:`~saml_ros.core.online.process.STOP_SIGNAL`) stops at once, as ``("stop",)`` would, without handling
     what is still in the inbox: data not yet in the buffer cannot change the final checkpoint, and a backlog of
@@ -78,7 +81,8 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             learner.compute_model_metrics()
         if raw is not None:
             raw.check_orphans()
-        send(("status", learner.status(), {p.name: dict(p.counts) for p in learner.sources}))
+        send(("status", learner.status(), {p.name: dict(p.counts) for p in learner.sources},
+              status_notes(learner, loop)))
 
     metrics_period = 1.0 / loop.telemetry_rate
     next_metrics = 0.0
@@ -105,6 +109,9 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
                 send(("paused", str(saved[0]) if saved else None, learner.model_version, learner.updates))
             elif msg[0] == "resume":
                 paused, paced_from = False, None
+            elif msg[0] == "loop":  # new pacing (a parameter changed on the running node)
+                loop, paced_from = msg[1], None
+                metrics_period, next_metrics = 1.0 / loop.telemetry_rate, 0.0
             elif msg[0] == "stop":
                 saved = save_and_announce(learner, send) if learner.dirty else None
                 report()
@@ -118,8 +125,8 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
         if paused:
             conn.poll(0.05)  # an interruptible sleep: wakes up when a message arrives
             continue
-        if learner.checkpoint_due(loop.checkpoint_period):
-            save_and_announce(learner, send)
+        if learner.checkpoint_due(loop.checkpoint_period):  # after a failed write: backed off (learner.writes)
+            save_and_announce(learner, send, loop.checkpoint_period)
         if conn.poll():
             continue  # still a backlog: ingest before training
         if not learner.training:
@@ -152,14 +159,25 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             time.sleep(1.0)
 
 
-def save_and_announce(learner: OnlineLearner, send: Send) -> tuple[Path, int] | None:
+def status_notes(learner: OnlineLearner, loop: LoopConfig) -> dict[str, str]:
+    """The text values of a status report: ``checkpoint_write_error`` (the OS message, the path, the time since the
+    last good checkpoint; ``""`` while writes succeed)."""
+    return {"checkpoint_write_error": learner.writes.describe(loop.checkpoint_period)}
+
+
+def save_and_announce(learner: OnlineLearner, send: Send, period_s: float | None = None) -> tuple[Path, int] | None:
     """Write a checkpoint and send ``("checkpoint", path, version)``; a write error is sent as ``("error",
-    "checkpoint", message)`` (and ``None`` returned: the loop retries at the next period)."""
+    "checkpoint", message)`` (and ``None`` returned: :meth:`OnlineLearner.checkpoint_due` says when to try again,
+    ``period_s`` the checkpoint period the message counts the back-off in)."""
     try:
         saved = learner.save_checkpoint()
     except OSError as exc:
         run_dir = learner.store.run_dir if learner.store else "?"
-        send(("error", "checkpoint", f"cannot write a checkpoint into {run_dir}: {exc}"))
+        retry = (f"; next attempt in {learner.writes.delay(period_s):.3g} s" if period_s is not None else "")
+        kept = (f"the last good checkpoint, version {learner.model_version}, stays the latest" if learner.model_version
+                else "no checkpoint written yet")
+        send(("error", "checkpoint", f"cannot write a checkpoint into {run_dir}: {exc} ({learner.writes.failures} "
+              f"failed write(s) in a row, {learner.unsaved_updates} updates not yet saved; {kept}){retry}"))
         return None
     if saved is not None:
         send(("checkpoint", str(saved[0]), saved[1]))

@@ -12,10 +12,11 @@ Socket protocol (``multiprocessing.connection`` messages, tuples):
 
 * parent -> child: first the :class:`LearnerSetup`; then ``("batch", x, u, y, stamp_s, source)`` (paired
   transitions, arrays ``(B, .)`` / ``(B,)``), ``("raw", [(channel, payload), ...])`` (messages for the setup's
-  decoder), ``("pause",)`` / ``("resume",)`` (a managed learner's deactivation and activation) and finally
-  ``("stop",)``;
+  decoder), ``("pause",)`` / ``("resume",)`` (a managed learner's deactivation and activation), ``("loop",
+  LoopConfig)`` (new pacing, :meth:`TrainingProcess.set_loop`) and finally ``("stop",)``;
 * child -> parent: ``("ready", resumed, hidden, status, compute)`` once built (or ``("fatal", "resume" |
-  "error", message)`` and exit), then ``("status", status, {source: counters})``, ``("checkpoint", path,
+  "error", message)`` and exit), then ``("status", status, {source: counters}, notes)`` (``notes``: text values
+  such as ``checkpoint_write_error``), ``("checkpoint", path,
   version)``, ``("error", what, message)``, ``("log", level, text)``, after a pause ``("paused", path | None,
   version, updates)`` and, after a stop, ``("stopped", path | None, version, updates)``.
 """
@@ -30,7 +31,7 @@ import signal
 import subprocess
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -210,7 +211,11 @@ class TrainingProcess:
         self.ready: ReadyInfo | None = None
         self.dropped = 0
         self.restarts = 0
+        #: errors reported (all kinds) and by kind (``training``, ``checkpoint``, ``process``): counters
         self.errors = 0
+        self.error_counts: Counter[str] = Counter()
+        #: the text values of the child's last status (``checkpoint_write_error``: "" while writes succeed)
+        self.notes: dict[str, str] = {}
         self._outbox: deque[Transition] = deque()
         self._raw: deque[tuple[int, Any]] = deque()
         self._send_lock = threading.Lock()
@@ -338,6 +343,12 @@ class TrainingProcess:
     def paused(self) -> bool:
         return self._paused
 
+    def set_loop(self, loop: LoopConfig) -> bool:
+        """Pace the running child by ``loop`` from now on (updates per second, telemetry rate, checkpoint period:
+        a learner's parameters that apply at once); a restarted child starts with it. False if the child is gone."""
+        self.setup = dataclasses.replace(self.setup, loop=loop)
+        return self._send_control(("loop", loop))
+
     def _send_control(self, msg: tuple[Any, ...]) -> bool:
         try:
             with self._send_lock:
@@ -423,6 +434,7 @@ class TrainingProcess:
             if kind == "status":
                 self.status = msg[1]
                 self.source_counts = msg[2]
+                self.notes = dict(msg[3]) if len(msg) > 3 else {}
                 self.on_status(msg[1])
             elif kind == "checkpoint":
                 self.on_checkpoint(msg[1], msg[2])
@@ -430,6 +442,7 @@ class TrainingProcess:
                 self.on_log(msg[1], msg[2])
             elif kind == "error":
                 self.errors += 1
+                self.error_counts[msg[1]] += 1
                 self.on_error(msg[1], msg[2])
             elif kind == "paused":
                 self._pause_reply = (msg[1], msg[2], msg[3])
@@ -448,6 +461,7 @@ class TrainingProcess:
                 self._proc.kill()
                 code = self._proc.wait(5.0)
         self.errors += 1
+        self.error_counts["process"] += 1
         self.restarts += 1
         self.on_error("process", f"the training process exited unexpectedly (exit code {code}); restarting it "
                                  "from the newest checkpoint (the replay buffer starts empty)")

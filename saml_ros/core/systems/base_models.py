@@ -318,12 +318,18 @@ class _UserFunction(BaseModel):
 # ------------------------------------------------------------------------------------------ factory
 @dataclass
 class BaseModelSpec:
-    """The ``base_model`` section of a system file, normalised: exactly one of builtin / function / entry_point."""
+    """The ``base_model`` section of a system file, normalised: exactly one of builtin / function / entry_point.
+
+    ``path`` (``function`` only): the directories the function's module is imported from before the Python path;
+    a system file's loader makes them absolute (default: the system file's folder), so a checkpoint that stores
+    the definition finds the module from any working directory.
+    """
 
     builtin: str | None = None
     function: str | None = None
     entry_point: str | None = None
     params: dict[str, Any] = field(default_factory=dict)
+    path: list[str] = field(default_factory=list)
 
     @classmethod
     def parse(cls, raw: Any) -> BaseModelSpec:
@@ -333,21 +339,31 @@ class BaseModelSpec:
             return cls(function=raw) if ":" in raw else cls(builtin=raw)
         if not isinstance(raw, Mapping):
             raise BaseModelError(f"base_model: expected a name or a mapping, got {type(raw).__name__}")
-        unknown = sorted(set(raw) - {"builtin", "function", "entry_point", "params"})
+        unknown = sorted(set(raw) - {"builtin", "function", "entry_point", "params", "path"})
         if unknown:
-            raise BaseModelError(f"base_model: unknown key(s) {unknown}; valid: builtin, function, entry_point, params")
+            raise BaseModelError(f"base_model: unknown key(s) {unknown}; valid: builtin, function, entry_point, params, "
+                                 "path")
         given = [k for k in ("builtin", "function", "entry_point") if raw.get(k) is not None]
         if len(given) != 1:
             raise BaseModelError(f"base_model: give exactly one of builtin, function, entry_point (got {given or 'none'})")
         params = raw.get("params") or {}
         if not isinstance(params, Mapping):
             raise BaseModelError("base_model.params: expected a mapping")
-        return cls(**{given[0]: str(raw[given[0]])}, params=dict(params))
+        path = raw.get("path") or []
+        if isinstance(path, str):
+            path = [path]
+        if not isinstance(path, list | tuple) or not all(isinstance(d, str) and d for d in path):
+            raise BaseModelError(f"base_model.path: expected a directory or a list of directories, got {path!r}")
+        if path and given[0] != "function":
+            raise BaseModelError("base_model.path: only a 'function' base model is imported from a directory")
+        return cls(**{given[0]: str(raw[given[0]])}, params=dict(params), path=list(path))
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {k: v for k, v in (("builtin", self.builtin), ("function", self.function),
                                                  ("entry_point", self.entry_point)) if v is not None}
         out["params"] = dict(self.params)
+        if self.path:
+            out["path"] = list(self.path)
         return out
 
 

@@ -33,7 +33,7 @@ import torch
 import yaml
 
 from saml_ros.core.layout import Field, VectorLayout
-from saml_ros.core.resampling import MIXED_POLICIES, STATE_RULES, ResampleConfig
+from saml_ros.core.resampling import COMMAND_RULES, MIXED_POLICIES, STATE_RULES, ResampleConfig
 from saml_ros.core.systems.base import System
 from saml_ros.core.systems.base_models import (
     BaseModel,
@@ -55,8 +55,8 @@ _TOP_KEYS = {"version", "name", "description", "dt", "state", "control", "pairin
              "spec_file"}
 _SECTION_KEYS = {"topic", "type", "fields", "rate", "qos", "frame_id", "child_frame_id", "safe"}
 _FIELD_KEYS = {"name", "unit", "bounds", "path", "angle", "description"}
-_PAIRING_KEYS = {"state", "state_tolerance", "command_guard", "command_timeout", "command_delay", "mixed_command",
-                 "latency", "jitter_tolerance"}
+_PAIRING_KEYS = {"state", "command", "state_tolerance", "command_guard", "command_timeout", "command_delay",
+                 "mixed_command", "latency", "jitter_tolerance"}
 _MODEL_KEYS = {"kind", "hidden", "inputs"}
 _QOS_KEYS = {"reliable", "depth"}
 
@@ -187,8 +187,9 @@ def _section(raw: Any, where: str, key: str) -> dict[str, Any]:
 def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = None) -> dict[str, Any]:
     """Validate a system file's contents; returns the normalised definition (a plain dict, the spec inlined).
 
-    ``where`` labels errors (the file name); ``base_dir`` resolves a relative ``spec_file``. Does not import the
-    base model (see :class:`FileSystem`).
+    ``where`` labels errors (the file name); ``base_dir`` (the file's folder) resolves a relative ``spec_file`` and
+    a user base model's ``path`` (default: ``base_dir`` itself), stored absolute. Does not import the base model
+    (see :class:`FileSystem`).
     """
     d = _keys(raw, where, "", _TOP_KEYS, {"name", "dt", "state", "control"})
     d = copy.deepcopy(d)
@@ -224,9 +225,12 @@ def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = No
     d["control"]["safe"] = safe
     d["pairing"] = _pairing(d.get("pairing") or {}, where, d)
     try:
-        d["base_model"] = BaseModelSpec.parse(d.get("base_model")).to_dict()
+        base = BaseModelSpec.parse(d.get("base_model"))
     except BaseModelError as exc:
         raise _fail(where, "base_model", str(exc)) from None
+    if base.function is not None and base_dir is not None:  # user code next to the file: record where, absolute
+        base.path = [str((base_dir / d).resolve()) for d in base.path or ["."]]
+    d["base_model"] = base.to_dict()
     m = _keys(d.get("model") or {}, where, "model", _MODEL_KEYS)
     kind = m.get("kind", "residual")
     if kind not in ("residual", "full"):
@@ -285,7 +289,10 @@ def _pairing(raw: Any, where: str, d: dict[str, Any]) -> dict[str, Any]:
     mixed = p.get("mixed_command", "hold")
     if mixed not in MIXED_POLICIES:
         raise _fail(where, "pairing.mixed_command", f"expected one of {list(MIXED_POLICIES)}, got {mixed!r}")
-    out: dict[str, Any] = {"state": rule, "mixed_command": mixed}
+    command = p.get("command", "hold")
+    if command not in COMMAND_RULES:
+        raise _fail(where, "pairing.command", f"expected one of {list(COMMAND_RULES)}, got {command!r}")
+    out: dict[str, Any] = {"state": rule, "command": command, "mixed_command": mixed}
     for k, default in (("state_tolerance", None), ("command_guard", 0.002), ("command_timeout", 0.5),
                        ("command_delay", 0.0), ("latency", None), ("jitter_tolerance", 0.25)):
         v = p.get(k, default)
@@ -420,7 +427,7 @@ class FileSystem(System):
                 self.state.size, self.control.size, self.dt, state_rule=p["state"],
                 state_tolerance=p["state_tolerance"], cmd_guard=p["command_guard"],
                 cmd_timeout=p["command_timeout"], cmd_delay=p["command_delay"], latency=p["latency"],
-                mixed=p["mixed_command"], angle_indices=self.angle_indices, jitter_tolerance=p["jitter_tolerance"],
+                mixed=p["mixed_command"], cmd_rule=p.get("command", "hold"), angle_indices=self.angle_indices, jitter_tolerance=p["jitter_tolerance"],
                 state_period=1.0 / st["rate"] if st.get("rate") else 0.0,
                 cmd_period=1.0 / ct["rate"] if ct.get("rate") else 0.0,
                 stamped_state=has_header(st["type"]), stamped_cmd=has_header(ct["type"]),

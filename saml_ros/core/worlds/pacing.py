@@ -26,6 +26,12 @@ class Pacer:
         #: wall seconds waited so far
         self.waited_s = 0.0
 
+    def set_speed(self, max_speed: float) -> None:
+        """A new limit (``max_speed`` as in the constructor), counted from the next step."""
+        if not (math.isfinite(max_speed) and max_speed >= 0.0):
+            raise ValueError(f"max_speed must be >= 0 (0 = no limit), got {max_speed}")
+        self.max_speed, self._origin = float(max_speed), None
+
     def wait_s(self, sim_ns: int, wall_ns: int) -> float:
         """Wall seconds to wait (>= 0) before the step at simulated time ``sim_ns`` when the wall clock reads
         ``wall_ns`` (monotonic ns): zero while the run is slower than the limit (then the schedule restarts from
