@@ -7,7 +7,8 @@ The training recording's transitions (paired with the learner's own rule, ``extr
 :class:`~saml_ros.core.online.OnlineLearner` in stamp order, ``--chunk`` s of stream time at a time, with
 ``--rate`` updates per second of stream time in between (what the live learner managed on the same machine:
 ``updates / duration`` of a real run). The stamps are the recording's, so the held-out split of the stream is the
-live learner's. At ``--evals`` points the model is evaluated on the held-out recordings (other flights): one-step
+live learner's. At ``--evals`` points the published model (the trainer's weights or their average, whichever did
+better on the learner's held-out stretches) is evaluated on the held-out recordings (other flights): one-step
 error inside and outside each constraint's region, beside f_hat's, beside the error on the data trained on so far
 and beside what the learner itself reports from its held-out stretches (value, standard error, verdict). The
 learner's clock is the stream's, so its held-out evaluations (and normalisation refits) come every
@@ -125,9 +126,11 @@ def main(argv: list[str] | None = None) -> int:
         if eval_at and (now >= eval_at[0] or i >= len(x)):
             eval_at.pop(0)
             report = learner.evaluate_heldout()
-            row = {"t": now - stamp[0], "transitions": i, "updates": learner.updates,
-                   "flights": errors(learner.model, held.x, held.u, held.y),
-                   "trained_on": errors(learner.model, x[:i], u[:i], y[:i]), "stream_heldout": {}}
+            model = learner.published_model()  # what a checkpoint written now would hold
+            row = {"t": now - stamp[0], "transitions": i, "updates": learner.updates, "published": learner.published,
+                   "flights": errors(model, held.x, held.u, held.y),
+                   "trained_on": errors(model, x[:i], u[:i], y[:i]), "stream_heldout": {},
+                   "latest_on_flights": errors(learner.model, held.x, held.u, held.y)}
             for t in report.constraints if report is not None else []:
                 est = t.model[0]
                 row["stream_heldout"][t.name] = {"mean": est.mean, "se": est.se, "n": est.n,
@@ -138,8 +141,9 @@ def main(argv: list[str] | None = None) -> int:
                 s = row["stream_heldout"].get(name, {})
                 own = (f"; its own held-out stretches {s['mean']:.5f} +- {s['se']:.5f} (n {s['n']}, "
                        f"{s['verdict']})" if s else "")
-                print(f"  t {row['t']:6.1f} s, {i} transitions, {learner.updates} updates: '{name}' on the held-out "
-                      f"flights in {e['in']:.5f} out {e['out']:.5f}; on the data trained on in "
+                print(f"  t {row['t']:6.1f} s, {i} transitions, {learner.updates} updates, published "
+                      f"{learner.published}: '{name}' on the held-out flights in {e['in']:.5f} out {e['out']:.5f} "
+                      f"(the trainer's weights {row['latest_on_flights'][name]['in']:.5f}); on the data trained on in "
                       f"{row['trained_on'][name]['in']:.5f}{own} [{time.perf_counter() - wall:.0f} s]", flush=True)
     if args.json:
         args.json.write_text(json.dumps({"settings": {k: str(v) for k, v in vars(args).items()}, "evaluations": rows,

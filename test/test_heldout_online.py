@@ -338,3 +338,39 @@ def test_updates_are_tied_to_the_data_that_arrived() -> None:
     learner.add_batch(x[200:250], u[200:250], y[200:250])
     assert learner.update_budget() == 100 and learner.update(60) == 60 and learner.update(1000) == 40
     assert learner.updates == 500 and math.isnan(learner.status()["update_budget"]) is False
+
+
+# ------------------------------------------------------------------------------------------- the published model
+def test_the_weights_that_do_better_on_the_heldout_stretches_are_published(tmp_path: Path) -> None:
+    """Beside the trainer's weights the learner keeps their exponential average; at every held-out evaluation the
+    better of the two on the held-out stretches is published: the checkpoint holds it (its held-out record is its
+    own), and training goes on from the trainer's weights."""
+    spec = ProblemSpec.for_system(WIDE_SPEC, FRICTION)
+    learner = OnlineLearner(FRICTION, spec, OnlineConfig(min_transitions=200, hidden=(16, 16), average_updates=200),
+                            store=CheckpointStore(tmp_path))
+    x, u, y, stamp = stream(FRICTION, 3000, seed=11)
+    learner.add_batch(x, u, y, stamp=stamp, source=0)
+    for _ in range(10):
+        learner.update(100)
+    assert learner.average is not None
+    with torch.no_grad():  # the trainer's weights knocked off: the average is now the better model
+        learner.model.net.biases[-1].add_(3.0)
+    broken = {k: v.clone() for k, v in learner.model.state_dict().items()}
+    report = learner.evaluate_heldout()
+    assert report is not None and learner.published == "average" and report.published == "average"
+    path, _ = learner.save_checkpoint()  # type: ignore[misc]
+    saved = load_model(path)
+    assert saved.meta["heldout"]["published"] == "average" and saved.meta["learner"]["published"] == "average"
+    for k, v in saved.model.state_dict().items():
+        torch.testing.assert_close(v, learner.average.state_dict()[k])
+    for k, v in learner.model.state_dict().items():  # training goes on from its own weights
+        torch.testing.assert_close(v, broken[k])
+    assert check_model(saved, Plausibility.for_system(FRICTION)) is None
+    with torch.no_grad():  # now the average is the broken one
+        learner.model.net.biases[-1].sub_(3.0)
+        learner.average.net.biases[-1].add_(3.0)
+    assert learner.evaluate_heldout() is not None and learner.published == "latest"
+    plain = OnlineLearner(FRICTION, spec, OnlineConfig(min_transitions=200, average_updates=0))
+    plain.add_batch(x, u, y, stamp=stamp, source=0)
+    plain.update(50)
+    assert plain.average is None and plain.evaluate_heldout() is not None and plain.published == "latest"

@@ -90,6 +90,9 @@ _TAIL: tuple[Param, ...] = (
     Param("heldout.capacity", 25_000, "held-out transitions kept (the newest)"),
     Param("heldout.eval_period", 1.0, "s (wall clock) between two evaluations on the held-out stretches (telemetry, "
                                       "/diagnostics); every checkpoint is evaluated when written"),
+    Param("average_updates", 1000.0, "time constant (updates) of an exponential average of the weights kept beside "
+                                     "the trainer's; the one that does better on the held-out stretches is published "
+                                     "in checkpoints (0 = no average: the trainer's weights)"),
     Param("updates_per_transition", 0.0, "at most this many primal-dual updates per training transition received "
                                          "since training started (0 = no limit): training waits for new data "
                                          "instead of memorising the buffer"),
@@ -183,6 +186,7 @@ class LearnerConfig:
     heldout_capacity: int = 25_000
     heldout_eval_period: float = 1.0
     updates_per_transition: float = 0.0
+    average_updates: float = 1000.0
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -269,6 +273,8 @@ class LearnerConfig:
             check(math.isfinite(p[name]) and p[name] > 0, name, "> 0 s", p[name])
         check(0 <= p["heldout.fraction"] <= 0.5, "heldout.fraction", "in [0, 0.5]", p["heldout.fraction"])
         check(p["heldout.capacity"] >= 1, "heldout.capacity", ">= 1", p["heldout.capacity"])
+        check(math.isfinite(p["average_updates"]) and p["average_updates"] >= 0, "average_updates",
+              ">= 0 (0 = no average)", p["average_updates"])
         check(math.isfinite(p["updates_per_transition"]) and p["updates_per_transition"] >= 0,
               "updates_per_transition", ">= 0 (0 = no limit)", p["updates_per_transition"])
         nss = [normalize_namespace(n) for n in p["namespaces"]] or [normalize_namespace(node_namespace)]
@@ -290,7 +296,7 @@ class LearnerConfig:
             health_error_after=p["health.error_after"], normalization_refit=p["normalization.refit"],
             heldout_period=p["heldout.period"], heldout_fraction=p["heldout.fraction"],
             heldout_capacity=p["heldout.capacity"], heldout_eval_period=p["heldout.eval_period"],
-            updates_per_transition=p["updates_per_transition"],
+            updates_per_transition=p["updates_per_transition"], average_updates=p["average_updates"],
         )
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
@@ -472,7 +478,7 @@ class LearnerConfig:
                 heldout=HeldoutConfig(period=self.heldout_period, fraction=self.heldout_fraction,
                                       capacity=self.heldout_capacity),
                 heldout_period=self.heldout_eval_period, updates_per_transition=self.updates_per_transition,
-                renormalize=self.normalization_refit,
+                renormalize=self.normalization_refit, average_updates=self.average_updates,
             )
             own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
             pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(

@@ -154,6 +154,8 @@ class HeldoutReport:
         stretches: held-out stretches they come from.
         description: which stretches are held out (:meth:`HeldoutConfig.describe`).
         updates: the model's update count when evaluated.
+        published: which weights were evaluated: ``"latest"`` (the trainer's) or ``"average"`` (their exponential
+            average, :class:`~saml_ros.core.online.learner.OnlineLearner`).
     """
 
     terms: list[TermReport]
@@ -161,6 +163,7 @@ class HeldoutReport:
     stretches: int
     description: str
     updates: int = 0
+    published: str = "latest"
 
     @property
     def objective(self) -> TermReport:
@@ -174,7 +177,7 @@ class HeldoutReport:
         """The checkpoint's ``meta["heldout"]``: the model's and f_hat's held-out estimates of every term, the
         training values and the verdicts (JSON)."""
         return {"source": "stream", "description": self.description, "n": self.n, "stretches": self.stretches,
-                "updates": self.updates, "z": Z, "objective": self.objective.to_dict(),
+                "updates": self.updates, "published": self.published, "z": Z, "objective": self.objective.to_dict(),
                 "constraints": {t.name: t.to_dict() for t in self.constraints}}
 
     def metrics(self, member: int = 0) -> dict[str, float]:
@@ -183,7 +186,8 @@ class HeldoutReport:
 
         ob = self.objective
         out = {"heldout_size": float(self.n), "heldout_objective": ob.model[member].mean,
-               "heldout_objective_base": ob.base.mean, "heldout_updates": float(self.updates)}
+               "heldout_objective_base": ob.base.mean, "heldout_updates": float(self.updates),
+               "heldout_average": 1.0 if self.published == "average" else 0.0}
         for t in self.constraints:
             est = t.model[member]
             out[f"heldout/{t.name}"] = est.mean

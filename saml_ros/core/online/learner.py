@@ -92,6 +92,10 @@ class OnlineConfig:
             ever more updates; 0 = no limit (as fast as the CPU allows).
         renormalize: refit the input / output normalisation on the training buffer when it has drifted
             (:data:`RENORM_FACTOR`), keeping the model's function (:meth:`DynamicsModel.renormalize`).
+        average_updates: time constant (updates) of an exponential average of the weights kept beside the
+            trainer's; at every held-out evaluation the one of the two that does better on the held-out stretches is
+            the model checkpoints publish (:meth:`OnlineLearner.evaluate_heldout`). 0 = no average (the trainer's
+            weights are published).
     """
 
     kind: str = "residual"
@@ -109,6 +113,7 @@ class OnlineConfig:
     heldout_period: float = 1.0
     updates_per_transition: float = 0.0
     renormalize: bool = True
+    average_updates: float = 1000.0
 
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -131,6 +136,8 @@ class OnlineConfig:
             raise ValueError("telemetry_window and checkpoint_keep must be >= 1")
         if not (math.isfinite(self.updates_per_transition) and self.updates_per_transition >= 0):
             raise ValueError(f"updates_per_transition must be >= 0 (0 = no limit), got {self.updates_per_transition}")
+        if not (math.isfinite(self.average_updates) and self.average_updates >= 0):
+            raise ValueError(f"average_updates must be >= 0 (0 = no average), got {self.average_updates}")
         if not (math.isfinite(self.heldout_period) and self.heldout_period > 0):
             raise ValueError(f"heldout_period must be > 0 s, got {self.heldout_period}")
         schedules_for(self.train, 0)  # online training has no epochs: a schedule needs train.schedule_steps
@@ -199,6 +206,10 @@ class OnlineLearner:
         #: updates and training transitions of this process since training started (the update budget)
         self._budget_from: tuple[int, int] | None = None
         self.renormalizations = 0
+        #: the exponential average of the weights (``average_updates``), and which model checkpoints publish:
+        #: ``"latest"`` (the trainer's weights) or ``"average"`` (chosen on the held-out stretches)
+        self.average: DynamicsModel | None = None
+        self.published = "latest"
         if store is not None and resume:
             self._resume(store)
         self.compute_model_metrics()
@@ -286,7 +297,22 @@ class OnlineLearner:
             if self._updates is None or self._updates.trainer is not self.trainer:
                 self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS, self.config.n_models)
             self._updates.run(n_steps, self.buffer, self._rng, self._averages)
+            self._average_in(n_steps)
             return n_steps
+
+    @torch.no_grad()
+    def _average_in(self, n: int) -> None:
+        """Move the weight average towards the trainer's weights after ``n`` updates (time constant
+        ``average_updates``; the first call copies them)."""
+        tau = self.config.average_updates
+        if tau <= 0:
+            return
+        if self.average is None:
+            self.average = _copy_model(self.model)
+            return
+        keep = math.exp(-n / tau)
+        for pa, pm in zip(self.average.net.parameters(), self.model.net.parameters(), strict=True):
+            pa.mul_(keep).add_(pm, alpha=1.0 - keep)
 
     def _start_training(self) -> None:
         m = self.config.min_transitions
@@ -329,6 +355,10 @@ class OnlineLearner:
             model.load_state_dict(saved)
             log.warning("normalisation not refitted: the refitted weights would not be finite")
             return False
+        if self.average is not None:  # the same normalisation before, so the same exact change
+            self.average.renormalize(mean, std, ostd)
+            if not all(bool(torch.isfinite(v).all()) for v in self.average.state_dict().values()):
+                self.average = None  # started again from the trainer's weights
         net = model.net
         for param, factor in ((net.weights[0], rows_f), (net.weights[-1], cols_f), (net.biases[-1], cols_f)):
             state = tr.primal_opt.state.get(param, {})
@@ -347,18 +377,31 @@ class OnlineLearner:
         return True
 
     def evaluate_heldout(self) -> HeldoutReport | None:
-        """Evaluate the current model on the held-out stretches and a sample of the training buffer (refitting the
-        normalisation first when the training data drifted); None before training. Cached for telemetry."""
+        """Evaluate the model on the held-out stretches and a sample of the training buffer (refitting the
+        normalisation first when the training data drifted); None before training. With a weight average
+        (``average_updates``) both the trainer's weights and the average are evaluated, and the one that does
+        better on the held-out stretches (:func:`heldout_score`) becomes :attr:`published`; the report is the
+        published model's. Cached for telemetry."""
         if self.trainer is None:
             return None
         with self._lock:
             rows = self._training_sample()
             self._maybe_renormalize(rows)
-            report = evaluate(self.model, self.spec, self.heldout.arrays(), rows, self.config.heldout,
-                              updates=self.updates)
+            held = self.heldout.arrays()
+            report = evaluate(self.model, self.spec, held, rows, self.config.heldout, updates=self.updates)
+            self.published = "latest"
+            if self.average is not None and len(held.x):
+                other = evaluate(self.average, self.spec, held, rows, self.config.heldout, updates=self.updates)
+                if heldout_score(other) < heldout_score(report):
+                    report, self.published = other, "average"
+            report.published = self.published
         self.heldout_report = report
         self._heldout_at = self._clock()
         return report
+
+    def published_model(self) -> DynamicsModel:
+        """The model checkpoints publish (:attr:`published`: the trainer's weights or their average)."""
+        return self.average if self.published == "average" and self.average is not None else self.model
 
     # ------------------------------------------------------------------------------------------ telemetry
     def compute_model_metrics(self) -> dict[str, float]:
@@ -478,6 +521,12 @@ class OnlineLearner:
             if report is not None:
                 metrics.update(report.metrics(0))
                 extra_meta[HELDOUT_KEY] = report.to_meta()
+            if report is not None:
+                info["published"] = self.published
+            raw = None
+            if self.published == "average" and self.average is not None:  # the weights the held-out data chose
+                raw = {k: v.clone() for k, v in self.model.state_dict().items()}
+                self.model.load_state_dict(self.average.state_dict())
             try:
                 path, version = save_checkpoint(self.store, self.trainer, metrics, extra_meta, evidence)
             except UnhealthyModel as exc:
@@ -488,6 +537,9 @@ class OnlineLearner:
             except OSError as exc:
                 self.writes.failed(exc, str(self.store.run_dir))
                 raise
+            finally:
+                if raw is not None:  # training goes on from the trainer's own weights
+                    self.model.load_state_dict(raw)
             ended, outage = self.writes.succeeded()
             if ended:
                 log.warning("checkpoint version %d written to %s: writing works again after %d failed write(s), "
@@ -530,3 +582,26 @@ class OnlineLearner:
             log.warning("resume: skipped %s: %s", p, why)
         log.info("resume: loaded %s (version %d, %d updates, lambda %s)", path, version, trainer.steps,
                  self.lam.tolist())
+
+
+def heldout_score(report: HeldoutReport) -> tuple[float, float]:
+    """How a model did on the held-out stretches, smaller is better: ``(violation, objective)``, compared in that
+    order. ``violation`` sums over constraints and members ``max(0, heldout - eps) / eps`` (a constraint without
+    held-out samples in its region counts 0); ``objective`` is the members' mean held-out objective."""
+    viol = 0.0
+    for t in report.constraints:
+        eps = t.eps or 0.0
+        for est in t.model:
+            if est.n and math.isfinite(est.mean) and eps > 0:
+                viol += max(0.0, est.mean - eps) / eps
+    objs = [e.mean for e in report.objective.model if e.n and math.isfinite(e.mean)]
+    return viol, (sum(objs) / len(objs) if objs else math.inf)
+
+
+def _copy_model(model: DynamicsModel) -> DynamicsModel:
+    """A separate model with ``model``'s architecture, weights and normalisation (no gradients)."""
+    out = DynamicsModel(model.system, model.hidden, model.kind, n_models=model.n_models, inputs=model.inputs)
+    out.to(model.in_mean.dtype)
+    out.load_state_dict(model.state_dict())
+    out.requires_grad_(False)
+    return out

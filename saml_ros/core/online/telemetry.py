@@ -33,6 +33,8 @@ EXTRA_METRICS: tuple[tuple[str, str, str], ...] = (
     ("heldout_objective", "loss", "the objective on the held-out stretches (member 0)"),
     ("heldout_objective_base", "loss", "f_hat's objective on the same held-out stretches"),
     ("heldout_updates", "count", "the update count of the model the held-out values belong to"),
+    ("heldout_average", "1", "1 when the exponential average of the weights did better on the held-out stretches "
+                             "than the trainer's weights (checkpoints then publish the average), else 0"),
 )
 #: extra per-constraint values (``<name>/<k>``)
 EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
