@@ -12,7 +12,7 @@ import sys
 import time
 
 BENCHES = ("train", "dual", "mpc", "sim", "loop_parts", "learner", "closed_loop", "bags", "health", "soak", "sweep",
-           "storage", "pairing", "your_robot")
+           "storage", "pairing", "misconfig", "your_robot")
 
 
 def main(argv: list[str] | None = None) -> int:

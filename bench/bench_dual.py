@@ -21,16 +21,22 @@ all trained as ONE ensemble on the fast engine), printed as measured in this run
 * **in-region error**: held-out (fresh data from the same distribution) mean loss of the constraint's loss inside
   its region, median [min - max];
 * **verdicts**: the end-of-training diagnosis per seed: met / not converged / likely infeasible
-  (:mod:`saml_ros.core.training.diagnosis`);
-* lambda (median) and the training wall time.
+  (:mod:`saml_ros.core.training.diagnosis`, against the bound the recipe aimed at);
+* lambda (median) and the training wall time;
+* per problem, a table of ``train``'s held-out verdicts (:mod:`saml_ros.core.training.verdict`: met / unconfirmed /
+  met on training only / not met / no held-out data, read on a fresh verdict set of 10x the training size), the
+  training value, the held-out estimate, the same left-hand side on ``--fresh`` (200000) other fresh transitions,
+  and how many seeds reported met exceed eps there; per-seed tables of the ``--per-seed`` recipes.
 
 Recipes: ``UA`` (no constraint: the objective's unconstrained level, the paper's learning rates), ``paper``
 (Algorithm 1 as the experiments run it: Adam, constant rates, the experiment's primal / dual rates), each other
-dual method with the recommended schedules and rates (``TrainConfig()`` is the recommended default), and, on the
-problems of ``--restarts-on`` (default: friction, whose 4-2 net has optima far apart), the default with
-``--restarts`` initialisations per seed, the best feasible one kept on a 20 % held-out split, and the default with
-the first hidden layer's PReLU started at slope -1 (``|h|``; ``DynamicsModel(prelu_init=-1)``), alone and with
-``--abs-restarts`` initialisations per seed.
+dual method with the recommended schedules and rates (``TrainConfig()`` is the recommended default), the default
+without the margin (``default, no margin``: aiming at eps itself), and, on the problems of ``--restarts-on``
+(default: friction, whose 4-2 net has optima far apart), the default with ``--restarts`` initialisations per seed,
+the best one kept on a fresh selection set of 10x the training size, and the default with the first hidden layer's
+PReLU started at slope -1 (``|h|``; ``DynamicsModel(prelu_init=-1)``), alone and with ``--abs-restarts``
+initialisations per seed. Every recipe but ``UA`` and ``paper`` aims below eps as ``train`` does
+(``margin="auto"``).
 
 Threads: one (``torch.set_num_threads(1)``); subnormal floats flushed. Wall times depend on the machine's load.
 """
@@ -46,7 +52,7 @@ import argparse
 import json
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +64,9 @@ from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
 from saml_ros.core.training import TrainConfig, Transitions, evaluate_spec
 from saml_ros.core.training.diagnosis import INFEASIBLE, MET, NOT_CONVERGED, TOL
+from saml_ros.core.training.heldout import MET as HELD_MET
+from saml_ros.core.training.heldout import MET_ON_TRAINING_ONLY, NO_HELDOUT, NOT_MET, UNCONFIRMED
+from saml_ros.core.training.verdict import read_verdicts, spec_estimates
 from saml_ros.offline.pipelines import TrainedModels, evaluate_models, generate_datasets, train_models
 
 
@@ -88,20 +97,28 @@ PROBLEMS: dict[str, Problem] = {
 ABS_SLOPE = -1.0
 
 
-def recipes(restarts: int, abs_restarts: int) -> dict[str, tuple[TrainConfig | None, int, float]]:
+#: the margin of the recipes that train as `train` does (every recipe but UA and the paper's Algorithm 1)
+MARGIN = "auto"
+
+
+def recipes(restarts: int, abs_restarts: int) -> dict[str, tuple[TrainConfig | None, int, float, str | None]]:
     """Recipe name -> (config with the problem's settings still to fill in, restarts, first PReLU slope at
-    initialisation); None: the paper's config."""
+    initialisation, margin); None: the paper's config. Every recipe but UA and ``paper`` aims below eps as
+    ``train`` does (``margin="auto"``); ``default, no margin`` is the default recipe aiming at eps itself."""
     default = TrainConfig()
-    out: dict[str, tuple[TrainConfig | None, int, float]] = {"UA": (None, 1, 0.25), "paper": (None, 1, 0.25)}
+    out: dict[str, tuple[TrainConfig | None, int, float, str | None]] = {
+        "UA": (None, 1, 0.25, None), "paper": (None, 1, 0.25, None)}
     for method in ("nupi", "augmented", "resilient"):
         cfg = default if method == default.dual_method else method_config(method)
-        out[method + (" (default)" if method == default.dual_method else "")] = (cfg, 1, 0.25)
+        out[method + (" (default)" if method == default.dual_method else "")] = (cfg, 1, 0.25, MARGIN)
+        if method == default.dual_method:
+            out["default, no margin"] = (default, 1, 0.25, None)
     if restarts > 1:
-        out[f"default + {restarts} restarts"] = (default, restarts, 0.25)
+        out[f"default + {restarts} restarts"] = (default, restarts, 0.25, MARGIN)
     if abs_restarts > 0:
-        out["default, |h| start"] = (default, 1, ABS_SLOPE)
+        out["default, |h| start"] = (default, 1, ABS_SLOPE, MARGIN)
     if abs_restarts > 1:
-        out[f"default + {abs_restarts} restarts, |h| start"] = (default, abs_restarts, ABS_SLOPE)
+        out[f"default + {abs_restarts} restarts, |h| start"] = (default, abs_restarts, ABS_SLOPE, MARGIN)
     return out
 
 
@@ -122,11 +139,29 @@ class Row:
     verdicts: list[str]
     seconds: float
     reachable: float
+    reported: list[str] = field(default_factory=list)  # (S,) the held-out verdict train reports (first constraint)
+    training: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (S,) its left-hand side, training data
+    held_mean: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (S,) held-out estimate (verdict set)
+    held_se: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (S,) its standard error
+    fresh: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (S,) the left-hand side on FRESH transitions
+    aim: float = float("nan")  # the bound training aimed at (first constraint)
 
 
-def run_recipe(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarray, ...], test: tuple[np.ndarray, ...],
+@dataclass
+class HeldOut:
+    """The held-out data of a problem: ``test`` (the shared 20000 transitions of the held-out objective),
+    ``verdict`` (what ``train``'s verdict is read on: 10x the training size, fresh), ``select`` (restarts select on
+    it, as ``train`` does; fresh) and ``fresh`` (200000 fresh transitions: does a model reported met stay met?)."""
+
+    test: tuple[np.ndarray, np.ndarray, np.ndarray]
+    verdict: tuple[np.ndarray, np.ndarray, np.ndarray]
+    select: tuple[np.ndarray, np.ndarray, np.ndarray]
+    fresh: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def run_recipe(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarray, ...], held: HeldOut,
                seeds: list[int], recipe: str, cfg: TrainConfig | None, restarts: int, epochs: int,
-               hidden: tuple[int, ...] | None = None, prelu_init: float = 0.25) -> Row:
+               hidden: tuple[int, ...] | None = None, prelu_init: float = 0.25, margin: str | None = None) -> Row:
     x, u, y = data
     plr, dlr = p.paper_lrs
     uniform = recipe == "UA"
@@ -135,19 +170,40 @@ def run_recipe(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarr
     else:
         cfg = replace(cfg, epochs=epochs)
     use_spec = spec.uniform() if uniform else spec
+    masks = spec.masks(*(torch.as_tensor(a, dtype=torch.float64) for a in held.verdict))[1:]
+    held_in = [len(held.verdict[0]) if m is None else int(m.sum()) for m in masks]
     res: TrainedModels = train_models(sysm, use_spec, x, u, y, cfg, seeds, hidden, "residual", restarts=restarts,
-                                      prelu_init=prelu_init)
+                                      prelu_init=prelu_init, margin=None if uniform else margin,
+                                      heldout_n=held_in, select=held.select if restarts > 1 else None)
     ev = evaluate_spec(res.model, spec, Transitions(res.model, spec, x, u, y))
     eps = np.array([t.eps for t in spec.constraints])
     rel = ev["constraints"] / eps
-    held = evaluate_models(res.model, spec, *test)
+    test = held.test
+    ev_test = evaluate_models(res.model, spec, *test)
     diag = res.trainer.diagnosis
     verdicts = ["-"] * len(seeds) if uniform or diag is None else [diag.constraints[0].members[i].verdict
                                                                        for i in range(len(seeds))]
     reach = float("nan") if uniform or diag is None else diag.constraints[0].reachable_eps
     lam = np.zeros(len(seeds)) if uniform else res.trainer.lam[:, 0].double().numpy()
-    return Row(recipe, p.name, (rel <= TOL).all(axis=1), ev["objective"], held.objective, held.regions[0].inside, lam,
-               verdicts, res.train_seconds, reach)
+    row = Row(recipe, p.name, (rel <= TOL).all(axis=1), ev["objective"], ev_test.objective,
+              ev_test.regions[0].inside, lam, verdicts, res.train_seconds, reach)
+    # train's verdict (first constraint), and the same left-hand side on 200000 fresh transitions
+    res.spec = spec
+    if uniform:  # UA has no constraint of its own: the verdict is read on the SA spec's bound
+        res.training = np.array([[e.mean for e in c] for c in spec_estimates(
+            res.model, spec, Transitions(res.model, spec, x, u, y))[1]]).T
+    assert res.training is not None
+    _, held_c = spec_estimates(res.model, spec, Transitions(res.model, spec, *held.verdict))
+    v = read_verdicts(spec, held_c, res.training, None if uniform else res.aimed, None if uniform else diag)
+    _, fresh_c = spec_estimates(res.model, spec, Transitions(res.model, spec, *held.fresh))
+    c0 = v.constraints[0]
+    row.reported = [m.verdict for m in c0.members]
+    row.training = np.array([m.training for m in c0.members])
+    row.held_mean = np.array([m.heldout.mean if m.heldout else np.nan for m in c0.members])
+    row.held_se = np.array([m.heldout.se if m.heldout else np.nan for m in c0.members])
+    row.fresh = np.array([e.mean for e in fresh_c[0]])
+    row.aim = c0.aim
+    return row
 
 
 def fmt_dist(a: np.ndarray, digits: int = 4) -> str:
@@ -184,15 +240,53 @@ def table(rows: list[Row], problems: dict[str, Problem], eps: dict[str, float], 
                  f"{r.verdicts.count(MET)} / {r.verdicts.count(NOT_CONVERGED)} / {r.verdicts.count(INFEASIBLE)}")
             feas = f"{int(r.feasible.sum())}/{n_seeds}"
             nb = f"{near}/{n_seeds}"
-            name = r.recipe.replace("|", "\\|")  # a markdown cell
-            lines.append(f"| {name} | {feas} | {nb} | {same}/{n_seeds} | {held}/{n_seeds} | {held_same}/{n_seeds} | {fmt_dist(r.objective)} | {fmt_dist(r.in_region)} | {v} | "
+            cell = r.recipe.replace("|", "\\|")  # a markdown cell
+            lines.append(f"| {cell} | {feas} | {nb} | {same}/{n_seeds} | {held}/{n_seeds} | {held_same}/{n_seeds} | {fmt_dist(r.objective)} | {fmt_dist(r.in_region)} | {v} | "
                          f"{np.median(r.lam):.3g} | {r.seconds:.0f} |")
         lines.append("")
+        lines += verdict_table(pr, eps[name], n_seeds)
+    return "\n".join(lines)
+
+
+#: verdicts in the order of the verdict table's columns
+VERDICT_COLUMNS = (HELD_MET, UNCONFIRMED, MET_ON_TRAINING_ONLY, NOT_MET, NO_HELDOUT)
+
+
+def verdict_table(pr: list[Row], eps: float, n_seeds: int) -> list[str]:
+    """Per recipe: the bound it aimed at, ``train``'s held-out verdicts (first constraint), and the left-hand side
+    on the fresh transitions: how many seeds reported met exceed eps there."""
+    lines = ["Verdicts as `train` reports them (first constraint, read on the verdict set) and the same left-hand "
+             "side on the fresh transitions:", "",
+             "| recipe | aimed at | met / unconfirmed / met on training only / not met / no held-out | training | "
+             "held-out (verdict set) | fresh | fresh > eps | **reported met, fresh > eps** |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in pr:
+        if not r.reported:
+            continue
+        counts = " / ".join(str(r.reported.count(v)) for v in VERDICT_COLUMNS)
+        met = np.array([v == HELD_MET for v in r.reported])
+        over = r.fresh > eps
+        cell = r.recipe.replace("|", "\\|")
+        lines.append(f"| {cell} | {r.aim:.4g} | {counts} | {fmt_dist(r.training)} | {fmt_dist(r.held_mean)} | "
+                     f"{fmt_dist(r.fresh)} | {int(over.sum())}/{n_seeds} | {int((met & over).sum())}/{int(met.sum())} |")
+    lines.append("")
+    return lines
+
+
+def per_seed_table(r: Row, eps: float, n_fresh: int) -> str:
+    """One recipe's seeds: the reported verdict, the training value, the held-out estimate +- its standard error,
+    the value on the fresh transitions (relative to eps in parentheses)."""
+    lines = [f"**{r.problem}, {r.recipe}** (eps = {eps:g}, aimed at {r.aim:.4g}; fresh: {n_fresh} transitions)", "",
+             "| seed | reported | training | held-out +- se | fresh | fresh <= eps |", "|---|---|---|---|---|---|"]
+    for i, v in enumerate(r.reported):
+        lines.append(f"| {i} | {v} | {r.training[i]:.5f} | {r.held_mean[i]:.5f} +- {r.held_se[i]:.5f} | "
+                     f"{r.fresh[i]:.5f} ({100 * (r.fresh[i] / eps - 1):+.1f} %) | {'yes' if r.fresh[i] <= eps else 'NO'} |")
+    lines.append("")
     return "\n".join(lines)
 
 
 def budget_sweep(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.ndarray, ...],
-                 test: tuple[np.ndarray, ...], seeds: list[int], budgets: list[int],
+                 test: HeldOut, seeds: list[int], budgets: list[int],
                  plot: Path | None = None) -> list[dict[str, Any]]:
     """The default recipe at several epoch budgets: does the seeds' spread of the objective shrink as training goes
     on (an optimum being reached) or not? Prints, per budget, the training and the held-out objective over seeds
@@ -200,7 +294,7 @@ def budget_sweep(p: Problem, sysm: System, spec: ProblemSpec, data: tuple[np.nda
     out = []
     n = len(seeds)
     for ep in budgets:
-        row = run_recipe(p, sysm, spec, data, test, seeds, "default", TrainConfig(), 1, ep)
+        row = run_recipe(p, sysm, spec, data, test, seeds, "default", TrainConfig(), 1, ep, margin=MARGIN)
         out.append({"epochs": ep, "train": row.objective, "held": row.held_objective, "feasible": row.feasible,
                     "seconds": row.seconds})
         parts = []
@@ -260,6 +354,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="every seed trains on the same dataset (that of the first seed): seeds then differ only by "
                          "initialisation and minibatch order")
     ap.add_argument("--json", type=Path, help="also write every number into this file")
+    ap.add_argument("--fresh", type=int, default=200_000,
+                    help="fresh transitions the reported verdicts are checked on (--quick: a quarter)")
+    ap.add_argument("--per-seed", nargs="*", default=["augmented (default)", "default, no margin"],
+                    help="recipes whose seeds are listed one by one (verdict, training, held-out +- se, fresh)")
     ap.add_argument("--budgets", metavar="PROBLEM=E1,E2,...",
                     help="instead of the recipe tables: the default recipe on PROBLEM at each epoch budget, the "
                          "seeds' spread of the training and held-out objectives (e.g. paddle=50,100,200,400)")
@@ -317,24 +415,33 @@ def main(argv: list[str] | None = None) -> int:
         data = generate_datasets(sysm, n, seeds[:1] if args.shared_data else seeds)
         if args.shared_data:
             data = tuple(a[0] for a in data)  # (N, .): one dataset, shared by every member
-        test = sysm.make_dataset(20000, np.random.default_rng(10_000))
+        n_fresh = args.fresh // 4 if args.quick else args.fresh
+        test = HeldOut(sysm.make_dataset(20000, np.random.default_rng(10_000)),
+                       sysm.make_dataset(max(10_000, 10 * n), np.random.default_rng(20_000)),
+                       sysm.make_dataset(max(10_000, 10 * n), np.random.default_rng(40_000)),
+                       sysm.make_dataset(n_fresh, np.random.default_rng(30_000)))
         if budgets:
             budget_sweep(p, sysm, spec, data, test, seeds, budgets, args.plot)
             continue
         on = name in args.restarts_on
-        for recipe, (cfg, restarts, slope) in recipes(args.restarts if on else 1, args.abs_restarts if on else 0).items():
+        for recipe, (cfg, restarts, slope, margin) in recipes(args.restarts if on else 1,
+                                                              args.abs_restarts if on else 0).items():
             if args.recipes and recipe not in args.recipes:
                 continue
             t0 = time.perf_counter()
-            row = run_recipe(p, sysm, spec, data, test, seeds, recipe, cfg, restarts, epochs, nets.get(name), slope)
+            row = run_recipe(p, sysm, spec, data, test, seeds, recipe, cfg, restarts, epochs, nets.get(name), slope,
+                             margin)
             rows.append(row)
             print(f"  {name:9s} {recipe:24s} feasible {int(row.feasible.sum())}/{n_seeds}, objective "
                   f"{fmt_dist(row.objective)}, in-region {fmt_dist(row.in_region)}, verdicts "
-                  f"{row.verdicts}, smallest final left-hand side {row.reachable:.3g}, {time.perf_counter() - t0:.0f} s",
-                  flush=True)
+                  f"{row.verdicts}, smallest final left-hand side {row.reachable:.3g}, reported {row.reported}, "
+                  f"fresh {fmt_dist(row.fresh)}, {time.perf_counter() - t0:.0f} s", flush=True)
     if rows:
         print()
         print(table(rows, problems, eps, n_seeds, nets))
+        for r in rows:
+            if r.recipe in args.per_seed:
+                print(per_seed_table(r, eps[r.problem], args.fresh // 4 if args.quick else args.fresh))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"total {time.perf_counter() - t_all:.0f} s (load average at the end {load:.1f} on {os.cpu_count()} CPUs)")
     if args.json:

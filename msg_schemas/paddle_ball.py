@@ -44,7 +44,7 @@ SCHEMA = SystemSchema(
                   "u_t: the impact command the MPC chose, stamped with the state it answers.", codec=CONTROL),
         TopicSpec("applied_cmd", JOINT_STATE, DATA_QOS, "paddle_ball_sim", "learner, record",
                   "u_t actually applied at the impact, stamped like x_t.", codec=CONTROL),
-        TopicSpec("post_impact", TWIST_STAMPED, DATA_QOS, "paddle_ball_sim", "learner, record",
+        TopicSpec("post_impact", TWIST_STAMPED, DATA_QOS, "paddle_ball_sim", "learner, mpc (guard.rollback), record",
                   "y_t: the ball velocity just after the impact (world frame), stamped like x_t.", codec=TARGET),
         TopicSpec("flight", ODOMETRY, TELEMETRY_QOS, "paddle_ball_sim", "3D viewers",
                   "Ball odometry during flight (same layout as state) for visualisation; not used for "

@@ -357,10 +357,16 @@ DIAGNOSTICS_REASON_DOCS: tuple[tuple[str, str, str], ...] = (
     ("optimization/<k>", "1", "learner: the training history's diagnosis of constraint k: met, not converged, likely "
      "infeasible or pending (docs/training.md); not converged WARN, likely infeasible ERROR"),
     ("reachable/<k>", "loss", "learner: the left-hand side g_k + eps_k the model reaches now"),
-    ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback) to the previous model, else "
-     "f_hat; guard_rolled_back_versions lists the versions never used again"),
+    ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback, on by default) to the "
+     "previous model, else f_hat, and checkpoints refused before flying them (guard_refused_before_flight: worse "
+     "than f_hat on the newest live transitions); guard_rolled_back_versions lists the versions never used again"),
     ("models_retired", "count", "mpc: models in use that failed the acceptance re-check on the states flown (not "
      "used any more); checkpoints_reannounced: checkpoints holding the model in use again (nothing done)"),
+    ("multiple_publishers", "1", "learner, mpc: '<topic>: <node>, <node>; ...' for every subscribed state / command "
+     "topic (the MPC: state and cmd) with more than one publisher, the nodes named from the ROS graph (text; WARN "
+     "while not empty); <ns>/publisher_nodes/<kind> (learner) and publisher_nodes/<kind> (mpc) name each topic's"),
+    ("<ns>/refused/<kind>", "count", "learner, with pairing.refuse_multiple_publishers: messages not paired because "
+     "a topic of the namespace had several publishers"),
 )
 
 

@@ -382,6 +382,11 @@ def test_train_from_bags_fails_cleanly_on_bad_bags_and_trains_on_a_good_one(
     metrics = json.loads((tmp_path / "good" / "metrics.json").read_text())
     n = len(expected(friction_bag[1])[0])
     assert metrics["source"] == f"{n} transitions from 1 bag(s)"
+    # the verdicts are read on two whole stretches of the recording (a fifth), never a random split
+    held = metrics["test"]["n"]
+    assert held + metrics["n_train"] == n and abs(held - n / 5) <= 2
+    assert metrics["verdict"]["heldout"].startswith(f"{held} transitions of the recordings never trained on (two "
+                                                    "whole stretches of time")
 
 
 @pytest.mark.parametrize("system", ["quadrotor", "paddle_ball"])

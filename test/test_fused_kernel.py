@@ -179,6 +179,26 @@ def test_kernel_with_callbacks_logging_and_resume() -> None:
     _assert_same(plain, kern, rtol=RTOL, atol=ATOL)
 
 
+@pytest.mark.parametrize("method", ["paper", "augmented"])
+def test_kernel_trains_at_a_bound_changed_between_fits(method: str) -> None:
+    """``train``'s aim (``offline.pipelines.train_models(margin="auto")``) fits part of the run at eps, then swaps
+    the trainer's spec for one with lower bounds and fits the rest: the kernel's cached set-up is rebuilt for the
+    new bounds (the engines agree), and training at the lower bound differs from training at eps."""
+    from saml_ros.core.training.verdict import aimed_spec
+
+    cfg = _paper64(epochs=6, **({} if method == "paper" else METHODS[method]))
+    runs = _trainers(SPECS["paper"], cfg, engines=("plain", "fast_torch", "fast", "fast"))
+    for i, (tr, data) in enumerate(runs):
+        tr.fit(data, epochs=3, diagnose=False)
+        if i < 3:  # the last one stays at eps: the reference that the aim changed something
+            tr.spec = aimed_spec(tr.spec, [0.5 * tr.spec.constraints[0].eps])
+        tr.fit(data, epochs=3)
+    plain, torch_path, kernel, at_eps = (tr for tr, _ in runs)
+    _check(plain, torch_path, kernel, rtol=RTOL, atol=ATOL)
+    assert kernel.diagnosis is not None and kernel.diagnosis.constraints[0].eps == 0.5 * 0.035
+    assert not torch.allclose(kernel.lam, at_eps.lam, rtol=1e-3)
+
+
 def test_kernel_health_check_skips_a_bad_block_like_the_torch_path() -> None:
     """A non-finite target in the data: the kernel's block check puts the state back and counts the block's steps
     skipped, exactly as the torch path does (same counters, finite weights, same result)."""

@@ -211,13 +211,25 @@ def test_rollback_goes_to_the_previous_model_then_to_f_hat_and_never_reuses_a_ve
     assert ctrl.tag == 0 and ctrl.model is None and ctrl.banned == {1}
     ctrl.set_model(good, 2)
     assert not any(fly(10, x0)) and ctrl.tag == 2  # as good as f_hat: kept
-    ctrl.set_model(random_model(1, 2.0, seed=3), 3)  # a bad one after a good one: back to the good one
-    assert any(fly(10, x0)) and ctrl.tag == 2 and ctrl.banned == {1, 3}
+    # a model wrong everywhere, offered after the good one has flown: refused before its first step (the newest live
+    # transitions show it)
+    wrong = random_model(1, 2.0, seed=3)
+    with torch.no_grad():
+        wrong.net.biases[-1].add_(10.0)
+    assert not ctrl.offer_model(wrong, 3)
+    assert ctrl.tag == 2 and ctrl.banned == {1, 3} and ctrl.counters["refused_before_flight"] == 1
+    assert ctrl.last_refusal is not None and ctrl.last_refusal[0] > ctrl.last_refusal[1]
+    v = ctrl.values()
+    assert v["guard_rollbacks"] == 2 and v["live_error_model"] >= 0 and v["live_error_base"] >= 0
+    # a bad one offered before any live transition is flown, then rolled back to the good one, twice
+    ctrl.reset_models()
+    ctrl.set_model(good, 2)
+    ctrl.set_model(random_model(1, 2.0, seed=3), 3)
+    assert any(fly(10, x0)) and ctrl.tag == 2 and ctrl.banned == {3}
+    ctrl.reset_models()
+    ctrl.set_model(good, 2)
     ctrl.set_model(bad, 4)
     assert any(fly(10, x0)) and ctrl.tag == 2  # still the good one (the roll-back target survives)
-    assert ctrl.counters["rollbacks"] == 3
-    v = ctrl.values()
-    assert v["guard_rollbacks"] == 3 and v["live_error_model"] >= 0 and v["live_error_base"] >= 0
     unguarded = make_guarded_controller(QUAD, "fast", GuardConfig(), **TASK.mpc_options())
     unguarded.set_model(bad, 1)
     ctrl = unguarded
@@ -367,13 +379,14 @@ def test_a_hover_only_checkpoint_is_caught_by_the_guard_and_the_loop_keeps_landi
 
 def test_mpc_config_reads_the_guard_parameters() -> None:
     c = MPCConfig.from_params({"system": "quadrotor"})
-    assert not c.guard.enabled  # off unless asked for (the quadrotor bringup turns it on)
+    assert c.guard == GuardConfig(rollback=True)  # the roll back alone by default (the quadrotor bringup: all on)
+    assert not MPCConfig.from_params({"system": "quadrotor", "guard.rollback": False}).guard.enabled
     c = MPCConfig.from_params({"system": "quadrotor", "guard.max_disagreement": 0.1, "guard.rollback": True,
                                "guard.window": 7, "guard.min_samples": 4, "guard.margin": 0.02,
                                "guard.bound_residual": True})
     assert c.guard == GuardConfig(0.1, True, True, MonitorConfig(7, 4, 1.0, 0.02))
     c = MPCConfig.from_params({"system": "quadrotor", "guard.infeasible": True})
-    assert c.guard == GuardConfig(infeasible=True) and c.guard.enabled
+    assert c.guard == GuardConfig(rollback=True, infeasible=True) and c.guard.enabled
     from saml_ros.bringup.config import default_config
 
     assert MPCConfig.from_params({"system": "quadrotor", **default_config("quadrotor")["mpc"]}).guard.infeasible
@@ -381,8 +394,9 @@ def test_mpc_config_reads_the_guard_parameters() -> None:
                 {"guard.margin": -0.1}):
         with pytest.raises(ValueError, match="guard"):
             MPCConfig.from_params({"system": "quadrotor", **bad})
-    with pytest.raises(ValueError, match="guard"):
-        MPCConfig.from_params({"system": "paddle_ball", "guard.rollback": True})
+    assert MPCConfig.from_params({"system": "paddle_ball"}).guard == GuardConfig(rollback=True)
+    with pytest.raises(ValueError, match="except guard.rollback"):
+        MPCConfig.from_params({"system": "paddle_ball", "guard.bound_residual": True})
 
 
 # ------------------------------------------------------------------------------------------ closed loop over ROS

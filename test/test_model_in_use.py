@@ -67,7 +67,9 @@ def test_a_reannounced_model_in_use_is_a_no_op_and_the_model_in_use_is_rechecked
     store = CheckpointStore(tmp_path / "run")
     path, version = _save(store, _broken_far_out(), _evidence(px=2.0))
     log = Log()
-    service = MPCService(MPCConfig.from_params({"system": "quadrotor", "run_dir": str(store.run_dir)}),
+    # the live monitor off (it is on by default and would roll the model back first): the re-check alone
+    service = MPCService(MPCConfig.from_params({"system": "quadrotor", "run_dir": str(store.run_dir),
+                                                "guard.rollback": False}),
                          lambda u, s: None, log)
     service.start()  # no state flown yet: the checkpoint passes on its own probe set and is used
     try:
@@ -107,7 +109,9 @@ def test_a_good_model_in_use_passes_its_rechecks(tmp_path: Path) -> None:
     store = CheckpointStore(tmp_path / "run")
     _save(store, _model(), _evidence())
     log = Log()
-    service = MPCService(MPCConfig.from_params({"system": "quadrotor", "run_dir": str(store.run_dir)}),
+    # the live monitor off (it is on by default and would roll the model back first): the re-check alone
+    service = MPCService(MPCConfig.from_params({"system": "quadrotor", "run_dir": str(store.run_dir),
+                                                "guard.rollback": False}),
                          lambda u, s: None, log)
     service.start()
     try:

@@ -70,12 +70,15 @@ def test_train_cli_dual_method_restarts_and_feasibility_report(tmp_path: Path) -
     )
     assert proc.returncode == 0, proc.stderr
     assert "dual method resilient, schedules step / cosine" in proc.stdout
-    assert "feasibility [met]" in proc.stdout and proc.stdout.count("kept member") == 2
+    assert "verdict [met]" in proc.stdout and proc.stdout.count("kept member") == 2
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["train_config"]["relax_cost"] == 500 and metrics["train_config"]["dual_method"] == "resilient"
     sel = metrics["selection"]
     assert sel["restarts"] == 3 and len(sel["chosen"]) == 2 and all(sel["feasible"])
     assert sel["chosen"][0] in (0, 1, 2) and sel["chosen"][1] in (3, 4, 5)
+    # selection on a fresh set (--test-samples of them), with standard errors; the kept members met the bound there
+    assert sel["n"] == 1000 and sel["status"] == ["met", "met"] and len(sel["heldout_objective_se"]) == 6
+    assert metrics["verdict"]["constraints"]["near_origin"]["verdict"] == "met"
     feas = metrics["feasibility"]["constraints"]["near_origin"]
     assert feas["verdict"] == "met" and feas["n_met"] == 2 and len(feas["members"]) == 2
     assert feas["lhs_min"] < 0.2

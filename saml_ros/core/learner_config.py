@@ -112,6 +112,9 @@ _TAIL: tuple[Param, ...] = (
     Param("pairing.window", 1000, "newest states (per namespace) whose stamps are remembered for pairing; older "
                                   "incomplete entries are dropped (counted)"),
     Param("pairing.tolerance", 1e-6, "s: stamps closer than this are the same stamp"),
+    Param("pairing.refuse_multiple_publishers", False,
+          "refuse (count, do not pair) a namespace's messages while its state or command topic has more than one "
+          "publisher (two robots in one namespace); off: paired, and only named on /diagnostics (WARN)"),
     Param("training_niceness", 10, "nice increment of the training process (0-19): the OS runs ingest, simulators "
                                    "and the MPC first when CPUs are short"),
     Param("training_idle", False, "run the training process under Linux's SCHED_IDLE policy: it gets only CPU time "
@@ -180,6 +183,7 @@ class LearnerConfig:
     health_explode_ratio: float = 1e4
     health_max_weight: float = 1e6
     health_error_after: int = 100
+    refuse_multiple_publishers: bool = False
     normalization_refit: bool = True
     heldout_period: float = 10.0
     heldout_fraction: float = 0.2
@@ -293,7 +297,9 @@ class LearnerConfig:
             train_threads=p["train_threads"], system_file=p["system_file"], model_ensemble=p["model.ensemble"],
             uniform=p["uniform"], plausible_bounds=p["plausible_bounds"],
             health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
-            health_error_after=p["health.error_after"], normalization_refit=p["normalization.refit"],
+            health_error_after=p["health.error_after"],
+            refuse_multiple_publishers=p["pairing.refuse_multiple_publishers"],
+            normalization_refit=p["normalization.refit"],
             heldout_period=p["heldout.period"], heldout_fraction=p["heldout.fraction"],
             heldout_capacity=p["heldout.capacity"], heldout_eval_period=p["heldout.eval_period"],
             updates_per_transition=p["updates_per_transition"], average_updates=p["average_updates"],

@@ -17,6 +17,12 @@ the vehicle climbs out of the ground effect. The default 0.01 is ten times the q
 vehicle off (errors of 0.1-10 per step were measured on models trained only on hover data) crosses it within
 ``min_samples`` steps.
 
+Transitions can come from several *streams* (``stream`` of :meth:`LiveErrorMonitor.add`): two robots whose states
+interleave on one topic are two streams, each with its own window, and the monitor says roll back as soon as any
+stream's window does. Mixed in one window, a robot on which f_hat is far off (one wired backwards) would hide
+that the model is worse than f_hat on the other. At most :data:`MAX_STREAMS` streams are kept (the least recently
+added is forgotten).
+
 What happens on a roll back (the previous model, else f_hat) is the caller's
 (:class:`saml_ros.core.mpc.guard.GuardedController`).
 """
@@ -24,8 +30,11 @@ What happens on a roll back (the previous model, else f_hat) is the caller's
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
+
+#: streams whose windows the monitor keeps
+MAX_STREAMS = 8
 
 
 @dataclass(frozen=True)
@@ -57,7 +66,9 @@ class LiveErrorMonitor:
 
     def __init__(self, config: MonitorConfig | None = None) -> None:
         self.config = config or MonitorConfig()
-        self._model: deque[float] = deque(maxlen=self.config.window)
+        #: stream -> (the model's errors, f_hat's errors), the most recently added stream last
+        self._windows: OrderedDict[int, tuple[deque[float], deque[float]]] = OrderedDict()
+        self._model: deque[float] = deque(maxlen=self.config.window)  # the window of the stream added last
         self._base: deque[float] = deque(maxlen=self.config.window)
         #: the newest pair of errors added (NaN before the first)
         self.last_model = math.nan
@@ -67,9 +78,10 @@ class LiveErrorMonitor:
         self.verdict: tuple[float, float, int] | None = None
 
     def reset(self) -> None:
-        """Forget the window (a new model became active); :attr:`verdict` stays."""
-        self._model.clear()
-        self._base.clear()
+        """Forget every window (a new model became active); :attr:`verdict` stays."""
+        self._windows.clear()
+        self._model = deque(maxlen=self.config.window)
+        self._base = deque(maxlen=self.config.window)
 
     def describe_verdict(self) -> str:
         """Why the monitor last said roll back, in words (``""`` if it never did)."""
@@ -94,12 +106,20 @@ class LiveErrorMonitor:
         """Mean squared one-step error of f_hat over the window (NaN when empty)."""
         return sum(self._base) / len(self._base) if self._base else math.nan
 
-    def add(self, err_model: float, err_base: float) -> bool:
-        """Add one live transition's squared errors; True when the window now says roll back. A non-finite
-        ``err_model`` (the model predicted NaN or inf) counts as infinitely wrong; a non-finite ``err_base``
-        (f_hat cannot be wrong by NaN on a finite transition: the transition itself is bad) is skipped."""
+    def add(self, err_model: float, err_base: float, stream: int = 0) -> bool:
+        """Add one live transition's squared errors to ``stream``'s window; True when that window now says roll
+        back. A non-finite ``err_model`` (the model predicted NaN or inf) counts as infinitely wrong; a non-finite
+        ``err_base`` (f_hat cannot be wrong by NaN on a finite transition: the transition itself is bad) is
+        skipped. :attr:`mean_model`, :attr:`mean_base` and :attr:`samples` are then ``stream``'s."""
         if not math.isfinite(err_base):
             return False
+        window = self._windows.pop(stream, None)
+        if window is None:
+            window = (deque(maxlen=self.config.window), deque(maxlen=self.config.window))
+            while len(self._windows) >= MAX_STREAMS:
+                self._windows.popitem(last=False)
+        self._windows[stream] = window
+        self._model, self._base = window
         self.last_model, self.last_base = float(err_model), float(err_base)
         self._model.append(err_model if math.isfinite(err_model) else math.inf)
         self._base.append(err_base)

@@ -36,6 +36,7 @@ from saml_ros.core.learner_report import (
     training_diagnostics,
 )
 from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
+from saml_ros.core.publishers import PublisherGate, node_label, publisher_report
 from saml_ros.core.recent_counts import RecentCounts
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
@@ -92,6 +93,8 @@ class LearnerNode(ManagedNode):
         self.channels = p.channels(self.schema)
         self.unstamped, self.channel_qos = p.channel_traits(self.schema)  # no header: stamped on receipt
         self.received = [0] * len(self.channels)
+        self.gate = PublisherGate([ns for ns, _, _, _ in self.channels], p.refuse_multiple_publishers)
+        self._shared = ""  # the last multiple_publishers value logged
         launched, self._launched = self._launched, None
         from saml_ros.core.online import StartCancelled
 
@@ -191,7 +194,7 @@ class LearnerNode(ManagedNode):
     def _subscribe(self) -> None:
         assert self.trainer is not None
         self._subs = subscribe_raw(self, self.channels, self.channel_qos, self.unstamped, self.trainer.submit_raw,
-                                   self.received, self.data_group)
+                                   self.received, self.data_group, self.gate.admit, self.gate.set_count)
 
     def _unsubscribe(self) -> None:
         for sub in self._subs:
@@ -249,8 +252,28 @@ class LearnerNode(ManagedNode):
         level, message, values = training_diagnostics(tr, self.p, self.spec, channels, self.state_label,
                                                       self.invalid_transitions, self.active, self._recent)
         values["parameter_changes_refused"] = self.params_guard.refused
+        p_level, parts, p_values = self._check_publishers()
+        level, values = max(level, p_level), {**values, **p_values}
+        message = "; ".join([message, *parts])
         entry = tele.DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
+
+    def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
+        """Several publishers on a subscribed topic (:func:`~saml_ros.core.publishers.publisher_report`; the node
+        names from the ROS graph), logged when it changes."""
+        # the resolved names (a remapped topic) once subscribed
+        topics = [sub.topic_name for sub in self._subs] if self._subs else [c[2] for c in self.channels]
+        nodes = {topic: [node_label(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+                 for topic in set(topics)}
+        matched = [sub.get_publisher_count() for sub in self._subs] if self._subs else []
+        level, parts, values = publisher_report([(ns, kind, topic) for (ns, kind, _, _), topic in
+                                                 zip(self.channels, topics, strict=True)], nodes,
+                                                matched, self.gate.refuse, self.gate.refused)
+        if values["multiple_publishers"] != self._shared:
+            self._shared = values["multiple_publishers"]
+            log_at(self.get_logger(), logging.WARNING if parts else logging.INFO,
+                   parts[0] if parts else "one publisher per topic again")
+        return level, parts, values
 
 
 def create_node(launched: Any = None) -> LearnerNode:

@@ -1,7 +1,9 @@
 """The MPC node (``ros2 run saml_ros mpc``): answers every ``state`` with a ``cmd`` from the newest model.
 
-Subscribes ``state`` (DATA_QOS) and ``learner/checkpoint`` (CHECKPOINT_QOS, transient local); publishes
-``cmd`` (stamped with the state it answers), ``mpc/status`` (one message per solve) and ``/diagnostics``.
+Subscribes ``state`` (DATA_QOS) and ``learner/checkpoint`` (CHECKPOINT_QOS, transient local), and the paddle
+ball's ``post_impact`` while the live monitor's roll back is on (``guard.rollback``, the default); publishes
+``cmd`` (stamped with the state it answers), ``mpc/status`` (one message per solve) and ``/diagnostics``
+(several publishers on ``state`` or ``cmd`` are named there, WARN).
 
 * ``mode: lockstep``: every state is answered at once, in the subscription callback (a lockstep simulator
   waits for that answer). ``mode: realtime``: a steady-clock timer at ``rate_hz`` answers the newest state
@@ -58,6 +60,7 @@ from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
+from saml_ros.core.publishers import node_label, state_command_report
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
@@ -83,6 +86,7 @@ class MPCNode(ManagedNode):
         self._status_cdr = NamedVectorCdr()
         self.service: MPCService | None = None
         self.state_sub: Any = None
+        self.target_sub: Any = None  # the paddle ball's post_impact, for the live monitor (guard.rollback)
         self._entities: list[tuple[Callable[[Any], Any], Any]] = []  # (destroy, entity) made by configure
 
     # ------------------------------------------------------------------------------------------ lifecycle
@@ -138,11 +142,18 @@ class MPCNode(ManagedNode):
         # raw: the CDR bytes are read without a message object (msg_schemas.cdr; malformed ones as before)
         self.state_sub = self.create_subscription(RCLPY.cls(self.schema.state.msg_type), self.schema.state_topic,
                                                   self._on_state, DATA_QOS.to_rclpy(), raw=True)
+        if self.service is not None and self.service.guarded is not None and \
+                self.schema.target_topic != self.schema.state_topic:
+            self.target_sub = self.create_subscription(RCLPY.cls(self.schema.target.msg_type),
+                                                       self.schema.target_topic, self._on_target, DATA_QOS.to_rclpy())
 
     def deactivate_node(self) -> None:
         if self.state_sub is not None:
             self.destroy_subscription(self.state_sub)
             self.state_sub = None
+        if self.target_sub is not None:
+            self.destroy_subscription(self.target_sub)
+            self.target_sub = None
         if self.service is not None:
             self.service.pending = None  # realtime: a state received while active is not answered later
 
@@ -174,6 +185,15 @@ class MPCNode(ManagedNode):
             self.service.reject(exc.reason, str(exc))
             return
         self._publish_status(self.service.receive(x, stamp, t_arrival))
+
+    def _on_target(self, msg: Any) -> None:
+        assert self.service is not None
+        try:
+            y, stamp = self.schema.target_from_msg(msg)
+        except SchemaError as exc:
+            self.service.reject(exc.reason, str(exc))
+            return
+        self.service.receive_target(y, stamp)
 
     def _on_tick(self) -> None:
         if self.service is not None and self.state_sub is not None:
@@ -212,10 +232,21 @@ class MPCNode(ManagedNode):
         if rollbacks:
             message += (f"; {rollbacks} roll back(s) by the live monitor (versions "
                         f"{values.get('guard_rolled_back_versions', '')} not used again)")
+        if self.state_sub is not None:  # two robots on state, a second controller on cmd: named (WARN)
+            p_level, parts, p_values = self._check_publishers()
+            level, message = max(level, p_level), "; ".join([message, *parts])
+            values.update(p_values)
         if state != "active":
             message = f"{state}: {message}"
         entry = DiagnosticEntry(self.get_fully_qualified_name(), level, message, values)
         self.diag_pub.publish(diagnostics_to_msg([entry], self.get_clock().now().nanoseconds))
+
+    def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
+        """:func:`~saml_ros.core.publishers.state_command_report` of ``state`` and ``cmd`` from the ROS graph."""
+        topics = [("state", self.state_sub.topic_name), ("cmd", self.cmd_pub.topic_name)]
+        nodes = {topic: [node_label(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
+                 for _, topic in topics}
+        return state_command_report(topics, nodes)
 
     def destroy_node(self) -> None:
         if self.service is not None:

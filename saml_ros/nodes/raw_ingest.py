@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 
@@ -22,12 +23,14 @@ Submit = Callable[[int, Any], None]
 
 
 def subscribe_raw(node: Node, channels: Sequence[Channel], qos: Sequence[QosSpec], unstamped: Sequence[bool],
-                  submit: Submit, received: list[int], group: Any) -> list[Any]:
+                  submit: Submit, received: list[int], group: Any,
+                  admit: Callable[[int], bool] | None = None,
+                  on_matched: Callable[[int, int], None] | None = None) -> list[Any]:
     """One subscription per channel of ``channels`` (``(namespace, kind, topic, message type)``) with its
     topic's ``qos`` (history made KEEP_ALL), counting into ``received[channel]`` and handing each message to
     ``submit``; a channel whose messages have no header (``unstamped``: a robot's ``cmd_vel``) is stamped on
     receipt: the middleware's receive time (the system clock, like the robot's own stamps), or the node's
-    clock on simulated time."""
+    clock on simulated time. ``admit`` / ``on_matched``: see the module docstring."""
     sim_time = bool(node.get_parameter("use_sim_time").value)
     clock = node.get_clock()
 
@@ -35,14 +38,16 @@ def subscribe_raw(node: Node, channels: Sequence[Channel], qos: Sequence[QosSpec
         if not unstamped[channel]:
             def callback(data: bytes) -> None:
                 received[channel] += 1
-                submit(channel, data)
+                if admit is None or admit(channel):
+                    submit(channel, data)
 
             return callback
 
         def stamp_on_receipt(data: bytes, info: Any) -> None:
             t = int(info["received_timestamp"]) if not sim_time and info else clock.now().nanoseconds
             received[channel] += 1
-            submit(channel, (data, t))
+            if admit is None or admit(channel):
+                submit(channel, (data, t))
 
         return stamp_on_receipt
 
@@ -51,6 +56,15 @@ def subscribe_raw(node: Node, channels: Sequence[Channel], qos: Sequence[QosSpec
         profile.history = HistoryPolicy.KEEP_ALL
         return profile
 
+    def events(channel: int) -> SubscriptionEventCallbacks | None:
+        if on_matched is None:
+            return None
+
+        def matched(status: Any) -> None:
+            on_matched(channel, int(status.current_count))
+
+        return SubscriptionEventCallbacks(matched=matched)
+
     return [node.create_subscription(RCLPY.cls(msg_type), topic, make(ch), keep_all(qos[ch]), callback_group=group,
-                                     raw=True)
+                                     event_callbacks=events(ch), raw=True)
             for ch, (_, _, topic, msg_type) in enumerate(channels)]

@@ -36,8 +36,10 @@ def _band(ax: Any, x: np.ndarray, y: np.ndarray, label: str, color: str | None =
         ax.fill_between(x, y.min(1), y.max(1), alpha=0.2, color=line.get_color())
 
 
-def plot_training_curves(histories: Mapping[str, History], path: str | Path, title: str = "") -> Path:
-    """Objective, each constraint g_k (0 = the bound) and each lambda_k against epochs, one colour per run."""
+def plot_training_curves(histories: Mapping[str, History], path: str | Path, title: str = "",
+                         marks: Mapping[str, float] | None = None) -> Path:
+    """Objective, each constraint g_k (0 = the bound) and each lambda_k against epochs, one colour per run;
+    ``marks``: label -> epoch of a vertical line on every panel (e.g. where training starts aiming below eps)."""
     plt = _plt()
     names = sorted({n for h in histories.values() for n in h.constraint_names})
     rows = 1 + (2 if names else 0)
@@ -54,6 +56,9 @@ def plot_training_curves(histories: Mapping[str, History], path: str | Path, tit
     ax_obj.set_ylabel("objective (minibatch)")
     ax_obj.set_yscale("log")
     ax_obj.legend(fontsize=8)
+    for text, epoch in (marks or {}).items():
+        for ax in axes[:, 0]:
+            ax.axvline(epoch, color="grey", ls="--", lw=1, label=text if ax is axes[-1, 0] else None)
     if names:
         axes[1, 0].axhline(0.0, color="red", ls=":", lw=1)
         axes[1, 0].set_ylabel("constraint g = E[l] - eps")

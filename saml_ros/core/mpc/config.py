@@ -68,9 +68,10 @@ PARAMS: tuple[Param, ...] = (
                                               "members) on the plan; inf = off", finite=False),
     Param("guard.bound_residual", False, "clip the learned residual to the bound the learner recorded in the "
                                          "checkpoint (1.5 x the largest residual in its buffer, per field)"),
-    Param("guard.rollback", False, "live monitor: roll back to the previous model, else f_hat, when the active "
-                                   "model's live one-step error on the steps it planned exceeds f_hat's (see "
-                                   "guard.window ... guard.margin)"),
+    Param("guard.rollback", True, "live monitor: roll back to the previous model, else f_hat, when the active "
+                                  "model's live one-step error on the steps it planned exceeds f_hat's (see "
+                                  "guard.window ... guard.margin); on by default for every system (the paddle "
+                                  "ball's transitions are its post_impact messages)"),
     Param("guard.infeasible", False, "plan a step with f_hat too when the learned model's plan violates a "
                                      "constraint some control could keep, and fly f_hat's plan if it keeps the "
                                      "constraints or violates them less"),
@@ -200,8 +201,8 @@ class MPCConfig:
                 rollback=p["guard.rollback"], infeasible=p["guard.infeasible"],
                 monitor=MonitorConfig(window=p["guard.window"], min_samples=p["guard.min_samples"],
                                       ratio=p["guard.ratio"], margin=p["guard.margin"]))
-        check(not guard.enabled or entry.mpc_task is not None, "guard.*", "off for a one-shot MPC (paddle_ball)",
-              "on")
+        check(not guard.needs_shooting or entry.mpc_task is not None, "guard.*",
+              "off for a one-shot MPC (paddle_ball), except guard.rollback", "on")
         check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
         with problems.capture("plausible_bounds", prefix="parameter 'plausible_bounds': "):
             parse_overrides(p["plausible_bounds"])

@@ -17,21 +17,29 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   transition :meth:`GuardedController.observe` is given scores the active model and f_hat; the steps the learned
   model planned (not those planned with f_hat on disagreement) enter the monitor's window, and when the active
   model is worse there, the controller rolls back to the previous model (if it had one that was not rolled back itself),
-  otherwise to f_hat, and that model version is never used again (``rollbacks``).
+  otherwise to f_hat, and that model version is never used again (``rollbacks``). A new model is scored the same
+  way *before* it is flown, on the newest live transitions already seen (the last ``window`` of each stream
+  that the model in use planned, or f_hat when no model was in use): one worse than f_hat there is refused,
+  never flown and never used again (:meth:`GuardedController.offer_model` returns False; counted in ``rollbacks``
+  and ``refused_before_flight``).
 
-The unguarded MPC is the same controller with every remedy off.
+The unguarded MPC is the same controller with every remedy off. The roll back alone works around any controller of
+the :class:`~saml_ros.core.mpc.contract.Controller` protocol (the one-shot paddle-ball MPC too: its live transition is
+the pre-impact state, the command and the post-impact velocity): the monitor predicts with the controller's numpy
+model (``dyn.step1``) where it has one, else with the model itself and the system's f_hat; the other remedies
+need the shooting MPC.
 """
 
 from __future__ import annotations
 
 import math
-from collections import Counter
+from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from saml_ros.core.model_monitor import LiveErrorMonitor, MonitorConfig
+from saml_ros.core.model_monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import Jac3, NumpyDynamics
@@ -71,6 +79,11 @@ class GuardConfig:
     @property
     def enabled(self) -> bool:
         return math.isfinite(self.max_disagreement) or self.bound_residual or self.rollback or self.infeasible
+
+    @property
+    def needs_shooting(self) -> bool:
+        """Whether a remedy other than the roll back is on (those need the shooting MPC's plans and warm starts)."""
+        return math.isfinite(self.max_disagreement) or self.bound_residual or self.infeasible
 
 
 class EnsembleNP:
@@ -184,7 +197,8 @@ class GuardedController:
     """The MPC with the guards of :class:`GuardConfig` around a learned-model controller (see the module docstring).
 
     Args:
-        learned: the controller that plans with the learned model (its model is set by :meth:`set_model`).
+        learned: the controller that plans with the learned model (its model is set by :meth:`set_model`); a
+            :class:`ShootingMPC`, or for the roll back alone any :class:`~saml_ros.core.mpc.contract.Controller`.
         base: a controller of the same problem planning with f_hat alone (fallback and roll-back target).
         config: the remedies.
 
@@ -197,6 +211,11 @@ class GuardedController:
     def __init__(self, learned: ShootingMPC, base: ShootingMPC, config: GuardConfig) -> None:
         if learned.horizon != base.horizon or learned.system is not base.system:
             raise ValueError("guarded MPC: the learned and the base controller must solve the same problem")
+        #: both are shooting MPCs (warm starts, plans over a horizon); otherwise only the roll back applies
+        self.shooting = isinstance(learned, ShootingMPC) and isinstance(base, ShootingMPC)
+        if not self.shooting and config.needs_shooting:
+            raise ValueError(f"guarded MPC: only guard.rollback applies to the {learned.system.name} MPC (one-shot); "
+                             "the other remedies need the shooting MPC")
         self.learned, self.base = learned, base
         self.config = config
         self.system: System = learned.system
@@ -211,6 +230,10 @@ class GuardedController:
         #: squared one-step errors of the model in use and of f_hat on the last live transition observed
         self.live_error_model = math.nan
         self.live_error_base = math.nan
+        #: stream -> the newest live transitions (x, u, target) a new model is scored on before it flies
+        self._recent: OrderedDict[int, deque[tuple[np.ndarray, np.ndarray, np.ndarray]]] = OrderedDict()
+        #: (the refused model's mean squared error, f_hat's, transitions) of the last refusal before flight
+        self.last_refusal: tuple[float, float, int] | None = None
 
     # ------------------------------------------------------------------------------------------ models
     @property
@@ -232,11 +255,41 @@ class GuardedController:
         return frozenset(self._banned)
 
     def set_model(self, model: DynamicsModel | None, tag: int = 0, meta: dict[str, Any] | None = None) -> None:
+        """:meth:`offer_model` (the Controller protocol's ``set_model``; whether it was taken is not returned)."""
+        self.offer_model(model, tag, meta)
+
+    def offer_model(self, model: DynamicsModel | None, tag: int = 0, meta: dict[str, Any] | None = None) -> bool:
         """Plan with ``model`` (tag ``tag``, e.g. its checkpoint version; ``meta`` its checkpoint meta, where the
-        residual bound is read) from the next solve on; the model in use becomes the roll-back target."""
+        residual bound is read) from the next solve on; the model in use becomes the roll-back target. With the
+        roll back on, a model that predicts the newest live transitions worse than f_hat is refused instead
+        (False; :attr:`last_refusal` says by how much, the tag is never used again)."""
+        if model is not None and self.config.rollback:
+            worse = self._worse_on_recent(model)
+            if worse is not None:
+                self.last_refusal = worse
+                self._banned.add(tag)
+                self.counters["rollbacks"] += 1
+                self.counters["refused_before_flight"] += 1
+                return False
         if self._active.model is not None and self._active.tag not in self._banned:
             self._previous = self._active
         self._activate(self._make_active(model, tag, meta or {}))
+        return True
+
+    def _worse_on_recent(self, model: DynamicsModel) -> tuple[float, float, int] | None:
+        """The monitor's verdict on ``model`` over the newest live transitions of each stream: ``(its mean squared
+        one-step error, f_hat's, transitions)`` of a stream where it says roll back, else None."""
+        rows = [(stream, x, u, y) for stream, window in self._recent.items() for x, u, y in window]
+        if not rows:
+            return None
+        xs, us = np.stack([r[1] for r in rows]), np.stack([r[2] for r in rows])
+        pred = np.asarray(model.predict_np(xs, us, int(getattr(self.learned, "member", 0))), dtype=np.float64)
+        monitor = LiveErrorMonitor(self.config.monitor)
+        for (stream, x, u, y), p in zip(rows, pred, strict=True):
+            e_model, e_base = y - p, y - self._one_step(self.base, None, x, u)
+            if monitor.add(float(e_model @ e_model), float(e_base @ e_base), stream):
+                return monitor.mean_model, monitor.mean_base, monitor.samples
+        return None
 
     def _make_active(self, model: DynamicsModel | None, tag: int, meta: dict[str, Any]) -> _Active:
         if model is None:
@@ -263,6 +316,8 @@ class GuardedController:
         """Back to f_hat with no history and no banned tags (a fresh evaluation run)."""
         self._previous = None
         self._banned.clear()
+        self._recent.clear()
+        self.last_refusal = None
         self._activate(_Active(None, 0, None, None))
 
     # ------------------------------------------------------------------------------------------ solve
@@ -298,12 +353,12 @@ class GuardedController:
                 if base is not None:
                     self.last_source = "base"
                     return base
-            elif np.all(np.isfinite(res.plan_x)):
+            elif self.shooting and np.all(np.isfinite(res.plan_x)):
                 self.base.set_warm_start(res.plan_u, res.plan_x)
         if not use_learned:
             self.counters["solves_base"] += 1
             res = self.base.solve(x0, goal)
-            if np.all(np.isfinite(res.plan_x)):
+            if self.shooting and np.all(np.isfinite(res.plan_x)):
                 self.learned.set_warm_start(res.plan_u, res.plan_x)
         elif self._active.bound is not None and self._clipped(res):
             self.counters["clipped"] += 1
@@ -334,23 +389,31 @@ class GuardedController:
         return bool(np.any(np.abs(dyn.mlp.forward(res.plan_x[:-1], res.plan_u)) >= bound))
 
     # ------------------------------------------------------------------------------------------ monitor
-    def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> bool:
-        """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n,)``; ``u`` the command of the last
-        :meth:`solve`): scores the model in use and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`);
+    def observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, stream: int = 0) -> bool:
+        """One live transition ``(x, u) -> x_next`` (``(n,), (m,), (n_y,)``; ``u`` the command solved for ``x``;
+        ``x_next`` the target: the next state, or the paddle ball's post-impact velocity): scores the model in use
+        and f_hat on it (:attr:`live_error_model`, :attr:`live_error_base`) and keeps it for :meth:`offer_model`;
         with ``rollback`` on, True when it made the controller roll back (to the previous model or f_hat; the
         rolled-back tag is banned). Only steps the learned model planned enter the monitor's window: a step
-        planned with f_hat on disagreement is counted in ``monitor_skipped``."""
+        planned with f_hat on disagreement is counted in ``monitor_skipped``. ``stream``: which stream of
+        transitions it belongs to (a robot among several on one topic; each has its own window in the monitor)."""
         y = np.asarray(x_next, dtype=np.float64)
         x = np.asarray(x, dtype=np.float64)
         u = np.asarray(u, dtype=np.float64)
         if not np.all(np.isfinite(y)) or not np.all(np.isfinite(x)):
             return False
-        e_base = y - self.base.dyn.step1(x, u)
+        if self._active.model is None or self.last_source == "learned":  # what a new model is scored on first
+            recent = self._recent.pop(stream, None) or deque(maxlen=self.config.monitor.window)
+            recent.append((x.copy(), u.copy(), y.copy()))
+            self._recent[stream] = recent
+            while len(self._recent) > MAX_STREAMS:
+                self._recent.popitem(last=False)
+        e_base = y - self._one_step(self.base, None, x, u)
         self.live_error_base = float(e_base @ e_base)
         if self._active.model is None:
             self.live_error_model = self.live_error_base
             return False
-        e_model = y - self.learned.dyn.step1(x, u)
+        e_model = y - self._one_step(self.learned, self._active.model, x, u)
         self.live_error_model = float(e_model @ e_model)
         if self.last_source != "learned":
             # the step was planned with f_hat (the ensemble disagreed): the learned model did not fly it, and its
@@ -358,7 +421,7 @@ class GuardedController:
             # far starts they never planned (docs/demo.md, "The monitor scores the steps the model planned").
             self.counters["monitor_skipped"] += 1
             return False
-        if not self.config.rollback or not self.monitor.add(self.live_error_model, self.live_error_base):
+        if not self.config.rollback or not self.monitor.add(self.live_error_model, self.live_error_base, stream):
             return False
         self.counters["rollbacks"] += 1
         self.retire()
@@ -373,6 +436,16 @@ class GuardedController:
         prev, self._previous = self._previous, None
         self._activate(prev if prev is not None and prev.tag not in self._banned else _Active(None, 0, None, None))
         return self._active.tag
+
+    def _one_step(self, controller: Any, model: DynamicsModel | None, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The prediction ``controller`` plans with for ``(x, u)``: its numpy model's (``dyn.step1``), else
+        ``model``'s (its planning member) or, without a model, the system's f_hat."""
+        dyn = getattr(controller, "dyn", None)
+        if dyn is not None and hasattr(dyn, "step1"):
+            return np.asarray(dyn.step1(x, u), dtype=np.float64)
+        if model is None:
+            return np.asarray(self.system.base_step_np(x, u), dtype=np.float64)
+        return np.asarray(model.predict_np(x, u, int(getattr(controller, "member", 0))), dtype=np.float64)
 
     def values(self) -> dict[str, float]:
         """The guard's counters and the monitor's window means, for ``mpc/status`` (floats)."""
@@ -393,12 +466,12 @@ class GuardedController:
 def make_guarded_controller(system: System, solver: str = "fast", config: GuardConfig | None = None,
                             **options: Any) -> GuardedController:
     """A :class:`GuardedController` of two :func:`~saml_ros.core.mpc.factory.make_controller` controllers of the
-    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat."""
+    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat. A one-shot
+    controller (the paddle ball's) can only have the roll back (``ValueError`` otherwise)."""
     from saml_ros.core.mpc.factory import make_controller
 
+    config = config or GuardConfig()
     learned = make_controller(system, None, solver, **options)
     base_opts = {k: v for k, v in options.items() if k != "member"}
     base = make_controller(system, None, solver, **base_opts)
-    if not isinstance(learned, ShootingMPC) or not isinstance(base, ShootingMPC):
-        raise ValueError(f"guarded MPC: only the shooting MPC (friction, quadrotor) can be guarded, not {system.name}")
-    return GuardedController(learned, base, config or GuardConfig())
+    return GuardedController(learned, base, config)  # type: ignore[arg-type]

@@ -24,10 +24,16 @@ The node decodes messages and publishes; everything in between is here and unit-
   ``mpc/status``; a finite plan that violates a constraint is otherwise sent and counted ``solves_failed``;
 * counters (``solves``, ``solves_failed``, ``solves_unavoidable``, ``solver_errors``, ``safe_commands``, ``deadline_misses``, ``swaps``,
   ``warm_start_resets``, ``skipped_states``, ``rejected/<reason>``) and :meth:`MPCService.diagnostic_values`;
-* with any ``guard.*`` remedy on, the controller is a :class:`~saml_ros.core.mpc.guard.GuardedController`: each
-  control step first shows it the live transition that just happened (previous state, the command sent, this
-  state; not across a stamp jump) and a roll back changes the model in use (``rollbacks``, logged); its counters
-  go on ``mpc/status`` and ``/diagnostics`` (``guard_*``, ``monitor_error_*``);
+* with any ``guard.*`` remedy on (``guard.rollback`` is by default), the controller is a
+  :class:`~saml_ros.core.mpc.guard.GuardedController`: each control step first shows it the live transition that
+  just happened (the state answered one period ``dt`` earlier, within a quarter period, the command sent for it,
+  this state: a state of another stream interleaved on the topic, such as a second robot's half a period off, is
+  never taken for the next state; nothing across a stamp jump; each chain of states a period apart continues its
+  stream, a new chain starts the stream of its stamp's phase, in quarter periods, and the monitor keeps a window
+  per stream), or, for a system whose target is not the next state
+  (the paddle ball), :meth:`MPCService.receive_target` shows it the target stamped like a state it answered; a
+  roll back changes the model in use (``rollbacks``, logged); its counters go on ``mpc/status`` and
+  ``/diagnostics`` (``guard_*``, ``monitor_error_*``);
 * the watcher knows the model in use (:meth:`~saml_ros.core.model_watch.ModelWatcher.set_in_use`): a checkpoint
   holding it again is a no-op (``checkpoints_reannounced``), and it is re-checked on the states flown as a new
   checkpoint is; one that fails is not used any more (``models_retired``, logged): the previous model (with the
@@ -62,6 +68,10 @@ from saml_ros.core.systems.registry import get_entry
 RECENT_PROBES = 256
 #: loaded models kept by version (the model in use and those the guard may roll back to)
 KEPT_MODELS = 4
+#: answered (state, command) pairs kept by stamp for the live monitor (the newest; a few periods)
+SENT_KEPT = 16
+#: how far (fraction of dt) a state's stamp may be from one period after an answered one to be its next state
+NEXT_STATE_TOLERANCE = 0.25
 
 #: one answer: the stamp of the state it answered (ns) and the ``mpc/status`` values
 Answer = tuple[int, dict[str, float]]
@@ -84,7 +94,11 @@ class MPCService:
         else:
             self.controller = make_controller(self.system, None, solver=config.solver, member=config.member,
                                               **config.controller_options())
-        self._last_sent: tuple[np.ndarray, np.ndarray] | None = None  # (state, command) of the last step
+        # stamp (ns) -> (state, command, stream) of the newest steps answered with a solved command (the live
+        # monitor's; kept across stamp jumps: two streams interleaved on the topic jump back and forth between their
+        # stamps). A stream is a chain of states a period apart (a robot among several on the topic).
+        self._sent: OrderedDict[int, tuple[np.ndarray, np.ndarray, int]] = OrderedDict()
+        self._target_is_state = self.system.target.names == self.system.state.names
         self._paths: dict[int, str] = {}  # checkpoint version -> path (the guard may roll back to an older one)
         self._models: OrderedDict[int, LoadedModel] = OrderedDict()  # the newest loaded ones, by version
         self.u_low = np.asarray(self.system.control_low, dtype=np.float64)
@@ -157,17 +171,20 @@ class MPCService:
     def control_step(self, x: np.ndarray, stamp: int, t_start: float) -> Answer:
         """Swap in a ready model, solve for state ``x`` (stamp ns), send the clipped command, return the status
         values (``t_start``: ``time.perf_counter()`` when the step's clock started)."""
-        jumped = self.last_stamp is None
         if self.last_stamp is not None:
             dt_ns = stamp - self.last_stamp
             # a reset, a new episode or a restarted simulator: the warm start is meaningless
             if dt_ns < 0 or (self.system.dt > 0 and dt_ns > 1.5e9 * self.system.dt):
                 self.controller.reset()
                 self.counters["warm_start_resets"] += 1
-                jumped = True
         self.last_stamp = stamp
-        if self.guarded is not None and self._last_sent is not None and not jumped:
-            self._observe(*self._last_sent, x)
+        if self.guarded is not None and self._target_is_state:
+            previous = self._previous_step(stamp)
+            if previous is not None:
+                self._observe(*previous[:2], x, previous[2])
+            stream = previous[2] if previous is not None else self._phase(stamp)
+        else:
+            stream = 0
         retired = self.watcher.take_retired()
         if retired is not None:
             self._retire(retired)
@@ -181,7 +198,10 @@ class MPCService:
         u = np.clip(u, self.u_low, self.u_high)
         self.send(u, stamp)
         # the live monitor scores transitions from solved commands only (a safe command says nothing of the model)
-        self._last_sent = None if values["safe"] else (np.array(x, dtype=np.float64), u)
+        if not values["safe"] and self.guarded is not None:
+            self._sent[stamp] = (np.array(x, dtype=np.float64), u, stream)
+            while len(self._sent) > SENT_KEPT:
+                self._sent.popitem(last=False)
         if not values["safe"]:
             with self._recent_lock:
                 self._recent.append((np.array(x, dtype=np.float64), u))
@@ -208,12 +228,40 @@ class MPCService:
             values["model_source"] = 1.0 if self.guarded.last_source == "learned" else 0.0
         return stamp, values
 
-    def _observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> None:
+    def _phase(self, stamp: int) -> int:
+        """The stream of a state that continues no chain: its stamp's phase in the period, in quarters (a robot
+        whose clock is half a period off another's starts its own stream)."""
+        dt_ns = int(round(self.system.dt * 1e9))
+        return int(round(4 * (stamp % dt_ns) / dt_ns)) % 4 if dt_ns > 0 else 0
+
+    def _previous_step(self, stamp: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The (state, command, stream) answered one period before ``stamp`` (within
+        :data:`NEXT_STATE_TOLERANCE` of the period), or None (a stamp jump, a safe command; a state of another
+        stream in between is skipped)."""
+        dt_ns = self.system.dt * 1e9
+        if dt_ns <= 0:
+            return None
+        for t in reversed(self._sent):  # not in stamp order: interleaved streams drift apart in time
+            if abs(stamp - t - dt_ns) <= NEXT_STATE_TOLERANCE * dt_ns:
+                return self._sent[t]
+        return None
+
+    def receive_target(self, y: np.ndarray, stamp: int) -> None:
+        """A decoded target (the paddle ball's post-impact velocity) stamped like the state whose answer it
+        followed: the live monitor scores the models on that transition (ignored without ``guard.rollback``, for a
+        system whose target is the next state, or when no solved command answered that stamp)."""
+        if self.guarded is None or self._target_is_state:
+            return
+        sent = self._sent.pop(stamp, None)
+        if sent is not None:
+            self._observe(sent[0], sent[1], np.asarray(y, dtype=np.float64))
+
+    def _observe(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, stream: int = 0) -> None:
         """Show the guard the live transition ``(x, u) -> x_next``; on a roll back switch the model in use."""
         assert self.guarded is not None
         old = self.model_version
         try:
-            rolled = self.guarded.observe(x, u, x_next)
+            rolled = self.guarded.observe(x, u, x_next, stream)
         except Exception as exc:  # noqa: BLE001 - the monitor must never stop the control loop
             self.counters["monitor_errors"] += 1
             self.warn_throttled("monitor", f"live monitor raised {type(exc).__name__}: {exc}")
@@ -299,9 +347,17 @@ class MPCService:
         return self.u_safe, out
 
     def swap(self, ready: ReadyModel) -> None:
-        """Plan with the model ``ready`` from now on."""
+        """Plan with the model ``ready`` from now on (with the live monitor on: unless it predicts the newest live
+        transitions worse than f_hat; then it is refused, logged, and never flown)."""
         if self.guarded is not None:
-            self.guarded.set_model(ready.loaded.model, ready.version, ready.loaded.meta)
+            if not self.guarded.offer_model(ready.loaded.model, ready.version, ready.loaded.meta):
+                self.counters["rollbacks"] += 1
+                m, b, n = self.guarded.last_refusal or (math.nan, math.nan, 0)
+                self.logger.warning(
+                    f"refused model version {ready.version} ({ready.path.name}) before flying it: on the last {n} "
+                    f"live transitions its one-step error {m:.4g} is above f_hat's {b:.4g} + margin; model version "
+                    f"{self.model_version} kept, version {ready.version} is not used again")
+                return
             self._paths[ready.version] = str(ready.path)
         else:
             self.controller.set_model(ready.loaded.model)
@@ -356,6 +412,7 @@ class MPCService:
             values["guard_fallbacks"] = g.counters["fallbacks"]
             values["guard_base_solves"] = g.counters["solves_base"]
             values["guard_rollbacks"] = g.counters["rollbacks"]
+            values["guard_refused_before_flight"] = g.counters["refused_before_flight"]
             values["guard_bounded_solves"] = g.counters["bounded"]
             values["guard_clipped_solves"] = g.counters["clipped"]
             values["guard_rolled_back_versions"] = ",".join(str(v) for v in sorted(g.banned))

@@ -113,7 +113,8 @@ FRICTION = SystemEntry(
         "sim": {"mode": "lockstep", "episode_steps": 100, "seed": 0, "lockstep_timeout": 5.0},
         "learner": {"min_transitions": 200, "checkpoint_period": 5.0, "updates_per_second": 0.0,
                     "training_niceness": 0},
-        "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5},
+        # the live monitor's roll back (on by default; here as in config/loop_friction.yaml)
+        "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5, "guard.rollback": True},
     },
     experiment="friction",
     spec_file="specs/friction.yaml",
@@ -297,7 +298,7 @@ PADDLE_BALL = SystemEntry(
         "sim": {"mode": "lockstep", "seed": 0, "lockstep_timeout": 5.0},
         "learner": {"min_transitions": 100, "checkpoint_period": 5.0, "updates_per_second": 0.0,
                     "training_niceness": 0},
-        "mpc": {"solver": "fast", "poll_period": 0.5},
+        "mpc": {"solver": "fast", "poll_period": 0.5, "guard.rollback": True},
     },
     experiment="paddle_ball",
     spec_file="specs/paddle_ball.yaml",

@@ -1,17 +1,26 @@
 """Restarts and selection: of the members of an ensemble trained on the same data (restarts from different
-initialisations), keep the best feasible one on a held-out split (:func:`select_members`).
+initialisations), keep the best feasible one on held-out data (:func:`select_members`).
 
-The rule (docs/training.md), per group of restarts, on the held-out split's dataset-level values:
+The rule (docs/training.md), per group of restarts, on held-out estimates with their standard errors
+(:func:`~saml_ros.core.training.verdict.spec_estimates`; batch means for a recording):
 
-1. a member is *feasible* when every constraint holds within the diagnosis tolerance, ``g_k <= TOL * eps_k``
-   (:data:`saml_ros.core.training.diagnosis.TOL`);
-2. if some member is feasible, keep the feasible member with the lowest held-out objective;
-3. otherwise keep the member with the smallest worst relative violation ``max_k g_k / eps_k`` (the lowest
-   objective among equal ones): the closest to feasible, reported as infeasible.
+1. a member is **met** when every constraint is met there with confidence: the upper end of the one-sided 95 %
+   interval, ``mean + Z se``, is at most ``eps_k`` (:func:`~saml_ros.core.training.heldout.heldout_verdict`);
+   **unconfirmed** when every constraint's held-out mean is at most ``eps_k`` (or too few held-out samples fall in
+   its region to tell) but not every one is confirmed;
+2. keep the met member with the lowest held-out objective; if none is met, the unconfirmed member with the lowest
+   held-out objective;
+3. otherwise keep the member with the smallest worst relative held-out value ``max_k mean_k / eps_k`` (the lowest
+   objective among equal ones): the closest to feasible, reported as violated.
+
+A 1 % tolerance on a held-out mean of about 150 region samples (standard error about 9 % of eps, friction's 20 %
+split) cannot tell a member at eps from one 10 % above; the standard errors put that uncertainty in the rule, and
+``train`` sizes the selection set (docs/training.md).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -22,9 +31,12 @@ import torch
 from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training.dataset import Transitions
-from saml_ros.core.training.diagnosis import TOL
-from saml_ros.core.training.evaluate import evaluate_spec
+from saml_ros.core.training.heldout import MET, NO_HELDOUT, UNCONFIRMED, Estimate, Z, heldout_verdict
 from saml_ros.core.training.trainer import PrimalDualTrainer
+from saml_ros.core.training.verdict import spec_estimates
+
+#: the status of a kept member: met with confidence, held-out mean within the bound, neither (the least violating)
+MET_STATUS, UNCONFIRMED_STATUS, VIOLATED_STATUS = "met", "unconfirmed", "violated"
 
 
 @dataclass
@@ -34,57 +46,99 @@ class Selection:
     Attributes:
         groups: the member indices of each group (restarts of one seed).
         chosen: the kept member of each group (an index into the ensemble).
-        feasible: whether the kept member is feasible on the held-out split.
-        objective: held-out objective of every member ``(E,)``.
-        constraints: held-out constraint values of every member ``(E, K)``.
+        status: per group, the kept member's status: ``"met"``, ``"unconfirmed"`` or ``"violated"`` (module
+            docstring).
+        feasible: per group, whether the kept member's held-out means are within every bound (status not
+            ``"violated"``).
+        objective: held-out objective of every member ``(E,)``; ``objective_se`` its standard error.
+        constraints: held-out ``g_k = mean_k - eps_k`` of every member ``(E, K)``; ``constraint_se`` their standard
+            errors, ``n_in`` the held-out samples in each region ``(E, K)``.
     """
 
     groups: list[list[int]]
     chosen: list[int]
-    feasible: list[bool]
+    status: list[str]
     objective: np.ndarray
     constraints: np.ndarray
+    objective_se: np.ndarray
+    constraint_se: np.ndarray
+    n_in: np.ndarray
+
+    @property
+    def feasible(self) -> list[bool]:
+        return [s != VIOLATED_STATUS for s in self.status]
 
     def describe(self) -> list[str]:
-        return [
-            f"restarts {g}: kept member {c} ({'feasible' if f else 'none feasible: the least violating'}, held-out "
-            f"objective {self.objective[c]:.4g})"
-            for g, c, f in zip(self.groups, self.chosen, self.feasible)
-        ]
+        out = []
+        for g, c, st in zip(self.groups, self.chosen, self.status):
+            why = {MET_STATUS: "met on the held-out selection data with 95 % confidence",
+                   UNCONFIRMED_STATUS: "none met with confidence: the lowest objective among those whose held-out "
+                                       "mean is within the bound",
+                   VIOLATED_STATUS: "none within the bound: the least violating"}[st]
+            others = [i for i in g if i != c]
+            runner = min(others, key=lambda i: self.objective[i]) if others else None
+            second = (f"; next lowest objective {self.objective[runner]:.4g} (member {runner})"
+                      if runner is not None else "")
+            out.append(f"restarts {g}: kept member {c} ({why}; held-out objective {self.objective[c]:.4g} +- "
+                       f"{self.objective_se[c]:.2g}{second})")
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"chosen": self.chosen, "status": self.status, "feasible": self.feasible,
+                "heldout_objective": self.objective.tolist(), "heldout_objective_se": self.objective_se.tolist(),
+                "heldout_constraints": self.constraints.tolist(), "heldout_constraint_se": self.constraint_se.tolist(),
+                "heldout_n_in": self.n_in.tolist()}
 
 
-def choose(objective: np.ndarray, constraints: np.ndarray, eps: Sequence[float], group: Sequence[int]) -> tuple[int,
-                                                                                                            bool]:
-    """The member of ``group`` the rule keeps (module docstring) and whether it is feasible; ``objective`` ``(E,)``,
-    ``constraints`` ``(E, K)`` are held-out values."""
+def member_status(constraints: Sequence[Estimate], eps: Sequence[float], z: float = Z) -> str:
+    """A member's status from its held-out constraint estimates (module docstring, rule 1)."""
+    verdicts = [heldout_verdict(float(e), est, None, z) for e, est in zip(eps, constraints)]
+    if all(v == MET for v in verdicts):
+        return MET_STATUS
+    within = [v in (MET, UNCONFIRMED) or (v == NO_HELDOUT and not est.mean > e)
+              for v, est, e in zip(verdicts, constraints, eps)]
+    return UNCONFIRMED_STATUS if all(within) else VIOLATED_STATUS
+
+
+def choose(objective: Sequence[Estimate], constraints: Sequence[Sequence[Estimate]], eps: Sequence[float],
+           group: Sequence[int], z: float = Z) -> tuple[int, str]:
+    """The member of ``group`` the rule keeps (module docstring) and its status; ``objective`` ``[E]`` and
+    ``constraints`` ``[E][K]`` are held-out estimates of the left-hand sides."""
     idx = list(group)
     if not idx:
         raise ValueError("an empty group of restarts")
-    e = np.asarray(eps, dtype=float)
-    rel = constraints[idx] / e if len(e) else np.zeros((len(idx), 0))
-    worst = rel.max(axis=1) if rel.shape[1] else np.full(len(idx), -np.inf)
-    feasible = worst <= TOL
-    obj = objective[idx]
-    if feasible.any():
-        cand = np.flatnonzero(feasible)
-        j = cand[int(np.argmin(obj[cand]))]
-        return idx[j], True
-    order = np.lexsort((obj, worst))  # smallest worst violation first, then the lowest objective
-    return idx[int(order[0])], False
+    status = {i: member_status(constraints[i], eps, z) for i in idx}
+    for want in (MET_STATUS, UNCONFIRMED_STATUS):
+        cand = [i for i in idx if status[i] == want]
+        if cand:
+            return min(cand, key=lambda i: objective[i].mean), want
+
+    def worst(i: int) -> float:
+        rel = [est.mean / float(e) for est, e in zip(constraints[i], eps) if math.isfinite(est.mean)]
+        return max(rel, default=-math.inf)
+
+    return min(idx, key=lambda i: (worst(i), objective[i].mean)), VIOLATED_STATUS
 
 
 @torch.no_grad()
 def select_members(model: DynamicsModel, spec: ProblemSpec, heldout: Transitions,
-                   groups: Sequence[Sequence[int]]) -> Selection:
-    """Apply the rule to every group of ``model``'s members on ``heldout`` (one dataset per member, or shared)."""
-    ev = evaluate_spec(model, spec, heldout)
+                   groups: Sequence[Sequence[int]], stream: bool = False) -> Selection:
+    """Apply the rule to every group of ``model``'s members on ``heldout`` (one dataset per member, or shared;
+    ``stream``: a recording in time order, batch-means standard errors)."""
+    obj, cons = spec_estimates(model, spec, heldout, stream)
     eps = [t.eps for t in spec.constraints]
-    chosen, feasible = [], []
+    e, k = model.n_models, len(eps)
+    per_member = [[cons[j][i] for j in range(k)] for i in range(e)]
+    chosen, status = [], []
     for g in groups:
-        c, f = choose(ev["objective"], ev["constraints"], eps, g)
+        c, st = choose(obj, per_member, eps, g)
         chosen.append(c)
-        feasible.append(f)
-    return Selection([list(g) for g in groups], chosen, feasible, ev["objective"], ev["constraints"])
+        status.append(st)
+    g_val = np.array([[est.mean - eps[j] for j, est in enumerate(row)] for row in per_member]).reshape(e, k)
+    g_se = np.array([[est.se for est in row] for row in per_member]).reshape(e, k)
+    n_in = np.array([[est.n for est in row] for row in per_member], dtype=int).reshape(e, k)
+    return Selection([list(g) for g in groups], chosen, status, np.array([o.mean for o in obj]),
+                     g_val, np.array([o.se for o in obj]), g_se, n_in)
 
 
 @torch.no_grad()

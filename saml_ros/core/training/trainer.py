@@ -134,9 +134,12 @@ class PrimalDualTrainer:
         progress: bool = False,
         desc: str = "training",
         callback: Callable[[PrimalDualTrainer], None] | None = None,
+        diagnose: bool = True,
     ) -> History:
         """Run ``epochs`` passes of Algorithm 1 over a fixed dataset; every member sees its own shuffle.
-        ``callback(self)`` runs after each epoch.
+        ``callback(self)`` runs after each epoch. The learning-rate schedules span ``config.epochs`` whatever
+        ``epochs`` is, so a run may be fitted in parts (``diagnose=False`` for all but the last: no diagnosis, no
+        warnings).
 
         Runs on the engine named by ``config.engine`` (see :class:`TrainConfig`), or on the plain one where that
         engine does not apply; :attr:`engine_used` says which one ran. At the end the feasibility diagnosis on
@@ -161,6 +164,8 @@ class PrimalDualTrainer:
             if bar is not None:
                 bar.close()
         # the dataset-level values at the end: the fused kernel's own pass over the data where it ran
+        if not diagnose:
+            return self.history
         evaluation = getattr(engine, "evaluation", None) if self.kernel_used else None
         self.diagnosis = self.diagnose(data, evaluation)
         for c in self.diagnosis.constraints:

@@ -267,15 +267,17 @@ def _signature(run: RunState, data: Transitions) -> tuple[Any, ...]:
     """What a :class:`FusedRun` is built from, beyond the state it reads at every fit: the data (the Transitions
     object and its tensors' identities and versions: an in-place edit shows; its f_hat and masks are computed once,
     so a Transitions is not edited through the numpy arrays it was made from), the model's normalisation and
-    parameter objects, the optimizers' and dual's objects and hyper-parameters, the config and schedules."""
+    parameter objects, the optimizers' and dual's objects and hyper-parameters, the config and schedules, the spec
+    and its bounds."""
     m = run.model
     data_t = [data.x, data.u, data.y, data.base, *[mk for mk in data.masks if mk is not None]]
     norm = [m.in_mean, m.in_std, m.out_std]
     groups = tuple(tuple(sorted((k, repr(v)) for k, v in g.items() if k != "params"))
                    for opt in (run.primal_opt, run.dual.optimizer) for g in opt.param_groups)
+    bounds = tuple(t.eps for t in run.spec.constraints)  # the bounds trained at (an aim may change them)
     return (id(data), tuple(id(t) for t in data_t + norm), tuple(t._version for t in data_t + norm),
             tuple(id(p) for p in m.net.parameters()), id(run.primal_opt), id(run.dual), id(run.dual.optimizer),
-            groups, run.config, run.schedules)
+            groups, run.config, run.schedules, id(run.spec), bounds)
 
 
 def _reusable_run(run: RunState, data: Transitions, module: Any) -> FusedRun:
