@@ -152,9 +152,10 @@ def topics_of(setup: RobotSetup) -> list[str]:
 
 
 def fly(setup: RobotSetup, env: dict[str, str], out: Path, seed: int, duration: float,
-        learner_params: list[str] | None) -> dict[str, Any]:
-    """One flight: recorder (+ learner when ``learner_params`` is not None), then robot and controller for
-    ``duration`` s. Returns what happened (paths, exit codes, wall time)."""
+        learner_params: list[str] | None, controller_params: tuple[str, ...] = ()) -> dict[str, Any]:
+    """One flight: recorder (+ learner when ``learner_params`` is not None), then robot and controller (with
+    ``controller_params``, ``NAME:=VALUE``) for ``duration`` s. Returns what happened (paths, exit codes, wall
+    time)."""
     out.mkdir(parents=True, exist_ok=True)
     flight = Flight(setup, env, out)
     bag, run_dir = out / "bag", out / "online"
@@ -173,7 +174,8 @@ def fly(setup: RobotSetup, env: dict[str, str], out: Path, seed: int, duration: 
         wait_output(rec, r"record: writing", 120.0, waiting)
         time.sleep(1.0)  # the learner activates (subscribes) right after it configured
         # the controller first: it commands only once it has a state, so the robot never waits for its commands
-        ctrl = flight.script("controller", setup.controller, "-p", f"seed:={seed}")
+        ctrl = flight.script("controller", setup.controller, "-p", f"seed:={seed}",
+                             *[a for p in controller_params for a in ("-p", p)])
         wait_output(rec, re.escape(f"record: recording {topics[1]} "), 120.0, [*waiting, ctrl])
         robot = flight.script("robot", "robot.py", *setup.robot_args, "-p", f"seed:={seed}")
         everyone = [*waiting, robot, ctrl]
@@ -281,7 +283,7 @@ def report(setup: RobotSetup, result: dict[str, Any], runs: list[dict[str, Any]]
             per_run.append({"online_over_offline": r1, "fhat_over_online": r2, "ok": bool(r1 <= 1.5 and r2 >= 3)})
             c = r["counts"]
             mis = f"{r['pairing_check']['mispaired']}" if r.get("pairing_check") else "not checked"
-            lines.append(f"| {i + 1} | {r1:.2f} {'ok' if r1 <= 1.5 else 'NO'} | {r2:.1f} {'ok' if r2 >= 3 else 'NO'} "
+            lines.append(f"| {i + 1} | {r1:.2f} {'ok' if r1 <= 1.5 else 'NO'} | {r2:.2f} {'ok' if r2 >= 3 else 'NO'} "
                          f"| {r['updates']} | {c.get('paired', 0)} / {c.get('intervals', 0)} | "
                          f"{c.get('ambiguous_cmd', 0)} | {c.get('mixed_cmd', 0)} | {c.get('gap', 0)} | "
                          f"{c.get('late', 0)} | {mis} |")
@@ -296,11 +298,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robot", choices=sorted(ROBOTS), default="arm")
     ap.add_argument("--runs", type=int, default=3, help="independent online runs (seeds --seed, --seed + 1, ...)")
     ap.add_argument("--duration", type=float, default=150.0, help="wall seconds of each training flight")
-    ap.add_argument("--heldout-duration", type=float, default=60.0, help="wall seconds of the held-out flight")
+    ap.add_argument("--heldout-duration", type=float, default=120.0, help="wall seconds of the held-out flight")
     ap.add_argument("--heldout", type=Path, help="reuse this held-out recording instead of flying one")
     ap.add_argument("--seed", type=int, default=0, help="first run's seed (the held-out flight uses seed + 1000)")
     ap.add_argument("--learner-param", action="append", default=[], metavar="NAME:=VALUE",
                     help="a learner parameter for every run (repeatable), e.g. min_transitions:=3000")
+    ap.add_argument("--controller-param", action="append", default=[], metavar="NAME:=VALUE",
+                    help="a parameter of the robot's controller in the training flights (repeatable; the held-out "
+                         "flight is the plain task), e.g. homing:=20 for the arm")
     ap.add_argument("--train-arg", action="append", default=[], metavar="ARG",
                     help="an argument for the offline `train` (repeatable), e.g. --train-arg=--epochs=100")
     ap.add_argument("--no-offline", action="store_true", help="skip offline training (no ratios)")
@@ -331,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
             run_out = out / f"run{i + 1}"
             print(f"[run {i + 1}/{args.runs}] flying {args.duration:g} s with the learner (seed {seed}); load "
                   f"{os.getloadavg()[0]:.1f}", flush=True)
-            info = fly(setup, env, run_out, seed, args.duration, args.learner_param)
+            info = fly(setup, env, run_out, seed, args.duration, args.learner_param, tuple(args.controller_param))
             info["counts"], info["pairing_check"] = bag_counts(setup, Path(info["bag"]), run_out / "pairing.json")
             info["updates"] = updates_of(Path(info["run_dir"]))
             check = info["pairing_check"]

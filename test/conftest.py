@@ -1,10 +1,33 @@
-"""Shared pytest fixtures."""
+"""The test tree's layout rules and shared fixtures.
+
+Where a test goes (``docs/testing.md``):
+
+* ``test/unit/<part>/``: in-process tests of one part of the package (``<part>`` mirrors the package: ``core/``,
+  ``core/training/``, ``core/mpc/``, ``msg_schemas/``, ``bags/``, ...). No child process, no ROS graph: a test here
+  that starts a process or initialises rclpy fails, naming the folder it belongs in (compilers building the native
+  kernels are allowed).
+* ``test/ros/<part>/``: tests that start processes (nodes, executables, a fresh interpreter, colcon) or join a ROS
+  graph (rclpy in the test process).
+* ``test/e2e/``: whole workflows: record -> replay -> train, robots defined outside the package.
+* ``test/helpers/``: code the tests share (never a test; no test imports another test file).
+
+Every test under ``ros/`` and ``e2e/`` gets the ``ros`` marker here (``e2e/`` also ``e2e``), by folder, so a new file
+cannot forget it: ``./dev test -m "not ros"`` runs the unit tests alone (and then does not even import the others).
+"""
 
 from __future__ import annotations
+
+import re
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
+from helpers.bag_test_helpers import bad_bags, friction_bag  # noqa: F401  (fixtures for every test, by name)
+from helpers.ros_helpers import ros_env, ros_node  # noqa: F401
 
 from saml_ros.core.layout import make_layout
 from saml_ros.core.systems.base import System
@@ -12,6 +35,21 @@ from saml_ros.core.systems.base import System
 # One intra-op thread, as the nodes and scripts use: on this shared 2-core machine torch's default of one thread
 # per core made a small network's training step 25x slower under load (150 ms instead of 6 ms, measured).
 torch.set_num_threads(1)
+
+TEST_DIR = Path(__file__).resolve().parent
+#: top-level folder -> markers every test in it gets
+FOLDER_MARKERS = {"unit": (), "ros": ("ros",), "e2e": ("ros", "e2e")}
+#: processes a unit test may start: the compilers and build tools that build the native kernels on first use
+BUILD_TOOLS = re.compile(r"^(c\+\+|g\+\+|gcc|cc|clang\+\+|clang|ninja|ld|ldconfig)(-[0-9.]+)?$")
+
+
+def _folder(path: Path) -> str | None:
+    """The top-level folder of ``test/`` that holds ``path`` (``None`` outside test/ or directly in it)."""
+    try:
+        parts = path.resolve().relative_to(TEST_DIR).parts
+    except ValueError:
+        return None
+    return parts[0] if len(parts) > 1 else None
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
@@ -22,11 +60,101 @@ def pytest_sessionstart(session: pytest.Session) -> None:
     Each test also removes what its own processes leave (ros_helpers.clean_shm)."""
     if hasattr(session.config, "workerinput"):
         return
-    from ros_helpers import clean_shm
+    from helpers.ros_helpers import clean_shm
 
     removed = clean_shm(set(), min_age=5.0)
     if removed:
         print(f"\nremoved {len(removed)} unused Fast DDS shared-memory files from /dev/shm", flush=True)
+
+
+def _deselected_by_markexpr(config: pytest.Config, markers: tuple[str, ...]) -> bool:
+    """True when ``-m`` deselects every test carrying ``markers``, whatever other markers it has."""
+    expr = config.getoption("markexpr", "")
+    if not expr or not markers:
+        return False
+    from _pytest.mark.expression import Expression
+
+    compiled = Expression.compile(expr)
+    others = sorted(set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", expr)) - {"and", "or", "not", *markers})
+    for bits in range(2 ** len(others)):  # every assignment of the other names in the expression
+        on = {name for i, name in enumerate(others) if bits >> i & 1} | set(markers)
+        if compiled.evaluate(lambda name, *_, on=on, **__: name in on):  # type: ignore[arg-type]
+            return False
+    return True
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """``-m "not ros"`` does not import the process tests at all (their modules import rclpy and friends); the
+    helpers package is never collected."""
+    if collection_path == TEST_DIR / "helpers":
+        return True
+    folder = _folder(collection_path / "x") if collection_path.is_dir() else _folder(collection_path)
+    if folder in FOLDER_MARKERS and _deselected_by_markexpr(config, FOLDER_MARKERS[folder]):
+        return True
+    return None
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The markers by folder; a test file directly in test/ or in an unknown folder is an error."""
+    misplaced = set()
+    for item in items:
+        folder = _folder(item.path)
+        if folder not in FOLDER_MARKERS:
+            misplaced.add(str(item.path))
+            continue
+        for name in FOLDER_MARKERS[folder]:
+            item.add_marker(name)
+    if misplaced:
+        raise pytest.UsageError(f"test files outside test/unit, test/ros and test/e2e (see test/conftest.py): "
+                                f"{sorted(misplaced)}")
+
+
+# ------------------------------------------------------------------------------------- unit tests stay in-process
+def _refuse(what: str) -> None:
+    raise AssertionError(f"a unit test {what}: move it to test/ros/ (tests that start processes or join a ROS graph; "
+                         f"see test/conftest.py)")
+
+
+@pytest.fixture(autouse=True)
+def _unit_tests_start_no_process(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under test/unit/: starting a process (other than a compiler building a native kernel) or initialising rclpy
+    fails the test."""
+    if _folder(request.node.path) != "unit":
+        return
+    popen_init = subprocess.Popen.__init__
+
+    def checked_popen(self: subprocess.Popen[Any], args: Any, *a: Any, **k: Any) -> None:
+        first = args if isinstance(args, str | bytes | Path) else next(iter(args), "")
+        name = Path(str(first).split()[0] if isinstance(first, str) else str(first)).name
+        if not BUILD_TOOLS.match(name):
+            _refuse(f"started the process {args!r}")
+        popen_init(self, args, *a, **k)
+
+    monkeypatch.setattr(subprocess.Popen, "__init__", checked_popen)
+    import multiprocessing.process
+
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", lambda self: _refuse("started a process"))
+    try:
+        import rclpy.context
+    except ImportError:
+        return
+    monkeypatch.setattr(rclpy.context.Context, "init", lambda self, *a, **k: _refuse("initialised rclpy"))
+
+
+# ---------------------------------------------------------------------------------------------------- fixtures
+@pytest.fixture
+def restore_registry() -> Iterator[None]:
+    """The system registry (global and mutable: robots loaded from system files, systems a test registers) as it
+    was before the test: entries and loaders added during the test are removed, replaced ones put back."""
+    from saml_ros.core.systems import registry
+
+    entries, loaders = dict(registry._ENTRIES), list(registry._LOADERS)
+    try:
+        yield
+    finally:
+        registry._ENTRIES.clear()
+        registry._ENTRIES.update(entries)
+        registry._LOADERS[:] = loaders
 
 
 class ToySystem(System):

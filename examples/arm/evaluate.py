@@ -16,8 +16,9 @@ By default the held-out transitions are the ones the learner's pairing rule form
 ``joint_states.effort`` the torque it applied over the period that message ends, so each pair of consecutive
 joint states with that torque is an exactly known transition, whatever the pairing of the command topic does;
 the learner's pairing of the same recording is then checked against it (paired commands that differ from the
-applied torque are mis-paired). User code named in the system file (the arm's ``arm_model.py``) is imported
-from the system file's folder.
+applied torque are mis-paired). Only transitions inside the system file's operating envelope (x, u and the next
+state within their bounds) are evaluated unless ``--all-transitions``; the others are counted. User code named
+in the system file (the arm's ``arm_model.py``) is imported from the system file's folder.
 """
 
 from __future__ import annotations
@@ -143,7 +144,7 @@ def pairing_check(data: Any, truth: dict[int, tuple[int, np.ndarray]], tol: floa
 
 
 def evaluate(system_file: Path, bags: list[Path], models: list[str], block: float = 1.0,
-             applied_effort: bool = False) -> dict[str, Any]:
+             applied_effort: bool = False, within_bounds: bool = True) -> dict[str, Any]:
     """Everything the script prints, as a dict (see the module docstring)."""
     sys.path.insert(0, str(system_file.resolve().parent))  # the system file's own code (its base model)
     from saml_ros.bags.transitions import extract_transitions
@@ -159,6 +160,12 @@ def evaluate(system_file: Path, bags: list[Path], models: list[str], block: floa
     if applied_effort:
         data, truth = applied_transitions(bags, system)
         result["pairing_check"] = pairing_check(paired, truth)
+    if within_bounds:  # the file's operating envelope: x, u and the next state inside their bounds
+        lo_x, hi_x, lo_u, hi_u = system.state_low, system.state_high, system.control_low, system.control_high
+        keep = np.all((data.x >= lo_x) & (data.x <= hi_x) & (data.y >= lo_x) & (data.y <= hi_x), axis=1) & \
+            np.all((data.u >= lo_u - 1e-9) & (data.u <= hi_u + 1e-9), axis=1)
+        result["outside_bounds"] = int((~keep).sum())
+        data = Transitions(data.x[keep], data.u[keep], data.y[keep], data.stamps[keep], data.source[keep])
     result["transitions"] = len(data.x)
     spec = ProblemSpec.for_system(system.paper_spec(), system)
     x, u, y = (torch.as_tensor(a, dtype=torch.float64) for a in (data.x, data.u, data.y))
@@ -188,6 +195,8 @@ def format_table(result: dict[str, Any]) -> str:
     """The result as markdown tables, one per constraint."""
     lines = [f"{result['system']}: {result['transitions']} held-out transitions from {', '.join(result['bags'])} "
              f"(from {result['transitions_from']}; standard errors over {result['block_s']:g} s blocks)"]
+    if "outside_bounds" in result:
+        lines.append(f"{result['outside_bounds']} transitions outside the system file's bounds not evaluated")
     c = result["counts"]
     keys = ("intervals", "paired", "gap", "no_cmd", "stale_cmd", "ambiguous_cmd", "mixed_cmd", "late")
     lines.append("the learner's pairing of this recording: " + ", ".join(f"{k} {c.get(k, 0)}" for k in keys))
@@ -213,11 +222,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--applied-effort", action="store_true",
                     help="held-out transitions from consecutive state messages and the effort the robot reports having "
                          "applied (and the learner's pairing checked against it)")
+    ap.add_argument("--all-transitions", action="store_true",
+                    help="also evaluate transitions outside the system file's bounds (by default only those with "
+                         "x, u and the next state inside the operating envelope are)")
     ap.add_argument("--json", type=Path, help="also write the results to this file")
     args = ap.parse_args(argv)
     if not args.block > 0:
         ap.error("--block must be > 0")
-    result = evaluate(args.system_file, args.bag, args.model, args.block, args.applied_effort)
+    result = evaluate(args.system_file, args.bag, args.model, args.block, args.applied_effort,
+                      not args.all_transitions)
     print(format_table(result))
     if args.json:
         args.json.write_text(json.dumps(result, indent=1, default=float))

@@ -5,9 +5,13 @@ type of ros2_control's effort ``forward_command_controller``).
 
     python examples/arm/robot.py --ros-args -r __ns:=/arm -p rate:=100.0 -p seed:=0
 
-Joint states are stamped with the time of their measurement (a fixed-rate schedule on the ROS clock). A command
-takes effect at the first control step after it was received and is held; after ``cmd_timeout`` s without one the
-motors are switched off (zero torque). The physics is MuJoCo (``sim.py``, ``arm.xml``). Nothing here uses saml_ros.
+Joint states are stamped with the time of their measurement t_k (a fixed-rate schedule on the ROS clock). The
+torque applied over [t_k, t_k+1) is the last command received (middleware receipt time) at or before t_k, held;
+after ``cmd_timeout`` s without one the motors are switched off (zero torque). The effort reported in the state
+message of t_k+1 is that torque. A real driver's command callback runs within microseconds of receipt; this one
+runs in Python beside the simulation, so the step waits ``settle`` s after t_k for the callbacks of commands
+received before t_k (the simulated physics of the interval does not depend on when it is computed). The physics is
+MuJoCo (``sim.py``, ``arm.xml``). Nothing here uses saml_ros.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -35,14 +40,25 @@ from sim import JOINTS, ArmSim  # noqa: E402
 class Robot(Node):
     def __init__(self) -> None:
         super().__init__("arm_robot")
-        self.rate = float(self.declare_parameter("rate", 100.0).value)
-        self.cmd_timeout = float(self.declare_parameter("cmd_timeout", 0.2).value)
+        number = ParameterDescriptor(dynamic_typing=True)  # -p rate:=100 as well as rate:=100.0
+
+        def param(name: str, default: float) -> float:
+            value = self.declare_parameter(name, default, number).value
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise SystemExit(f"arm_robot: parameter {name!r} must be a number, got {value!r}")
+            return float(value)
+
+        self.rate = param("rate", 100.0)
+        self.cmd_timeout = param("cmd_timeout", 0.2)
         seed = int(self.declare_parameter("seed", 0).value)
-        noise = float(self.declare_parameter("noise", 1.0).value)
+        noise = param("noise", 1.0)
+        self.settle = param("settle", 0.004)
         if not (math.isfinite(self.rate) and self.rate > 0 and math.isfinite(self.cmd_timeout)
-                and self.cmd_timeout > 0 and math.isfinite(noise) and noise >= 0):
+                and self.cmd_timeout > 0 and math.isfinite(noise) and noise >= 0
+                and math.isfinite(self.settle) and 0 <= self.settle < 0.9 / self.rate):
             raise SystemExit(f"arm_robot: bad parameters rate={self.rate} cmd_timeout={self.cmd_timeout} "
-                             f"noise={noise} (rate and cmd_timeout must be > 0, noise >= 0)")
+                             f"noise={noise} settle={self.settle} (rate and cmd_timeout must be > 0, noise >= 0, "
+                             "0 <= settle < 0.9 / rate)")
         self.arm = ArmSim(seed=seed, noise=noise)
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.pub = self.create_publisher(JointState, "joint_states", qos)
@@ -86,9 +102,13 @@ class Robot(Node):
     def run(self) -> None:
         """Fixed-rate loop: measure and publish at t_k, apply the command held at t_k until t_k+1."""
         period = int(1e9 / self.rate)
+        settle = int(self.settle * 1e9)
         t_k = self.get_clock().now().nanoseconds
         while not self.stop.is_set():
             self.publish(t_k)
+            wait = (t_k + settle - self.get_clock().now().nanoseconds) / 1e9
+            if wait > 0:
+                self.stop.wait(wait)
             self.arm.step(self.command_at(t_k), period / 1e9)
             self.steps += 1
             t_k += period

@@ -110,10 +110,6 @@ class EnsembleMLP(nn.Module):
                 h = torch.where(h >= 0, h, self.slopes[i] * h)
         return h
 
-    def n_parameters(self) -> int:
-        """Trainable parameters of ONE member."""
-        return sum(p[0].numel() for p in self.parameters())
-
     def flops_per_sample(self) -> int:
         """Multiply-adds x2 of one forward pass of one member (matmuls only)."""
         dims = [self.in_dim, *self.hidden, self.out_dim]

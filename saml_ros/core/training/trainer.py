@@ -111,21 +111,6 @@ class PrimalDualTrainer:
         """Append the mean of the minibatch values since the last log point to :attr:`history`."""
         self.log.point(self.steps, self.epochs_done, self.lam)
 
-    def train_steps(
-        self, sample: Callable[[], tuple[Any, Any, Any]], n_steps: int
-    ) -> SpecValues | None:
-        """Online mode: ``n_steps`` updates on minibatches drawn by ``sample() -> (x, u, y)`` (numpy or
-        torch ``(B, .)``), e.g. from a growing :class:`~saml_ros.core.buffer.ReplayBuffer`."""
-        last = None
-        dt = self.config.torch_dtype
-        log_every = self.config.log_every or 100
-        for _ in range(n_steps):
-            x, u, y = (torch.as_tensor(np.asarray(a), dtype=dt) for a in sample())
-            last = self.step(x, u, y)
-            if self.steps % log_every == 0:
-                self.log_point()
-        return last
-
     # ----------------------------------------------------------------------------------- offline
     def fit(
         self,

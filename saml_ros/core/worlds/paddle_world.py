@@ -337,11 +337,6 @@ class PaddleBallWorld:
         return np.concatenate((d.qpos[bq:bq + 3], d.qvel[bv:bv + 3]))
 
     @property
-    def ball_angular_velocity(self) -> np.ndarray:
-        """``(3,)`` ball spin (rad/s, ball frame)."""
-        return self.data.qvel[self._bv + 3:self._bv + 6].copy()
-
-    @property
     def paddle_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Paddle centre position ``(3,)`` (m) and orientation quaternion ``(4,)`` ``[w, x, y, z]`` (body->world)."""
         q = self.data.qpos

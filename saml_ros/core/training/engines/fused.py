@@ -206,11 +206,6 @@ def build_seconds() -> float | None:
     return _STATE.seconds
 
 
-def kernel_cached() -> bool:
-    """True when :func:`load_kernel` found a build in the cache."""
-    return _STATE.cached
-
-
 def kernel_unsupported_reason(run: RunState, data: Transitions) -> str | None:
     """Why the kernel cannot run ``run`` on ``data`` (beyond :func:`~.fast.unsupported_reason`), or ``None``."""
     dt = run.config.torch_dtype

@@ -1,0 +1,51 @@
+"""Two robots publishing into one namespace, one wired backwards, in a real closed loop (bench/bench_misconfig.py,
+shorter; docs/mpc.md, "Two robots on one topic").
+
+Real processes in a private ROS domain: ``bringup --system friction`` with friction's default settings (simulator,
+learner, MPC: the live monitor's roll back on by default) and a second friction robot (bench/miswired_robot.py)
+publishing ``state`` and ``applied_cmd`` into /friction half a period later, its command's sign flipped. The learner
+pairs both (the refusal is opt-in) and writes models far worse than f_hat. What must show: both the learner and the
+MPC name the two publishers on ``/diagnostics``; a model worse than f_hat was learned, the MPC refused one before
+flying it or rolled one back, and no episode of the robot wired right flown on a learned model ends more than
+f_hat's worst (from the same start states) + 0.1 m. Without the live monitor (``mpc.guard.rollback=false``) that
+robot's episodes ended up to hundreds of metres off (bench misconfig, docs/mpc.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from helpers.ros_helpers import RosDomain
+
+from bench.bench_misconfig import MARGIN, Observer, run_loop  # noqa: E402
+
+
+def test_two_robots_on_one_topic_are_named_and_the_bad_model_is_not_flown_off(ros_env: RosDomain,
+                                                                            tmp_path: Path) -> None:
+    seen: dict[str, Any] = {}
+
+    def until(record: Any, observer: Observer) -> bool:
+        """Stop 20 s of simulated time after the first roll back or refusal (two more episodes of the robot wired
+        right)."""
+        with observer.lock:
+            mpc = next((e for n, e in observer.diag.items() if n.endswith("/mpc")), None)
+            last = max((t for t, _ in observer.states if t % 100_000_000 == 0), default=0)
+        if mpc is None or int(mpc.values.get("guard_rollbacks", 0)) < 1:
+            return False
+        seen.setdefault("rollback_at", last)
+        return last - seen["rollback_at"] >= 20_000_000_000
+
+    record = run_loop("friction", sim_time=240.0, run_dir=tmp_path / "run", until=until, timeout=900.0)
+    print(record.summary(), record.tail, sep="\n")
+    assert record.robot_rc == 0, record.tail
+    # named on /diagnostics, with the nodes' names
+    for shared in (record.learner_shared, record.mpc_shared):
+        assert "/friction/state: /friction/friction_sim, /friction/robot_b" in shared, record.summary()
+    assert record.learner_level >= 1 and "several publishers on /friction/state" in record.learner_message
+    # a model worse than f_hat was learned; the MPC refused it before flying it or rolled it back
+    assert record.checkpoint_error > record.base_error, record.summary()
+    assert record.rollbacks >= 1, record.summary()
+    # no episode of the robot wired right flown on a learned model ends further off than f_hat's worst + 0.1 m
+    worst = record.base_worst()
+    assert all(e["error"] <= worst + MARGIN for e in record.flown_on_learned()), record.summary()

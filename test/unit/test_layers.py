@@ -1,0 +1,169 @@
+"""Import structure, read from the source (the AST of every module, every import statement wherever it stands:
+module level, inside functions, under ``if TYPE_CHECKING``):
+
+* no import cycle between the package's modules (saml_ros, sim_nodes, msg_schemas);
+* the ROS-free core (``saml_ros.core``) imports neither rclpy nor a node module (``saml_ros.nodes``, ``sim_nodes``),
+  and loads no module by a name in a string (``importlib.import_module``, ``__import__``).
+
+A package's ``__init__`` importing its own submodules (its face) is what packages do; importing ``a.b.c`` is
+counted as an edge to ``a.b.c`` only, not to the packages ``a`` and ``a.b`` Python initialises on the way.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+from helpers import REPO as ROOT
+
+PACKAGES = ("saml_ros", "sim_nodes", "msg_schemas")
+CORE = "saml_ros.core"
+FORBIDDEN_IN_CORE = ("rclpy", "saml_ros.nodes", "sim_nodes")
+
+
+def _module_files() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            out[".".join(parts)] = path
+    return out
+
+
+MODULES = _module_files()
+
+
+def _imports(name: str, source: str | None = None) -> list[tuple[str, int]]:
+    """``(imported module, line)`` for every import in module ``name`` (``from X import Y``: ``X.Y`` when that is
+    a module, else ``X``); relative imports resolved. ``source``: the module's text (default: its file)."""
+    path = MODULES[name]
+    tree = ast.parse(path.read_text() if source is None else source, filename=str(path))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(alias.name, node.lineno) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+                anchor = anchor[: len(anchor) - (node.level - 1)]
+                base = ".".join([*anchor, base] if base else anchor)
+            for alias in node.names:
+                full = f"{base}.{alias.name}"
+                out.append((full if full in MODULES else base, node.lineno))
+    return out
+
+
+def _by_name_loads(name: str) -> list[tuple[str, int]]:
+    """Calls that import a module named by a value: ``importlib.import_module(...)``, ``__import__(...)``."""
+    tree = ast.parse(MODULES[name].read_text())
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            f = node.func
+            called = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+            if called in ("import_module", "__import__"):
+                out.append((ast.unparse(node), node.lineno))
+    return out
+
+
+def _graph() -> dict[str, set[str]]:
+    return {m: {t for t, _ in _imports(m) if t in MODULES and t != m} for m in MODULES}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_checker_sees_cycles_and_resolves_relative_imports() -> None:
+    """The checker itself: a planted cycle is found, an acyclic chain is not, relative imports resolve."""
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
+    planted = "from . import trainer\nfrom ..spec import ProblemSpec\ndef f():\n    import rclpy.node\n"
+    assert _imports("saml_ros.core.training", planted) == [
+        ("saml_ros.core.training.trainer", 1), ("saml_ros.core.spec", 2), ("rclpy.node", 4)]
+    planted = "from .engines import fast\nfrom .config import TrainConfig\n"
+    assert _imports("saml_ros.core.training.trainer", planted) == [
+        ("saml_ros.core.training.engines.fast", 1), ("saml_ros.core.training.config", 2)]
+
+
+def test_no_import_cycles() -> None:
+    cycles = _cycles(_graph())
+    assert not cycles, "import cycles: " + "; ".join(" <-> ".join(c) for c in cycles)
+
+
+@pytest.mark.parametrize("name", sorted(m for m in MODULES if m == CORE or m.startswith(CORE + ".")))
+def test_core_imports_neither_rclpy_nor_a_node_module(name: str) -> None:
+    bad = [f"line {ln}: {t}" for t, ln in _imports(name)
+           if any(t == f or t.startswith(f + ".") for f in FORBIDDEN_IN_CORE)]
+    assert not bad, f"{name} imports " + ", ".join(bad)
+    loads = _by_name_loads(name)
+    assert not loads, f"{name} loads modules by name: " + ", ".join(f"line {ln}: {c}" for c, ln in loads)
+
+def _closure(start: str, graph: dict[str, set[str]]) -> set[str]:
+    seen, todo = {start}, [start]
+    while todo:
+        for w in graph[todo.pop()]:
+            if w not in seen:
+                seen.add(w)
+                todo.append(w)
+    return seen
+
+
+def test_core_reaches_no_node_module_through_other_modules() -> None:
+    """Transitively too (rclpy is only checked directly above: msg_schemas imports it lazily where it builds
+    rclpy QoS profiles and messages, which the core never calls)."""
+    graph = _graph()
+    core = [m for m in MODULES if m == CORE or m.startswith(CORE + ".")]
+    bad = {m: sorted(t for t in _closure(m, graph) if t.startswith(("saml_ros.nodes", "sim_nodes"))) for m in core}
+    assert not {m: b for m, b in bad.items() if b}
+
+
+def _defines(name: str, cls: str) -> bool:
+    tree = ast.parse(MODULES[name].read_text())
+    return any(isinstance(n, ast.ClassDef) and n.name == cls for n in tree.body)
+
+
+def test_loading_a_model_does_not_import_the_trainer() -> None:
+    """model_io / model_watch (what the MPC node loads models with) reach no module of the training package and
+    none that defines the trainer."""
+    graph = _graph()
+    assert any(_defines(m, "PrimalDualTrainer") for m in MODULES)
+    for m in ("saml_ros.core.model_io", "saml_ros.core.model_watch"):
+        reached = sorted(t for t in _closure(m, graph)
+                         if t.startswith("saml_ros.core.training") or _defines(t, "PrimalDualTrainer"))
+        assert not reached, f"{m} reaches {reached}"
