@@ -417,11 +417,15 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
     run_dir = tmp_path / "run"
     params = dict(BASE_PARAMS, run_dir=str(run_dir), min_transitions=200, checkpoint_period=0.5,
                   checkpoint_keep=1000,  # quoted: a -p value is YAML, and this string parameter holds YAML
-                  plausible_bounds='"{x.p: [-.inf, .inf], x.v: [-.inf, .inf], u.u: [-.inf, .inf]}"')
+                  plausible_bounds='"{x.p: [-.inf, .inf], x.v: [-.inf, .inf], u.u: [-.inf, .inf]}"',
+                  # every transition trained on: 800 transitions hold ~50 in the constraint's region, and with a fifth
+                  # held out the objective / constraint trade-off on ~40 of them moves the error over the whole
+                  # distribution by more than what this test measures (that training goes on past absurd values)
+                  **{"heldout.fraction": 0.0})
     learner = Learner(ros_env, params)
     tester = RosSide(ros_env.domain_id)
     try:
-        learner.wait_log("training starts after")
+        learner.wait_log("training starts after", timeout=90.0)
         tester.connect("/friction")
         tester.send("/friction", episodes(400, np.random.default_rng(11), t0=10**9, ep_len=4))
         tester.wait(lambda: tester.counter("model_version") >= 1 and tester.last().get("updates", 0) >= 100, 30.0,
