@@ -11,8 +11,8 @@ import subprocess
 import sys
 import time
 
-BENCHES = ("train", "dual", "mpc", "sim", "loop_parts", "learner", "closed_loop", "bags", "health", "soak", "sweep",
-           "storage", "pairing", "misconfig", "your_robot")
+BENCHES = ("train", "dual", "cooper", "mpc", "sim", "loop_parts", "learner", "closed_loop", "bags", "health", "soak",
+           "sweep", "storage", "pairing", "misconfig", "your_robot")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -108,7 +108,7 @@ def recipes(restarts: int, abs_restarts: int) -> dict[str, tuple[TrainConfig | N
     default = TrainConfig()
     out: dict[str, tuple[TrainConfig | None, int, float, str | None]] = {
         "UA": (None, 1, 0.25, None), "paper": (None, 1, 0.25, None)}
-    for method in ("nupi", "augmented", "resilient"):
+    for method in ("lagrangian", "nupi", "augmented", "resilient"):
         cfg = default if method == default.dual_method else method_config(method)
         out[method + (" (default)" if method == default.dual_method else "")] = (cfg, 1, 0.25, MARGIN)
         if method == default.dual_method:

@@ -36,18 +36,20 @@ Channel = tuple[str, str, str, str]
 TRAIN_PARAM_DOCS: dict[str, str] = {
     "batch_size": "minibatch size M sampled from the replay buffer per update",
     "primal_lr": "learning rate alpha_theta of the model parameters",
-    "dual_lr": "learning rate alpha_lambda of the dual variables (ascent on the constraint estimates)",
+    "dual_lr": "learning rate alpha_lambda of the dual variables (ascent on the constraint estimates; not used by "
+               "'augmented', whose step is its penalty)",
     "primal_optimizer": "'adam' (the paper) or 'sgd'",
     "dual_optimizer": "'adam' (the paper) or 'sgd'",
     "log_every": "updates between training-history rows kept in memory (0 = 100)",
     "seed": "seed of the model initialisation and the minibatch sampling",
     "dtype": "'float32' or 'float64' for the model and the minibatches",
     "engine": "offline training engine (not used by the online step loop)",
-    "dual_method": "how the multipliers move: 'paper' (Algorithm 1), 'nupi' (PI controller), 'augmented' "
-                   "(augmented Lagrangian) or 'resilient' (constraints relaxed at a price); docs/training.md",
+    "dual_method": "how the multipliers move: 'paper' (Algorithm 1), 'lagrangian' (the same with cosine rates: the "
+                   "default), 'nupi' (PI controller), 'augmented' (augmented Lagrangian method: lambda <- relu(lambda "
+                   "+ rho g)) or 'resilient' (constraints relaxed at a price); docs/training.md",
     "nupi_kp": "nupi: proportional gain K_P (integral gain 1, step train.dual_lr, error g / eps)",
     "nupi_ema": "nupi: smoothing nu of the error signal, in [0, 1)",
-    "penalty": "augmented: penalty c (objective units); rho_k = c / eps_k",
+    "penalty": "augmented: penalty c (objective units); rho_k = c / eps_k, the penalty's weight and lambda's step",
     "relax_cost": "resilient: price alpha (dimensionless): relaxing eps by a fraction r costs alpha r^2 / 2 times "
                   "the objective",
     "primal_schedule": "learning-rate schedule of the model: 'auto', 'constant', 'step' or 'cosine' (online, 'auto' "

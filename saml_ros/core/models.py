@@ -59,6 +59,17 @@ def resolve_inputs(system: System, inputs: Sequence[str] | None) -> tuple[int, .
     return tuple(sorted(out))
 
 
+def _finite_float(what: str, value: Any) -> float:
+    """``value`` as a Python float (an int such as ``-1`` included: a PReLU slope tensor must be floating point),
+    or ``ValueError`` naming ``what`` when it is not a finite real number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{what} must be a finite real number, got {value!r}")
+    out = float(value)
+    if not math.isfinite(out):
+        raise ValueError(f"{what} must be finite, got {value!r}")
+    return out
+
+
 class EnsembleMLP(nn.Module):
     """E independent MLPs ``in_dim -> hidden... -> out_dim`` with PReLU activations.
 
@@ -78,8 +89,7 @@ class EnsembleMLP(nn.Module):
         first_slope: float = 0.25,
     ) -> None:
         super().__init__()
-        if not math.isfinite(first_slope):
-            raise ValueError(f"first_slope must be finite, got {first_slope}")
+        first_slope = _finite_float("first_slope", first_slope)
         if n_models < 1 or in_dim < 1 or out_dim < 1 or any(h < 1 for h in hidden):
             raise ValueError(f"bad MLP shape: E={n_models}, {in_dim} -> {list(hidden)} -> {out_dim}")
         self.n_models, self.in_dim, self.out_dim = n_models, in_dim, out_dim
@@ -146,9 +156,7 @@ class DynamicsModel(nn.Module):
         inputs: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
-        if not math.isfinite(prelu_init):
-            raise ValueError(f"prelu_init (the first hidden layer's starting PReLU slope) must be finite, "
-                             f"got {prelu_init}")
+        prelu_init = _finite_float("prelu_init (the first hidden layer's starting PReLU slope)", prelu_init)
         if kind not in MODEL_KINDS:
             raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
         self.system = system

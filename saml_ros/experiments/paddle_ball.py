@@ -100,7 +100,7 @@ class PaddleSettings:
     #: "constant" keeps 1e-3 throughout): cosine decay to 0 over the run
     lr_schedule: str = "cosine"
     #: training recipe of SA and UA: ``"paper"`` (Algorithm 1, Adam 1e-3 for both steps, the primal rate on
-    #: ``lr_schedule``) or ``"default"`` (``TrainConfig()``, the recommended augmented-Lagrangian recipe of
+    #: ``lr_schedule``) or ``"default"`` (``TrainConfig()``, the recommended Lagrangian recipe of
     #: docs/training.md, with this experiment's epochs and batch size; ``lr_schedule`` is not used)
     recipe: str = "paper"
     #: SA's initialisation: ``"scratch"`` (the paper: a fresh net, like UA's) or ``"uniform"`` (UA's trained
@@ -420,7 +420,7 @@ def markdown(data: dict[str, Any], s: PaddleSettings, timer: Timer) -> str:
         f"impacts, paddle tracking error {s.velocity_noise} m/s (velocity) / {s.normal_noise} rad (normal) in "
         f"both; nets {list(s.hidden)}, {s.epochs} epochs, "
         + (f"Adam from 1e-3 (primal schedule `{s.lr_schedule}`), " if s.recipe == "paper" else
-           "the recommended recipe `TrainConfig()` (augmented Lagrangian, Adam 3e-3 / 1e-2, cosine), ")
+           "the recommended recipe `TrainConfig()` (Lagrangian, Adam 3e-3 / 1e-2, cosine), ")
         + ("" if s.sa_init == "scratch" else
            f"SA initialised with UA's trained models and fine-tuned for {s.sa_finetune_epochs} epochs, ")
         + f"seeds {list(s.seeds)}. {s.n_trials} trials of {s.n_bounces} consecutive bounces per model and seed "

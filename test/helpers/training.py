@@ -68,9 +68,10 @@ def assert_same_run(plain: PrimalDualTrainer, fast: PrimalDualTrainer, rtol: flo
 
 #: every dual method with parameters that make its arithmetic matter within a short run
 METHODS: dict[str, dict[str, Any]] = {
+    "lagrangian": {"dual_method": "lagrangian"},
     "nupi": {"dual_method": "nupi", "dual_lr": 0.05, "nupi_kp": 5.0, "nupi_ema": 0.3},
     "augmented": {"dual_method": "augmented", "penalty": 0.5},
-    "augmented_sgd": {"dual_method": "augmented", "penalty": 0.5, "dual_optimizer": "sgd", "dual_lr": 1.0},
+    "augmented_adam_named": {"dual_method": "augmented", "penalty": 0.05, "dual_optimizer": "adam", "dual_lr": 0.05},
     "resilient": {"dual_method": "resilient", "relax_cost": 2.0},
     "resilient_sgd": {"dual_method": "resilient", "relax_cost": 2.0, "dual_optimizer": "sgd", "dual_lr": 1.0},
 }

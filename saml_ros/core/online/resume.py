@@ -138,5 +138,5 @@ def _make_trainer(loaded: LoadedModel, spec: ProblemSpec, cfg: TrainConfig) -> P
     # torch optimizers restore the learning rate saved with their state: the configured one wins
     for group in trainer.primal_opt.param_groups:
         group["lr"] = cfg.primal_lr
-    trainer.dual.set_lr(cfg.dual_lr)
+    trainer.dual.set_lr(cfg.dual_lr0)
     return trainer

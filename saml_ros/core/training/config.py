@@ -19,7 +19,7 @@ OPTIMIZERS = ("adam", "sgd")
 #: engine names of :attr:`TrainConfig.engine` (the classes are in :mod:`saml_ros.core.training.engines`)
 ENGINE_NAMES = ("fast", "fast_torch", "plain")
 #: dual methods of :attr:`TrainConfig.dual_method` (the classes are in :mod:`saml_ros.core.training.dual`)
-DUAL_METHODS = ("paper", "nupi", "augmented", "resilient")
+DUAL_METHODS = ("paper", "lagrangian", "nupi", "augmented", "resilient")
 #: learning-rate schedules of :attr:`TrainConfig.primal_schedule` / :attr:`TrainConfig.dual_schedule`; ``"auto"``
 #: is ``"constant"`` for ``dual_method="paper"`` and :data:`AUTO_SCHEDULE` for every other method
 SCHEDULES = ("auto", "constant", "step", "cosine")
@@ -31,17 +31,21 @@ AUTO_SCHEDULE = "cosine"
 class TrainConfig:
     """Hyper-parameters of a primal-dual run.
 
-    ``TrainConfig()`` is the recommended recipe, chosen by measurement (``bench/bench_dual.py``, docs/training.md):
-    the augmented Lagrangian, Adam 3e-3 / 1e-2 with cosine decay of both rates, batch 128.
+    ``TrainConfig()`` is the recommended recipe, chosen by measurement (``bench/bench_dual.py``,
+    ``bench/bench_cooper.py``, docs/training.md): the Lagrangian with Adam 3e-3 on the network and 1e-2 on the
+    multipliers (fast multipliers: an early push inside the constraint's region), both rates cosine-decayed,
+    batch 128.
     ``TrainConfig.paper()`` is the paper's Algorithm 1 with the paper's double-integrator settings.
 
     Attributes:
         epochs: passes over a fixed dataset (offline mode).
         batch_size: minibatch size M per ensemble member.
         primal_lr: alpha_theta (the schedule's starting value).
-        dual_lr: alpha_lambda (the schedule's starting value; the controller's step for ``"nupi"``).
+        dual_lr: alpha_lambda (the schedule's starting value; the controller's step for ``"nupi"``; not used by
+            ``"augmented"``, whose step is its penalty: :attr:`dual_lr0`).
         primal_optimizer / dual_optimizer: ``"adam"`` (the paper) or ``"sgd"`` (plain Algorithm 1); the dual
-            optimizer is not used by ``"nupi"``, which is its own controller.
+            optimizer is not used by ``"nupi"``, which is its own controller, nor by ``"augmented"``, whose
+            multiplier step is the method of multipliers' (SGD along ``rho g``: :attr:`dual_optimizer_used`).
         log_every: steps between history points (0: once per epoch); values are averaged in between.
         seed: seeds minibatch sampling.
         dtype: ``"float32"`` or ``"float64"`` for parameters and data.
@@ -52,12 +56,15 @@ class TrainConfig:
             not apply), ``"fast_torch"`` (the fast engine's torch path, never the kernel) or ``"plain"``
             (autograd and ``torch.optim``).
         dual_method: how the multipliers move (:data:`DUAL_METHODS`, :mod:`saml_ros.core.training.dual`):
-            ``"paper"`` (Algorithm 1: projected ascent on g with ``dual_optimizer``), ``"nupi"`` (a PI
-            controller on the relative violation g / eps), ``"augmented"`` (augmented Lagrangian with penalty
-            ``penalty``), ``"resilient"`` (constraints relaxed at price ``relax_cost``).
+            ``"paper"`` (Algorithm 1: projected ascent on g with ``dual_optimizer``), ``"lagrangian"`` (the same
+            arithmetic; its ``"auto"`` schedules are cosine), ``"nupi"`` (a PI controller on the relative violation
+            g / eps), ``"augmented"`` (the augmented Lagrangian method: penalty ``penalty``, multipliers by the
+            method of multipliers ``lambda <- relu(lambda + rho g)``), ``"resilient"`` (constraints relaxed at
+            price ``relax_cost``).
         nupi_kp: nuPI's proportional gain K_P (the integral gain is 1, the step ``dual_lr``).
         nupi_ema: nuPI's smoothing nu of the error signal (0: none), in [0, 1).
-        penalty: augmented Lagrangian's penalty c, in objective units: rho_k = c / eps_k.
+        penalty: augmented Lagrangian's penalty c, in objective units: rho_k = c / eps_k, the weight of the
+            quadratic penalty and the multiplier's step (times the dual schedule's factor).
         relax_cost: resilient constraints' price alpha (dimensionless) of relaxing eps_k by u_k:
             h(u) = alpha f / 2 * sum_k (u_k / eps_k)^2 with f the objective (relaxing eps by a fraction r costs
             alpha r^2 / 2 times the objective).
@@ -84,7 +91,7 @@ class TrainConfig:
     seed: int = 0
     dtype: str = "float32"
     engine: str = "fast"
-    dual_method: str = "augmented"
+    dual_method: str = "lagrangian"
     nupi_kp: float = 10.0
     nupi_ema: float = 0.0
     penalty: float = 0.01
@@ -131,6 +138,21 @@ class TrainConfig:
     @property
     def torch_dtype(self) -> torch.dtype:
         return torch.float32 if self.dtype == "float32" else torch.float64
+
+    @property
+    def dual_lr0(self) -> float:
+        """The dual optimizer's starting learning rate (the dual schedule's ``lr0``): :attr:`dual_lr`, but 1 for
+        ``"augmented"``, whose SGD step along ``rho g`` is then the method of multipliers' (the schedule scales it
+        by its factor)."""
+        return 1.0 if self.dual_method == "augmented" else self.dual_lr
+
+    @property
+    def dual_optimizer_used(self) -> str:
+        """What moves the multipliers: ``"nupi"`` (the controller), ``"sgd"`` for ``"augmented"``, else
+        :attr:`dual_optimizer`."""
+        if self.dual_method == "nupi":
+            return "nupi"
+        return "sgd" if self.dual_method == "augmented" else self.dual_optimizer
 
     def schedule(self, which: str) -> str:
         """The schedule ``"auto"`` resolves to for ``which`` (``"primal"`` or ``"dual"``)."""

@@ -7,12 +7,19 @@ detached minibatch constraint estimates ``g`` ``(E, K)`` and projects it onto ``
 
 * :class:`DualVariables` (``"paper"``, Algorithm 1 steps 3-4): primal loss ``f + sum_k lambda_k g_k``; lambda
   ascends on ``g`` with a torch optimizer (Adam as in the paper, or SGD).
+* :class:`LagrangianDual` (``"lagrangian"``): the same arithmetic under its own name, for the recommended recipe
+  (Adam on lambda at a fast rate, both rates cosine-decayed: the ``"auto"`` schedules are the paper's constant
+  ones only for ``"paper"``).
 * :class:`NuPIDual` (``"nupi"``): the same Lagrangian; lambda is driven by the PI controller
   :class:`~saml_ros.core.training.nupi.NuPI` on the relative violation ``g / eps``.
-* :class:`AugmentedDual` (``"augmented"``, the augmented Lagrangian method as in the cooper library): primal loss
+* :class:`AugmentedDual` (``"augmented"``, the augmented Lagrangian method, the method of multipliers as the
+  cooper library's ``AugmentedLagrangian`` runs it): primal loss
   ``f + sum_k (relu(lambda_k + rho_k g_k)^2 - lambda_k^2) / (2 rho_k)``, whose gradient weights ``g_k`` by
-  ``relu(lambda_k + rho_k g_k)``; lambda ascends on ``rho_k g_k`` (with SGD at lr 1 that is the method of
-  multipliers, lambda <- relu(lambda + rho g)); ``rho_k = penalty / eps_k``.
+  ``relu(lambda_k + rho_k g_k)``; ``lambda <- relu(lambda + s_t rho_k g_k)``, an SGD step on ``rho g`` at learning
+  rate ``s_t`` = the dual schedule's factor (1 with a constant schedule), so the penalty ``rho_k = penalty /
+  eps_k`` is the multiplier's step as well as the penalty's weight. ``dual_optimizer`` and ``dual_lr`` are not
+  used: an adaptive optimizer (Adam) would divide the scale of ``rho g`` out of the step, leaving the Lagrangian
+  with a penalty weight ``rho g`` that is negligible at useful step sizes.
 * :class:`ResilientDual` (``"resilient"``, Hounie et al. 2023, "Resilient constrained learning"): each
   constraint may be relaxed to ``g_k <= u_k`` at a cost ``h(u) = alpha f / 2 sum_k (u_k / eps_k)^2`` added to the
   objective, with ``f`` the objective's minibatch estimate (so the price ``alpha`` is dimensionless: relaxing
@@ -31,6 +38,7 @@ and the optimizer (its state is in checkpoints). The fast engine implements each
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -145,6 +153,13 @@ class DualVariables:
         self.optimizer.load_state_dict(st["optimizer"])
 
 
+class LagrangianDual(DualVariables):
+    """The Lagrangian with lambda moved by ``optimizer`` (Adam or SGD): the paper's arithmetic (:class:`DualVariables`)
+    under the name of the recommended recipe (``dual_method="lagrangian"``)."""
+
+    method: ClassVar[str] = "lagrangian"
+
+
 class NuPIDual(DualVariables):
     """lambda driven by a nuPI controller (:class:`~saml_ros.core.training.nupi.NuPI`, step ``lr``, gain ``kp``,
     smoothing ``nu``) on the relative violation ``g / eps``."""
@@ -164,13 +179,17 @@ class NuPIDual(DualVariables):
 
 
 class AugmentedDual(DualVariables):
-    """The augmented Lagrangian method (see the module docstring); ``rho_k = penalty / eps_k``."""
+    """The augmented Lagrangian method (see the module docstring): ``rho_k = penalty / eps_k``; lambda moved by SGD
+    at learning rate ``lr`` (the dual schedule's factor, 1 at the start) along ``rho g``: the method of multipliers
+    ``lambda <- relu(lambda + rho g)``."""
 
     method: ClassVar[str] = "augmented"
+    #: the multipliers' optimizer (its step along rho g is the method of multipliers' only with SGD)
+    OPTIMIZER: ClassVar[str] = "sgd"
 
-    def __init__(self, n_models: int, n_constraints: int, dtype: torch.dtype, optimizer: str = "adam",
-                 lr: float = 1e-4, eps: Sequence[float] | None = None, penalty: float = 1.0) -> None:
-        super().__init__(n_models, n_constraints, dtype, optimizer, lr, eps)
+    def __init__(self, n_models: int, n_constraints: int, dtype: torch.dtype, eps: Sequence[float] | None = None,
+                 penalty: float = 1.0, lr: float = 1.0) -> None:
+        super().__init__(n_models, n_constraints, dtype, self.OPTIMIZER, lr, eps)
         self.penalty = float(penalty)
         self.rho = torch.div(torch.full_like(self.eps, self.penalty), self.eps)
 
@@ -216,9 +235,13 @@ class ResilientDual(DualVariables):
         return torch.sub(g, torch.mul(self.value, self.decay(f)))
 
 
+log = logging.getLogger("saml_ros.trainer")
+_WARNED: list[str] = []  # the once-per-process warning about 'augmented' and an optimizer it does not use
+
 #: ``TrainConfig.dual_method`` -> class
 DUAL_CLASSES: dict[str, type[DualVariables]] = {
-    "paper": DualVariables, "nupi": NuPIDual, "augmented": AugmentedDual, "resilient": ResilientDual,
+    "paper": DualVariables, "lagrangian": LagrangianDual, "nupi": NuPIDual, "augmented": AugmentedDual,
+    "resilient": ResilientDual,
 }
 
 
@@ -226,12 +249,19 @@ def make_dual(config: TrainConfig, n_models: int, n_constraints: int,
               eps: Sequence[float] | None = None) -> DualVariables:
     """The dual variables of ``config.dual_method`` for ``n_models`` members and constraints with bounds ``eps``."""
     dt, m = config.torch_dtype, config.dual_method
-    if m == "paper":
-        return DualVariables(n_models, n_constraints, dt, config.dual_optimizer, config.dual_lr, eps)
+    if m in ("paper", "lagrangian"):
+        return DUAL_CLASSES[m](n_models, n_constraints, dt, config.dual_optimizer, config.dual_lr, eps)
     if m == "nupi":
         return NuPIDual(n_models, n_constraints, dt, config.dual_lr, eps, config.nupi_kp, config.nupi_ema)
     if m == "augmented":
-        return AugmentedDual(n_models, n_constraints, dt, config.dual_optimizer, config.dual_lr, eps, config.penalty)
+        if config.dual_optimizer != AugmentedDual.OPTIMIZER and not _WARNED:
+            _WARNED.append(m)
+            log.warning("dual_method 'augmented' is the augmented Lagrangian method: lambda <- relu(lambda + rho g), "
+                        "rho = penalty / eps (penalty %g); dual_optimizer %r and dual_lr are not used. A configuration "
+                        "written for the former 'augmented' (the multipliers moved by Adam, in effect the Lagrangian) "
+                        "gets that arithmetic as 'lagrangian', the default (docs/training.md). dual_optimizer: sgd "
+                        "(what 'augmented' uses) silences this.", config.penalty, config.dual_optimizer)
+        return AugmentedDual(n_models, n_constraints, dt, eps, config.penalty, config.dual_lr0)
     if m == "resilient":
         return ResilientDual(n_models, n_constraints, dt, config.dual_optimizer, config.dual_lr, eps,
                              config.relax_cost)

@@ -98,7 +98,7 @@ def schedules_for(config: TrainConfig, horizon: int) -> tuple[LRSchedule, LRSche
     """
     t = config.schedule_steps or horizon
     out = []
-    for which, lr0 in (("primal", config.primal_lr), ("dual", config.dual_lr)):
+    for which, lr0 in (("primal", config.primal_lr), ("dual", config.dual_lr0)):
         kind = config.schedule(which)
         if t <= 0 and kind != "constant":
             if getattr(config, f"{which}_schedule") != "auto":

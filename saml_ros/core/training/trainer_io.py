@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from saml_ros.core.checkpoint import CheckpointStore, arrays_to_torch_state, torch_state_to_arrays
 from saml_ros.core.model_evidence import DataEvidence
@@ -19,6 +20,12 @@ from saml_ros.core.training.schedule import schedules_for
 from saml_ros.core.training.trainer import PrimalDualTrainer
 
 log = logging.getLogger("saml_ros.trainer")
+
+#: what the dual-method names of a checkpoint's ``train_config`` mean (meta ``dual_methods``). 2: ``"augmented"``
+#: is the augmented Lagrangian method (:class:`~saml_ros.core.training.dual.AugmentedDual`). 1 (no such key):
+#: ``"augmented"`` moved lambda with ``dual_optimizer`` (Adam) along ``rho g``, which Adam's scale invariance makes
+#: the Lagrangian's step; such a checkpoint is read as ``"lagrangian"`` (:func:`saved_config`).
+DUAL_METHODS_VERSION = 2
 
 
 def checkpoint_payload(
@@ -48,6 +55,7 @@ def checkpoint_payload(
         skeletons[prefix] = sk
     meta.update({
         "train_config": dict(trainer.config.__dict__),
+        "dual_methods": DUAL_METHODS_VERSION,
         "lambda": trainer.lam.double().tolist(),
         "constraint_names": trainer.spec.constraint_names,
         "updates": trainer.steps,
@@ -75,13 +83,39 @@ def save_checkpoint(store: CheckpointStore, trainer: PrimalDualTrainer, metrics:
     return store.save(arrays, meta)
 
 
+def legacy_augmented(meta: dict[str, Any]) -> bool:
+    """True for a checkpoint whose ``"augmented"`` is the former one (``dual_methods`` < 2, see
+    :data:`DUAL_METHODS_VERSION`): lambda moved by ``dual_optimizer`` along ``rho g``."""
+    d = meta.get("train_config", {})
+    return d.get("dual_method") == "augmented" and int(meta.get("dual_methods", 1)) < DUAL_METHODS_VERSION
+
+
 def saved_config(meta: dict[str, Any]) -> TrainConfig:
-    """The training config a checkpoint's meta records (one written before dual methods existed ran the paper's
-    method with constant learning rates)."""
+    """The training config a checkpoint's meta records, in today's names: one written before dual methods existed
+    ran the paper's method with constant learning rates; one whose ``"augmented"`` is the former
+    (:func:`legacy_augmented`) ran the Lagrangian with Adam multipliers, ``"lagrangian"`` now (the same rates and
+    schedules; its primal weights ``relu(lambda + rho g)`` differed from lambda by ``rho g``, a few thousandths at
+    the former default)."""
     d = dict(meta.get("train_config", {}))
     if "dual_method" not in d:
         d.update(dual_method="paper", primal_schedule="constant", dual_schedule="constant")
+    elif legacy_augmented(meta):
+        d["dual_method"] = "lagrangian"
     return TrainConfig.from_dict(d)
+
+
+def _lagrangian_moments(state: dict[str, Any], rho: np.ndarray) -> dict[str, Any]:
+    """A former ``"augmented"`` checkpoint's dual Adam state (moments of ``rho g``) as the Lagrangian's (moments of
+    ``g``): Adam's step ``m / sqrt(v)`` is unchanged, and the following steps on ``g`` continue it exactly."""
+    out = {"param_groups": state["param_groups"], "state": {}}
+    for key, st in state.get("state", {}).items():
+        st = dict(st)
+        if "exp_avg" in st:
+            r = torch.as_tensor(rho, dtype=st["exp_avg"].dtype)
+            st["exp_avg"] = st["exp_avg"] / r
+            st["exp_avg_sq"] = st["exp_avg_sq"] / (r * r)
+        out["state"][key] = st
+    return out
 
 
 def resume_trainer(loaded: LoadedModel, config: TrainConfig | None = None) -> PrimalDualTrainer:
@@ -95,17 +129,25 @@ def resume_trainer(loaded: LoadedModel, config: TrainConfig | None = None) -> Pr
     cfg = config or saved
     tr = PrimalDualTrainer(loaded.model, loaded.spec, cfg)
     sk = loaded.meta["skeletons"]
-    same_dual = (saved.dual_method, saved.dual_optimizer if saved.dual_method != "nupi" else "") == (
-        cfg.dual_method, cfg.dual_optimizer if cfg.dual_method != "nupi" else "")
+    same_dual = (saved.dual_method, saved.dual_optimizer_used) == (cfg.dual_method, cfg.dual_optimizer_used)
+    legacy = legacy_augmented(loaded.meta)
+    if legacy:
+        log.warning("resume: the checkpoint's dual method 'augmented' is the former one (Adam on the multipliers: "
+                    "in effect the Lagrangian), read as 'lagrangian'; 'augmented' is now the augmented Lagrangian "
+                    "method (docs/training.md)")
     if not same_dual:
         log.warning("resume: the checkpoint was trained with dual method %r (%s), this run uses %r (%s): lambda is "
-                    "kept, the dual optimizer starts afresh", saved.dual_method, saved.dual_optimizer,
-                    cfg.dual_method, cfg.dual_optimizer)
+                    "kept, the dual optimizer starts afresh", saved.dual_method, saved.dual_optimizer_used,
+                    cfg.dual_method, cfg.dual_optimizer_used)
+    dual_opt = arrays_to_torch_state(loaded.arrays, sk["dual_opt"]) if same_dual else None
+    if dual_opt is not None and legacy:
+        eps = np.array([t.eps for t in loaded.spec.constraints], dtype=float)
+        dual_opt = _lagrangian_moments(dual_opt, float(loaded.meta["train_config"].get("penalty", 1.0)) / eps)
     tr.load_state({
         "model": loaded.model.state_dict(),
         "lam": loaded.lam,
         "primal_opt": arrays_to_torch_state(loaded.arrays, sk["primal_opt"]),
-        "dual_opt": arrays_to_torch_state(loaded.arrays, sk["dual_opt"]) if same_dual else None,
+        "dual_opt": dual_opt,
         "steps": int(loaded.meta.get("updates", 0)),
         "epochs_done": float(loaded.meta.get("epochs", 0.0)),
     })

@@ -96,8 +96,8 @@ def test_model_error_in_the_constrained_region_falls(shared: tuple[Learner, RosS
                 f"the in-region error to halve from {e0:.4f}")
     last = tester.last()
     assert last["updates"] > 0 and last["training"] == 1.0
-    # the multiplier priced the constraint while it was violated; once it is met the default method (augmented
-    # Lagrangian) may have brought lambda back to 0 by now (the kernel-fast learner: ~19,000 updates here)
+    # the multiplier priced the constraint while it was violated; once it is met the default method (the
+    # Lagrangian, Adam on lambda) may have brought lambda back to 0 by now (the kernel-fast learner: ~19,000 updates here)
     with tester.lock:
         assert max(m.get("lambda/near_origin", 0.0) for m in tester.telemetry) > 0
     assert np.isfinite(last["objective"]) and np.isfinite(last["lagrangian"])

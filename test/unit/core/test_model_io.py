@@ -60,6 +60,52 @@ def test_resume_continues_exactly(tmp_path: Path) -> None:
     assert resumed.steps == tr.steps
 
 
+def test_a_former_augmented_checkpoint_resumes_as_the_lagrangian(tmp_path: Path, caplog: Any) -> None:
+    """A checkpoint written when ``augmented`` moved lambda with Adam along ``rho g`` (no ``dual_methods`` in its
+    meta, its dual Adam moments those of ``rho g``) resumes as ``lagrangian``, the arithmetic it ran but for the
+    penalty weight ``rho g``: with its moments rescaled to those of ``g``, the resumed run takes the same steps as
+    the Lagrangian run it came from (Adam's step is invariant to the scale of its gradient)."""
+    system, spec, _, data = _trained(tmp_path)
+    model = DynamicsModel(system, seed=0)
+    model.fit_normalization(data.x, data.u, data.y)
+    cfg = TrainConfig(epochs=2, batch_size=64, dual_method="lagrangian", dual_optimizer="adam", dual_lr=1e-2,
+                      primal_schedule="constant", dual_schedule="constant")  # steps after the fit move lambda
+    lag = PrimalDualTrainer(model, spec, cfg)
+    lag.fit(data)
+    assert float(lag.lam.max()) > 0
+    path, _ = save_checkpoint(CheckpointStore(tmp_path / "new"), lag)
+    arrays, meta = read_checkpoint(path)
+    assert meta["dual_methods"] == 2
+    rho = 0.01 / spec.constraints[0].eps
+    old_meta = {k: v for k, v in meta.items() if k != "dual_methods"}
+    old_meta["train_config"] = {**meta["train_config"], "dual_method": "augmented", "penalty": 0.01}
+    old_arrays = dict(arrays)
+    moments = [k for k in arrays if k.startswith("dual_opt/") and k.endswith(("exp_avg", "exp_avg_sq"))]
+    assert len(moments) == 2
+    for k in moments:
+        old_arrays[k] = arrays[k] * (rho * rho if k.endswith("exp_avg_sq") else rho)
+    old = tmp_path / "former.saml"
+    write_checkpoint(old, old_arrays, old_meta)
+    with caplog.at_level("WARNING", logger="saml_ros.trainer"):
+        resumed = resume_trainer(load_model(old))
+    assert resumed.config.dual_method == "lagrangian" and type(resumed.dual.optimizer) is torch.optim.Adam
+    assert any("former one" in r.message for r in caplog.records)
+    idx = torch.arange(64).unsqueeze(0)
+    start = lag.lam.clone()
+    for t in (lag, resumed):
+        for _ in range(5):
+            xx, uu, yy, bb = data.take(idx)
+            t.step(xx, uu, yy, bb, data.take_masks(idx))
+    assert float((lag.lam - start).abs().min()) > 1e-3
+    torch.testing.assert_close(lag.lam, resumed.lam, rtol=1e-6, atol=1e-9)
+    for a, b in zip(lag.model.parameters(), resumed.model.parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-9)
+    # a checkpoint of today's augmented Lagrangian method is read as such
+    aug = PrimalDualTrainer(model, spec, TrainConfig(**{**cfg.__dict__, "dual_method": "augmented"}))
+    path, _ = save_checkpoint(CheckpointStore(tmp_path / "aug"), aug)
+    assert resume_trainer(load_model(path)).config.dual_method == "augmented"
+
+
 def test_schema_mismatch_and_wrong_system_refused(tmp_path: Path) -> None:
     system, spec, tr, data = _trained(tmp_path)
     store = CheckpointStore(tmp_path / "run")

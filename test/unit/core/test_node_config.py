@@ -129,7 +129,7 @@ def test_learner_parameter_table() -> None:
                                             "lr_drops", "lr_floor", "device")]
     by_name = {p.name: p for p in table}
     assert all(not by_name[n].description.startswith("TrainConfig.") for n in train)  # each has its own text
-    assert by_name["train.dual_method"].default == TrainConfig().dual_method == "augmented"
+    assert by_name["train.dual_method"].default == TrainConfig().dual_method == "lagrangian"
     assert by_name["train.primal_lr"].default == TrainConfig().primal_lr
     assert by_name["namespaces"].item_type is str and by_name["model.hidden"].item_type is int
     assert all(p.description for p in table) and len(by_name) == len(table)

@@ -27,9 +27,10 @@ the plain engine by float rounding only: summation order in matmuls and reductio
 ``phi + (f_hat - y)``, Adam's ``sqrt(bias correction)`` moved out of its denominator and lambda kept as
 ``k * u``. ``test/test_fast_train.py`` bounds the difference (float64: 1e-8 after 240 steps).
 
-Every dual method (:data:`FAST_DUALS`: the paper's, nuPI, augmented Lagrangian, resilient) and learning-rate
-schedule runs here with its class's arithmetic: the augmented Lagrangian's weights ``relu(lambda + rho g)`` need
-the minibatch's g, so every group's term values come before any gradient (:func:`group_step_fn`); schedules set
+Every dual method (:data:`FAST_DUALS`: the paper's and the Lagrangian, nuPI, augmented Lagrangian, resilient) and
+learning-rate schedule runs here with its class's arithmetic: the augmented Lagrangian's weights
+``relu(lambda + rho g)`` need the minibatch's g, so every group's term values come before any gradient
+(:func:`group_step_fn`), and its multipliers take the method of multipliers' SGD step along ``rho g``; schedules set
 the flat optimizers' rates per update, and the dual Adam stays merged only when both rates scale alike.
 
 Where it does not apply (:func:`unsupported_reason`: another network or optimizer type, AMSGrad, a dual-variables
@@ -50,7 +51,7 @@ from torch import Tensor
 
 from saml_ros.core.models import EnsembleMLP
 from saml_ros.core.training.dataset import Transitions
-from saml_ros.core.training.dual import AugmentedDual, DualVariables, NuPIDual, ResilientDual
+from saml_ros.core.training.dual import AugmentedDual, DualVariables, LagrangianDual, NuPIDual, ResilientDual
 from saml_ros.core.training.engines.base import Engine, RunState, minibatch_plan
 from saml_ros.core.training.engines.closed_form import SUPPORTED_LOSSES, StepGroup, group_step_fn, term_groups
 from saml_ros.core.training.engines.flat import FlatNet, FlatNuPI, FlatOptimizer, merged_dual_scale
@@ -68,7 +69,7 @@ _Step = Callable[[Tensor, Tensor, list[StepGroup], Tensor], None]
 #: of the flat gradient; False skips the update (nothing of the run's state has changed by then)
 Gate = Callable[[Tensor, Tensor], bool]
 #: the dual methods with a flat implementation here (every one of :data:`~saml_ros.core.training.dual.DUAL_CLASSES`)
-FAST_DUALS: tuple[type[DualVariables], ...] = (DualVariables, NuPIDual, AugmentedDual, ResilientDual)
+FAST_DUALS: tuple[type[DualVariables], ...] = (DualVariables, LagrangianDual, NuPIDual, AugmentedDual, ResilientDual)
 
 
 # ------------------------------------------------------------------------------------------------- support

@@ -122,7 +122,7 @@ def test_kernel_for_every_dual_method(method: str, spec_name: str) -> None:
 
 @pytest.mark.parametrize("schedules", [("cosine", "cosine"), ("step", "step"), ("cosine", "constant"),
                                        ("constant", "step")])
-@pytest.mark.parametrize("method", ["paper", "nupi", "augmented", "resilient"])
+@pytest.mark.parametrize("method", ["paper", "lagrangian", "nupi", "augmented", "resilient"])
 def test_kernel_under_learning_rate_schedules(schedules: tuple[str, str], method: str) -> None:
     primal, dual = schedules
     cfg = _paper64(primal_schedule=primal, dual_schedule=dual, lr_floor=0.1, lr_drops=3,

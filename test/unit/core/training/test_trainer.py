@@ -74,7 +74,7 @@ def test_uniform_baseline_ignores_constraint(toy_system: Any) -> None:
     assert float(tr.model.predict_np(np.ones(1), np.zeros(1))[0]) == pytest.approx(0.5, abs=5e-3)
 
 
-@pytest.mark.parametrize("method", ["paper", "nupi", "augmented", "resilient"])
+@pytest.mark.parametrize("method", ["paper", "lagrangian", "nupi", "augmented", "resilient"])
 @pytest.mark.parametrize("engine", ["plain", "fast"])
 def test_every_dual_method_trains_a_spec_without_constraints(toy_system: Any, method: str, engine: str) -> None:
     """A UA spec (no constraints) under each dual method: the run ends, with an empty diagnosis, at the
@@ -98,6 +98,75 @@ def test_prelu_init_sets_only_the_first_hidden_layers_starting_slope() -> None:
         assert torch.equal(a, b)
     with pytest.raises(ValueError, match="prelu_init"):
         DynamicsModel(system, hidden=(4, 2), prelu_init=float("nan"))
+
+
+@pytest.mark.parametrize("slope", [-1, np.int64(-1), np.float32(-1.0)])
+def test_prelu_init_accepts_an_integer_slope(slope: Any) -> None:
+    """``prelu_init=-1`` (an int, as a user types it) once made an integer slope tensor, which torch refuses as a
+    Parameter; it is the same model as ``-1.0``, float slopes and all, and it trains."""
+    from saml_ros.core.systems import get_system
+
+    system = get_system("friction")
+    model = DynamicsModel(system, hidden=(4, 2), n_models=2, seed=1, prelu_init=slope)
+    ref = DynamicsModel(system, hidden=(4, 2), n_models=2, seed=1, prelu_init=-1.0)
+    assert model.net.slopes[0].dtype == torch.float32 and torch.equal(model.net.slopes[0], ref.net.slopes[0])
+    for a, b in zip(model.state_dict().values(), ref.state_dict().values()):
+        assert torch.equal(a, b)
+    x, u = np.zeros((3, 2)), np.zeros((3, 1))
+    assert np.isfinite(model.predict_np(x, u)).all()
+    with pytest.raises(ValueError, match="prelu_init"):
+        DynamicsModel(system, hidden=(4, 2), prelu_init="-1")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("given", [{}, {"dual_optimizer": "adam", "dual_lr": 1e-2}, {"dual_optimizer": "sgd",
+                                                                                     "dual_lr": 7.0}])
+def test_augmented_is_the_method_of_multipliers(toy_system: Any, given: dict[str, Any]) -> None:
+    """``dual_method="augmented"``: every step is ``lambda <- relu(lambda + s_t rho g)`` with ``rho = penalty /
+    eps`` and ``s_t`` the dual schedule's factor (cosine here), the primal weights are ``relu(lambda + rho g)``, and
+    ``dual_optimizer`` / ``dual_lr`` change nothing (with Adam moving lambda the scale rho would drop out of the
+    step: the former ``augmented``). Two penalties give two different runs: the penalty matters."""
+    runs = {}
+    for penalty in (0.004, 0.04):
+        cfg = TrainConfig(batch_size=50, primal_lr=0.01, dual_method="augmented", penalty=penalty, dtype="float64",
+                          schedule_steps=40, engine="plain", **given)
+        tr, data, spec = _trainer(toy_system, CONVEX_SPEC, cfg)
+        eps = spec.constraints[0].eps
+        rho = penalty / eps
+        assert type(tr.dual.optimizer) is torch.optim.SGD and tr.schedules is not None
+        lam = []
+        for t in range(30):
+            idx = torch.randint(0, len(data), (1, 50), generator=torch.Generator().manual_seed(t))
+            x, u, y, base = data.take(idx)
+            before = float(tr.lam[0, 0])
+            vals = tr.spec.evaluate_with_masks(y, tr.model(x, u, base), data.take_masks(idx))
+            g = vals.constraints.detach()
+            w = tr.dual.primal_weights(g)
+            assert float(w[0, 0]) == pytest.approx(max(before + rho * float(g[0, 0]), 0.0), rel=1e-12, abs=1e-15)
+            out = tr.step(x, u, y, base, data.take_masks(idx))
+            factor = tr.schedules[1].factor(t)
+            want = max(before + factor * rho * float(out.constraints[0, 0]), 0.0)
+            assert float(tr.lam[0, 0]) == pytest.approx(want, rel=1e-12, abs=1e-15)
+            lam.append(float(tr.lam[0, 0]))
+        assert max(lam) > 0
+        runs[penalty] = lam
+    assert runs[0.004] != runs[0.04]
+
+
+def test_a_config_naming_augmented_with_adam_is_told_what_augmented_is(toy_system: Any,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """A configuration written for the former ``augmented`` (Adam on the multipliers: ``dual_optimizer: adam``, the
+    default) gets one warning per process saying what ``augmented`` is now and that the former arithmetic is
+    ``lagrangian``; one that names the optimizer ``augmented`` uses (SGD) gets none."""
+    from saml_ros.core.training import dual
+
+    dual._WARNED.clear()
+    with caplog.at_level(logging.WARNING, logger="saml_ros.trainer"):
+        _trainer(toy_system, CONVEX_SPEC, TrainConfig(dual_method="augmented", dual_optimizer="sgd"))
+        assert not caplog.records
+        for _ in range(2):
+            _trainer(toy_system, CONVEX_SPEC, TrainConfig(dual_method="augmented"))
+    assert len(caplog.records) == 1 and "'lagrangian'" in caplog.records[0].message
+    assert "augmented Lagrangian method" in caplog.records[0].message
 
 
 INFEASIBLE_SPEC = {**CONVEX_SPEC, "constraints": list(CONVEX_SPEC["constraints"]) + [
@@ -127,7 +196,7 @@ CONVEX_METHODS: dict[str, dict] = {
     "paper": {"dual_method": "paper"},
     "paper_adam": {"dual_method": "paper", "dual_optimizer": "adam", "dual_lr": 0.01},
     "nupi": {"dual_method": "nupi", "dual_lr": 0.05 * 0.04, "nupi_kp": 2.0, "nupi_ema": 0.2},
-    "augmented": {"dual_method": "augmented", "penalty": 0.05 * 0.04, "dual_lr": 1.0},
+    "augmented": {"dual_method": "augmented", "penalty": 0.05 * 0.04},
     "resilient": {"dual_method": "resilient", "relax_cost": 1.0, "dual_lr": 0.5},
 }
 
