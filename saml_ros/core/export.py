@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.models import DynamicsModel, dense_input_layer
 
 FORMATS: tuple[str, ...] = ("onnx", "torchscript", "numpy", "casadi")
 ONNX_EXPORTERS: tuple[str, ...] = ("torchscript", "dynamo")
@@ -108,14 +108,16 @@ def numpy_residual(weights: dict[str, np.ndarray], x: np.ndarray, u: np.ndarray)
 def numpy_weights(model: DynamicsModel, member: int = 0) -> dict[str, np.ndarray]:
     """The arrays :func:`numpy_residual` takes, for ensemble member ``member`` (model dtype)."""
     net = model.net
+    dt = model.in_mean.numpy().dtype
+    mean, std, w0 = (a.astype(dt) for a in dense_input_layer(model, member))  # every [x, u] field, zero rows unseen
     out: dict[str, np.ndarray] = {
-        "in_mean": model.in_mean[member, 0].detach().numpy().copy(),
-        "in_std": model.in_std[member, 0].detach().numpy().copy(),
+        "in_mean": mean,
+        "in_std": std,
         "out_std": model.out_std[member, 0].detach().numpy().copy(),
         "n_layers": np.array(len(net.weights)),
     }
     for i, (w, b) in enumerate(zip(net.weights, net.biases, strict=True)):
-        out[f"W{i}"] = w[member].detach().numpy().copy()
+        out[f"W{i}"] = w0 if i == 0 else w[member].detach().numpy().copy()
         out[f"b{i}"] = b[member, 0].detach().numpy().copy()
     for i, s in enumerate(net.slopes):
         out[f"slope{i}"] = s[member].detach().numpy().reshape(()).copy()
@@ -252,8 +254,7 @@ def _check_inputs(model: DynamicsModel, n: int, seed: int) -> tuple[torch.Tensor
     try:
         x, u = system.sample_inputs(n, rng)
     except Exception:  # noqa: BLE001 - a system without a sampler: the model's own input statistics
-        mean = model.in_mean[0, 0].double().numpy()
-        std = model.in_std[0, 0].double().numpy()
+        mean, std, _ = dense_input_layer(model, 0)
         z = rng.normal(mean, std, (n, len(mean)))
         x, u = z[:, : system.state.size], z[:, system.state.size:]
     dt = model.in_mean.dtype
