@@ -19,8 +19,8 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-BENCHES = ("train", "dual", "cooper", "mpc", "sim", "loop_parts", "learner", "closed_loop", "bags", "health", "soak",
-           "sweep", "storage", "pairing", "misconfig", "your_robot")
+BENCHES = ("train", "dual", "cooper", "mpc", "generic_mpc", "sim", "loop_parts", "learner", "closed_loop", "bags",
+           "health", "soak", "sweep", "storage", "pairing", "misconfig", "your_robot")
 
 
 def _commit() -> str:

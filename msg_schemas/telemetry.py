@@ -56,15 +56,17 @@ REJECT_REASONS: tuple[str, ...] = (
 )  # fmt: skip
 #: why the MPC refused a checkpoint (``checkpoints_refused/<reason>`` on /diagnostics): unreadable or foreign files
 #: (``saml_ros.core.model_watch``), then a model that fails the acceptance checks (``saml_ros.core.model_acceptance``:
-#: non-finite weights, predictions outside the plausible range, residuals beyond what the training data showed)
+#: non-finite weights, predictions outside the plausible range, residuals beyond what the training data showed, a
+#: held-out error worse than f_hat's on the same held-out data)
 CHECKPOINT_REFUSAL_REASONS: tuple[str, ...] = (
-    "incompatible", "corrupt", "missing", "error", "non_finite", "implausible", "residual",
+    "incompatible", "corrupt", "missing", "error", "non_finite", "implausible", "residual", "heldout",
 )  # fmt: skip
 #: why the MPC answered a state with the system's safe command (``safe_commands/<reason>``): the solver raised,
 #: returned a non-finite result, planned through states outside the plausible range (``implausible``: the model
 #: predicts nonsense there), the state itself was outside the plausible range (``bounds``), or (only with
-#: ``safe_on_infeasible``) the plan violated a constraint
-SAFE_COMMAND_REASONS: tuple[str, ...] = ("solver_error", "non_finite", "implausible", "bounds", "infeasible")
+#: ``safe_on_infeasible``) the plan violated a constraint, or the state was older than ``state_timeout`` (``stale``:
+#: also sent while no state arrives for that long)
+SAFE_COMMAND_REASONS: tuple[str, ...] = ("solver_error", "non_finite", "implausible", "bounds", "infeasible", "stale")
 #: why a training step was skipped and the last healthy state kept (``train_health/skipped/<reason>``): a non-finite
 #: or exploding minibatch loss, gradient, or updated weights (``saml_ros.core.training.health``)
 TRAINING_SKIP_REASONS: tuple[str, ...] = ("loss", "gradient", "weights")
@@ -348,8 +350,13 @@ DIAGNOSTICS_REASON_DOCS: tuple[tuple[str, str, str], ...] = (
      "the OS message, the path, the failed writes in a row, the time since the last good checkpoint and until the "
      "next attempt (text; \"\" while writes succeed); checkpoint_write_failures (in a row), checkpoint_write_errors "
      "(so far), checkpoint_age_s, checkpoint_write_seconds, unsaved_updates (docs/learner.md)"),
-    ("feasibility/<k>", "1", "learner: met, not converged, likely infeasible or pending, for constraint k (text, "
-     "not plottable; docs/training.md); it sets the level: met OK, not converged WARN, likely infeasible ERROR"),
+    ("feasibility/<k>", "1", "learner: the verdict on constraint k read on the held-out stretches of the stream (text, "
+     "not plottable; docs/learner.md): met (the upper end of the 95 % interval at most eps_k) OK; unconfirmed, met on "
+     "training data only, no held-out data WARN; not met WARN while training has not converged, else ERROR; pending "
+     "before training. heldout/<k>, heldout_se/<k>, heldout_upper/<k>, heldout_n/<k>, heldout_base/<k> (f_hat on the "
+     "same stretches), training_lhs/<k> beside it"),
+    ("optimization/<k>", "1", "learner: the training history's diagnosis of constraint k: met, not converged, likely "
+     "infeasible or pending (docs/training.md); not converged WARN, likely infeasible ERROR"),
     ("reachable/<k>", "loss", "learner: the left-hand side g_k + eps_k the model reaches now"),
     ("guard_rollbacks", "count", "mpc: roll backs by the live monitor (guard.rollback, on by default) to the "
      "previous model, else f_hat, and checkpoints refused before flying them (guard_refused_before_flight: worse "

@@ -40,6 +40,7 @@ class UserFunction:
         self.search = tuple(search)
         self.fn = fn
         self.__doc__ = getattr(fn, "__doc__", None)
+        self.__wrapped__ = fn  # inspect.signature sees the function's (an array-namespace form takes ``xp``)
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         return self.fn(*args, **kwargs)

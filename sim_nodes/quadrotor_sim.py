@@ -30,6 +30,11 @@ BINDING = SimBinding(
         ("arm_length", "centre-to-motor distance (m), for the propeller heights of the ground effect"),
         ("h_max", "ground-effect ceiling (m): no ground effect above it"),
         ("alpha", "maximum ground-effect fraction in [0, 1] (level, at the ground)"),
+        ("drag", "linear air drag (1/s) f_hat does not know: v' -= dt drag v; 0 = none (the paper)"),
+        ("wind", "amplitude (m/s^2) of the horizontal wind field above the shelter f_hat does not know; 0 = none"),
+        ("wind_length", "wavelength (m) of the wind field in x and y"),
+        ("wind_floor", "height (m) below which the air is still (the pad's shelter)"),
+        ("wind_ramp", "height (m) over which the wind grows to its full amplitude above wind_floor"),
     ),
 )
 

@@ -17,6 +17,7 @@ cannot forget it: ``./dev test -m "not ros"`` runs the unit tests alone (and the
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 from collections.abc import Iterator
@@ -35,6 +36,10 @@ from saml_ros.core.systems.base import System
 # One intra-op thread, as the nodes and scripts use: on this shared 2-core machine torch's default of one thread
 # per core made a small network's training step 25x slower under load (150 ms instead of 6 ms, measured).
 torch.set_num_threads(1)
+
+# No test renders MuJoCo: without an OpenGL backend, importing mujoco does not load glfw, whose import starts a
+# version-probe process (which the unit tests' no-process rule below refuses) and costs 0.2 s in every process.
+os.environ.setdefault("MUJOCO_GL", "disable")
 
 TEST_DIR = Path(__file__).resolve().parent
 #: top-level folder -> markers every test in it gets

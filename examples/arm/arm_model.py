@@ -56,23 +56,29 @@ def _terms(q1: Any, q2: Any, dq1: Any, dq2: Any, lib: Any, p: dict[str, float]) 
     return m11, m12, m22, b1, b2
 
 
-def f_hat(x: torch.Tensor, u: torch.Tensor, *, dt: float, h: float = 0.002, **params: Any) -> torch.Tensor:
+def f_hat(x: torch.Tensor, u: torch.Tensor, *, dt: float, h: float = 0.002, xp: Any = None,
+          **params: Any) -> torch.Tensor:
     """Next state ``(B, 4)`` after ``dt`` s of torque ``u (B, 2)`` from ``x (B, 4)``; semi-implicit Euler steps of
-    at most ``h`` s. ``params`` override :data:`NOMINAL`."""
+    at most ``h`` s. ``params`` override :data:`NOMINAL`. ``xp``: the array namespace (torch in the learner, numpy
+    and CasADi in saml_ros's MPC, which then differentiates it exactly: an *array-namespace form*, docs/your_robot.md
+    "Control it"); default torch."""
     p = _p(params)
+    lib: Any = torch if xp is None else xp
     n = max(1, round(dt / h))
     step = dt / n
     q1, q2, dq1, dq2 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
     t1, t2 = u[:, 0], u[:, 1]
     for _ in range(n):
-        m11, m12, m22, b1, b2 = _terms(q1, q2, dq1, dq2, torch, p)
+        m11, m12, m22, b1, b2 = _terms(q1, q2, dq1, dq2, lib, p)
         r1, r2 = t1 - b1, t2 - b2
         det = m11 * m22 - m12 * m12
         dq1 = dq1 + step * (m22 * r1 - m12 * r2) / det
         dq2 = dq2 + step * (m11 * r2 - m12 * r1) / det
         q1 = q1 + step * dq1
         q2 = q2 + step * dq2
-    return torch.stack([q1, q2, dq1, dq2], dim=1)
+    if xp is None:
+        return torch.stack([q1, q2, dq1, dq2], dim=1)
+    return xp.stack([q1, q2, dq1, dq2])
 
 
 # ------------------------------------------------------------------------------------ for the controller (numpy)

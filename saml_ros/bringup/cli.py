@@ -3,6 +3,12 @@
     bringup --system quadrotor --sim-time 60                 # lockstep, defaults of config/bringup_quadrotor.yaml
     bringup --config config/bringup_quadrotor.yaml --set mpc.solver=slsqp --set sim.episode_steps=60
     bringup --system friction --record runs/bag --domain-id 17
+    bringup --system-file examples/diff_drive/system.yaml --robot "python examples/diff_drive/robot.py"
+
+A robot described by a system file (docs/your_robot.md) runs with the learner and the MPC on its file, beside the
+robot's own processes (``--robot CMD``, repeatable, each started in the robot's namespace ``/<name>`` after the
+learner and the MPC are active; without it, the robot is already running); ``--sim-time`` then counts the seconds
+of the robot's state stamps.
 
 What it does:
 
@@ -49,6 +55,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bringup", description=USAGE.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=USAGE.split("\n", 1)[1])
     p.add_argument("--system", choices=system_names(), help="system to run (default: the config's, else quadrotor)")
+    p.add_argument("--system-file", type=Path, help="a robot described by a system file with an mpc: section "
+                                                    "(instead of --system / --config)")
+    p.add_argument("--robot", action="append", default=[], metavar="CMD",
+                   help="with --system-file: a command starting one of the robot's own processes (repeatable)")
     p.add_argument("--config", type=Path, help="bringup YAML (sections sim, learner, mpc; see config/bringup_quadrotor.yaml)")
     p.add_argument("--sim-time", type=float, help="stop after this many seconds of simulated time (0 = until Ctrl-C)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.PARAM=VALUE",
@@ -67,8 +77,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``bringup [options]``: run one closed loop, print the summary; exit 0 if it ran cleanly, 1 if not, 2 for
     bad options."""
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    if args.system_file is not None and (args.system or args.config):
+        print("bringup: give --system-file, or --system / --config, not both", file=sys.stderr)
+        return 2
+    if args.robot and args.system_file is None:
+        print("bringup: --robot needs --system-file", file=sys.stderr)
+        return 2
     try:
-        config = apply_sets(load_config(args.config, args.system), args.set)
+        if args.system_file is not None:
+            from saml_ros.bringup.config import robot_config
+
+            config = apply_sets(robot_config(args.system_file, args.robot), args.set)
+        else:
+            config = apply_sets(load_config(args.config, args.system), args.set)
         if args.sim_time is not None:
             config["sim_time"] = args.sim_time
     except (OSError, ValueError, yaml.YAMLError) as exc:

@@ -87,6 +87,9 @@ class _Loop:
         self.stop: dict[str, str] = {}
         self.say: Callable[[str], None] = (lambda s: None) if opts.quiet else opts.print_fn
         self.lockstep = config["sim"].get("mode", "lockstep") == "lockstep"
+        #: a robot from a system file: its own processes instead of a simulator
+        self.robot = bool(config.get("system_file"))
+        self.state_topic = self.entry.schema().state_topic if self.robot else "state"
 
     def start_consumers(self, run_dir: Path) -> list[Child]:
         """Learner (unless ``--no-learner``), MPC and the recorder (``--record``)."""
@@ -106,6 +109,11 @@ class _Loop:
                 self.say("[bringup] --record: saml_ros.bags.record is not available; not recording")
             else:
                 rec_args = ["--system", self.system, "-o", str(Path(record).resolve())]
+                if self.robot:  # a robot's own topics (the recorder does not read system files)
+                    schema = self.entry.schema()
+                    rec_args = ["--topics", *(f"{ns}/{t}" if not t.startswith("/") else t
+                                              for t in (schema.state_topic, schema.cmd_topic)),
+                                "-o", str(Path(record).resolve())]
                 if self.lockstep:
                     rec_args.append("--use-sim-time")
                 started.append(procs.start("record", [sys.executable, "-m", "saml_ros.executables", "record",
@@ -131,6 +139,20 @@ class _Loop:
             self.stop.setdefault("reason", "lifecycle: " + "; ".join(errors))
         else:
             self.say(f"[bringup] configured and activated {', '.join(managed)} in {time.monotonic() - t0:.1f} s")
+
+    def start_robot(self, t_wall0: float) -> None:
+        """A robot from a system file: start its own processes (``robot`` commands) in its namespace."""
+        import shlex
+
+        for i, cmd in enumerate(self.config.get("robot") or []):
+            argv = shlex.split(cmd) + ["--ros-args", "-r", f"__ns:={self.namespace}"]
+            if argv[0] in ("python", "python3"):  # this interpreter (the venv's), as for saml_ros's own nodes
+                argv[0] = sys.executable
+            child = self.procs.start(f"robot{i}", argv, self.env, self.logs / f"robot{i}.log")
+            self.say(f"[bringup] started the robot's process {cmd!r} (pid {child.pid})")
+        sim_time = float(self.config["sim_time"])
+        self.say(f"[bringup] consumers ready after {time.monotonic() - t_wall0:.1f} s; running "
+                 + (f"for {sim_time:g} s of the robot's state time" if sim_time > 0 else "until Ctrl-C"))
 
     def start_simulator(self, monitor: Monitor, started: list[Child], t_wall0: float) -> None:
         """Wait until the consumers listen (no state is answered by nobody), then start the simulator."""
@@ -172,6 +194,8 @@ class _Loop:
             if sim_time > 0 and result.sim_time >= sim_time:
                 self.stop["reason"] = "sim_time"
             for c in self.procs.exited():
+                if c.name.startswith("robot") and c.proc.returncode == 0:
+                    self.stop.setdefault("reason", f"the robot's process {c.name} ended")
                 if c.name == "sim" and sim_time > 0 and c.proc.returncode == 0:
                     self.stop.setdefault("reason", "sim_time")  # it exits 0 only at max_sim_time (or signalled)
                 self.stop.setdefault("reason", f"child {c.name} exited (code {c.proc.returncode})")
@@ -188,7 +212,7 @@ class _Loop:
             # give children that are still starting a moment to show up in the graph first
             names = {**NODE_NAMES, "sim": self.entry.sim_node}
             monitor.wait_nodes_up({c.name: names.get(c.name, c.name) for c in self.procs.children
-                                   if c.proc.poll() is None}, timeout=30.0)
+                                   if c.proc.poll() is None and not c.name.startswith("robot")}, timeout=30.0)
         return self.procs.stop()
 
 
@@ -222,7 +246,10 @@ def run(config: Mapping[str, Any], opts: RunOptions) -> BringupResult:
         started = loop.start_consumers(run_dir)
         loop.activate_consumers(monitor, started)
         if "reason" not in loop.stop:
-            loop.start_simulator(monitor, started, t_wall0)
+            if loop.robot:
+                loop.start_robot(t_wall0)
+            else:
+                loop.start_simulator(monitor, started, t_wall0)
         result.wall_time = loop.spin(monitor, result)
         result.stop_reason = loop.stop["reason"]
         loop.say(f"[bringup] stopping ({result.stop_reason}) ...")

@@ -5,6 +5,10 @@ A configuration is a mapping with ``system``, ``sim_time`` (s of simulated time,
 ``record`` (a bag directory), and the node sections ``sim``, ``learner``, ``mpc`` of ROS parameters. A system's
 defaults are its registry entry's ``bringup``; ``config/bringup_quadrotor.yaml`` holds the quadrotor's.
 
+A robot described by a system file (:func:`robot_config`) has no simulator: its configuration holds
+``system_file`` and ``robot`` (the commands that start the robot's own processes, e.g. its simulator); the learner
+and the MPC take the file (``system_file``), never ``system``.
+
 The optional section ``learner_ua`` starts a second learner on the same stream that trains the Uniformly Accurate
 baseline (the ``learner`` parameters, then these, with ``uniform: true``): node ``learner_ua``, topics
 ``learner_ua/model_error`` and ``learner_ua/checkpoint``, checkpoints in ``<run dir>/checkpoints_ua``. The MPC
@@ -35,6 +39,18 @@ def default_config(system: str) -> dict[str, Any]:
     return copy.deepcopy(dict(get_entry(system).bringup))
 
 
+def robot_config(system_file: str | Path, robot: Sequence[str] = ()) -> dict[str, Any]:
+    """The configuration of a robot described by a system file: its ``name`` as ``system``, the learner and the MPC
+    on the file (the MPC's rate and horizon are the file's ``mpc:`` section's), ``robot``: commands starting the
+    robot's own processes (each run in the robot's namespace). Loads and registers the file (``SystemFileError``)."""
+    from saml_ros.user_code import load_system_file
+
+    path = str(Path(system_file).resolve())
+    system = load_system_file(path)
+    return {"system": system.name, "system_file": path, "robot": list(robot), "sim_time": 0.0,
+            "sim": {"mode": "realtime"}, "learner": {}, "mpc": {}}
+
+
 def merge_config(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
     """``base`` updated by ``override`` (node sections are merged key by key); unknown keys are refused."""
     out = copy.deepcopy(base)
@@ -43,10 +59,11 @@ def merge_config(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str,
             if not isinstance(value, Mapping):
                 raise ValueError(f"config section {key!r} must be a mapping of parameters, got {value!r}")
             out.setdefault(key, {}).update(copy.deepcopy(dict(value)))
-        elif key in ("system", "sim_time", "record"):
+        elif key in ("system", "sim_time", "record", "system_file", "robot"):
             out[key] = value
         else:
-            raise ValueError(f"unknown config key {key!r}; valid: system, sim_time, record, {', '.join(NODE_SECTIONS)}")
+            raise ValueError(f"unknown config key {key!r}; valid: system, sim_time, record, system_file, robot, "
+                             f"{', '.join(NODE_SECTIONS)}")
     return out
 
 
@@ -94,8 +111,10 @@ def node_params(config: Mapping[str, Any], run_dir: Path) -> dict[str, dict[str,
     system = config["system"]
     lockstep = config["sim"].get("mode", "lockstep") == "lockstep"
     sim = dict(config["sim"])
-    learner = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["learner"], "autostart": False}
-    mpc = {"system": system, "run_dir": str(run_dir / CHECKPOINTS), **config["mpc"], "autostart": False}
+    # a robot's nodes take its system file (never system and system_file together)
+    who = {"system_file": config["system_file"]} if config.get("system_file") else {"system": system}
+    learner = {**who, "run_dir": str(run_dir / CHECKPOINTS), **config["learner"], "autostart": False}
+    mpc = {**who, "run_dir": str(run_dir / CHECKPOINTS), **config["mpc"], "autostart": False}
     out = {"sim": sim, "learner": learner, "mpc": mpc}
     if config.get("learner_ua") is not None:
         out["learner_ua"] = {**learner, "run_dir": str(run_dir / CHECKPOINTS_UA), **config["learner_ua"],

@@ -11,6 +11,15 @@
 * ``weights.npz`` (format ``numpy``): the residual network's normalisation and weights as plain arrays
   (``in_mean``, ``in_std``, ``out_std``, ``W0``, ``b0``, ``slope0``, ..., see :func:`numpy_residual`) for a
   controller that rebuilds phi itself (acados / CasADi expressions, embedded code).
+* ``model.casadi`` + ``theta.npy`` (format ``casadi``): a CasADi Function ``model(x (n_x,), u (n_u,), theta) ->
+  (y, residual)`` saved with ``Function.save`` (``casadi.Function.load`` in Python, C++, MATLAB), with the network's
+  weights as the *parameter vector* ``theta`` (``theta.npy``; its layout is in ``model.json``,
+  :func:`saml_ros.core.mpc.generic.casadi_model.theta_layout`). f_hat is in it where it has a symbolic form (a
+  system file's built-in base models and array-namespace forms); otherwise ``y`` is phi alone
+  (``"casadi_base_exported": false``). An acados or CasADi controller built on it takes a new checkpoint by
+  passing a new ``theta``, without rebuilding or regenerating code. ``model_smooth.casadi`` is the same with a fourth
+  input ``eps`` rounding the PReLU kinks (``|h| -> sqrt(h^2 + eps^2)``) for interior point solvers (IPOPT), which do
+  not converge on the exact kinks; ``eps = 0`` gives the exact network.
 * ``model.json``: fields, units, dt, the architecture, the base model's description, the files and the check.
 
 If the base model cannot be traced (a user's f_hat with Python control flow on values), the ONNX and TorchScript
@@ -35,9 +44,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.models import DynamicsModel, dense_input_layer
 
-FORMATS: tuple[str, ...] = ("onnx", "torchscript", "numpy")
+FORMATS: tuple[str, ...] = ("onnx", "torchscript", "numpy", "casadi")
 ONNX_EXPORTERS: tuple[str, ...] = ("torchscript", "dynamo")
 EXPORT_FORMAT = "saml_ros.export"
 EXPORT_VERSION = 1
@@ -99,14 +108,16 @@ def numpy_residual(weights: dict[str, np.ndarray], x: np.ndarray, u: np.ndarray)
 def numpy_weights(model: DynamicsModel, member: int = 0) -> dict[str, np.ndarray]:
     """The arrays :func:`numpy_residual` takes, for ensemble member ``member`` (model dtype)."""
     net = model.net
+    dt = model.in_mean.numpy().dtype
+    mean, std, w0 = (a.astype(dt) for a in dense_input_layer(model, member))  # every [x, u] field, zero rows unseen
     out: dict[str, np.ndarray] = {
-        "in_mean": model.in_mean[member, 0].detach().numpy().copy(),
-        "in_std": model.in_std[member, 0].detach().numpy().copy(),
+        "in_mean": mean,
+        "in_std": std,
         "out_std": model.out_std[member, 0].detach().numpy().copy(),
         "n_layers": np.array(len(net.weights)),
     }
     for i, (w, b) in enumerate(zip(net.weights, net.biases, strict=True)):
-        out[f"W{i}"] = w[member].detach().numpy().copy()
+        out[f"W{i}"] = w0 if i == 0 else w[member].detach().numpy().copy()
         out[f"b{i}"] = b[member, 0].detach().numpy().copy()
     for i, s in enumerate(net.slopes):
         out[f"slope{i}"] = s[member].detach().numpy().reshape(()).copy()
@@ -179,6 +190,10 @@ def export_model(model: DynamicsModel, out_dir: str | Path, formats: Sequence[st
         result.files["numpy"] = path
         result.max_abs_error["numpy"] = _compare("numpy", None, phi, ref, dtype)
 
+    casadi_meta: dict[str, Any] = {}
+    if "casadi" in formats:
+        casadi_meta = _export_casadi(model, member, out, x.numpy(), u.numpy(), want_y, want_phi, dtype, result)
+
     meta = {
         "format": EXPORT_FORMAT, "version": EXPORT_VERSION, "system": system.name, "dt": float(system.dt),
         "state": [[f.name, f.unit] for f in system.state.fields],
@@ -193,10 +208,44 @@ def export_model(model: DynamicsModel, out_dir: str | Path, formats: Sequence[st
         "outputs": {"y": "f_hat(x, u) + phi(x, u)" if result.base_exported else "phi(x, u) (base not exported)",
                     "residual": "phi(x, u)"},
         "check": {"n": result.n_checked, "max_abs_error": result.max_abs_error},
+        **casadi_meta,
         **(extra_meta or {}),
     }
     (out / "model.json").write_text(json.dumps(meta, indent=2))
     return result
+
+
+def _export_casadi(model: DynamicsModel, member: int, out: Path, x: np.ndarray, u: np.ndarray, want_y: np.ndarray,
+                   want_phi: np.ndarray, dtype: torch.dtype, result: ExportResult) -> dict[str, Any]:
+    """Write ``model.casadi`` and ``theta.npy`` (module docstring), check them, return their ``model.json`` part."""
+    try:
+        import casadi as ca
+
+        from saml_ros.core.mpc.generic.casadi_model import export_function, theta_layout
+    except ImportError as exc:
+        raise ExportError(f"the CasADi export needs casadi (pip install casadi): {exc}") from None
+    fn, theta, base_ok, why = export_function(model, member)
+    path = out / "model.casadi"
+    fn.save(str(path))
+    export_function(model, member, smooth=True)[0].save(str(out / "model_smooth.casadi"))
+    np.save(out / "theta.npy", theta)
+    loaded = ca.Function.load(str(path))
+    y, phi = (np.asarray(v).T for v in loaded.map(len(x))(x.T, u.T, np.load(out / "theta.npy")))
+    result.files["casadi"] = path
+    result.max_abs_error["casadi"] = _compare("casadi", y if base_ok else None, phi,
+                                              {"y": want_y, "residual": want_phi}, dtype)
+    smooth = ca.Function.load(str(out / "model_smooth.casadi"))
+    ys, phis = (np.asarray(v).T for v in smooth.map(len(x))(x.T, u.T, theta, 0.0))
+    _compare("casadi (model_smooth, eps = 0)", ys if base_ok else None, phis, {"y": want_y, "residual": want_phi},
+             dtype)
+    system = model.system
+    layout = theta_layout(system.state.size + system.control.size, model.hidden, system.state.size)
+    return {"casadi_base_exported": base_ok, "casadi_base_export_problem": why,
+            "casadi": {"function": path.name, "smooth_function": "model_smooth.casadi", "theta": "theta.npy",
+                       "inputs": ["x", "u", "theta"], "smooth_inputs": ["x", "u", "theta", "eps"],
+                       "outputs": ["y", "residual"], "theta_size": int(theta.size),
+                       "theta_layout": [[name, list(shape)] for name, shape in layout],
+                       "prelu": "0.5 (1 + a) h + 0.5 (1 - a) |h|"}}
 
 
 def _check_inputs(model: DynamicsModel, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -205,8 +254,7 @@ def _check_inputs(model: DynamicsModel, n: int, seed: int) -> tuple[torch.Tensor
     try:
         x, u = system.sample_inputs(n, rng)
     except Exception:  # noqa: BLE001 - a system without a sampler: the model's own input statistics
-        mean = model.in_mean[0, 0].double().numpy()
-        std = model.in_std[0, 0].double().numpy()
+        mean, std, _ = dense_input_layer(model, 0)
         z = rng.normal(mean, std, (n, len(mean)))
         x, u = z[:, : system.state.size], z[:, system.state.size:]
     dt = model.in_mean.dtype

@@ -12,6 +12,7 @@ Importing this module imports no torch: the learner node imports it before its t
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, get_args
@@ -78,8 +79,25 @@ _HEAD: tuple[Param, ...] = (
 _TAIL: tuple[Param, ...] = (
     Param("buffer.capacity", 100_000, "replay buffer capacity (transitions)"),
     Param("buffer.policy", "fifo", "eviction when full: 'fifo' (keep the newest) or 'reservoir'"),
-    Param("min_transitions", 1000, "transitions before training starts; the input/output normalisation is "
-                                   "fitted on them once and frozen"),
+    Param("min_transitions", 1000, "training transitions before training starts; the input/output normalisation is "
+                                   "fitted on them (and refitted when the data drifts, normalization.refit)"),
+    Param("normalization.refit", True, "refit the input/output normalisation on the replay buffer when a spread grew "
+                                       "by more than a factor 2 or a centre moved by more than one spread, keeping "
+                                       "the model's function; false: fitted once on the first min_transitions and "
+                                       "frozen"),
+    Param("heldout.period", 10.0, "s of stream time per held-out cycle: the last heldout.fraction of every cycle "
+                                  "is held out (never trained on) and the verdicts are read on it"),
+    Param("heldout.fraction", 0.2, "share of every heldout.period held out, in [0, 0.5]; 0 = none (no held-out "
+                                   "verdict)"),
+    Param("heldout.capacity", 25_000, "held-out transitions kept (the newest)"),
+    Param("heldout.eval_period", 1.0, "s (wall clock) between two evaluations on the held-out stretches (telemetry, "
+                                      "/diagnostics); every checkpoint is evaluated when written"),
+    Param("average_updates", 1000.0, "time constant (updates) of an exponential average of the weights kept beside "
+                                     "the trainer's; the one that does better on the held-out stretches is published "
+                                     "in checkpoints (0 = no average: the trainer's weights)"),
+    Param("updates_per_transition", 0.0, "at most this many primal-dual updates per training transition received "
+                                         "since training started (0 = no limit): training waits for new data "
+                                         "instead of memorising the buffer"),
     Param("updates_per_second", 0.0, "primal-dual updates per wall-clock second (0 = as fast as possible)",
           when=LIVE),
     Param("checkpoint_period", 10.0, "wall-clock seconds between checkpoints (only when there are new updates)",
@@ -168,6 +186,13 @@ class LearnerConfig:
     health_max_weight: float = 1e6
     health_error_after: int = 100
     refuse_multiple_publishers: bool = False
+    normalization_refit: bool = True
+    heldout_period: float = 10.0
+    heldout_fraction: float = 0.2
+    heldout_capacity: int = 25_000
+    heldout_eval_period: float = 1.0
+    updates_per_transition: float = 0.0
+    average_updates: float = 1000.0
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -211,7 +236,7 @@ class LearnerConfig:
             with problems.capture("plausible_bounds"):
                 config.plausibility(system)
             if not problems.has("buffer.capacity", "train.batch_size", "model.ensemble", "model.hidden",
-                                "telemetry_window", "train.dtype"):
+                                "telemetry_window", "train.dtype", "heldout.capacity"):
                 for message in memory_problems(config.memory_needs(system)):
                     problems.add(message)
         problems.raise_if_any()
@@ -250,6 +275,14 @@ class LearnerConfig:
         check(p["buffer.capacity"] >= p["min_transitions"], "buffer.capacity",
               f">= min_transitions ({p['min_transitions']})", p["buffer.capacity"])
         check(p["telemetry_window"] >= 1, "telemetry_window", ">= 1", p["telemetry_window"])
+        for name in ("heldout.period", "heldout.eval_period"):
+            check(math.isfinite(p[name]) and p[name] > 0, name, "> 0 s", p[name])
+        check(0 <= p["heldout.fraction"] <= 0.5, "heldout.fraction", "in [0, 0.5]", p["heldout.fraction"])
+        check(p["heldout.capacity"] >= 1, "heldout.capacity", ">= 1", p["heldout.capacity"])
+        check(math.isfinite(p["average_updates"]) and p["average_updates"] >= 0, "average_updates",
+              ">= 0 (0 = no average)", p["average_updates"])
+        check(math.isfinite(p["updates_per_transition"]) and p["updates_per_transition"] >= 0,
+              "updates_per_transition", ">= 0 (0 = no limit)", p["updates_per_transition"])
         nss = [normalize_namespace(n) for n in p["namespaces"]] or [normalize_namespace(node_namespace)]
         check(len(set(nss)) == len(nss), "namespaces", "a list without repetitions", nss)
         config = cls(
@@ -268,6 +301,10 @@ class LearnerConfig:
             health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
             health_error_after=p["health.error_after"],
             refuse_multiple_publishers=p["pairing.refuse_multiple_publishers"],
+            normalization_refit=p["normalization.refit"],
+            heldout_period=p["heldout.period"], heldout_fraction=p["heldout.fraction"],
+            heldout_capacity=p["heldout.capacity"], heldout_eval_period=p["heldout.eval_period"],
+            updates_per_transition=p["updates_per_transition"], average_updates=p["average_updates"],
         )
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
@@ -293,6 +330,8 @@ class LearnerConfig:
              batch * self.model_ensemble * (width * (8 + itemsize) + 3 * hidden * itemsize)),
             ("telemetry_window", f"a window of {self.telemetry_window} transitions",
              self.telemetry_window * width * 8),
+            ("heldout.capacity", f"a held-out set of {self.heldout_capacity} transitions",
+             self.heldout_capacity * (width + 3) * 8),
         ]
 
     def loop_config(self) -> LoopConfig:
@@ -433,7 +472,7 @@ class LearnerConfig:
             ValueError: an invalid learner, buffer, pairing or loop setting.
         """
         from saml_ros.core.model_io import system_params
-        from saml_ros.core.online import LearnerSetup, OnlineConfig
+        from saml_ros.core.online import HeldoutConfig, LearnerSetup, OnlineConfig
         from saml_ros.core.pairing import PairingConfig
 
         bounds = self.plausibility(system)
@@ -444,6 +483,10 @@ class LearnerConfig:
                 min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
                 checkpoint_keep=self.checkpoint_keep, n_models=self.model_ensemble,
                 plausible_bounds=self.plausible_bounds, health=self.health_config(),
+                heldout=HeldoutConfig(period=self.heldout_period, fraction=self.heldout_fraction,
+                                      capacity=self.heldout_capacity),
+                heldout_period=self.heldout_eval_period, updates_per_transition=self.updates_per_transition,
+                renormalize=self.normalization_refit, average_updates=self.average_updates,
             )
             own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
             pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(

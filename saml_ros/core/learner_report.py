@@ -37,30 +37,65 @@ Saved = tuple["str | None", int, int]
 
 #: per channel: namespace, kind (state, applied_cmd, target), messages received, matched publishers
 ChannelCount = tuple[str, str, int, int]
-#: the ``feasibility/<k>`` value of each ``verdict/<k>`` code (what ``diagnosis.VERDICT_CODES`` numbers)
+#: the ``optimization/<k>`` value of each ``verdict/<k>`` code (what ``diagnosis.VERDICT_CODES`` numbers): the
+#: training history's convergence
 VERDICT_NAMES: dict[int, str] = {0: "met", 1: "not converged", 2: "likely infeasible"}
+#: the ``feasibility/<k>`` value of each ``heldout_verdict/<k>`` number (``telemetry.VERDICT_NUMBERS``): the verdict
+#: read on the held-out stretches
+HELDOUT_NAMES: dict[int, str] = {0: "met", 1: "unconfirmed", 2: "met on training data only", 3: "not met",
+                                 4: "no held-out data"}
+
+
+def _fmt(v: float, spec: str = ".4g") -> str:
+    return f"{v:{spec}}" if math.isfinite(v) else "nan"
 
 
 def feasibility_report(status: Mapping[str, float], constraints: Sequence[tuple[str, float]]) -> tuple[
         int, list[str], dict[str, Any]]:
-    """``(level, message parts, values)`` of the constraints' verdicts in ``status`` (``verdict/<k>``,
-    ``lhs_min/<k>``, ``lambda_rising/<k>``, ``reachable/<k>``); ``constraints`` are ``(name, eps)``. A constraint
-    without a verdict yet is ``"pending"`` (level OK)."""
+    """``(level, message parts, values)`` of the constraints' verdicts in ``status``; ``constraints`` are ``(name,
+    eps)``.
+
+    ``feasibility/<k>`` is the verdict read on the **held-out stretches** (``heldout_verdict/<k>``, with
+    ``heldout/<k>``, ``heldout_se/<k>``, ``heldout_n/<k>``, ``heldout_base/<k>``, ``training_lhs/<k>``): met
+    (OK: the upper end of the 95 % interval is at most eps), unconfirmed, met on training data only, no held-out data
+    (WARN), not met (ERROR once training has converged or looks infeasible, WARN while it is not converged), pending
+    before training. ``optimization/<k>`` is the training history's diagnosis (``verdict/<k>``, ``lhs_min/<k>``,
+    ``lambda_rising/<k>``, ``reachable/<k>``): likely infeasible is ERROR, not converged WARN."""
     level, parts = OK, []
     values: dict[str, Any] = {}
     for name, eps in constraints:
         code = status.get(f"verdict/{name}", math.nan)
-        verdict = VERDICT_NAMES.get(int(code), "pending") if math.isfinite(code) else "pending"
-        values[f"feasibility/{name}"] = verdict
+        history = VERDICT_NAMES.get(int(code), "pending") if math.isfinite(code) else "pending"
+        values[f"optimization/{name}"] = history
         for key in ("lhs_min", "reachable"):
-            v = status.get(f"{key}/{name}", math.nan)
-            values[f"{key}/{name}"] = f"{v:.6g}" if math.isfinite(v) else "nan"
+            values[f"{key}/{name}"] = _fmt(status.get(f"{key}/{name}", math.nan), ".6g")
         rising = status.get(f"lambda_rising/{name}", math.nan)
         values[f"lambda_rising/{name}"] = int(rising) if math.isfinite(rising) else -1
-        if verdict in ("not converged", "likely infeasible"):
-            level = max(level, WARN if verdict == "not converged" else ERROR)
+        if history in ("not converged", "likely infeasible"):
+            level = max(level, WARN if history == "not converged" else ERROR)
             reach = status.get(f"reachable/{name}", math.nan)
-            parts.append(f"constraint '{name}' {verdict} (eps {eps:.4g}, reachable {reach:.4g})")
+            parts.append(f"constraint '{name}' {history} in training (eps {eps:.4g}, reachable {reach:.4g})")
+        hcode = status.get(f"heldout_verdict/{name}", math.nan)
+        verdict = HELDOUT_NAMES.get(int(hcode), "pending") if math.isfinite(hcode) else "pending"
+        values[f"feasibility/{name}"] = verdict
+        mean, se = status.get(f"heldout/{name}", math.nan), status.get(f"heldout_se/{name}", math.nan)
+        n_in = status.get(f"heldout_n/{name}", 0.0)
+        base, train = status.get(f"heldout_base/{name}", math.nan), status.get(f"training_lhs/{name}", math.nan)
+        values[f"heldout/{name}"] = _fmt(mean, ".6g")
+        values[f"heldout_se/{name}"] = _fmt(se, ".3g")
+        values[f"heldout_upper/{name}"] = _fmt(status.get(f"heldout_upper/{name}", math.nan), ".6g")
+        values[f"heldout_n/{name}"] = int(n_in) if math.isfinite(n_in) else 0
+        values[f"heldout_base/{name}"] = _fmt(base, ".6g")
+        values[f"training_lhs/{name}"] = _fmt(train, ".6g")
+        if verdict in ("met", "pending"):
+            continue
+        converged = history in ("met", "likely infeasible")
+        level = max(level, ERROR if verdict == "not met" and converged else WARN)
+        upper = status.get(f"heldout_upper/{name}", math.nan)
+        held = (f"held-out {_fmt(mean)} +- {_fmt(se, '.2g')} (n {int(n_in)} in the region, upper bound {_fmt(upper)})"
+                if n_in else "no held-out transition in the region yet")
+        parts.append(f"constraint '{name}' {verdict} (eps {eps:.4g}; {held}; training {_fmt(train)}; "
+                     f"f_hat {_fmt(base)})")
     return level, parts, values
 
 
@@ -189,7 +224,10 @@ def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, ru
                else "fresh start")
             + f"; training process pid {pid} ({ready.threads} torch thread(s), subnormals "
             + ("flushed" if ready.flush_denormal else "not flushed")
-            + f"); training starts after {p.min_transitions} transitions once active")
+            + f"); training starts after {p.min_transitions} transitions once active; "
+            + (f"held out (never trained on, verdicts read there): the last {p.heldout_fraction * p.heldout_period:g} s "
+               f"of every {p.heldout_period:g} s of the stream" if p.heldout_fraction > 0 else
+               "no held-out stretches (heldout.fraction 0): no held-out verdict"))
 
 
 def paused_message(paused: Saved, unsaved: int = 0) -> str:

@@ -11,6 +11,11 @@ commanded with. :func:`check_model` refuses it, with one of :data:`ACCEPTANCE_RE
   ``|pred - f_hat| > residual_factor * (max |y - f_hat| + 0.01 std(y))`` (the statistics the learner or trainer
   stored in the checkpoint, :mod:`saml_ros.core.model_evidence`; the ``0.01 std(y)`` term keeps a field the base
   model predicts exactly, e.g. the quadrotor's positions, from demanding a zero residual).
+* ``heldout``: the checkpoint's own record of held-out data (``meta["heldout"]``: what the online learner writes
+  from the held-out stretches of its stream, :mod:`saml_ros.core.online.heldout`) says that a member's error there is
+  **worse than f_hat's on the same held-out transitions**, for the objective or inside any constraint's region (each
+  judged on at least :data:`MIN_HELDOUT` transitions, in the region for a conditional constraint). The message
+  gives both numbers with their standard errors. A checkpoint without such a record is not judged here.
 
 The probe inputs are the checkpoint's own probe set (a sample of its training inputs) and the states the MPC
 answered recently, each with the command sent (``recent``); rows outside the plausible range are left out. A
@@ -24,8 +29,10 @@ model is kept.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,7 +43,10 @@ from saml_ros.core.model_io import LoadedModel
 from saml_ros.core.plausibility import Plausibility
 
 #: the refusal reasons of this check (the last ones of :data:`msg_schemas.telemetry.CHECKPOINT_REFUSAL_REASONS`)
-ACCEPTANCE_REASONS: tuple[str, ...] = CHECKPOINT_REFUSAL_REASONS[-3:]
+ACCEPTANCE_REASONS: tuple[str, ...] = CHECKPOINT_REFUSAL_REASONS[-4:]
+#: held-out transitions (in the region, for a conditional constraint) a comparison with f_hat needs (as
+#: :data:`saml_ros.core.training.heldout.MIN_N`)
+MIN_HELDOUT = 30
 
 #: a refusal: ``(reason, message)``
 Refusal = tuple[str, str]
@@ -51,10 +61,12 @@ class AcceptanceConfig:
     Attributes:
         residual_factor: allowed multiple of the training data's largest residual (0 = no residual check).
         std_fraction: share of the target's spread added to the largest residual (see the module docstring).
+        heldout: refuse a model whose recorded held-out error is worse than f_hat's (see the module docstring).
     """
 
     residual_factor: float = 4.0
     std_fraction: float = 0.01
+    heldout: bool = True
 
     def __post_init__(self) -> None:
         if not (self.residual_factor >= 0 and self.std_fraction >= 0):
@@ -70,6 +82,10 @@ def check_model(loaded: LoadedModel, bounds: Plausibility, recent: Probe | None 
     bad = [k for k, v in model.state_dict().items() if not bool(torch.isfinite(v).all())]
     if bad or not bool(torch.isfinite(loaded.lam).all()):
         return "non_finite", f"{where}non-finite values in {bad or ['lam']}"
+    if cfg.heldout:
+        worse = heldout_refusal(loaded.meta, where)
+        if worse is not None:
+            return worse
     evidence = DataEvidence.from_checkpoint(loaded.arrays, loaded.meta, system)
     parts = [p for p in ((evidence.probe_x, evidence.probe_u) if evidence else None, recent) if p is not None]
     if not parts:
@@ -103,6 +119,55 @@ def check_model(loaded: LoadedModel, bounds: Plausibility, recent: Probe | None 
                             f"base model; the training data never showed more than {evidence.residual_max[j]:.4g} "
                             f"(limit {limit[j]:.4g} = accept.residual_factor {cfg.residual_factor:g} x (max + "
                             f"{cfg.std_fraction:g} std))")
+    return None
+
+
+def _estimate(d: Any) -> tuple[float, float, int] | None:
+    """``(mean, se, n)`` of a recorded estimate (``Estimate.to_dict``), or None when it is not one."""
+    try:
+        mean, se, n = float(d["mean"]), float(d["se"]), int(d["n"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return mean, se, n
+
+
+def heldout_comparison(meta: Mapping[str, Any]) -> list[tuple[str, int, tuple[float, float, int],
+                                                               tuple[float, float, int]]]:
+    """``(term, member, model (mean, se, n), f_hat (mean, se, n))`` for every term and member of a checkpoint's
+    held-out record (``meta["heldout"]``: ``objective`` and ``constraints`` ``{name: {"model": [estimate per
+    member], "base": estimate}}``); ``[]`` without one. Malformed entries are left out."""
+    rec = meta.get("heldout")
+    if not isinstance(rec, Mapping):
+        return []
+    terms = [("objective", rec.get("objective"))]
+    cons = rec.get("constraints")
+    if isinstance(cons, Mapping):
+        terms += [(str(k), v) for k, v in cons.items()]
+    out = []
+    for name, t in terms:
+        if not isinstance(t, Mapping) or not isinstance(t.get("model"), list):
+            continue
+        base = _estimate(t.get("base"))
+        for i, m in enumerate(t["model"]):
+            est = _estimate(m)
+            if est is not None and base is not None:
+                out.append((name, i, est, base))
+    return out
+
+
+def heldout_refusal(meta: Mapping[str, Any], where: str = "", min_n: int = MIN_HELDOUT) -> Refusal | None:
+    """``("heldout", message)`` when the checkpoint's held-out record shows a member worse than f_hat on the same
+    held-out transitions (objective or any constraint, each on at least ``min_n`` of them), else None."""
+    rec = meta.get("heldout")
+    desc = rec.get("description", "") if isinstance(rec, Mapping) else ""
+    for name, member, (mean, se, n), (bmean, bse, bn) in heldout_comparison(meta):
+        if n < min_n or bn < min_n or not (math.isfinite(mean) and math.isfinite(bmean)):
+            continue
+        if mean > bmean:
+            what = "objective" if name == "objective" else f"error in constraint '{name}'s region"
+            return "heldout", (f"{where}held-out {what} of member {member} is worse than f_hat's on the same held-out "
+                               f"transitions: {mean:.4g} +- {se:.2g} vs f_hat {bmean:.4g} +- {bse:.2g} (n {n}"
+                               + (f"; {desc}" if desc else "") + ")")
     return None
 
 

@@ -24,7 +24,7 @@ from saml_ros.core.checkpoint import (
     read_checkpoint,
     torch_state_to_arrays,
 )
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.models import DynamicsModel, input_names
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.base import System
@@ -120,7 +120,9 @@ def model_from_payload(
             system = expect
     arch = meta["architecture"]
     try:
-        model = DynamicsModel(system, arch["hidden"], arch["kind"], n_models=int(arch["n_models"]))
+        # the fields the network sees (checkpoints from before input selection: all of them)
+        inputs = arch.get("inputs") or list(input_names(system))
+        model = DynamicsModel(system, arch["hidden"], arch["kind"], n_models=int(arch["n_models"]), inputs=inputs)
         state = arrays_to_torch_state(arrays, meta["skeletons"]["model"])
         dtype = next(iter(state.values())).dtype
         model.to(dtype)

@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.systems import get_system
 from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC
 
 #: simulated seconds of the live loop (36 landing episodes of 5 s; the in-region error is within 20 % of its
@@ -72,9 +71,9 @@ def run_evaluation(run_dir: Path, config: dict[str, Any], n_standard: int, n_agg
     if sa is None:
         return None
     ua = newest_checkpoint(run_dir / CHECKPOINTS_UA)
-    system = get_system("quadrotor")
     mpc = config["mpc"]
     task, guard = run_task_and_guard(config)
+    system = task.system()
     arms = [Arm("base", "base"), Arm("oracle", "oracle"), Arm("SA", str(sa[0]), guard)]
     if ua is not None:
         arms.append(Arm("UA", str(ua[0]), guard))

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -31,6 +31,7 @@ from saml_ros.demo.landing import (
     episode_metrics,
     plant,
     standard_starts,
+    world_params,
 )
 
 #: seeds of the evaluation starts (the simulator's episodes use ``--seed``, 0 by default); ``--seed`` adds to them
@@ -50,7 +51,8 @@ def run_task_and_guard(config: dict[str, Any]) -> tuple[LandingTask, GuardConfig
     from saml_ros.core.mpc.config import MPCConfig
 
     mpc, sim = config["mpc"], config["sim"]
-    task = LandingTask.from_mpc_params(mpc, int(sim["episode_steps"]), float(sim.get("landing_height", 0.1)))
+    task = LandingTask.from_mpc_params(mpc, int(sim["episode_steps"]), float(sim.get("landing_height", 0.1)),
+                                       world_params(sim))
     return task, MPCConfig.from_params({"system": "quadrotor", **mpc}).guard
 
 
@@ -100,10 +102,9 @@ def _episodes(arm: Arm, task: LandingTask, starts: np.ndarray, solver: str) -> d
     from saml_ros.core.model_io import load_model
     from saml_ros.core.mpc import closed_loop, make_controller
     from saml_ros.core.mpc.guard import make_guarded_controller
-    from saml_ros.core.systems import get_system
 
-    system = get_system("quadrotor")
-    f = plant(system, task.landing_height)  # type: ignore[arg-type]
+    system = task.system()
+    f = plant(system, task.landing_height)
     version = 0
     if arm.learned:
         loaded = load_model(arm.model, expect=system)
@@ -129,18 +130,27 @@ def _episodes(arm: Arm, task: LandingTask, starts: np.ndarray, solver: str) -> d
 
 
 def evaluate_arms(arms: Sequence[Arm], task: LandingTask, starts: np.ndarray, solver: str = "fast",
-                  workers: int | None = None) -> dict[str, ArmResult]:
+                  workers: int | None = None, progress: Callable[[int], Any] | None = None) -> dict[str, ArmResult]:
     """Fly every arm from every start (paired: the same starts, the same task); ``workers`` processes (default:
-    2, or 1 when ``starts`` is small); returns the results by arm name."""
+    2, or 1 when ``starts`` is small); returns the results by arm name. ``progress(n)`` is called with the number
+    of episodes of each finished part (e.g. a tqdm bar's ``update``)."""
     n_workers = workers if workers is not None else min(2, os.cpu_count() or 1)
     chunks = max(1, n_workers)
     jobs = [(arm, part) for arm in arms for part in np.array_split(starts, chunks) if len(part)]
     if n_workers <= 1:
-        outs = [_episodes(arm, task, part, solver) for arm, part in jobs]
+        outs = []
+        for arm, part in jobs:
+            outs.append(_episodes(arm, task, part, solver))
+            if progress is not None:
+                progress(len(part))
     else:
         with ProcessPoolExecutor(n_workers, mp_context=get_context("spawn")) as pool:
-            outs = list(pool.map(_episodes, [a for a, _ in jobs], [task] * len(jobs), [p for _, p in jobs],
-                                 [solver] * len(jobs)))
+            futures = [pool.submit(_episodes, arm, task, part, solver) for arm, part in jobs]
+            if progress is not None:
+                sizes = {f: len(part) for f, (_, part) in zip(futures, jobs, strict=True)}
+                for fut in as_completed(futures):
+                    progress(sizes[fut])
+            outs = [f.result() for f in futures]
     results: dict[str, ArmResult] = {}
     for (arm, _), out in zip(jobs, outs):
         rows = out["rows"]

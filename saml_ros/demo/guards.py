@@ -51,7 +51,6 @@ def compare(run_dir: Path, seed: int, n_standard: int, n_aggressive: int, worker
     """Fly the run's newest valid SA checkpoint with :func:`guard_settings` and the base model from the run's
     evaluation starts; per start set and setting: per-start landing errors (m) and the guard's counters."""
     from saml_ros.bringup.config import CHECKPOINTS
-    from saml_ros.core.systems import get_system
     from saml_ros.demo.evaluation import Arm, evaluate_arms, evaluation_starts, newest_checkpoint, run_task_and_guard
 
     config = yaml.safe_load((run_dir / "bringup.yaml").read_text())
@@ -59,7 +58,7 @@ def compare(run_dir: Path, seed: int, n_standard: int, n_aggressive: int, worker
     if sa is None:
         raise FileNotFoundError(f"no valid checkpoint in {run_dir / CHECKPOINTS}")
     task, guard = run_task_and_guard(config)
-    system = get_system("quadrotor")
+    system = task.system()
     arms = [Arm("base", "base")] + [Arm(name, str(sa[0]), g) for name, g in guard_settings(guard).items()]
     sets = evaluation_starts(system, n_standard, n_aggressive, seed)
     out: dict[str, Any] = {"run_dir": str(run_dir), "checkpoint": [str(sa[0]), sa[1]], "seed": seed, "sets": {}}

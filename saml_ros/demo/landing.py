@@ -65,6 +65,17 @@ class LandingTask:
     steps: int = 50
     settle_tol: float = 0.03
     landing_height: float = 0.1  #: the simulator's ground contact (centre of mass), m
+    #: the world's physical parameters (``Quadrotor`` constructor overrides, e.g. the wind; ``(name, value)``
+    #: pairs): the simulator, the oracle and the evaluation's plant are all built from :meth:`system`
+    world: tuple[tuple[str, float], ...] = ()
+
+    def system(self) -> Quadrotor:
+        """The quadrotor of this task's world (``get_system("quadrotor", **world)``)."""
+        from saml_ros.core.systems import get_system
+
+        system = get_system("quadrotor", **dict(self.world))
+        assert isinstance(system, Quadrotor)
+        return system
 
     @property
     def goal(self) -> np.ndarray:
@@ -82,12 +93,20 @@ class LandingTask:
         return {"horizon": self.horizon, "min_height": self.min_height, "tilt_max": self.tilt_max}
 
     @classmethod
-    def from_mpc_params(cls, mpc: dict[str, Any], steps: int, landing_height: float) -> LandingTask:
-        """The task a bringup configuration's ``mpc`` section (ROS parameters) sets up."""
+    def from_mpc_params(cls, mpc: dict[str, Any], steps: int, landing_height: float,
+                        world: dict[str, float] | None = None) -> LandingTask:
+        """The task a bringup configuration's ``mpc`` section (ROS parameters) sets up, in the world ``world``
+        (the simulator's ``system.*`` parameters, :func:`world_params`)."""
         pad = tuple(float(v) for v in mpc.get("goal.position", (0.0, 0.0, 0.2)))
         return cls(pad=pad, min_height=float(mpc.get("task.min_height", 0.2)),  # type: ignore[arg-type]
                    tilt_max=float(mpc.get("task.tilt_max", math.inf)), horizon=int(mpc.get("horizon", 10)),
-                   steps=steps, landing_height=landing_height)
+                   steps=steps, landing_height=landing_height, world=tuple(sorted((world or {}).items())))
+
+
+def world_params(sim: dict[str, Any]) -> dict[str, float]:
+    """The world's physical parameters a bringup configuration's ``sim`` section gives the simulator (its
+    ``system.<name>`` ROS parameters): ``{name: value}``."""
+    return {k[len("system."):]: v for k, v in sim.items() if k.startswith("system.")}
 
 
 # ------------------------------------------------------------------------------------------ starts

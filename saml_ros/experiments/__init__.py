@@ -7,3 +7,6 @@ See docs/experiments.md.
 """
 
 EXPERIMENT_NAMES: tuple[str, ...] = ("friction", "convergence", "paddle_ball", "quadrotor")
+#: runners of the same form that ``experiment all`` does not run (longer, and no claim of the paper's table):
+#: :mod:`.capacity`, the net-size sweep on the demo's landing
+SWEEPS: tuple[str, ...] = ("capacity",)

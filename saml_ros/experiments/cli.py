@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from saml_ros.experiments import EXPERIMENT_NAMES
+from saml_ros.experiments import EXPERIMENT_NAMES, SWEEPS
 from saml_ros.experiments.run_all import default_jobs
 
 
@@ -31,9 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "effect), or all.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("name", choices=(*EXPERIMENT_NAMES, "all", "claims"),
-                   help="an experiment, all of them, or 'claims': rebuild claims.md from the results.json files "
-                        "already under --out")
+    p.add_argument("name", choices=(*EXPERIMENT_NAMES, *SWEEPS, "all", "claims"),
+                   help="an experiment, all of them, 'claims' (rebuild claims.md from the results.json files "
+                        "already under --out) or 'capacity' (the net-size sweep on the demo's landing; not part of "
+                        "'all')")
     p.add_argument("--quick", action="store_true", help="reduced settings (about a minute per experiment)")
     p.add_argument("--out", type=Path, help="output directory (default: results/NAME; for 'all': results)")
     p.add_argument("--seeds", type=int, nargs="+",
@@ -57,6 +58,7 @@ SETTINGS: dict[str, tuple[str, str]] = {
     "friction": ("FrictionSettings", "seeds"),
     "quadrotor": ("QuadrotorSettings", "seeds"),
     "paddle_ball": ("PaddleSettings", "seeds"),
+    "capacity": ("CapacitySettings", "seeds"),
 }
 
 

@@ -182,6 +182,60 @@ def seed_test(a: Any, b: Any) -> SeedTest:
     return SeedTest(paired(ma, mb), [mean_ci(r) for r in a2], [mean_ci(r) for r in b2], paired(a2, b2), rel)
 
 
+@dataclass
+class Power:
+    """How many seeds a seed-level paired t test needs to resolve an effect (:func:`power`).
+
+    Attributes:
+        sd: standard deviation of the per-seed differences SA - UA (from ``n_measured`` seeds).
+        effect: the effect to resolve (same units; e.g. the paper's difference).
+        seeds_narrow: the fewest seeds whose 95 % interval half-width ``t sd / sqrt(n)`` is below ``effect``
+            (an interval narrower than the effect on either side of its mean).
+        seeds_80: the fewest seeds for 80 % power of the two-sided 5 % test against ``effect`` (noncentral t).
+    """
+
+    sd: float
+    effect: float
+    n_measured: int
+    seeds_narrow: int
+    seeds_80: int
+
+    def to_dict(self) -> dict[str, float]:
+        return dict(self.__dict__)
+
+    def line(self, unit: str = "", digits: int = 3) -> str:
+        return (f"per-seed SD of SA − UA {fmt(self.sd, digits)}{unit} (from {self.n_measured} seeds): an interval "
+                f"narrower than ±{fmt(self.effect, digits)}{unit} needs {self.seeds_narrow} seeds, 80 % power against "
+                f"that effect {self.seeds_80} seeds")
+
+
+def power(diffs: Any, effect: float, max_seeds: int = 10_000) -> Power:
+    """Seeds needed (:class:`Power`) for the per-seed differences ``diffs`` (their SD is the spread) to resolve
+    ``effect`` (> 0); ``max_seeds`` when even that many do not."""
+    import scipy.stats
+
+    d = np.asarray(diffs, dtype=float).ravel()
+    d = d[np.isfinite(d)]
+    sd = float(d.std(ddof=1)) if d.size > 1 else math.nan
+    eff = abs(float(effect))
+    if not (math.isfinite(sd) and eff > 0):
+        return Power(sd, eff, int(d.size), max_seeds, max_seeds)
+    narrow = eighty = max_seeds
+    for n in range(2, max_seeds + 1):
+        tq = float(scipy.stats.t.ppf(0.975, n - 1))
+        if narrow == max_seeds and tq * sd / math.sqrt(n) < eff:
+            narrow = n
+        if eighty == max_seeds:
+            nc = eff / (sd / math.sqrt(n)) if sd > 0 else math.inf
+            p = 1.0 if not math.isfinite(nc) else float(
+                scipy.stats.nct.sf(tq, n - 1, nc) + scipy.stats.nct.cdf(-tq, n - 1, nc))
+            if p >= 0.8:
+                eighty = n
+        if narrow < max_seeds and eighty < max_seeds:
+            break
+    return Power(sd, eff, int(d.size), narrow, eighty)
+
+
 def verdict(enough: bool, test: Paired, expect_lower: bool = True) -> str:
     """``"cannot show"`` without headroom; else ``"holds"`` when the seed-level 95 % interval of SA - UA lies on
     the claimed side of 0 (below it when ``expect_lower``), ``"does not hold"`` otherwise (no significant

@@ -66,7 +66,7 @@ from saml_ros.experiments.common import (
     single_threaded,
     write_results,
 )
-from saml_ros.experiments.headroom import Claim, claims_table, headroom, seed_test, verdict
+from saml_ros.experiments.headroom import Claim, Power, claims_table, headroom, power, seed_test, verdict
 from saml_ros.experiments.plan_checks import bound_violation
 from saml_ros.offline.pipelines import TrainedModels, finetune_models, train_models
 from saml_ros.offline.plots import save_figure
@@ -389,18 +389,33 @@ def control_stats(control: dict[str, Any], s: PaddleSettings) -> dict[str, Any]:
     return out
 
 
+#: the paper's effect on the failure rate (full models): UA 20.8 % - SA 0.8 % = 20 points
+PAPER_FAILURE_EFFECT = 0.20
+
+
+def failure_power(test: Any) -> Power:
+    """Seeds a seed-level test of SA - UA failure rates needs for the paper's effect, at the spread of ``test``'s
+    per-seed differences (:func:`saml_ros.experiments.headroom.power`)."""
+    diffs = [b.value - a.value for a, b in zip(test.per_seed_a, test.per_seed_b, strict=True)]
+    return power(diffs, PAPER_FAILURE_EFFECT)
+
+
 def claims(data: dict[str, Any], s: PaddleSettings) -> list[Claim]:
     out = []
     for kind, st in data["stats"].items():
         f, e = st["failure"], st["first_error"]
         pf, pe = f["sa_vs_ua"].by_seed, e["sa_vs_ua"].by_seed
         if kind == "full":
+            pw = failure_power(f["sa_vs_ua"])
             out.append(Claim(f"paddle ({kind})", f"SA fails less often than UA ({s.n_bounces} bounces)",
                              "0.8 % vs 20.8 %",
                              f"{100 * pf.mean_b:.1f} % vs {100 * pf.mean_a:.1f} %; SA − UA {100 * pf.diff:+.1f} "
                              f"[{100 * pf.ci_low:+.1f}, {100 * pf.ci_high:+.1f}] points ({pf.n} seeds)",
                              f["headroom"].headroom.pct(), verdict(f["headroom"].enough, pf),
-                             f"base fails {100 * f['headroom'].base:.0f} %, oracle {100 * f['headroom'].oracle:.0f} %"))
+                             f"base fails {100 * f['headroom'].base:.0f} %, oracle {100 * f['headroom'].oracle:.0f} %; "
+                             f"power: per-seed SD of SA − UA {100 * pw.sd:.1f} points, so the paper's effect "
+                             f"({100 * PAPER_FAILURE_EFFECT:.0f} points) needs {pw.seeds_narrow} seeds for an interval "
+                             f"narrower than it and {pw.seeds_80} for 80 % power"))
         paper = PAPER[(kind, "sufficient")][1] + " vs " + PAPER[(kind, "uniform")][1] + " m"
         out.append(Claim(f"paddle ({kind})", "SA's landing error is below UA's (first bounce)", paper,
                          f"{fmt(pe.mean_b)} vs {fmt(pe.mean_a)} m; SA − UA {fmt(pe.diff, 4)} [{fmt(pe.ci_low, 4)}, "

@@ -32,6 +32,9 @@ class PlanChecks:
 
     solves: int = 0
     unsuccessful: int = 0
+    #: unsuccessful solves whose violation no control could avoid (fixed by the current state, e.g. a quadrotor
+    #: already below the height bound): the state's fault, not the plan's
+    unavoidable: int = 0
     #: largest control-bound violation over every plan_u returned (must stay 0)
     max_u_violation: float = 0.0
     #: largest violation of the problem's state constraints among plans reported successful (must stay <= tol)
@@ -45,6 +48,7 @@ class PlanChecks:
         violation of the problem's state constraints on its plan (NaN when the plan has no finite prediction)."""
         self.solves += 1
         self.unsuccessful += int(not res.success)
+        self.unavoidable += int(not res.success and bool(getattr(res, "unavoidable", False)))
         self.max_u_violation = max(self.max_u_violation, bound_violation(res.plan_u, low, high),
                                    bound_violation(res.u[None], low, high))
         if np.isfinite(state_violation):
@@ -69,6 +73,7 @@ class PlanChecks:
     def merge(self, other: PlanChecks) -> None:
         self.solves += other.solves
         self.unsuccessful += other.unsuccessful
+        self.unavoidable += other.unavoidable
         self.max_u_violation = max(self.max_u_violation, other.max_u_violation)
         self.max_state_violation_success = max(self.max_state_violation_success, other.max_state_violation_success)
         self.max_state_violation_any = max(self.max_state_violation_any, other.max_state_violation_any)

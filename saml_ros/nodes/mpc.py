@@ -19,6 +19,13 @@ ball's ``post_impact`` while the live monitor's roll back is on (``guard.rollbac
   ``/diagnostics``).
 * Deadline: a control step (swap + solve + publish, from the state's arrival in lockstep or the timer tick in
   realtime) that takes longer than ``deadline_ms`` counts as a deadline miss.
+* A robot described by a system file (``system_file:=robot.yaml`` with an ``mpc:`` section; docs/your_robot.md,
+  "Control it"): the node lives in ``/<name>`` (unless remapped), reads the robot's state on its own topic and type
+  and commands it on its own command topic and type through the file's field paths, plans with the generic
+  planner (``saml_ros.core.mpc.generic``), takes goals (and a reference path) from the topics the section names (a
+  NaN or out-of-bounds goal is refused, counted ``rejected/goal``, the last goal kept), and sends the safe command
+  for a state older than ``state_timeout`` or while none arrives for that long (``safe_commands/stale``). A bad
+  file ends the node at start with exit 2 and a line naming the key.
 * A managed node (docs/nodes.md, "Lifecycle"): ``configure`` reads and validates the parameters, builds the
   controller and loads the newest checkpoint, ``activate`` subscribes ``state`` and commands, ``deactivate``
   unsubscribes (no ``cmd`` at all: the robot side falls back to its safe command after its command timeout,
@@ -40,6 +47,7 @@ import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
@@ -68,6 +76,8 @@ from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, pr
 
 #: exit code for invalid parameters (as argparse's usage errors)
 USAGE_ERROR = 2
+#: parameters that cannot both be given (a system file names its system)
+EXCLUSIVE = (("system", "system_file"),)
 
 
 class MPCNode(ManagedNode):
@@ -77,12 +87,14 @@ class MPCNode(ManagedNode):
         super().__init__("mpc", namespace)
         self.system_name = system_name
         self.table = MPCConfig.params(system_name)
-        start_params(self, self.table, MPCConfig.from_params, earlier=self.param_problems)
-        self.params_guard = ParamGuard(self, self.table, MPCConfig.from_params, self._apply_live,
+        start_params(self, self.table, MPCConfig.from_params, EXCLUSIVE, earlier=self.param_problems)
+        self.params_guard = ParamGuard(self, self.table, MPCConfig.from_params, self._apply_live, exclusive=EXCLUSIVE,
                                        extra=LIFECYCLE_PARAMS)
         self.schema = get_schema(system_name)
         # state and cmd as CDR bytes without message objects (msg_schemas.cdr), the lockstep path's cost
         self._state_cdr, self._control_cdr = CdrCodec(self.schema.state), CdrCodec(self.schema.control)
+        # a robot's state without a header (e.g. Float64MultiArray) is stamped on receipt, from the message object
+        self._unstamped_state = not getattr(self.schema.state, "stamped", True)
         self._status_cdr = NamedVectorCdr()
         self.service: MPCService | None = None
         self.state_sub: Any = None
@@ -92,7 +104,14 @@ class MPCNode(ManagedNode):
     # ------------------------------------------------------------------------------------------ lifecycle
     def configure_node(self) -> None:
         try:
-            config = MPCConfig.from_params(current_values(self, self.table))
+            values = current_values(self, self.table)
+            if values.get("system_file"):  # read again: a file edited since the node started is checked now
+                from saml_ros.user_code import load_robot_param
+
+                if load_robot_param(values["system_file"]).name != self.system_name:
+                    raise ValueError(f"parameter 'system_file': {values['system_file']} now names another robot "
+                                     f"than {self.system_name!r}")
+            config = MPCConfig.from_params(values)
         except ValueError as exc:
             raise TransitionRefused(str(exc)) from None
         if config.system != self.system_name:
@@ -103,7 +122,7 @@ class MPCNode(ManagedNode):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # cmd is a lifecycle publisher: it publishes only while the node is active
         self.cmd_pub = self.create_lifecycle_publisher(RCLPY.cls(self.schema.control.msg_type),
-                                                       self.schema.cmd_topic, DATA_QOS.to_rclpy())
+                                                       self.schema.cmd_topic, self._qos(self.schema.cmd_topic))
         self.status_pub = self.create_publisher(JointState, MPC_STATUS_TOPIC, TELEMETRY_QOS.to_rclpy())
         self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, TELEMETRY_QOS.to_rclpy())
         self._entities = [
@@ -118,6 +137,17 @@ class MPCNode(ManagedNode):
         if config.mode == "realtime":
             self._entities.append((self.destroy_timer, self.create_timer(1.0 / config.rate_hz, self._on_tick,
                                                                          clock=steady)))
+        if config.state_timeout > 0:  # no state for state_timeout: the safe command
+            self._entities.append((self.destroy_timer, self.create_timer(0.5 * config.state_timeout,
+                                                                         self._on_watchdog, clock=steady)))
+        tracker = service.tracker
+        if tracker is not None:  # a robot's goal and reference topics (its mpc: section)
+            task = tracker.task
+            goal_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+            for spec, callback in ((task.goal_topic, self._on_goal), (task.reference, self._on_reference)):
+                if spec is not None:
+                    self._entities.append((self.destroy_subscription, self.create_subscription(
+                        RCLPY.cls(spec.type), spec.topic, callback, goal_qos)))
         horizon = f"T={config.horizon}" if get_entry(self.system_name).mpc_horizon else "one-shot"
         self.get_logger().info(
             f"{self.system_name} MPC ({config.solver}{', QP ' + QP_BACKEND if config.solver == 'fast' else ''}, "
@@ -125,6 +155,10 @@ class MPCNode(ManagedNode):
             f"deadline {1e3 * service.deadline_s:.0f} ms), goal {config.goal!r}, run_dir "
             f"{config.run_dir or '(none)'}; commands once active"
         )
+        planner = service.diagnostic_values().get("planner")
+        if planner:
+            self.get_logger().info(f"planner: {planner}; commands {self.schema.control.msg_type} on "
+                                   f"{self.resolve_topic_name(self.schema.cmd_topic)}")
 
     def _apply_live(self, live: dict[str, Any]) -> None:
         """Parameters that apply at once: the goal, ``safe_on_infeasible``, ``deadline_ms``, ``poll_period`` and
@@ -139,9 +173,14 @@ class MPCNode(ManagedNode):
         self._diag_timer.timer_period_ns = int(1e9 / config.diagnostics_rate)
 
     def activate_node(self) -> None:
+        qos = self._qos(self.schema.state_topic)
+        if self.service is not None and self.service.config.system_file:
+            # a robot does not wait for answers: a planner slower than the state stream answers the newest state,
+            # never a backlog of old ones (which would only get the safe command as stale)
+            qos.depth = 1
         # raw: the CDR bytes are read without a message object (msg_schemas.cdr; malformed ones as before)
         self.state_sub = self.create_subscription(RCLPY.cls(self.schema.state.msg_type), self.schema.state_topic,
-                                                  self._on_state, DATA_QOS.to_rclpy(), raw=True)
+                                                  self._on_state, qos, raw=not self._unstamped_state)
         if self.service is not None and self.service.guarded is not None and \
                 self.schema.target_topic != self.schema.state_topic:
             self.target_sub = self.create_subscription(RCLPY.cls(self.schema.target.msg_type),
@@ -179,12 +218,17 @@ class MPCNode(ManagedNode):
     def _on_state(self, msg: Any) -> None:
         assert self.service is not None
         t_arrival = time.perf_counter()
+        now_ns = self.get_clock().now().nanoseconds
         try:
-            x, stamp = self._state_cdr.decode(msg, self.schema.state_topic)
+            if self._unstamped_state:
+                codec: Any = self.schema.state  # a FieldPathCodec: an unstamped message takes its receipt time
+                x, stamp = codec.from_msg(msg, self.schema.state_topic, receipt_ns=now_ns)
+            else:
+                x, stamp = self._state_cdr.decode(msg, self.schema.state_topic)
         except SchemaError as exc:
             self.service.reject(exc.reason, str(exc))
             return
-        self._publish_status(self.service.receive(x, stamp, t_arrival))
+        self._publish_status(self.service.receive(x, stamp, t_arrival, now_ns))
 
     def _on_target(self, msg: Any) -> None:
         assert self.service is not None
@@ -197,7 +241,29 @@ class MPCNode(ManagedNode):
 
     def _on_tick(self) -> None:
         if self.service is not None and self.state_sub is not None:
-            self._publish_status(self.service.tick())
+            self._publish_status(self.service.tick(self.get_clock().now().nanoseconds))
+
+    def _on_watchdog(self) -> None:
+        if self.service is not None and self.state_sub is not None:
+            self._publish_status(self.service.watchdog(time.perf_counter(), self.get_clock().now().nanoseconds))
+
+    def _on_goal(self, msg: Any) -> None:
+        if self.service is not None and self.service.tracker is not None:
+            task = self.service.tracker.task
+            self.service.goal_message(msg, task.goal_topic.topic if task.goal_topic else "")
+
+    def _on_reference(self, msg: Any) -> None:
+        if self.service is not None and self.service.tracker is not None:
+            task = self.service.tracker.task
+            self.service.reference_message(msg, self.get_clock().now().nanoseconds,
+                                           task.reference.topic if task.reference else "")
+
+    def _qos(self, topic: str) -> Any:
+        """The QoS of ``topic`` in the system's schema (a system file's ``qos``), else the data QoS."""
+        try:
+            return self.schema.topic(topic).qos.to_rclpy()
+        except (KeyError, ValueError, SchemaError):
+            return DATA_QOS.to_rclpy()
 
     # ------------------------------------------------------------------------------------------ publishing
     def _send(self, u: np.ndarray, stamp: int) -> None:
@@ -258,12 +324,34 @@ class MPCNode(ManagedNode):
 def create_node() -> MPCNode:
     """Create the MPC node (``rclpy.init`` must have been called with ``args``).
 
-    The node lives in ``/<system>`` unless the command line remaps ``__ns``: a probe node reads ``system``
-    first, because the namespace must be known when the node is created.
+    The node lives in ``/<system>`` unless the command line remaps ``__ns``: a probe node reads ``system`` (and
+    ``system_file``) first, because the namespace must be known when the node is created. A system file is loaded
+    here (its robot registered; ``ValueError`` naming the file and key when it is wrong); ``system`` next to
+    ``system_file`` is refused by the node's start-up check (both named).
     """
-    system, remapped = probe_system("mpc")
+    system, remapped = probe_system("mpc", file_param="system_file")
+    path, _ = _probe_system_file()
+    if path:
+        from saml_ros.user_code import load_robot_param
+
+        system = load_robot_param(path).name
     get_entry(system)  # a clear error for an unknown name
     return MPCNode(system, None if remapped else f"/{system}")
+
+
+def _probe_system_file() -> tuple[str, bool]:
+    """The ``system_file`` parameter of the command line (a short-lived probe node)."""
+    from rclpy.node import Node
+
+    probe = Node("mpc")
+    try:
+        value = probe.declare_parameter("system_file", "").value
+    except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad overrides
+        raise ValueError(f"parameter 'system_file': {exc}") from None
+    finally:
+        remapped = probe.get_namespace() != "/"
+        probe.destroy_node()
+    return str(value or ""), remapped
 
 
 @process_main
@@ -272,8 +360,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = full_argv("mpc", argv)
     if wants_help(args):
         print(__doc__)
-        print("usage: mpc --ros-args [-p system:=quadrotor] [-p mode:=lockstep] [--params-file config/mpc.yaml] "
-              "[-r __ns:=/quadrotor]")
+        print("usage: mpc --ros-args [-p system:=quadrotor | -p system_file:=robot.yaml] [-p mode:=lockstep] "
+              "[--params-file config/mpc.yaml] [-r __ns:=/quadrotor]")
         return 0
     stop = catch_stop_signals()
     torch.set_num_threads(1)  # checkpoints are tiny; extra threads would only contend for the cores

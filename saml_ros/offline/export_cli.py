@@ -1,4 +1,5 @@
-"""``ros2 run saml_ros export`` / ``./dev export``: write a learned model as ONNX, TorchScript and numpy weights.
+"""``ros2 run saml_ros export`` / ``./dev export``: write a learned model as ONNX, TorchScript, numpy weights and a
+CasADi Function (the weights a parameter vector).
 
     export runs/dd -o export/dd                      # the run directory's newest checkpoint, every format
     export runs/dd/ckpt-000004.saml -o out --format onnx numpy
@@ -10,6 +11,7 @@ difference is printed and stored in ``model.json`` (see saml_ros.core.export and
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -17,7 +19,8 @@ from saml_ros.core.export import FORMATS, ONNX_EXPORTERS, ExportError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="export", description="Export a learned model (ONNX, TorchScript, numpy).",
+    p = argparse.ArgumentParser(prog="export", description="Export a learned model (ONNX, TorchScript, numpy, "
+                                                           "CasADi).",
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("model", type=Path, help="a checkpoint file or a run directory (its newest checkpoint)")
     p.add_argument("-o", "--out", type=Path, required=True, help="output directory")
@@ -51,6 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     if not result.base_exported:
         print("export: WARNING the base model could not be traced: the ONNX / TorchScript files hold the residual "
               "phi alone (see model.json)")
+    if "casadi" in result.files:
+        meta = json.loads((result.out_dir / "model.json").read_text())
+        if not meta.get("casadi_base_exported"):
+            print(f"export: note: model.casadi holds the residual phi alone: {meta.get('casadi_base_export_problem')}")
     return 0
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.online import OnlineConfig, OnlineLearner
+from saml_ros.core.online import HeldoutConfig, OnlineConfig, OnlineLearner
 from saml_ros.core.pairing import Transition
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
@@ -29,6 +29,7 @@ def config(**kw: object) -> OnlineConfig:
         "train": TrainConfig(batch_size=64, primal_lr=3e-3, dual_lr=1e-2),
         "buffer_capacity": 5000,
         "telemetry_window": 300,
+        "heldout": HeldoutConfig(fraction=0.0),  # these tests count transitions: none held out (test_heldout_online)
     }
     base.update(kw)
     return OnlineConfig(**base)  # type: ignore[arg-type]

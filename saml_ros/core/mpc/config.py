@@ -42,6 +42,9 @@ def choose_executor(executor: str, mode: str) -> str:
 PARAMS: tuple[Param, ...] = (
     Param("system", "friction", "system name: friction | quadrotor | paddle_ball (read before the node starts)",
           when=START),
+    Param("system_file", "", "a robot described by a system file with an 'mpc:' section (docs/your_robot.md, "
+                             "'Control it'): planned by the generic planner, commanded on its own topic and type; "
+                             "the system is the file's name (read before the node starts)", when=START),
     Param("solver", "fast", "MPC solver: fast (SQP, warm-started) | slsqp (scipy reference, slow)"),
     Param("horizon", 10, "planning horizon T (steps; ignored by the one-shot paddle problem)"),
     Param("member", 0, "ensemble member of the checkpoint's model used for planning"),
@@ -89,6 +92,9 @@ PARAMS: tuple[Param, ...] = (
     Param("safe_on_infeasible", False, "also answer with the safe command when the plan is finite but violates a "
                                        "constraint (by default only failed or non-finite solves and implausible "
                                        "states are)", when=LIVE),
+    Param("state_timeout", 0.0, "s: answer a state older than this (by its stamp, on the node's clock) with the safe "
+                                "command, and send it while no state arrives for this long (0 = off; a system "
+                                "file's mpc.state_timeout by default)"),
 )
 
 
@@ -149,12 +155,16 @@ class MPCConfig:
     accept_residual_factor: float = 4.0
     safe_on_infeasible: bool = False
     executor: str = "single"  #: the resolved executor (:func:`choose_executor`)
+    state_timeout: float = 0.0  #: s, 0 = off
+    system_file: str = ""
 
     @staticmethod
     def params(system: str) -> list[Param]:
         """The parameter table of an MPC node for ``system``: :data:`PARAMS`, then ``goal.*`` and ``task.*``."""
         entry = get_entry(system)
         table = [replace(PARAMS[0], default=system), *PARAMS[1:]]
+        table = [replace(p, default=type(p.default)(entry.mpc_defaults[p.name])) if p.name in entry.mpc_defaults
+                 else p for p in table]  # a system file's mpc: section sets the horizon, rate, state timeout
         table += [replace(g, name=f"goal.{g.name}", when=LIVE) for g in entry.goal_params]
         table += [replace(t, name=f"task.{t.name}") for t in entry.task_params]
         return table
@@ -201,9 +211,10 @@ class MPCConfig:
                 rollback=p["guard.rollback"], infeasible=p["guard.infeasible"],
                 monitor=MonitorConfig(window=p["guard.window"], min_samples=p["guard.min_samples"],
                                       ratio=p["guard.ratio"], margin=p["guard.margin"]))
-        check(not guard.needs_shooting or entry.mpc_task is not None, "guard.*",
+        check(not guard.needs_shooting or entry.mpc_horizon, "guard.*",
               "off for a one-shot MPC (paddle_ball), except guard.rollback", "on")
         check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])
+        check(p["state_timeout"] >= 0, "state_timeout", ">= 0 (0 = off)", p["state_timeout"])
         with problems.capture("plausible_bounds", prefix="parameter 'plausible_bounds': "):
             parse_overrides(p["plausible_bounds"])
         solver_options: dict[str, Any] = {}
@@ -222,6 +233,7 @@ class MPCConfig:
             task={t.name: p[f"task.{t.name}"] for t in entry.task_params}, guard=guard,
             plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
             safe_on_infeasible=p["safe_on_infeasible"], executor=choose_executor(p["executor"], p["mode"]),
+            state_timeout=p["state_timeout"], system_file=p["system_file"],
         )
 
     def controller_options(self) -> dict[str, Any]:

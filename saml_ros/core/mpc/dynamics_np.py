@@ -359,11 +359,13 @@ class FrictionTrueNP:
 
 class QuadrotorTrueNP:
     """The true quadrotor dynamics (oracle): ``f_hat(x, u (1 + K(x)))`` with the per-motor ground-effect gain K,
-    then ``v' -= dt drag v`` (the optional linear drag).
+    then ``v' -= dt drag v`` (the optional linear drag) and ``v' += dt a_w(p)`` (the optional wind field above the
+    shelter, :meth:`Quadrotor.wind_acceleration`).
 
-    Jacobians: ``dy/du = B_h diag(1 + K)``, ``dy/dx = A_h + B_h diag(u) dK/dx - dt drag [dv'/dv]`` with
-    ``A_h, B_h`` the base model's Jacobians at the produced forces and ``dK/dx`` in closed form (K depends on pz and
-    the attitude only).
+    Jacobians: ``dy/du = B_h diag(1 + K)``, ``dy/dx = A_h + B_h diag(u) dK/dx - dt drag [dv'/dv] + dt da_w/dp`` with
+    ``A_h, B_h`` the base model's Jacobians at the produced forces and ``dK/dx``, ``da_w/dp`` in closed form (K
+    depends on pz and the attitude only, a_w on the position only; the wind's ramp has kinks at its two ends, where
+    the derivative of the clipped side is used, as torch's ``clamp``).
     """
 
     def __init__(self, system: Quadrotor) -> None:
@@ -371,6 +373,25 @@ class QuadrotorTrueNP:
         self.base = QuadrotorBaseNP(system)
         self.arm, self.h_max, self.alpha = system.arm_length, system.h_max, system.alpha
         self.damp = system.dt * system.drag  # velocity lost to drag per step, per unit of velocity
+        self.dt = system.dt
+        self.wind, self.wind_floor, self.wind_ramp = system.wind, system.wind_floor, system.wind_ramp
+        self.wind_k = 2.0 * math.pi / system.wind_length
+
+    def wind_dv(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The wind's velocity change per step ``dt a_w`` ``(B, 2)`` (x and y) and its derivative by the position
+        ``(B, 2, 3)`` at states ``x`` ``(B, 13)`` (the same operations as ``Quadrotor.wind_acceleration``)."""
+        s = (x[:, 2] - self.wind_floor) / self.wind_ramp
+        ramp = np.clip(s, 0.0, 1.0) * self.wind
+        dramp = np.where((s > 0.0) & (s < 1.0), self.wind / self.wind_ramp, 0.0)
+        k = self.wind_k
+        sy, sx = np.sin(k * x[:, 1]), np.sin(k * x[:, 0])
+        dv = np.stack((self.dt * (ramp * sy), self.dt * (ramp * sx)), axis=1)
+        d = np.zeros((x.shape[0], 2, 3))
+        d[:, 0, 1] = self.dt * ramp * k * np.cos(k * x[:, 1])
+        d[:, 0, 2] = self.dt * dramp * sy
+        d[:, 1, 0] = self.dt * ramp * k * np.cos(k * x[:, 0])
+        d[:, 1, 2] = self.dt * dramp * sx
+        return dv, d
 
     def gain(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """K ``(B, 4)`` and dK/dx ``(B, 4, 13)`` at states ``x`` ``(B, 13)``."""
@@ -415,6 +436,8 @@ class QuadrotorTrueNP:
         y = self.base.step(x, u * (1.0 + self.gain(x)[0]))
         if self.damp:
             y[:, 3:6] -= self.damp * x[:, 3:6]
+        if self.wind:
+            y[:, 3:5] += self.wind_dv(x)[0]
         return y
 
     def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -432,6 +455,11 @@ class QuadrotorTrueNP:
         y = self.base.step1(x, np.array(f))
         if self.damp:
             y[3:6] -= self.damp * x[3:6]
+        if self.wind:
+            ramp = min(max((pz - self.wind_floor) / self.wind_ramp, 0.0), 1.0) * self.wind
+            k = self.wind_k
+            y[3] += self.dt * (ramp * math.sin(k * float(x[1])))
+            y[4] += self.dt * (ramp * math.sin(k * float(x[0])))
         return y
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
@@ -441,6 +469,10 @@ class QuadrotorTrueNP:
         if self.damp:
             y[:, 3:6] -= self.damp * x[:, 3:6]
             a[:, 3:6, 3:6] -= self.damp * np.eye(3)
+        if self.wind:
+            dv, dw = self.wind_dv(x)
+            y[:, 3:5] += dv
+            a[:, 3:5, 0:3] += dw
         return y, a, b * (1.0 + k)[:, None, :]
 
 

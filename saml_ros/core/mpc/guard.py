@@ -211,8 +211,10 @@ class GuardedController:
     def __init__(self, learned: ShootingMPC, base: ShootingMPC, config: GuardConfig) -> None:
         if learned.horizon != base.horizon or learned.system is not base.system:
             raise ValueError("guarded MPC: the learned and the base controller must solve the same problem")
-        #: both are shooting MPCs (warm starts, plans over a horizon); otherwise only the roll back applies
-        self.shooting = isinstance(learned, ShootingMPC) and isinstance(base, ShootingMPC)
+        #: both plan over a horizon with warm starts (shooting MPCs, the generic planner of a robot's ``mpc:``
+        #: section); otherwise only the roll back applies
+        self.shooting = all(isinstance(c, ShootingMPC) or (hasattr(c, "warm_start_plan") and
+                                                           hasattr(c, "set_warm_start")) for c in (learned, base))
         if not self.shooting and config.needs_shooting:
             raise ValueError(f"guarded MPC: only guard.rollback applies to the {learned.system.name} MPC (one-shot); "
                              "the other remedies need the shooting MPC")
@@ -304,7 +306,11 @@ class GuardedController:
         self._active = act
         self.learned.set_model(act.model)
         if act.bound is not None:
-            self.learned.dyn = BoundedDynamics(self.learned.dyn, act.bound)  # type: ignore[assignment]
+            set_bound = getattr(self.learned, "set_residual_bound", None)  # the generic planner clips phi itself
+            if set_bound is not None:
+                set_bound(act.bound)
+            else:
+                self.learned.dyn = BoundedDynamics(self.learned.dyn, act.bound)  # type: ignore[assignment]
         self.monitor.reset()
 
     def reset(self) -> None:
@@ -384,6 +390,9 @@ class GuardedController:
         """Whether the bound clipped phi anywhere on the learned plan ``res`` flies."""
         dyn = self.learned.dyn
         bound = self._active.bound
+        clipped = getattr(self.learned, "phi_clipped", None)  # the generic planner
+        if clipped is not None and bound is not None:
+            return bool(clipped(res))
         if not isinstance(dyn, BoundedDynamics) or bound is None or not np.all(np.isfinite(res.plan_x)):
             return False
         return bool(np.any(np.abs(dyn.mlp.forward(res.plan_x[:-1], res.plan_u)) >= bound))
@@ -466,7 +475,8 @@ class GuardedController:
 def make_guarded_controller(system: System, solver: str = "fast", config: GuardConfig | None = None,
                             **options: Any) -> GuardedController:
     """A :class:`GuardedController` of two :func:`~saml_ros.core.mpc.factory.make_controller` controllers of the
-    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat. A one-shot
+    same problem (``options`` as there; ``member`` is the planning member); it starts on f_hat. The controllers are
+    shooting MPCs (friction, quadrotor) or the generic planner of a robot's ``mpc:`` section; a one-shot
     controller (the paddle ball's) can only have the roll back (``ValueError`` otherwise)."""
     from saml_ros.core.mpc.factory import make_controller
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.models import DynamicsModel, dense_input_layer
 
 
 class NumpyMLP:
@@ -33,8 +33,7 @@ class NumpyMLP:
             ws = [w[member].double().numpy().copy() for w in net.weights]
             bs = [b[member, 0].double().numpy().copy() for b in net.biases]
             self.slopes = [float(s[member].item()) for s in net.slopes]
-            mean = model.in_mean[member, 0].double().numpy()
-            std = model.in_std[member, 0].double().numpy()
+            mean, std, ws[0] = dense_input_layer(model, member)  # every [x, u] field (zero rows: not seen)
             ostd = model.out_std[member, 0].double().numpy()
         # ((z - mean) / std) @ W0 + b0 == z @ (W0 / std) + (b0 - (mean / std) @ W0)
         w0 = ws[0] / std[:, None]

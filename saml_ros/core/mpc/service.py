@@ -59,9 +59,11 @@ from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, Rea
 from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import make_controller
+from saml_ros.core.mpc.generic.goals import GoalRefused, GoalTracker
 from saml_ros.core.mpc.guard import GuardedController, make_guarded_controller
 from saml_ros.core.mpc.shooting.native import NOT_SOLVED
 from saml_ros.core.plausibility import Plausibility
+from saml_ros.core.systems.mpc_section import MPCTask
 from saml_ros.core.systems.registry import get_entry
 
 #: recent (state, command) pairs kept as the acceptance check's probe rows
@@ -115,6 +117,18 @@ class MPCService:
         self.pending: tuple[np.ndarray, int, float] | None = None  # realtime: newest unanswered state
         self.step_ms_max_swap = 0.0
         self._last_warn: dict[str, float] = {}
+        #: the goal each solve plans for (``Controller.solve``'s argument): the ``goal.*`` parameters', until
+        #: :meth:`set_goal` replaces it (a goal topic)
+        self.goal: Any = config.goal
+        #: a robot's goal / reference from its topics (its ``mpc:`` task), else None
+        self.tracker: GoalTracker | None = None
+        task = getattr(self.controller, "task", None)
+        if isinstance(task, MPCTask):
+            self.tracker = GoalTracker(task, self.system.dt, {f.name: f.unit for f in self.system.state.fields})
+            self.tracker.set_goal(config.goal)
+            self.goal = self.tracker
+        self.last_arrival: float | None = None  # perf_counter of the newest state's arrival (the stale watchdog)
+        self._stale_sent = 0.0  # perf_counter of the watchdog's last safe command
         run_dir = Path(config.run_dir) if config.run_dir else None
         vet = acceptance_hook(self.bounds, self.recent_probe, AcceptanceConfig(config.accept_residual_factor))
         self.watcher = ModelWatcher(self.system, run_dir, poll_period=config.poll_period, logger=logger,
@@ -147,30 +161,87 @@ class MPCService:
         self.counters[f"rejected/{reason}"] += 1
         self.warn_throttled(f"rejected/{reason}", f"dropped a message ({reason}): {text}")
 
-    def receive(self, x: np.ndarray, stamp: int, t_arrival: float) -> Answer | None:
-        """A decoded state (``t_arrival``: ``time.perf_counter()`` at its arrival): the answer in lockstep,
-        ``None`` in realtime (answered by the next :meth:`tick`) or for a duplicate stamp (rejected)."""
+    def receive(self, x: np.ndarray, stamp: int, t_arrival: float, now_ns: int | None = None) -> Answer | None:
+        """A decoded state (``t_arrival``: ``time.perf_counter()`` at its arrival; ``now_ns``: the node's clock, for
+        ``state_timeout``): the answer in lockstep, ``None`` in realtime (answered by the next :meth:`tick`) or for
+        a duplicate stamp (rejected)."""
         if self.last_stamp is not None and stamp == self.last_stamp:
             self.reject("duplicate", f"state stamped {stamp} ns was already answered")
             return None
+        self.last_arrival = t_arrival
         if self.config.mode == "lockstep":
-            return self.control_step(x, stamp, t_arrival)
+            return self.control_step(x, stamp, t_arrival, now_ns)
         if self.pending is not None:
             self.counters["skipped_states"] += 1
         self.pending = (x, stamp, t_arrival)
         return None
 
-    def tick(self) -> Answer | None:
-        """Realtime timer: answer the newest state received since the last tick, if any."""
+    def tick(self, now_ns: int | None = None) -> Answer | None:
+        """Realtime timer: answer the newest state received since the last tick, if any (``now_ns``: the node's
+        clock, for ``state_timeout``); without one, the stale-state watchdog (:meth:`watchdog`)."""
         if self.pending is None:
-            return None
+            return self.watchdog(time.perf_counter(), now_ns)
         (x, stamp, _), self.pending = self.pending, None
-        return self.control_step(x, stamp, time.perf_counter())
+        return self.control_step(x, stamp, time.perf_counter(), now_ns)
+
+    def watchdog(self, t_now: float, now_ns: int | None = None) -> Answer | None:
+        """With ``state_timeout`` on: when no state has arrived for that long (``t_now``: ``time.perf_counter()``),
+        send the safe command (counted ``safe_commands/stale``; at most once per ``state_timeout``) and return its
+        status values; else None. The robot is never left on an old command because its state stopped."""
+        timeout = self.config.state_timeout
+        if timeout <= 0 or self.last_arrival is None or t_now - self.last_arrival <= timeout \
+                or t_now - self._stale_sent < timeout:
+            return None
+        self._stale_sent = t_now
+        age = t_now - self.last_arrival
+        u, values = self._safe("stale", f"no state for {age:.3g} s (state_timeout {timeout:g} s)")
+        stamp = int(now_ns) if now_ns is not None else (self.last_stamp or 0)
+        self.send(u, stamp)
+        self._sent.clear()  # the robot got the safe command: no solved command's transition to score
+        values |= {"model_version": float(self.model_version), "solves": float(self.counters["solves"]),
+                   "safe_commands": float(self.counters["safe_commands"]),
+                   "deadline_misses": float(self.counters["deadline_misses"])}
+        return stamp, values
+
+    def set_goal(self, goal: Any) -> None:
+        """Plan for ``goal`` from the next solve on (a robot's: checked here, ``GoalRefused``; others: already
+        checked by the caller)."""
+        if self.tracker is not None:
+            self.tracker.set_goal(goal)
+        else:
+            self.goal = goal
+
+    def goal_message(self, msg: Any, topic: str = "") -> bool:
+        """A message of the robot's goal topic: True when it became the goal; a refused one (NaN, outside the goal
+        bounds, malformed) is counted ``rejected/goal`` and logged, and the last goal is kept."""
+        assert self.tracker is not None
+        try:
+            goal = self.tracker.goal_message(msg, topic)
+        except GoalRefused as exc:
+            self.reject("goal", f"goal refused, keeping {self.tracker.goal.tolist()}: {exc}")
+            return False
+        self.counters["goals"] += 1
+        self.logger.info(f"new goal {dict(zip(self.tracker.fields, np.round(goal, 4).tolist(), strict=True))}")
+        return True
+
+    def reference_message(self, msg: Any, now_ns: int, topic: str = "") -> bool:
+        """A message of the robot's reference topic (``nav_msgs/Path``): True when it is tracked; a refused one is
+        counted ``rejected/reference`` (the current goal or reference kept)."""
+        assert self.tracker is not None
+        try:
+            n = self.tracker.reference_message(msg, now_ns, topic)
+        except GoalRefused as exc:
+            self.reject("reference", f"reference refused: {exc}")
+            return False
+        self.counters["references"] += 1
+        self.logger.info(f"tracking a reference of {n} pose(s)" if n else "reference cleared")
+        return True
 
     # ------------------------------------------------------------------------------------------ control
-    def control_step(self, x: np.ndarray, stamp: int, t_start: float) -> Answer:
+    def control_step(self, x: np.ndarray, stamp: int, t_start: float, now_ns: int | None = None) -> Answer:
         """Swap in a ready model, solve for state ``x`` (stamp ns), send the clipped command, return the status
-        values (``t_start``: ``time.perf_counter()`` when the step's clock started)."""
+        values (``t_start``: ``time.perf_counter()`` when the step's clock started; ``now_ns``: the node's clock,
+        a state older than ``state_timeout`` by it gets the safe command)."""
         if self.last_stamp is not None:
             dt_ns = stamp - self.last_stamp
             # a reset, a new episode or a restarted simulator: the warm start is meaningless
@@ -194,7 +265,13 @@ class MPCService:
             t0 = time.perf_counter()
             self.swap(ready)
             swap_ms = 1e3 * (time.perf_counter() - t0)
-        u, values = self._answer(x, stamp)
+        timeout = self.config.state_timeout
+        age = None if now_ns is None or timeout <= 0 else (now_ns - stamp) * 1e-9
+        if age is not None and age > timeout:
+            u, values = self._safe("stale", f"state stamped {stamp * 1e-9:.3f} s is {age:.3g} s old "
+                                            f"(state_timeout {timeout:g} s)")
+        else:
+            u, values = self._answer(x, stamp, now_ns)
         u = np.clip(u, self.u_low, self.u_high)
         self.send(u, stamp)
         # the live monitor scores transitions from solved commands only (a safe command says nothing of the model)
@@ -301,7 +378,7 @@ class MPCService:
             return None
         return np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows])
 
-    def _answer(self, x: np.ndarray, stamp: int) -> tuple[np.ndarray, dict[str, float]]:
+    def _answer(self, x: np.ndarray, stamp: int, now_ns: int | None = None) -> tuple[np.ndarray, dict[str, float]]:
         """The command for state ``x`` and its status values: the solved one, or the safe command (see the module
         docstring's failure path)."""
         why = self.bounds.outside("state", x) if np.shape(x) == (self.system.state.size,) else None
@@ -309,7 +386,8 @@ class MPCService:
             self.reject("bounds", f"state at t={stamp * 1e-9:.3f} s outside the plausible range: {why}")
             return self._safe("bounds", f"implausible state ({why})")
         try:
-            res = self.controller.solve(x, self.config.goal)
+            goal = self.goal(x, stamp, self.controller.horizon, now_ns) if callable(self.goal) else self.goal
+            res = self.controller.solve(x, goal)
         except Exception as exc:  # noqa: BLE001 - never leave the simulator without an answer
             self.counters["solver_errors"] += 1
             return self._safe("solver_error", f"solver raised {type(exc).__name__}: {exc}")
@@ -404,6 +482,15 @@ class MPCService:
         if self.guarded is not None:  # the learned model's solver once it has solved, else f_hat's
             learned = self.guarded.learned
             solver = learned if getattr(learned, "native_reason", None) != NOT_SOLVED else self.guarded.base
+        describe = getattr(solver, "describe", None)
+        if describe is not None:  # the generic planner: its path, solver and model
+            values["planner"] = describe()
+        if self.tracker is not None:
+            values["goal"] = ", ".join(f"{n}={v:.4g}" for n, v in zip(self.tracker.fields, self.tracker.goal,
+                                                                      strict=True))
+            values["tracking_reference"] = self.tracker.tracking
+            for key in ("goals", "references", "rejected/goal", "rejected/reference"):
+                values[key] = self.counters[key]
         if hasattr(solver, "native_reason"):  # the fast shooting SQP: its numerics in C, or why not
             why = solver.native_reason
             values["solver_kernel"] = "C" if why is None else f"numpy ({why})"

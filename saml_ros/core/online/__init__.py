@@ -3,10 +3,12 @@
 ``learner`` (:class:`OnlineLearner`, the learner's state: buffer, model, trainer, counters), ``ingest`` (the
 ingest path: decode -> pairing -> buffer and recent window), ``telemetry`` (what ``learner/model_error``
 reports), ``resume`` (the newest valid checkpoint of a run directory), ``loop`` (:func:`run_loop`: update pacing,
-telemetry and checkpoint periods), ``process`` (:class:`TrainingProcess`, the parent's handle on the training
+telemetry and checkpoint periods), ``heldout`` (the held-out stretches of the stream and the errors read on
+them), ``process`` (:class:`TrainingProcess`, the parent's handle on the training
 interpreter, and the socket protocol) and ``child`` (what runs in that interpreter).
 """
 
+from saml_ros.core.online.heldout import HeldoutConfig, HeldoutReport
 from saml_ros.core.online.ingest import RawIngest
 from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
 from saml_ros.core.online.loop import LoopConfig, run_loop
@@ -15,6 +17,8 @@ from saml_ros.core.online.resume import ResumeError, ResumeInfo
 from saml_ros.core.online.telemetry import assemble_telemetry
 
 __all__ = [
+    "HeldoutConfig",
+    "HeldoutReport",
     "LearnerSetup",
     "LoopConfig",
     "OnlineConfig",

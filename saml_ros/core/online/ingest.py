@@ -22,6 +22,7 @@ import numpy as np
 
 from msg_schemas.telemetry import REJECT_REASONS
 from saml_ros.core.buffer import ReplayBuffer
+from saml_ros.core.online.heldout import HeldoutSet, heldout_mask
 from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
 from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
@@ -70,11 +71,17 @@ class Ingest:
     ``bounds``: the plausible ranges already-paired batches (:meth:`add_batch`) are checked against (rows with a
     non-finite or implausible value are dropped and counted as ``nan`` / ``bounds``); each source's pairer checks
     single events with its own config's bounds.
+
+    ``heldout``: where transitions of the held-out stretches go instead of the buffer
+    (:func:`~saml_ros.core.online.heldout.heldout_mask` of their stamps); None: every transition is training data.
+    The recent window gets every transition.
     """
 
-    def __init__(self, buffer: ReplayBuffer, recent: RecentWindow, bounds: Plausibility | None = None) -> None:
+    def __init__(self, buffer: ReplayBuffer, recent: RecentWindow, bounds: Plausibility | None = None,
+                 heldout: HeldoutSet | None = None) -> None:
         self.buffer, self.recent = buffer, recent
         self.bounds = bounds
+        self.heldout = heldout
         self._sources: list[StampPairer | ResamplingPairer] = []
         self._batch_rejects: dict[str, int] = {"nan": 0, "bounds": 0}
 
@@ -107,8 +114,13 @@ class Ingest:
         self._sources[source].reject(reason, kind)
 
     def add(self, tr: Transition) -> None:
-        """Add one paired transition to the buffer and the recent window."""
-        self.buffer.add(tr.x, tr.u, tr.y, stamp=tr.stamp_ns * 1e-9, source=tr.source)
+        """Add one paired transition to the buffer (or the held-out set) and the recent window."""
+        stamp = tr.stamp_ns * 1e-9
+        if self.heldout is not None and heldout_mask(stamp, self.heldout.config)[0]:
+            self.heldout.add_batch(np.asarray(tr.x)[None], np.asarray(tr.u)[None], np.asarray(tr.y)[None],
+                                   stamp, tr.source)
+        else:
+            self.buffer.add(tr.x, tr.u, tr.y, stamp=stamp, source=tr.source)
         self.recent.add(tr.x, tr.u, tr.y)
 
     def add_batch(self, x: np.ndarray, u: np.ndarray, y: np.ndarray, stamp: Any = 0.0, source: Any = 0) -> None:
@@ -132,7 +144,15 @@ class Ingest:
             source = np.asarray(source)[keep] if np.ndim(source) else source
             if len(x) == 0:
                 return
-        self.buffer.add_batch(x, u, y, stamp=stamp, source=source)
+        held = None if self.heldout is None else heldout_mask(np.broadcast_to(stamp, len(x)), self.heldout.config)
+        if held is not None and held.any():
+            st, so = np.broadcast_to(stamp, len(x)), np.broadcast_to(source, len(x))
+            self.heldout.add_batch(x[held], u[held], y[held], stamp=st[held], source=so[held])  # type: ignore[union-attr]
+            keep = ~held
+            if keep.any():
+                self.buffer.add_batch(x[keep], u[keep], y[keep], stamp=st[keep], source=so[keep])
+        else:
+            self.buffer.add_batch(x, u, y, stamp=stamp, source=source)
         self.recent.add_batch(x, u, y)
 
     def counts(self) -> dict[str, int]:

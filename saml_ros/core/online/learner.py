@@ -17,6 +17,7 @@ thread. The model is guarded by one lock; the buffer and the recent window have 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -25,12 +26,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from saml_ros.core.buffer import Policy, ReplayBuffer
 from saml_ros.core.checkpoint import CheckpointStore
 from saml_ros.core.model_evidence import DataEvidence
 from saml_ros.core.model_io import UnhealthyModel
 from saml_ros.core.models import MODEL_KINDS, DynamicsModel
+from saml_ros.core.online.heldout import META_KEY as HELDOUT_KEY
+from saml_ros.core.online.heldout import HeldoutConfig, HeldoutReport, HeldoutSet, evaluate
 from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.online.resume import ResumeInfo, resume_newest
 from saml_ros.core.online.storage import WriteBackoff
@@ -55,6 +59,10 @@ RESIDUAL_MARGIN = 1.5
 RESIDUAL_FLOOR = 1e-3
 #: the ``meta["learner"]`` key it is recorded under (read by :func:`saml_ros.core.mpc.guard.residual_bound`)
 RESIDUAL_BOUND_KEY = "residual_bound"
+#: the normalisation is refitted (the function kept, :meth:`DynamicsModel.renormalize`) when the training buffer's
+#: spread of an input or of the residual grew beyond this factor times the fitted one, or the mean of an input moved
+#: by more than the fitted spread (statistics clipped to the 1st..99th percentiles; a spread never shrinks)
+RENORM_FACTOR = 2.0
 
 
 @dataclass
@@ -75,6 +83,19 @@ class OnlineConfig:
         plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.plausibility`) for
             already-paired batches (each source's pairing config carries its own).
         health: the training-health limits (:mod:`saml_ros.core.training.health`).
+        heldout: which stretches of the stream are held out (never trained on) and how many are kept
+            (:mod:`saml_ros.core.online.heldout`).
+        heldout_period: seconds (of the learner's clock) between two evaluations on the held-out set (telemetry,
+            /diagnostics); a checkpoint is always evaluated when written.
+        updates_per_transition: at most this many updates per training transition that arrived since training
+            started (the first ``min_transitions`` included), so a buffer that stops growing is not memorised by
+            ever more updates; 0 = no limit (as fast as the CPU allows).
+        renormalize: refit the input / output normalisation on the training buffer when it has drifted
+            (:data:`RENORM_FACTOR`), keeping the model's function (:meth:`DynamicsModel.renormalize`).
+        average_updates: time constant (updates) of an exponential average of the weights kept beside the
+            trainer's; at every held-out evaluation the one of the two that does better on the held-out stretches is
+            the model checkpoints publish (:meth:`OnlineLearner.evaluate_heldout`). 0 = no average (the trainer's
+            weights are published).
     """
 
     kind: str = "residual"
@@ -88,6 +109,11 @@ class OnlineConfig:
     n_models: int = 1
     plausible_bounds: str = ""
     health: HealthConfig = field(default_factory=HealthConfig)
+    heldout: HeldoutConfig = field(default_factory=HeldoutConfig)
+    heldout_period: float = 1.0
+    updates_per_transition: float = 0.0
+    renormalize: bool = True
+    average_updates: float = 1000.0
 
     def __post_init__(self) -> None:
         if self.kind not in MODEL_KINDS:
@@ -108,6 +134,12 @@ class OnlineConfig:
             raise ValueError(f"n_models must be >= 1, got {self.n_models}")
         if self.telemetry_window < 1 or self.checkpoint_keep < 1:
             raise ValueError("telemetry_window and checkpoint_keep must be >= 1")
+        if not (math.isfinite(self.updates_per_transition) and self.updates_per_transition >= 0):
+            raise ValueError(f"updates_per_transition must be >= 0 (0 = no limit), got {self.updates_per_transition}")
+        if not (math.isfinite(self.average_updates) and self.average_updates >= 0):
+            raise ValueError(f"average_updates must be >= 0 (0 = no average), got {self.average_updates}")
+        if not (math.isfinite(self.heldout_period) and self.heldout_period > 0):
+            raise ValueError(f"heldout_period must be > 0 s, got {self.heldout_period}")
         schedules_for(self.train, 0)  # online training has no epochs: a schedule needs train.schedule_steps
 
 
@@ -149,7 +181,10 @@ class OnlineLearner:
         self.trainer: PrimalDualTrainer | None = None
         self._updates: OnlineUpdates | None = None
         self._recent = RecentWindow(cfg.telemetry_window, n_x, n_u, n_y)
-        self.ingest_path = Ingest(self.buffer, self._recent, Plausibility.for_system(system, cfg.plausible_bounds))
+        #: the held-out stretches of the stream (never in the replay buffer)
+        self.heldout = HeldoutSet(cfg.heldout, n_x, n_u, n_y)
+        self.ingest_path = Ingest(self.buffer, self._recent, Plausibility.for_system(system, cfg.plausible_bounds),
+                                  heldout=self.heldout)
         self._lock = threading.RLock()
         self._rng = np.random.default_rng(cfg.train.seed)
         self._averages = StepAverages(spec.n_constraints)
@@ -165,6 +200,16 @@ class OnlineLearner:
         self._evidence: DataEvidence | None = None
         self.resumed: ResumeInfo | None = None
         self._metrics: dict[str, float] = {}
+        #: the newest held-out report (:meth:`evaluate_heldout`), and when it was made (the learner's clock)
+        self.heldout_report: HeldoutReport | None = None
+        self._heldout_at = -math.inf
+        #: updates and training transitions of this process since training started (the update budget)
+        self._budget_from: tuple[int, int] | None = None
+        self.renormalizations = 0
+        #: the exponential average of the weights (``average_updates``), and which model checkpoints publish:
+        #: ``"latest"`` (the trainer's weights) or ``"average"`` (chosen on the held-out stretches)
+        self.average: DynamicsModel | None = None
+        self.published = "latest"
         if store is not None and resume:
             self._resume(store)
         self.compute_model_metrics()
@@ -218,29 +263,145 @@ class OnlineLearner:
         tr = self.trainer
         return np.zeros(self.spec.n_constraints) if tr is None else tr.lam[0].double().numpy().copy()
 
+    def update_budget(self) -> int | None:
+        """Updates :meth:`update` may still take now under ``updates_per_transition`` (None: no limit)."""
+        rate = self.config.updates_per_transition
+        if rate <= 0:
+            return None
+        if self._budget_from is None:  # training has not started in this process: the first call may start it
+            return int(rate * self.buffer.total_added)
+        updates0, added0 = self._budget_from
+        allowed = rate * (self.buffer.total_added - added0 + self.config.min_transitions)
+        return max(0, int(allowed) - (self.updates - updates0))
+
     def update(self, n_steps: int) -> int:
-        """Run up to ``n_steps`` primal-dual updates; returns how many ran (0 while waiting for data).
+        """Run up to ``n_steps`` primal-dual updates; returns how many ran (0 while waiting for data, or when the
+        update budget of ``updates_per_transition`` is spent until more data arrives).
 
         The first call after ``min_transitions`` transitions arrived fits the normalisation on them and
         creates the trainer.
         """
         if n_steps <= 0 or not self.training:
             return 0
+        budget = self.update_budget()
+        if budget is not None:
+            n_steps = min(n_steps, budget)
+            if n_steps <= 0:
+                return 0
         with self._lock:
             if self.trainer is None:
                 self._start_training()
             assert self.trainer is not None
+            if self._budget_from is None:
+                self._budget_from = (self.updates, self.buffer.total_added)
             if self._updates is None or self._updates.trainer is not self.trainer:
                 self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS, self.config.n_models)
             self._updates.run(n_steps, self.buffer, self._rng, self._averages)
+            self._average_in(n_steps)
             return n_steps
+
+    @torch.no_grad()
+    def _average_in(self, n: int) -> None:
+        """Move the weight average towards the trainer's weights after ``n`` updates (time constant
+        ``average_updates``; the first call copies them)."""
+        tau = self.config.average_updates
+        if tau <= 0:
+            return
+        if self.average is None:
+            self.average = _copy_model(self.model)
+            return
+        keep = math.exp(-n / tau)
+        for pa, pm in zip(self.average.net.parameters(), self.model.net.parameters(), strict=True):
+            pa.mul_(keep).add_(pm, alpha=1.0 - keep)
 
     def _start_training(self) -> None:
         m = self.config.min_transitions
         rows = self.buffer.arrays()  # oldest first: the first min_transitions ever added (capacity >= m)
         self.model.fit_normalization(rows.x[:m], rows.u[:m], rows.y[:m])
         self.trainer = PrimalDualTrainer(self.model, self.spec, self.config.train, self.config.health)
-        log.info("training started: normalisation fitted on the first %d transitions and frozen", m)
+        log.info("training started: normalisation fitted on the first %d transitions%s", m,
+                 " (refitted when the data drifts)" if self.config.renormalize else " and frozen")
+
+    def _training_sample(self) -> Any:
+        """A uniform sample (at most ``heldout.train_sample`` rows) of the training buffer, time order kept."""
+        rows = self.buffer.arrays()
+        k = self.config.heldout.train_sample
+        if len(rows.x) <= k:
+            return rows
+        pick = np.sort(np.random.default_rng([1, self.updates]).choice(len(rows.x), size=k, replace=False))
+        return type(rows)(*(a[pick] for a in rows))
+
+    @torch.no_grad()
+    def _maybe_renormalize(self, rows: Any) -> bool:
+        """Refit the normalisation on ``rows`` (the training sample) when it drifted (:data:`RENORM_FACTOR`),
+        keeping the model's function and rescaling the optimizer's moments of the weights that absorbed it."""
+        tr = self.trainer
+        if tr is None or not self.config.renormalize or len(rows.x) < self.config.min_transitions:
+            return False
+        model = self.model
+        mean, std, ostd = model.normalization_of(rows.x, rows.u, rows.y, robust=True)
+        old_m, old_s, old_o = (b[0].double() for b in (model.in_mean, model.in_std, model.out_std))
+        ratio = torch.cat([(std / old_s).reshape(-1), (ostd / old_o).reshape(-1)])
+        moved = ((mean - old_m).abs() / old_s).max()
+        if not (bool(torch.isfinite(ratio).all()) and bool(torch.isfinite(mean).all())):
+            return False
+        if not (ratio.max() > RENORM_FACTOR or moved > 1.0):
+            return False
+        # a spread only grows: a narrower stretch of data must not blow up a field the model has seen move more
+        std, ostd = torch.maximum(std, old_s), torch.maximum(ostd, old_o)
+        saved = {k: v.clone() for k, v in model.state_dict().items()}
+        rows_f, cols_f = model.renormalize(mean, std, ostd)
+        if not all(bool(torch.isfinite(v).all()) for v in model.state_dict().values()):
+            model.load_state_dict(saved)
+            log.warning("normalisation not refitted: the refitted weights would not be finite")
+            return False
+        if self.average is not None:  # the same normalisation before, so the same exact change
+            self.average.renormalize(mean, std, ostd)
+            if not all(bool(torch.isfinite(v).all()) for v in self.average.state_dict().values()):
+                self.average = None  # started again from the trainer's weights
+        net = model.net
+        for param, factor in ((net.weights[0], rows_f), (net.weights[-1], cols_f), (net.biases[-1], cols_f)):
+            state = tr.primal_opt.state.get(param, {})
+            f = factor.to(param.dtype)
+            if isinstance(state.get("exp_avg"), torch.Tensor):
+                state["exp_avg"].div_(f)
+            if isinstance(state.get("exp_avg_sq"), torch.Tensor):
+                state["exp_avg_sq"].div_(f * f)
+            if isinstance(state.get("momentum_buffer"), torch.Tensor):
+                state["momentum_buffer"].div_(f)
+        self._updates = None  # the update path is rebuilt on the new normalisation
+        self.renormalizations += 1
+        log.info("normalisation refitted on %d training transitions (spread ratio %.3g..%.3g, mean moved %.3g "
+                 "spreads); the model's function is kept", len(rows.x), float(ratio.min()), float(ratio.max()),
+                 float(moved))
+        return True
+
+    def evaluate_heldout(self) -> HeldoutReport | None:
+        """Evaluate the model on the held-out stretches and a sample of the training buffer (refitting the
+        normalisation first when the training data drifted); None before training. With a weight average
+        (``average_updates``) both the trainer's weights and the average are evaluated, and the one that does
+        better on the held-out stretches (:func:`heldout_score`) becomes :attr:`published`; the report is the
+        published model's. Cached for telemetry."""
+        if self.trainer is None:
+            return None
+        with self._lock:
+            rows = self._training_sample()
+            self._maybe_renormalize(rows)
+            held = self.heldout.arrays()
+            report = evaluate(self.model, self.spec, held, rows, self.config.heldout, updates=self.updates)
+            self.published = "latest"
+            if self.average is not None and len(held.x):
+                other = evaluate(self.average, self.spec, held, rows, self.config.heldout, updates=self.updates)
+                if heldout_score(other) < heldout_score(report):
+                    report, self.published = other, "average"
+            report.published = self.published
+        self.heldout_report = report
+        self._heldout_at = self._clock()
+        return report
+
+    def published_model(self) -> DynamicsModel:
+        """The model checkpoints publish (:attr:`published`: the trainer's weights or their average)."""
+        return self.average if self.published == "average" and self.average is not None else self.model
 
     # ------------------------------------------------------------------------------------------ telemetry
     def compute_model_metrics(self) -> dict[str, float]:
@@ -252,10 +413,14 @@ class OnlineLearner:
         history (:func:`~saml_ros.core.online.telemetry.feasibility_metrics`).
         """
         window = self._recent.arrays()
+        if self.trainer is not None and self._clock() - self._heldout_at >= self.config.heldout_period:
+            self.evaluate_heldout()
         with self._lock:
             out = model_metrics(self.model, self.spec, window, self._averages.take(), self.lam, self.updates,
                                 self.model_version)
             out.update(feasibility_metrics(self.trainer, self.spec))
+        if self.heldout_report is not None:
+            out.update(self.heldout_report.metrics(0))
         self._metrics = out
         return dict(out)
 
@@ -263,8 +428,12 @@ class OnlineLearner:
         """The last :meth:`compute_model_metrics` plus live buffer size, update count, model version,
         training flag and checkpoint counters (what a training process reports to its node)."""
         out = dict(self._metrics)
+        budget = self.update_budget()
         out.update(
             buffer_size=float(len(self.buffer)),
+            heldout_buffer=float(len(self.heldout)),
+            update_budget=math.nan if budget is None else float(budget),
+            renormalizations=float(self.renormalizations),
             updates=float(self.updates),
             model_version=float(self.model_version),
             training=1.0 if self.training else 0.0,
@@ -307,7 +476,9 @@ class OnlineLearner:
         """Write the next checkpoint into the store (``None`` if no store or no trainer yet, or if the model is not
         healthy: a non-finite weight is never written; counted in ``checkpoints_unhealthy`` and logged).
 
-        The checkpoint holds the training health (``meta["health"]``) and the evidence of the data
+        The checkpoint holds the model's and f_hat's errors on the held-out stretches, with the training values and
+        verdicts (``meta["heldout"]``, :meth:`evaluate_heldout` of the weights written), the training health
+        (``meta["health"]``) and the evidence of the data
         (:class:`~saml_ros.core.model_evidence.DataEvidence` of the replay buffer, its residual maximum merged with
         that of every earlier checkpoint of this process, and a probe set drawn from the buffer).
 
@@ -344,9 +515,20 @@ class OnlineLearner:
             bound = self.residual_bound()
             if bound is not None:
                 info[RESIDUAL_BOUND_KEY] = bound.tolist()
+            report = self.evaluate_heldout()  # of exactly the weights written (the normalisation refit first)
             metrics = {k: v for k, v in self._metrics.items() if isinstance(v, float)}
+            extra_meta: dict[str, Any] = {"learner": info}
+            if report is not None:
+                metrics.update(report.metrics(0))
+                extra_meta[HELDOUT_KEY] = report.to_meta()
+            if report is not None:
+                info["published"] = self.published
+            raw = None
+            if self.published == "average" and self.average is not None:  # the weights the held-out data chose
+                raw = {k: v.clone() for k, v in self.model.state_dict().items()}
+                self.model.load_state_dict(self.average.state_dict())
             try:
-                path, version = save_checkpoint(self.store, self.trainer, metrics, {"learner": info}, evidence)
+                path, version = save_checkpoint(self.store, self.trainer, metrics, extra_meta, evidence)
             except UnhealthyModel as exc:
                 self.checkpoints_unhealthy += 1
                 self._saved_at = self._clock()  # retry at the next period, not at once
@@ -355,6 +537,9 @@ class OnlineLearner:
             except OSError as exc:
                 self.writes.failed(exc, str(self.store.run_dir))
                 raise
+            finally:
+                if raw is not None:  # training goes on from the trainer's own weights
+                    self.model.load_state_dict(raw)
             ended, outage = self.writes.succeeded()
             if ended:
                 log.warning("checkpoint version %d written to %s: writing works again after %d failed write(s), "
@@ -397,3 +582,26 @@ class OnlineLearner:
             log.warning("resume: skipped %s: %s", p, why)
         log.info("resume: loaded %s (version %d, %d updates, lambda %s)", path, version, trainer.steps,
                  self.lam.tolist())
+
+
+def heldout_score(report: HeldoutReport) -> tuple[float, float]:
+    """How a model did on the held-out stretches, smaller is better: ``(violation, objective)``, compared in that
+    order. ``violation`` sums over constraints and members ``max(0, heldout - eps) / eps`` (a constraint without
+    held-out samples in its region counts 0); ``objective`` is the members' mean held-out objective."""
+    viol = 0.0
+    for t in report.constraints:
+        eps = t.eps or 0.0
+        for est in t.model:
+            if est.n and math.isfinite(est.mean) and eps > 0:
+                viol += max(0.0, est.mean - eps) / eps
+    objs = [e.mean for e in report.objective.model if e.n and math.isfinite(e.mean)]
+    return viol, (sum(objs) / len(objs) if objs else math.inf)
+
+
+def _copy_model(model: DynamicsModel) -> DynamicsModel:
+    """A separate model with ``model``'s architecture, weights and normalisation (no gradients)."""
+    out = DynamicsModel(model.system, model.hidden, model.kind, n_models=model.n_models, inputs=model.inputs)
+    out.to(model.in_mean.dtype)
+    out.load_state_dict(model.state_dict())
+    out.requires_grad_(False)
+    return out

@@ -146,11 +146,14 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
         try:
             started = learner.trainer is not None
             t0 = time.monotonic()
-            if learner.update(n) and started:
+            done = learner.update(n)
+            if done and started:
                 # the call that starts training (normalisation fit, trainer and kernel set-up) is not an update's
                 # cost: counted, it kept the chunks at one update for dozens of chunks
-                took = (time.monotonic() - t0) / n
+                took = (time.monotonic() - t0) / done
                 per_update = took if per_update == 0 else 0.8 * per_update + 0.2 * took
+            if not done:  # the update budget (updates_per_transition) is spent: wait for data
+                conn.poll(0.05)
         except Exception as exc:  # noqa: BLE001 - report, back off, keep going
             send(("error", "training", f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s"))
             time.sleep(1.0)

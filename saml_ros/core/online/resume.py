@@ -67,8 +67,8 @@ def resume_newest(
     Returns ``(None, n)`` when there is none (or none usable: logged as an error, from scratch).
 
     Raises:
-        ResumeError: a checkpoint is of another system, architecture (``kind``, ``hidden``, ``n_models`` of
-            ``architecture``) or constraint set.
+        ResumeError: a checkpoint is of another system, architecture (``kind``, ``hidden``, ``n_models``,
+            ``inputs`` of ``architecture``) or constraint set.
     """
     skipped: list[tuple[Path, str]] = []
     try:
@@ -118,8 +118,8 @@ def _check_and_rebuild(arrays: dict[str, np.ndarray], meta: dict[str, Any], path
     if bad or not bool(torch.isfinite(loaded.lam).all()):
         raise CheckpointError(f"{path}: non-finite weights or multipliers ({bad or ['lam']}): not resumed from")
     arch = loaded.model.architecture()
-    diffs = [f"{k}: checkpoint {arch[k]!r}, configured {want[k]!r}" for k in ("kind", "hidden", "n_models")
-             if arch[k] != want[k]]
+    diffs = [f"{k}: checkpoint {arch[k]!r}, configured {want[k]!r}" for k in ("kind", "hidden", "n_models", "inputs")
+             if arch.get(k) != want.get(k)]
     if loaded.spec.constraint_names != spec.constraint_names:
         diffs.append(f"constraints: checkpoint {loaded.spec.constraint_names}, configured {spec.constraint_names}")
     if diffs:

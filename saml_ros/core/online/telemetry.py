@@ -16,6 +16,11 @@ from saml_ros.core.models import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
 from saml_ros.core.training import PrimalDualTrainer
 from saml_ros.core.training.diagnosis import MIN_ROWS, VERDICT_CODES
+from saml_ros.core.training.heldout import MET, MET_ON_TRAINING_ONLY, NO_HELDOUT, NOT_MET, UNCONFIRMED
+
+#: the number of each held-out verdict in telemetry (``heldout_verdict/<k>``; the words are
+#: :mod:`saml_ros.core.training.heldout`'s)
+VERDICT_NUMBERS: dict[str, int] = {MET: 0, UNCONFIRMED: 1, MET_ON_TRAINING_ONLY: 2, NOT_MET: 3, NO_HELDOUT: 4}
 
 #: extra ``learner/model_error`` values appended after the canonical names
 EXTRA_METRICS: tuple[tuple[str, str, str], ...] = (
@@ -23,6 +28,13 @@ EXTRA_METRICS: tuple[tuple[str, str, str], ...] = (
     ("window", "count", "recent transitions the live errors are computed on"),
     ("error_all", "loss", "live one-step error of the current model on the recent window (the objective's loss)"),
     ("training", "1", "1 while primal-dual updates run, 0 while waiting for min_transitions"),
+    ("heldout_size", "count", "held-out transitions (whole stretches of the stream never trained on) the held-out "
+                              "values are read on"),
+    ("heldout_objective", "loss", "the objective on the held-out stretches (member 0)"),
+    ("heldout_objective_base", "loss", "f_hat's objective on the same held-out stretches"),
+    ("heldout_updates", "count", "the update count of the model the held-out values belong to"),
+    ("heldout_average", "1", "1 when the exponential average of the weights did better on the held-out stretches "
+                             "than the trainer's weights (checkpoints then publish the average), else 0"),
 )
 #: extra per-constraint values (``<name>/<k>``)
 EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
@@ -33,6 +45,17 @@ EXTRA_PER_CONSTRAINT: tuple[tuple[str, str, str], ...] = (
     ("lambda_rising", "1", "1 while lambda_k is still rising over the history's tail, else 0"),
     ("reachable", "loss", "the left-hand side g_k + eps_k the model reaches now (the tail's mean): the bound it "
                           "could meet"),
+    ("heldout", "loss", "the left-hand side of constraint k (e.g. the in-region error) on the held-out stretches "
+                        "(member 0; NaN: none in the region yet)"),
+    ("heldout_se", "loss", "its standard error (batch means over the held-out stretches)"),
+    ("heldout_upper", "loss", "the upper end of its one-sided 95 % interval, heldout + 1.645 heldout_se: met when "
+                              "at most eps_k"),
+    ("heldout_n", "count", "held-out transitions inside region k"),
+    ("heldout_base", "loss", "f_hat's left-hand side on the same held-out stretches"),
+    ("training_lhs", "loss", "the same left-hand side on the training buffer (a sample of it)"),
+    ("heldout_verdict", "code", "the verdict on constraint k read on the held-out stretches: 0 met (upper end of the "
+                                "95 % interval <= eps), 1 unconfirmed, 2 met on training data only, 3 not met, 4 no "
+                                "held-out data (NaN before training)"),
 )
 
 
@@ -59,7 +82,7 @@ def assemble_telemetry(
             out[n] = float(status.get(n, math.nan))
     for c in constraint_names:
         for n, _, _ in EXTRA_PER_CONSTRAINT:
-            out[f"{n}/{c}"] = float(status.get(f"{n}/{c}", 0.0 if n == "n_in" else math.nan))
+            out[f"{n}/{c}"] = float(status.get(f"{n}/{c}", 0.0 if n in ("n_in", "heldout_n") else math.nan))
     return out
 
 

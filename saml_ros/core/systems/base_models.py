@@ -23,7 +23,9 @@ a yaw in ``rad``, ...) and raises :class:`BaseModelError` naming the field.
 
 A user's own base model (``base_model: {function: "my_pkg.dynamics:f_hat", params: {...}}`` or
 ``{entry_point: NAME}`` for an entry point ``NAME`` in the group ``saml_ros.systems`` of an installed package)
-is a function ``f_hat(x, u, *, dt, **params) -> torch.Tensor (B, n_x)``. It is imported (by
+is a function ``f_hat(x, u, *, dt, **params) -> torch.Tensor (B, n_x)``; one that also takes the keyword ``xp`` is an
+*array-namespace form* (:mod:`.base_forms`), called here with torch and differentiated symbolically by the MPC. It is
+imported (by
 :mod:`saml_ros.user_code`: the core imports no code by name) and called on a probe batch when the system is loaded; an import failure, a non-tensor result, a wrong shape, non-finite values or a
 result that depends on the batch composition raise :class:`BaseModelError` there, not later in a node.
 """
@@ -303,12 +305,21 @@ class _UserFunction(BaseModel):
         self.kw = dict(params)
         self.n = len(lay.state)
         self._source = dict(source)
+        from saml_ros.core.systems.base_forms import is_form
+
+        #: an array-namespace form (takes ``xp``, saml_ros.core.systems.base_forms) is called with torch here
+        self.is_form = is_form(fn)
 
     def params(self) -> dict[str, Any]:
         return dict(self.kw)
 
     def __call__(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        out = self.fn(x, u, dt=self.dt, **self.kw)
+        if self.is_form:
+            from saml_ros.core.systems.base_forms import TORCH
+
+            out = self.fn(x, u, dt=self.dt, xp=TORCH, **self.kw)
+        else:
+            out = self.fn(x, u, dt=self.dt, **self.kw)
         if not isinstance(out, torch.Tensor):
             raise BaseModelError(f"base model {self.target}: returned {type(out).__name__}, expected a torch.Tensor "
                                  f"of shape (B, {self.n})")

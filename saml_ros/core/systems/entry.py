@@ -65,6 +65,8 @@ class SystemEntry:
             ``mpc`` of node parameters).
         experiment: name of the paper experiment reproducing this system's results (``saml_ros.experiments``).
         spec_file: the paper's spec as YAML, relative to the repository's ``config/`` directory.
+        mpc_defaults: defaults of the MPC node's parameters this system sets (a system file's ``mpc:`` section:
+            ``horizon``, ``mode``, ``rate_hz``, ``state_timeout``), by parameter name.
     """
 
     name: str
@@ -89,6 +91,7 @@ class SystemEntry:
     bringup: Mapping[str, Any] = field(default_factory=dict)
     experiment: str | None = None
     spec_file: str | None = None
+    mpc_defaults: Mapping[str, Any] = field(default_factory=dict)
 
     # ------------------------------------------------------------------------------------------ dynamics
     def default_params(self) -> dict[str, Any]:

@@ -12,8 +12,16 @@ Base model f_hat: one explicit Euler step of
     omega_dot = I^-1 (T - omega x I omega),
 
 then ``q`` is renormalised. True model: ``f(x, u) = f_hat(x, h(x, u))``, ``h_i = u_i (1 + K_i)`` with the
-ground-effect gain ``K_i = clip(1 - h_prop_i / h_max, 0, 1) * 4 [pi/2 - theta]_+^2 / pi^2 * alpha``, and (only
-with ``drag > 0``, not in the paper) a linear air drag ``v' -= dt drag v`` that f_hat does not know either.
+ground-effect gain ``K_i = clip(1 - h_prop_i / h_max, 0, 1) * 4 [pi/2 - theta]_+^2 / pi^2 * alpha``, and, not in
+the paper and off by default, two effects f_hat does not know either:
+
+* a linear air drag ``v' -= dt drag v`` (``drag > 0``);
+* a horizontal **wind field above a sheltered layer** (``wind > 0``): ``v' += dt a_w(p)`` with
+  ``a_w = wind r(pz) [sin(k py), sin(k px), 0]``, ``k = 2 pi / wind_length`` and the ramp
+  ``r = clip((pz - wind_floor) / wind_ramp, 0, 1)``: still air below ``wind_floor`` (the pad's shelter), the full
+  field ``wind_ramp`` above it. It changes direction every half wavelength across the approach, so a model must
+  spend capacity on it away from the pad (the demo's world, docs/demo.md).
+
 See ``docs/systems.md`` for where this deliberately differs from the printed paper.
 """
 
@@ -82,6 +90,10 @@ class Quadrotor(System):
         drag: linear drag coefficient (1/s) of the true model, ``>= 0``; 0 (default) = the paper's model, whose
             residual is exactly zero above ``h_max`` (docs/experiments.md, quadrotor, says why a variant with drag
             is measured too).
+        wind: amplitude (m/s^2) of the true model's horizontal wind acceleration above the shelter, ``>= 0``; 0
+            (default) = no wind. wind_length: the field's wavelength (m) in x and y, ``> 0``. wind_floor: height (m)
+            of the centre of mass below which the air is still, ``>= 0``. wind_ramp: height (m) over which the wind
+            grows to its full amplitude above ``wind_floor``, ``> 0``.
     """
 
     name = "quadrotor"
@@ -102,6 +114,10 @@ class Quadrotor(System):
         h_max: float = 1.5,
         alpha: float = 0.5,
         drag: float = 0.0,
+        wind: float = 0.0,
+        wind_length: float = 2.0,
+        wind_floor: float = 1.5,
+        wind_ramp: float = 0.5,
     ) -> None:
         own = type(self).__name__
         self.dt = _checks.positive(own, "dt", dt)
@@ -113,6 +129,10 @@ class Quadrotor(System):
         self.h_max = _checks.positive(own, "h_max", h_max)
         self.alpha = _checks.real(own, "alpha", alpha, lo=0.0, hi=1.0)
         self.drag = _checks.real(own, "drag", drag, lo=0.0)
+        self.wind = _checks.real(own, "wind", wind, lo=0.0)
+        self.wind_length = _checks.positive(own, "wind_length", wind_length)
+        self.wind_floor = _checks.real(own, "wind_floor", wind_floor, lo=0.0)
+        self.wind_ramp = _checks.positive(own, "wind_ramp", wind_ramp)
         if 4.0 * self.f_max <= self.mass * self.g:
             raise ValueError(
                 f"{own}: 4 * f_max = {4 * self.f_max} N cannot lift mass * g = {self.mass * self.g} N"
@@ -122,7 +142,8 @@ class Quadrotor(System):
         """Constructor parameters of this instance (``type(self)(**self.params())`` rebuilds it)."""
         return {"dt": self.dt, "mass": self.mass, "inertia": list(self.inertia), "g": self.g,
                 "f_max": self.f_max, "arm_length": self.arm_length, "h_max": self.h_max, "alpha": self.alpha,
-                "drag": self.drag}
+                "drag": self.drag, "wind": self.wind, "wind_length": self.wind_length, "wind_floor": self.wind_floor,
+                "wind_ramp": self.wind_ramp}
 
     @property
     def control_low(self) -> np.ndarray:
@@ -178,9 +199,21 @@ class Quadrotor(System):
 
     def true_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         y = self.euler_step(x, u * (1.0 + self.ground_effect_gain(x)))
-        if self.drag == 0.0:
+        if self.drag == 0.0 and self.wind == 0.0:
             return y
-        return torch.cat((y[:, 0:3], y[:, 3:6] - (self.dt * self.drag) * x[:, 3:6], y[:, 6:]), dim=-1)
+        v = y[:, 3:6]
+        if self.drag != 0.0:
+            v = v - (self.dt * self.drag) * x[:, 3:6]
+        if self.wind != 0.0:
+            v = v + self.dt * self.wind_acceleration(x)
+        return torch.cat((y[:, 0:3], v, y[:, 6:]), dim=-1)
+
+    def wind_acceleration(self, x: torch.Tensor) -> torch.Tensor:
+        """The wind's acceleration ``a_w(p)`` (m/s^2, world frame; zero vertical part); ``(B, 13) -> (B, 3)``."""
+        k = 2.0 * math.pi / self.wind_length
+        ramp = torch.clamp((x[:, 2] - self.wind_floor) / self.wind_ramp, 0.0, 1.0) * self.wind
+        return torch.stack((ramp * torch.sin(k * x[:, 1]), ramp * torch.sin(k * x[:, 0]), torch.zeros_like(ramp)),
+                           dim=-1)
 
     def motor_heights(self, x: torch.Tensor) -> torch.Tensor:
         """Height (m) of each propeller above the ground: ``pz + (R(q) r_i)_z``; ``(B, 13) -> (B, 4)``."""

@@ -7,9 +7,12 @@ process, a script loading a checkpoint) meets the robot as ``get_system(name, de
 the checkpoint or the learner stored: :func:`load_stored_robot`, installed as the registry's loader of unknown
 names, rebuilds and registers it from that alone.
 
-A robot has its own topics and base model but no simulator inside saml_ros and no MPC task: its entry's
-``simulator`` and ``controllers`` raise ``ValueError`` saying so (the MPC node then exits with a configuration
-error), and its goal parameter is a placeholder the MPC never reaches.
+A robot has its own topics and base model but no simulator inside saml_ros: its entry's ``simulator`` raises
+``ValueError`` saying so. A robot whose file has an ``mpc:`` section (:mod:`.mpc_section`) is controlled by the
+generic planner (``saml_ros.core.mpc.generic``): its entry's controllers are that planner's, its goal parameter
+``goal.setpoint`` (the goal fields' default) and its MPC node defaults (horizon, rate, state timeout) the section's.
+Without one, ``controllers`` raise ``ValueError`` naming what to add (the MPC node then exits with a configuration
+error).
 """
 
 from __future__ import annotations
@@ -26,8 +29,25 @@ if TYPE_CHECKING:
 
 
 def _no_mpc(name: str) -> Any:
-    raise ValueError(f"system {name!r} is a robot described by a system file: saml_ros has no MPC task for it "
-                     "(use its exported model in your own controller, docs/your_robot.md)")
+    raise ValueError(f"system {name!r} is a robot described by a system file without an 'mpc:' section: add one "
+                     "(its goal, cost, constraints; docs/your_robot.md, 'Control it') to plan for it, or use its "
+                     "exported model in your own controller")
+
+
+def _generic_controllers(planner: str) -> Any:
+    from saml_ros.core.mpc.generic import generic_controllers
+
+    return generic_controllers(planner)
+
+
+def _setpoint_goal(task: Any) -> Any:
+    def make(entry: SystemEntry, values: Mapping[str, Any]) -> Any:
+        try:
+            return task.check_goal(values["setpoint"])
+        except ValueError as exc:
+            raise ValueError(f"goal.setpoint: {exc}") from None
+
+    return make
 
 
 def _no_simulator(name: str) -> Any:
@@ -49,19 +69,43 @@ def robot_entry(system: FileSystem) -> SystemEntry:
                           function=base_function)
 
     Robot.__name__ = Robot.__qualname__ = f"Robot_{name}"
-    first = system.state.names[0]
+    from saml_ros.core.systems.mpc_section import mpc_task
+
+    task = mpc_task(definition)
+    if task is None:
+        first = system.state.names[0]
+        return SystemEntry(
+            name=name,
+            summary=system.description or f"a robot described by a system file ({system.where})",
+            system_class=lambda: Robot,
+            schema=system.schema,
+            controllers=lambda: _no_mpc(name),
+            sim_node="",
+            simulator=lambda *_: _no_simulator(name),
+            goal_params=(Param("position", [0.0], "not used: this robot's system file has no 'mpc:' section"),),
+            goal_fields=(first,),
+            paper_samples=0,
+            paper_epochs=200,
+        )
+    fields = task.goal_fields
     return SystemEntry(
         name=name,
         summary=system.description or f"a robot described by a system file ({system.where})",
         system_class=lambda: Robot,
         schema=system.schema,
-        controllers=lambda: _no_mpc(name),
+        controllers=lambda: _generic_controllers(task.planner),
         sim_node="",
         simulator=lambda *_: _no_simulator(name),
-        goal_params=(Param("position", [0.0], "not used: a robot from a system file has no MPC task"),),
-        goal_fields=(first,),
+        goal_params=(Param("setpoint", [float(v) for v in task.goal_default],
+                           f"goal of the state fields {list(fields)} (the system file's mpc.goal.default; a goal "
+                           f"topic replaces it)"),),
+        goal_fields=fields,
+        goal_position="setpoint",
+        goal_factory=_setpoint_goal(task),
         paper_samples=0,
         paper_epochs=200,
+        mpc_defaults={"horizon": task.horizon, "mode": "realtime" if task.rate > 0 else "lockstep",
+                      "rate_hz": task.rate if task.rate > 0 else 10.0, "state_timeout": task.state_timeout},
     )
 
 

@@ -52,12 +52,12 @@ _FIELD_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 UNIT_SYMBOLS = frozenset({"m", "s", "rad", "kg", "N", "A", "V", "W", "Pa", "K", "degC", "Hz", "J", "T", "1"})
 _UNIT = re.compile(r"^[A-Za-z0-9]+(\^-?\d+)?([*/][A-Za-z0-9]+(\^-?\d+)?)*$")
 _TOP_KEYS = {"version", "name", "description", "dt", "state", "control", "pairing", "base_model", "model", "spec",
-             "spec_file"}
+             "spec_file", "mpc", "mpc_file"}
 _SECTION_KEYS = {"topic", "type", "fields", "rate", "qos", "frame_id", "child_frame_id", "safe"}
 _FIELD_KEYS = {"name", "unit", "bounds", "path", "angle", "description"}
 _PAIRING_KEYS = {"state", "command", "state_tolerance", "command_guard", "command_timeout", "command_delay",
                  "mixed_command", "latency", "jitter_tolerance"}
-_MODEL_KEYS = {"kind", "hidden"}
+_MODEL_KEYS = {"kind", "hidden", "inputs"}
 _QOS_KEYS = {"reliable", "depth"}
 
 
@@ -240,6 +240,8 @@ def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = No
                                                          for h in hidden):
         raise _fail(where, "model.hidden", f"expected a list of layer sizes >= 1, got {hidden!r}")
     d["model"] = {"kind": kind, "hidden": list(hidden)}
+    if m.get("inputs") is not None:
+        d["model"]["inputs"] = _model_inputs(m["inputs"], where, d)
     if "spec" in d and "spec_file" in d:
         raise _fail(where, "spec_file", "give either 'spec' or 'spec_file', not both")
     if "spec_file" in d:
@@ -251,7 +253,56 @@ def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = No
         except (OSError, yaml.YAMLError) as exc:
             raise _fail(where, "spec_file", f"cannot read {path}: {exc}") from None
     d.setdefault("spec", {"name": "uniform", "objective": {"loss": "l2"}})
+    if "mpc" in d or "mpc_file" in d:
+        d["mpc"] = _mpc_section(d, where, base_dir)
     return d
+
+
+def _mpc_section(d: dict[str, Any], where: str, base_dir: Path | None) -> dict[str, Any]:
+    """The checked ``mpc:`` section (inline, or the file ``mpc_file`` names); see :mod:`.mpc_section`."""
+    from saml_ros.core.systems.mpc_section import MPCSectionError, parse_mpc_section
+
+    if "mpc" in d and "mpc_file" in d:
+        raise _fail(where, "mpc_file", "give either 'mpc' or 'mpc_file', not both")
+    key, raw = "mpc", d.get("mpc")
+    if "mpc_file" in d:
+        path = Path(str(d.pop("mpc_file")))
+        if not path.is_absolute() and base_dir is not None:
+            path = base_dir / path
+        try:
+            raw = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise _fail(where, "mpc_file", f"cannot read {path}: {exc}") from None
+        key = f"mpc (from {path.name})"
+    try:
+        return parse_mpc_section(raw, d, key)
+    except MPCSectionError as exc:
+        raise SystemFileError(where, exc.key, exc.detail) from None
+
+
+def _model_inputs(raw: Any, where: str, d: dict[str, Any]) -> list[str]:
+    """``model.inputs``: the state and control fields the learned residual sees, as qualified names ``x.<field>`` /
+    ``u.<field>`` (a bare name must be a state or a control field, not both)."""
+    state = [f["name"] for f in d["state"]["fields"]]
+    control = [f["name"] for f in d["control"]["fields"]]
+    qualified = [f"x.{n}" for n in state] + [f"u.{n}" for n in control]
+    if not isinstance(raw, list) or not raw:
+        raise _fail(where, "model.inputs", f"expected a non-empty list of state / control fields (of {qualified}), "
+                                           f"got {raw!r}")
+    out: list[str] = []
+    for i, name in enumerate(raw):
+        key = f"model.inputs[{i}]"
+        if not isinstance(name, str):
+            raise _fail(where, key, f"expected a field name, got {name!r}")
+        hits = [q for q in qualified if name in (q, q[2:])]
+        if not hits:
+            raise _fail(where, key, f"{name!r} is not a state or control field (fields: {qualified})")
+        if len(hits) > 1:
+            raise _fail(where, key, f"{name!r} is both a state and a control field: write x.{name} or u.{name}")
+        if hits[0] in out:
+            raise _fail(where, key, f"{name!r} is listed twice")
+        out.append(hits[0])
+    return [q for q in qualified if q in out]  # in [x, u] order
 
 
 def _pairing(raw: Any, where: str, d: dict[str, Any]) -> dict[str, Any]:
@@ -306,6 +357,9 @@ class FileSystem(System):
         self.target = self.state
         self.paper_hidden = tuple(d["model"]["hidden"])
         self.model_kind: str = d["model"]["kind"]
+        #: the fields the learned residual sees (``model.inputs``; None = all), read by ``DynamicsModel``
+        self.model_inputs: tuple[str, ...] | None = (tuple(d["model"]["inputs"]) if d["model"].get("inputs")
+                                                     else None)
         self._x_low = np.array([f["bounds"][0] for f in sf])
         self._x_high = np.array([f["bounds"][1] for f in sf])
         self._u_low = np.array([f["bounds"][0] for f in cf])
@@ -342,6 +396,12 @@ class FileSystem(System):
     @property
     def state_high(self) -> np.ndarray:
         return self._x_high.copy()
+
+    def input_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The declared bounds over ``[x, u]``, ``(low, high)`` each ``(n_x + n_u,)``: the model's input
+        normalisation takes a tenth of their half-width as the smallest spread of a field
+        (:meth:`~saml_ros.core.models.DynamicsModel.input_floor`)."""
+        return np.concatenate([self._x_low, self._u_low]), np.concatenate([self._x_high, self._u_high])
 
     def safe_control(self) -> np.ndarray:
         """The file's ``control.safe`` command (default: zeros clipped into the bounds)."""

@@ -145,7 +145,7 @@ def select_members(model: DynamicsModel, spec: ProblemSpec, heldout: Transitions
 def take_members(model: DynamicsModel, members: Sequence[int]) -> DynamicsModel:
     """A new ensemble of ``model``'s ``members`` (in that order), weights and normalisation copied."""
     idx = torch.as_tensor(list(members), dtype=torch.long)
-    out = DynamicsModel(model.system, model.hidden, model.kind, n_models=len(idx))
+    out = DynamicsModel(model.system, model.hidden, model.kind, n_models=len(idx), inputs=model.inputs)
     out.load_state_dict({k: v.index_select(0, idx).clone() for k, v in model.state_dict().items()})
     return out.to(model.in_mean.dtype)
 

@@ -104,7 +104,7 @@ def test_example_robot_learned_online_recorded_exported(ros_env: RosDomain, ros_
     model = load_model(run)
     assert model.system.name == "diff_drive" and model.loaded.meta["updates"] >= 1000
     res = model.export(tmp_path / "export")
-    assert set(res.files) == {"onnx", "torchscript", "numpy"} and res.base_exported
+    assert set(res.files) == {"onnx", "torchscript", "numpy", "casadi"} and res.base_exported
     assert max(res.max_abs_error.values()) < 1e-5, res.max_abs_error
 
     # the recording: the same pairing rule yields the robot's transitions; the learned model beats f_hat there

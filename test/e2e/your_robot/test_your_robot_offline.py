@@ -141,7 +141,7 @@ def test_train_from_bag_predict_and_export(recording: tuple[Path, dict], tmp_pat
     np.testing.assert_allclose(named["v"], model.predict(xi[:3], ui[:3])[:, 3], rtol=1e-6, atol=1e-7)
     # export: every format reproduces the model on random inputs (the check inside export) and on real data
     res = model.export(tmp_path / "export")
-    assert set(res.files) == {"onnx", "torchscript", "numpy"} and res.base_exported
+    assert set(res.files) == {"onnx", "torchscript", "numpy", "casadi"} and res.base_exported
     assert max(res.max_abs_error.values()) < 1e-5
     import onnxruntime
 

@@ -417,19 +417,24 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
     run_dir = tmp_path / "run"
     params = dict(BASE_PARAMS, run_dir=str(run_dir), min_transitions=200, checkpoint_period=0.5,
                   checkpoint_keep=1000,  # quoted: a -p value is YAML, and this string parameter holds YAML
-                  plausible_bounds='"{x.p: [-.inf, .inf], x.v: [-.inf, .inf], u.u: [-.inf, .inf]}"')
+                  plausible_bounds='"{x.p: [-.inf, .inf], x.v: [-.inf, .inf], u.u: [-.inf, .inf]}"',
+                  # every transition trained on: 800 transitions hold ~50 in the constraint's region, and with a fifth
+                  # held out the objective / constraint trade-off on ~40 of them moves the error over the whole
+                  # distribution by more than what this test measures (that training goes on past absurd values)
+                  **{"heldout.fraction": 0.0})
     learner = Learner(ros_env, params)
     tester = RosSide(ros_env.domain_id)
     try:
-        learner.wait_log("training starts after")
+        learner.wait_log("training starts after", timeout=90.0)
         tester.connect("/friction")
         tester.send("/friction", episodes(400, np.random.default_rng(11), t0=10**9, ep_len=4))
         tester.wait(lambda: tester.counter("model_version") >= 1 and tester.last().get("updates", 0) >= 100, 30.0,
                     "training and a first checkpoint")
         first = tester.counter("model_version")
-        # OK, or WARN from the feasibility verdict alone (a young learner's constraint is "not converged")
+        # OK, or WARN from the verdicts alone (a young learner's constraint is "not converged" in training, or not met /
+        # unconfirmed / without a verdict on the held-out stretches)
         assert tester.counter("train_health/skipped") == 0 and "skipped" not in tester.diag_message
-        assert tester.diag_level == 0 or tester.diag_level == 1 and "not converged" in tester.diag_message, \
+        assert tester.diag_level == 0 or tester.diag_level == 1 and "constraint 'near_origin'" in tester.diag_message, \
             tester.diag_message
         t = 10**12
         for i in range(4):  # a faulty robot: x_t, u_t and x_t+dt of 1e200 m/s
@@ -447,8 +452,8 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
                     90.0, "training to go on")
         assert tester.counter("/friction/paired") == 804 and tester.counter("rejected/bounds") == 0
         assert tester.counter("train_health/unhealthy_streak") < 50 and tester.counter("checkpoints_unhealthy") == 0
-        # never ERROR for health (most steps stay healthy); the feasibility verdict may say ERROR on its own
-        assert all("likely infeasible" in m for m in tester.error_messages), tester.error_messages[:3]
+        # never ERROR for health (most steps stay healthy); the verdicts may say ERROR on their own
+        assert all("likely infeasible" in m or "not met" in m for m in tester.error_messages), tester.error_messages[:3]
         assert learner.stop() == 0
     finally:
         tester.close()

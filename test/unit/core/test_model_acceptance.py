@@ -28,7 +28,7 @@ LOG = logging.getLogger("test_model_acceptance")
 
 def test_the_reasons_are_the_documented_ones() -> None:
     assert REFUSAL_REASONS == CHECKPOINT_REFUSAL_REASONS
-    assert ACCEPTANCE_REASONS == ("non_finite", "implausible", "residual")
+    assert ACCEPTANCE_REASONS == ("non_finite", "implausible", "residual", "heldout")
 
 
 def test_evidence_statistics_merge_and_round_trip(tmp_path: Path) -> None:

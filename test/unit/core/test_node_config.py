@@ -186,4 +186,4 @@ def test_bringup_defaults_only_set_parameters_the_nodes_declare(name: str) -> No
     learner = {"system": name, **entry.bringup["learner"]}
     LearnerConfig.from_params(learner)
     binding = importlib.import_module(f"sim_nodes.{entry.sim_node}").BINDING
-    assert set(entry.bringup["sim"]) <= {p.name for p in binding.all_params()}
+    assert set(entry.bringup["sim"]) <= {p.name for p in binding.param_table()}

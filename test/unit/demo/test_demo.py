@@ -153,3 +153,47 @@ def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: P
     assert got["sets"]["aggressive"]["run's guard"]["guard"]["solves"] == 2 * 50
     assert main(["--guards", str(tmp_path)]) == 2
     assert "not a demo run directory" in capsys.readouterr().out
+
+
+def test_the_demo_world_is_in_the_simulator_the_oracle_and_the_evaluation(tmp_path: Path) -> None:
+    """The demo's second effect (the wind above the pad's shelter) is in all three: the simulator node's system
+    (built from the demo configuration's ``sim`` parameters as the node builds it), the oracle arm's model (zero
+    one-step error on the evaluation's plant, wind included) and the evaluation's plant; a world without it has
+    model error there (so the check can fail)."""
+    from saml_ros.bringup.config import node_params
+    from saml_ros.core.mpc.dynamics_np import NumpyDynamics
+    from saml_ros.core.systems.registry import get_entry
+    from saml_ros.core.worlds.sim_core import SimConfig, SteppedSim
+    from saml_ros.demo.cli import demo_config
+    from saml_ros.demo.evaluation import run_task_and_guard
+    from saml_ros.demo.landing import plant
+    from sim_nodes.binding import read_sim_params
+    from sim_nodes.quadrotor_sim import BINDING
+
+    config = demo_config(0, 60.0)
+    task, _ = run_task_and_guard(config)
+    world = dict(task.world)
+    assert world.get("wind", 0.0) > 0.0, "the demo's world has the wind field"
+    # the simulator node: its parameters from the demo configuration, its system built as SimNode builds it
+    p = read_sim_params(BINDING, node_params(config, tmp_path)["sim"])
+    sim_system = get_entry("quadrotor").make_system(**{k[7:]: v for k, v in p.items() if k.startswith("system.")})
+    assert isinstance(sim_system, Quadrotor)
+    assert sim_system.params() == task.system().params()
+    sim = get_entry("quadrotor").simulator(sim_system, SimConfig(mode="lockstep", seed=0), p)
+    assert isinstance(sim, SteppedSim)
+    # a state in the wind (3 m up, between the wind's extremes), a state in the ground effect, one in between
+    rng = np.random.default_rng(0)
+    xs = np.stack([sim_system.hover_state((0.3, -0.2, z)) for z in (3.0, 1.7, 0.6)])
+    xs[:, 3:6] = rng.uniform(-1, 1, (3, 3))
+    u = sim_system.hover_thrust() + rng.uniform(-1, 1, (3, 4))
+    f = plant(task.system(), task.landing_height)
+    oracle = NumpyDynamics(task.system(), "oracle")
+    windless = NumpyDynamics(get_system("quadrotor"), "oracle")
+    for x, ui in zip(xs, u, strict=True):
+        sim.x = x.copy()
+        sim._step(ui, 0)  # the simulator's own step (lockstep core)
+        y_plant = f(x, ui)
+        np.testing.assert_allclose(sim.x, y_plant, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(oracle.step1(x, ui), y_plant, rtol=0, atol=1e-12)
+        if x[2] > world.get("wind_floor", 1.5):
+            assert np.abs(windless.step1(x, ui) - y_plant)[3:5].max() > 1e-3  # the wind is model error to f

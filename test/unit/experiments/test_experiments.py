@@ -364,3 +364,51 @@ def test_all_gives_each_child_its_options_and_ray_only_to_convergence() -> None:
     assert opts["convergence"] == [*common, "--ray", "local", "--ray-cpus", "2"]
     for name in set(EXPERIMENT_NAMES) - {"convergence"}:
         assert opts[name] == common  # they would refuse --ray (exit 2)
+
+
+# ------------------------------------------------------------------------------------------------ capacity sweep
+def test_capacity_sweep_quick(tmp_path: Path) -> None:
+    """``./dev experiment capacity --quick``: recorded data, SA and UA of two sizes (single nets and ensembles) for two
+    seeds, flown with the demo's guard from the same starts beside f_hat and the oracle, solve times, the table,
+    the figure and the recommendation."""
+    from saml_ros.experiments.capacity import CapacitySettings, run
+    from saml_ros.experiments.cli import settings_for
+
+    s = settings_for("capacity", True, None)
+    assert s == CapacitySettings.quick()
+    data = run(s, tmp_path, progress=False)
+    saved = check_outputs(tmp_path, data)
+    assert data["world"].get("wind", 0.0) > 0  # the demo's world: the wind above the pad's shelter
+    rows = {(r["size"], r["kind"]): r for r in data["rows"]}
+    assert set(rows) == {(size, kind) for size in ("4-4", "8-8") for kind in ("single", "ens")}
+    for r in rows.values():
+        assert r["solve_ms"]["mean_ms"] > 0 and r["solve_ms"]["native"]  # the C kernel solved them
+        for m in ("SA", "UA"):
+            assert len(r["per_seed_captured"][m]) == 2 and math.isfinite(r["landing"][m].value)
+        assert r["verdict"] in ("holds", "does not hold", "cannot show")
+    # the ensemble arm flew with the disagreement check (it has members), the single net without it
+    assert rows[("4-4", "single")]["guard"]["SA"].get("fallbacks", 0) == 0
+    assert rows[("4-4", "ens")]["guard"]["SA"]["solves"] == rows[("4-4", "single")]["guard"]["SA"]["solves"]
+    assert np.asarray(saved["per_start"]["base"]).shape == np.asarray(saved["per_start"]["oracle"]).shape == (2,)
+    assert set(saved["recommendation"]) == {"SA single", "UA single", "SA ens", "UA ens"}
+    for sd in ("0", "1"):
+        assert saved["data"][sd]["transitions"] > 0
+
+
+def test_capacity_recommends_the_smallest_net_by_weights_not_by_noisy_solve_time() -> None:
+    """Small nets solve in the same time within noise: the recommendation is the net with the fewest weights among
+    those capturing >= 90 % of the headroom (here 8-8, although 16-8 measured faster), per method and kind."""
+    from saml_ros.experiments.capacity import recommend
+    from saml_ros.experiments.headroom import Estimate
+
+    def row(hidden: list[int], ms: float, sa: float, ua: float) -> dict[str, Any]:
+        return {"size": "-".join(map(str, hidden)), "hidden": hidden, "kind": "single", "solve_ms": {"mean_ms": ms},
+                "captured": {"SA": Estimate(sa, sa - 0.05, sa + 0.05, 5), "UA": Estimate(ua, ua - 0.05, ua + 0.05, 5)}}
+
+    rows = [row([4, 4], 3.9, 0.5, 0.5), row([8, 8], 4.1, 0.93, 0.82), row([16, 8], 3.8, 0.91, 0.92),
+            row([64, 64], 10.7, 0.96, 0.97)]
+    rec = recommend(rows)
+    assert rec["SA single"]["size"] == "8-8" and rec["UA single"]["size"] == "16-8"
+    assert rec["SA single"]["largest"] == "64-64" and rec["SA single"]["largest_solve_ms"] == 10.7
+    assert "SA ens" not in rec  # no ensemble rows
+    assert recommend([row([4, 4], 3.9, 0.5, 0.5)])["SA single"] is None

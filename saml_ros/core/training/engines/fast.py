@@ -268,7 +268,7 @@ class FastRun:
         """
         d, m = self.data, self.tr.model
         with torch.no_grad():
-            z = torch.cat([d.x, d.u], -1)
+            z = m.select_inputs(torch.cat([d.x, d.u], -1))  # the fields the network sees
             same_norm = bool((m.in_mean == m.in_mean[:1]).all() and (m.in_std == m.in_std[:1]).all())
             self.z_per_member = d.per_member or not same_norm
             if self.z_per_member:

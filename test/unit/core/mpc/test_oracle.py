@@ -36,7 +36,8 @@ def autograd_jac(system: object, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarr
 
 
 SYSTEMS = [("friction", {}), ("friction", {"profile": "periodic"}), ("quadrotor", {}), ("quadrotor", {"drag": 0.3}),
-           ("paddle_ball", {})]
+           ("quadrotor", {"wind": 2.0, "wind_length": 3.0, "wind_floor": 1.0, "wind_ramp": 0.7}),
+           ("quadrotor", {"drag": 0.3, "wind": 2.0}), ("paddle_ball", {})]
 TWINS = {"friction": FrictionTrueNP, "quadrotor": QuadrotorTrueNP, "paddle_ball": PaddleTrueNP}
 
 

@@ -76,6 +76,7 @@ def test_definition_survives_a_checkpoint_round_trip() -> None:
 
 def test_joint_state_by_name_and_malformed_messages() -> None:
     raw = example()
+    del raw["mpc"]  # its task names the example's fields
     raw["state"] = {"topic": "joint_states", "type": "sensor_msgs/JointState", "fields": [
         {"name": "q", "unit": "rad", "bounds": [-3, 3], "path": "position[elbow]"},
         {"name": "qd", "unit": "rad/s", "bounds": [-5, 5], "path": "velocity[elbow]"}]}
@@ -252,6 +253,7 @@ def test_user_base_model_is_used(user_module: str) -> None:
 
 def axes_system(model: dict[str, Any]) -> FileSystem:
     raw = example()
+    del raw["mpc"]  # its task names the example's fields
     raw["state"]["fields"] = [
         {"name": "p", "unit": "m", "bounds": [-1, 1], "path": "pose.pose.position.x"},
         {"name": "v", "unit": "m/s", "bounds": [-1, 1], "path": "twist.twist.linear.x"}]
@@ -336,7 +338,8 @@ def test_user_base_model_reaches_a_training_process_and_a_checkpoint(user_module
 
 def test_a_loaded_robot_is_a_registry_entry(tmp_path: Path) -> None:
     """load_system_file registers the robot: the schema and the system are found by name, a process that only has
-    the stored definition rebuilds it, and the MPC refuses it with a clear message (no task for a robot)."""
+    the stored definition rebuilds it; the MPC plans for it with the generic planner (its mpc: section), and refuses
+    a robot without one with a clear message."""
     from msg_schemas import get_schema
     from saml_ros.core.mpc.factory import make_controller
     from saml_ros.core.systems import get_entry, get_system, unregister_system
@@ -344,8 +347,14 @@ def test_a_loaded_robot_is_a_registry_entry(tmp_path: Path) -> None:
     s = load_system_file(EXAMPLE)
     assert get_schema("diff_drive").state_topic == "odom"
     assert get_entry("diff_drive").make_system().schema_hash() == s.schema_hash()
-    with pytest.raises(ValueError, match="no MPC task for it"):
-        make_controller(s, "fast")  # type: ignore[arg-type]
+    from saml_ros.core.mpc.generic import GenericSQP
+
+    assert isinstance(make_controller(s), GenericSQP)
+    no_task = example()
+    del no_task["mpc"]
+    (tmp_path / "no_task.yaml").write_text(yaml.safe_dump(no_task))
+    with pytest.raises(ValueError, match="without an 'mpc:' section: add one"):
+        make_controller(load_system_file(tmp_path / "no_task.yaml"))
     unregister_system("diff_drive")
     rebuilt = get_system("diff_drive", **s.params())  # the registry loader: from the stored definition alone
     assert rebuilt.schema_hash() == s.schema_hash() and get_entry("diff_drive") is not None

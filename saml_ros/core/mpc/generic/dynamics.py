@@ -1,0 +1,295 @@
+"""The generic planner's prediction model: ``x' = f_hat(x, u) + phi(x, u)`` with exact Jacobians, for any robot.
+
+* **f_hat** (:func:`make_base`): a built-in base model or a user's array-namespace form
+  (:mod:`saml_ros.core.systems.base_forms`) is evaluated with numpy and differentiated by CasADi: its symbolic
+  Jacobians are built once and evaluated for a whole batch in one call (:class:`SymbolicBase`). A user's plain torch
+  function is differentiated by torch autograd (:class:`TorchBase`; exact, about ten times slower). Nobody derives
+  a Jacobian by hand.
+* **phi**: the learned network's frozen float64 copy (:class:`~saml_ros.core.mpc.mlp_np.NumpyMLP`: normalisation
+  folded in, exact Jacobians of the PReLU network); a hot swap copies new numbers into it, nothing is rebuilt. With
+  a residual bound (the guard's ``bound_residual``) phi is clipped per field and its Jacobian is zero where clipped.
+* **angles**: the model is evaluated at the state with its angle fields wrapped into [-pi, pi] (what it was trained
+  on) and the wrapped-off turns are added back to the prediction, so a predicted trajectory is continuous (a yaw
+  past pi keeps growing) while the model sees what it saw in training. The wrap's derivative is 1 almost everywhere.
+
+Shapes: ``x (B, n)``, ``u (B, m)`` -> ``(B, n)``; Jacobians ``(B, n, n)``, ``(B, n, m)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from saml_ros.core.models import DynamicsModel
+from saml_ros.core.mpc.mlp_np import NumpyMLP
+from saml_ros.core.systems.base import System
+from saml_ros.core.systems.base_forms import CASADI, NUMPY, SCALAR, Form, Row, base_form
+
+Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles into [-pi, pi)."""
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+class SymbolicBase:
+    """f_hat from an array-namespace form: numpy evaluation, CasADi Jacobians (see the module docstring).
+
+    Args:
+        form: the form ``(x, u, *, dt, xp, **params) -> (B, n)``.
+        params: its keyword parameters.
+        n, m: state and control sizes; dt: the step (s).
+        label: what it is, for /diagnostics (``built-in 'unicycle'``, ``my_pkg.dyn:f_hat``).
+    """
+
+    derivatives = "CasADi (symbolic)"
+
+    def __init__(self, form: Form, params: dict[str, Any], n: int, m: int, dt: float, label: str) -> None:
+        import casadi as ca
+
+        self.form, self.params, self.n, self.m, self.dt, self.label = form, dict(params), n, m, float(dt), label
+        xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
+        y = ca.reshape(form(xs.T, us.T, dt=self.dt, xp=CASADI, **self.params), n, 1)
+        #: ``(x (n,), u (m,)) -> f_hat (n,)``, symbolic (the CasADi export and the NLP path build on it)
+        self.function = ca.Function("f_hat", [xs, us], [y], ["x", "u"], ["y"])
+        self._jac = ca.Function("f_hat_jac", [xs, us], [y, ca.jacobian(y, xs), ca.jacobian(y, us)])
+        self._maps: dict[int, Any] = {}
+        self.scalar = self._scalar_ok()
+
+    def _scalar_ok(self) -> bool:
+        """Whether the form also runs on floats (:data:`SCALAR`) and agrees with numpy there (a probe)."""
+        rng = np.random.default_rng(0)
+        x, u = rng.normal(size=(1, self.n)), rng.normal(size=(1, self.m))
+        try:
+            got = self.step1_list(x[0].tolist(), u[0].tolist())
+            return bool(np.allclose(got, self.step(x, u)[0], rtol=1e-12, atol=1e-12))
+        except Exception:  # noqa: BLE001 - a form using something floats lack: numpy it is
+            return False
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.asarray(self.form(x, u, dt=self.dt, xp=NUMPY, **self.params), dtype=np.float64)
+
+    def step1_list(self, x: list[float], u: list[float]) -> list[float]:
+        """One next state from one state and control as floats (:data:`SCALAR`)."""
+        return [float(v) for v in self.form(Row(x), Row(u), dt=self.dt, xp=SCALAR, **self.params)]
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        b = x.shape[0]
+        fun = self._maps.get(b)
+        if fun is None:
+            fun = self._maps[b] = self._jac.map(b) if b > 1 else self._jac
+        y, jx, ju = fun(x.T, u.T)
+        n, m = self.n, self.m
+        return (np.asarray(y).T.copy(), np.asarray(jx).reshape(n, b, n).transpose(1, 0, 2).copy(),
+                np.asarray(ju).reshape(n, b, m).transpose(1, 0, 2).copy())
+
+
+class TorchBase:
+    """f_hat as a plain torch function (the system's ``base_step``): evaluated under ``no_grad``, differentiated by
+    torch autograd in one vectorised call per batch (each row is independent, which loading the file checked)."""
+
+    derivatives = "torch autograd"
+
+    def __init__(self, fn: Any, label: str) -> None:
+        self.fn, self.label = fn, label
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            return self.fn(torch.from_numpy(np.ascontiguousarray(x, np.float64)),
+                           torch.from_numpy(np.ascontiguousarray(u, np.float64))).numpy().astype(np.float64)
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        import torch
+        from torch.autograd.functional import jacobian
+
+        xt = torch.from_numpy(np.ascontiguousarray(x, np.float64))
+        ut = torch.from_numpy(np.ascontiguousarray(u, np.float64))
+        jx, ju = jacobian(lambda a, b: self.fn(a, b).sum(0), (xt, ut), vectorize=True)  # (n, B, n), (n, B, m)
+        return self.step(x, u), jx.permute(1, 0, 2).numpy().copy(), ju.permute(1, 0, 2).numpy().copy()
+
+
+def make_base(system: System) -> SymbolicBase | TorchBase:
+    """f_hat of ``system`` for the planner: its array-namespace form when it has one (every built-in base model of a
+    system file, a user's function taking ``xp``), else torch autograd of ``system.base_step``."""
+    base = getattr(system, "base_model", None)
+    n, m = system.state.size, system.control.size
+    found = base_form(base) if base is not None else None
+    if found is not None:
+        form, params = found
+        label = getattr(base, "target", None) or f"built-in {getattr(base, 'kind', '?')!r}"
+        return SymbolicBase(form, params, n, m, system.dt, str(label))
+    label = getattr(base, "target", None) or f"{system.name}.base_step"
+    return TorchBase(system.base_step, str(label))
+
+
+class SmoothMLP:
+    """The network of a :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP` with its PReLU kinks rounded by ``eps`` (in the
+    units of the pre-activations, which the folded input normalisation makes order 1): ``act(h) = 0.5 (1 + a) h +
+    0.5 (1 - a) sqrt(h^2 + eps^2)``, which differs from PReLU by at most ``0.5 |1 - a| eps`` per unit; smooth
+    Jacobians let the Gauss-Newton SQP converge where the exact kinks make it zig-zag. Same interface."""
+
+    def __init__(self, mlp: NumpyMLP, eps: float) -> None:
+        self.mlp, self.eps2 = mlp, float(eps) ** 2
+        self.w_x, self.w_u, self.weights, self.biases, self.slopes = mlp.w_x, mlp.w_u, mlp.weights, mlp.biases, mlp.slopes
+        self._wt = [np.ascontiguousarray(w.T) for w in mlp.weights]
+        self._wxt, self._wut = np.ascontiguousarray(mlp.w_x.T), np.ascontiguousarray(mlp.w_u.T)
+
+    def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        h = np.dot(x, self.w_x) + np.dot(u, self.w_u) + self.biases[0]
+        for i in range(1, len(self.weights)):
+            a = self.slopes[i - 1]
+            h = np.dot(0.5 * (1 + a) * h + 0.5 * (1 - a) * np.sqrt(h * h + self.eps2), self.weights[i]) + self.biases[i]
+        return h
+
+    def forward_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        h = np.dot(x, self.w_x) + np.dot(u, self.w_u) + self.biases[0]
+        grads = []
+        for i in range(1, len(self.weights)):
+            a = self.slopes[i - 1]
+            r = np.sqrt(h * h + self.eps2)
+            grads.append(0.5 * (1 + a) + 0.5 * (1 - a) * h / r)
+            h = np.dot(0.5 * (1 + a) * h + 0.5 * (1 - a) * r, self.weights[i]) + self.biases[i]
+        g = self._wt[-1] * grads[-1][:, None, :]
+        for i in range(len(self.weights) - 2, 0, -1):
+            g = np.dot(g, self._wt[i]) * grads[i - 1][:, None, :]
+        return h, np.dot(g, self._wxt), np.dot(g, self._wut)
+
+
+class GenericDynamics:
+    """``f_hat + phi`` (``kind`` ``"residual"``), ``phi`` alone (``"full"``) or ``f_hat`` alone (``"base"``, no model);
+    see the module docstring.
+
+    Args:
+        system: the robot (its ``angle_indices`` are wrapped).
+        base: f_hat (:func:`make_base`); also used for ``"full"`` models only as a label.
+        model: the learned model, or None.
+        member: the ensemble member planned with.
+        bound: per-field residual bound ``(n,)`` (phi clipped to +-bound), or None.
+        smoothing: round the network's PReLU kinks by this (:class:`SmoothMLP`; 0 = the exact network).
+    """
+
+    def __init__(self, system: System, base: SymbolicBase | TorchBase, model: DynamicsModel | None = None,
+                 member: int = 0, bound: np.ndarray | None = None, smoothing: float = 0.0) -> None:
+        self.system = system
+        self.base = base
+        self.kind = "base" if model is None else model.kind
+        mlp: Any = None if model is None else NumpyMLP(model, member)
+        if mlp is not None and smoothing > 0:
+            mlp = SmoothMLP(mlp, smoothing)
+        self.mlp = mlp
+        self.smoothing = float(smoothing) if mlp is not None else 0.0
+        self.bound = None if bound is None or self.mlp is None else np.asarray(bound, dtype=np.float64)
+        self.angles = np.asarray(getattr(system, "angle_indices", ()), dtype=int)
+
+    def _wrap(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        if not self.angles.size:
+            return x, None
+        xw = x.copy()
+        xw[..., self.angles] = wrap_angle(x[..., self.angles])
+        return xw, x[..., self.angles] - xw[..., self.angles]
+
+    def _phi(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        assert self.mlp is not None
+        phi = self.mlp.forward(x, u)
+        return phi if self.bound is None else np.clip(phi, -self.bound, self.bound)
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Next states ``(B, n)``."""
+        xw, turns = self._wrap(np.asarray(x, dtype=np.float64))
+        u = np.asarray(u, dtype=np.float64)
+        if self.kind == "full":
+            y = self._phi(xw, u)
+        else:
+            y = self.base.step(xw, u)
+            if self.mlp is not None:
+                y = y + self._phi(xw, u)
+        if turns is not None:
+            y[..., self.angles] += turns
+        return y
+
+    def step1(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """One next state ``(n,)`` from ``(n,), (m,)``."""
+        return self.step(np.asarray(x, dtype=np.float64)[None], np.asarray(u, dtype=np.float64)[None])[0]
+
+    def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        """Next states and the exact Jacobians ``(B, n), (B, n, n), (B, n, m)``."""
+        xw, turns = self._wrap(np.asarray(x, dtype=np.float64))
+        u = np.asarray(u, dtype=np.float64)
+        b, n, m = xw.shape[0], xw.shape[1], u.shape[1]
+        if self.kind == "full":
+            y, a, bm = np.zeros((b, n)), np.zeros((b, n, n)), np.zeros((b, n, m))
+        else:
+            y, a, bm = self.base.step_jac(xw, u)
+        if self.mlp is not None:
+            phi, px, pu = self.mlp.forward_jac(xw, u)
+            if self.bound is not None:
+                keep = (np.abs(phi) < self.bound)[:, :, None]
+                phi, px, pu = np.clip(phi, -self.bound, self.bound), px * keep, pu * keep
+            y, a, bm = y + phi, a + px, bm + pu
+        if turns is not None:
+            y[:, self.angles] += turns
+        return y, a, bm
+
+    def rollout(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """Predicted states ``(T+1, n)`` from ``x0 (n,)`` under ``us (T, m)`` (on floats where f_hat's form runs
+        on floats: one numpy call per network layer and step, none for f_hat)."""
+        us = np.asarray(us, dtype=np.float64)
+        xs = np.empty((us.shape[0] + 1, x0.shape[0]))
+        xs[0] = x0
+        if not getattr(self.base, "scalar", False) or self.kind == "full":
+            for t in range(us.shape[0]):
+                xs[t + 1] = self.step(xs[t][None], us[t][None])[0]
+            return xs
+        base, mlp, bound = self.base, self.mlp, self.bound
+        assert isinstance(base, SymbolicBase)
+        angles = [int(i) for i in self.angles]
+        two_pi = 2.0 * np.pi
+        xl = [float(v) for v in x0]
+        ul = us.tolist()
+        for t in range(us.shape[0]):
+            turns = []
+            for i in angles:
+                w = (xl[i] + np.pi) % two_pi - np.pi
+                turns.append(xl[i] - w)
+                xl[i] = w
+            y = base.step1_list(xl, ul[t])
+            if mlp is not None:
+                phi = mlp.forward(np.array(xl), us[t])
+                if bound is not None:
+                    phi = np.clip(phi, -bound, bound)
+                y = [a + b for a, b in zip(y, phi.tolist(), strict=True)]
+            for i, turn in zip(angles, turns, strict=True):
+                y[i] += turn
+            xs[t + 1] = y
+            xl = y
+        return xs
+
+    def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """Predicted states ``(K, T+1, n)`` of ``K`` control sequences ``us (K, T, m)`` from ``x0 (n,)``: one batched
+        step per time step (as cheap for a few sequences as for one)."""
+        k, horizon = us.shape[0], us.shape[1]
+        xs = np.empty((k, horizon + 1, x0.shape[0]))
+        xs[:, 0] = x0
+        for t in range(horizon):
+            xs[:, t + 1] = self.step(xs[:, t], us[:, t])
+        return xs
+
+    def clipped(self, xs: np.ndarray, us: np.ndarray) -> bool:
+        """Whether the residual bound clips phi anywhere along states ``xs (T, n)`` and controls ``us (T, m)``."""
+        if self.bound is None or self.mlp is None:
+            return False
+        xw, _ = self._wrap(np.asarray(xs, dtype=np.float64))
+        return bool(np.any(np.abs(self.mlp.forward(xw, np.asarray(us, dtype=np.float64))) >= self.bound))
+
+    def describe(self) -> str:
+        """Which f_hat and phi this is and how they are differentiated (for /diagnostics)."""
+        phi = {"base": "no phi (f_hat alone)", "residual": "phi: numpy PReLU network (exact Jacobians)",
+               "full": "phi alone (full model), numpy PReLU network"}[self.kind]
+        bound = ", phi clipped to the residual bound" if self.bound is not None else ""
+        if self.smoothing > 0:
+            bound += f", its PReLU kinks rounded by {self.smoothing:g}"
+        return f"f_hat {self.base.label} ({self.base.derivatives} derivatives); {phi}{bound}"
