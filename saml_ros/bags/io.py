@@ -31,6 +31,7 @@ from typing import Any, Literal
 from msg_schemas import QosSpec, TopicSpec, get_schema
 from msg_schemas.names import join_topic, normalize_namespace
 from msg_schemas.telemetry import GLOBAL_TOPICS, TELEMETRY_TOPICS
+from saml_ros.core.errors import SamlError
 
 #: rosbag2 metadata format version Jazzy writes
 BAG_VERSION: Literal[9] = 9
@@ -50,7 +51,7 @@ _UNFINISHED_HINT = (
 )
 
 
-class BagError(ValueError):
+class BagError(SamlError, ValueError):
     """A bag cannot be used; the message names the bag and the problem."""
 
 

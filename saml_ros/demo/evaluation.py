@@ -58,7 +58,7 @@ def run_task_and_guard(config: dict[str, Any]) -> tuple[LandingTask, GuardConfig
 
 def newest_checkpoint(directory: Path) -> tuple[Path, int] | None:
     """The newest valid checkpoint in ``directory`` (path, version), or None."""
-    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model.checkpoint import CheckpointStore
 
     if not directory.is_dir():
         return None
@@ -99,7 +99,7 @@ def _episodes(arm: Arm, task: LandingTask, starts: np.ndarray, solver: str) -> d
     import torch
 
     torch.set_num_threads(1)
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.io import load_model
     from saml_ros.core.mpc import closed_loop, make_controller
     from saml_ros.core.mpc.guard import make_guarded_controller
 

@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 if TYPE_CHECKING:
+    from saml_ros.core.dynamics.system import System
     from saml_ros.core.spec import ProblemSpec
-    from saml_ros.core.systems.base import System
     from saml_ros.offline.pipelines import Comparison
 
 
@@ -320,9 +320,9 @@ def training_summary(cmp: Comparison) -> dict[str, Any]:
 
 def save_models(out: Path, trained: dict[str, Any]) -> dict[str, str]:
     """Save each trained ensemble (``name -> TrainedModels``) as a checkpoint run directory ``out/models/<name>``
-    (load with ``saml_ros.core.model_io.load_model``; member i was trained with seed ``seeds[i]``).
+    (load with ``saml_ros.core.model.io.load_model``; member i was trained with seed ``seeds[i]``).
     Returns ``name -> checkpoint path``."""
-    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model.checkpoint import CheckpointStore
     from saml_ros.core.training import save_checkpoint
 
     paths = {}

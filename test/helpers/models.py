@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore, read_checkpoint
-from saml_ros.core.model_evidence import DataEvidence
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.checkpoint import CheckpointStore, read_checkpoint
+from saml_ros.core.model.evidence import DataEvidence
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import make_controller
 from saml_ros.core.online import OnlineConfig, OnlineLearner
 from saml_ros.core.spec import ProblemSpec

@@ -163,7 +163,7 @@ def test_loading_a_model_does_not_import_the_trainer() -> None:
     none that defines the trainer."""
     graph = _graph()
     assert any(_defines(m, "PrimalDualTrainer") for m in MODULES)
-    for m in ("saml_ros.core.model_io", "saml_ros.core.model_watch"):
+    for m in ("saml_ros.core.model.io", "saml_ros.core.mpc.follower"):
         reached = sorted(t for t in _closure(m, graph)
                          if t.startswith("saml_ros.core.training") or _defines(t, "PrimalDualTrainer"))
         assert not reached, f"{m} reaches {reached}"

@@ -150,7 +150,7 @@ def test_friction_experiment_tiny(tmp_path: Path) -> None:
         errs = saved["profiles"][profile]["model_errors"]["near_origin"]
         assert len(errs["uniform"]["inside"]) == 2 and 0 < errs["frac_inside"] < 0.2
         assert set(d["calibration"]) == {"overall", "in_out_ratio", "inside_over_eps", "headroom"}
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.io import load_model
 
     loaded = load_model(tmp_path / saved["profiles"]["periodic"]["models"]["periodic/sufficient"])
     assert loaded.model.n_models == 2 and loaded.meta["seeds"] == [0, 1]
