@@ -170,7 +170,7 @@ def evaluate_arms(arms: Sequence[Arm], task: LandingTask, starts: np.ndarray, so
 def paired_diff(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     """``a - b`` over the same starts (positive = ``b`` better, for lower-is-better metrics): mean, 95 % t CI,
     p (paired t), fraction of starts where ``b < a``, and the two means."""
-    from saml_ros.experiments.common import paired
+    from saml_ros.core.paired import paired
 
     p = paired(b, a)  # paired(a, b) is b - a
     return {"mean_a": p.mean_b, "mean_b": p.mean_a, "diff": p.diff, "lo": p.ci_low, "hi": p.ci_high,
