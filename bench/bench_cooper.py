@@ -7,7 +7,7 @@ restarts: every seed trains ``--restarts`` initialisations from the ``|h|`` star
 first 80 % of its data, and the library's selection rule (:func:`~saml_ros.core.training.selection.select_members`)
 keeps one per seed on the other 20 %, exactly as ``train --restarts 12 --prelu-init -1`` does.
 
-Every method gets the same network class (:class:`~saml_ros.core.models.DynamicsModel`), the same data, the same
+Every method gets the same network class (:class:`~saml_ros.core.model.network.DynamicsModel`), the same data, the same
 initialisations (restart r of seed s from seed ``s + 100003 r``), the same normalisation, the same minibatch order
 (drawn from one generator as the trainer draws it) and the same primal optimizer (Adam 3e-3, cosine-decayed to 0
 over the run); only the multipliers' method differs:
@@ -54,10 +54,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions, evaluate_spec
 from saml_ros.core.training.config import make_optimizer
 from saml_ros.core.training.diagnosis import TOL

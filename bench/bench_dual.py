@@ -59,9 +59,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.base import System
 from saml_ros.core.training import TrainConfig, Transitions, evaluate_spec
 from saml_ros.core.training.diagnosis import INFEASIBLE, MET, NOT_CONVERGED, TOL
 from saml_ros.core.training.heldout import MET as HELD_MET

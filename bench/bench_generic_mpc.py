@@ -84,7 +84,7 @@ def transitions(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def train(system: Any, n: int, epochs: int, seed: int = 0) -> tuple[Any, float, np.ndarray]:
     """A 5-member ensemble of 32-32 residual networks on the file's spec; (model, seconds, residual bound)."""
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
@@ -179,9 +179,9 @@ Visit = tuple[np.ndarray, np.ndarray, np.ndarray]  # a state and the previous pl
 def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int) -> list[Visit]:
     """Part 2; returns the states the unguarded ensemble planner visited with the plan each solve warm-started from
     (part 3 re-solves them)."""
-    from saml_ros.core.model_monitor import MonitorConfig
     from saml_ros.core.mpc.generic import GenericSQP
     from saml_ros.core.mpc.guard import RESIDUAL_BOUND_KEY, GuardConfig, make_guarded_controller
+    from saml_ros.core.mpc.monitor import MonitorConfig
 
     dyn = _robot()
     guarded = make_guarded_controller(system, "fast", GuardConfig(max_disagreement=0.02, bound_residual=True,

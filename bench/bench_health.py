@@ -20,7 +20,7 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
 from saml_ros.core.systems import get_system
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions

@@ -139,6 +139,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--against", type=Path, metavar="NPZ",
                    help="compare the commands and iteration counts with a --save file of the same settings: a "
                         "speed change that must not change what the MPC does shows 0 and 'identical'")
+    p.add_argument("--no-conversions", action="store_true",
+                   help="skip the message conversion timings (a few seconds; for --save / --against checks)")
     p.add_argument("--tol", type=float, default=0.0, metavar="N",
                    help="with --against: commands within N (newtons) and equal iteration counts count as 'equal "
                         "within N' (exit status 0); for a change of summation order, such as the SQP's C kernel "
@@ -160,9 +162,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     per_iter = 1e3 * float(np.sum(r["parts"]["solve"])) / max(float(it.sum()), 1.0)
     print(f"  SQP iterations per solve: median {np.median(it):.0f}, mean {it.mean():.2f}, max {it.max():.0f}; "
           f"{per_iter:.3f} ms per iteration")
-    print("message conversions per message (us): object path (to_msg + serialize / deserialize + from_msg) vs CDR")
-    for what, obj, cdr in conversions():
-        print(f"  {what:<14} {obj:7.1f} vs {cdr:6.1f}  ({obj / cdr:.1f}x)")
+    if not args.no_conversions:
+        print("message conversions per message (us): object path (to_msg + serialize / deserialize + from_msg) vs "
+              "CDR")
+        for what, obj, cdr in conversions():
+            print(f"  {what:<14} {obj:7.1f} vs {cdr:6.1f}  ({obj / cdr:.1f}x)")
     if args.save is not None:
         np.savez(args.save, commands=r["commands"], iterations=it)
         print(f"  saved the commands and iteration counts to {args.save}")

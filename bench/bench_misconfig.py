@@ -325,8 +325,8 @@ def _base_errors(system: str, config: dict[str, Any], starts: list[np.ndarray], 
 def _checkpoint_errors(system: str, checkpoints: Path, version: int = 0, n: int = 4000) -> tuple[float, float]:
     """Mean squared one-step error of the newest checkpoint in ``checkpoints`` (or of ``version``) and of f_hat,
     on ``n`` fresh samples of the paper's distribution through the true dynamics (NaN without that checkpoint)."""
-    from saml_ros.core.checkpoint import CheckpointError, CheckpointStore
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.checkpoint import CheckpointError, CheckpointStore
+    from saml_ros.core.model.io import load_model
     from saml_ros.core.systems import get_system
 
     try:
@@ -368,8 +368,8 @@ def fly(run_dir: Path, n_starts: int = 30, steps: int = 0, seed: int = 7, versio
     import yaml
 
     from saml_ros.bringup.results import goal_position, task_error
-    from saml_ros.core.checkpoint import CheckpointStore
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.checkpoint import CheckpointStore
+    from saml_ros.core.model.io import load_model
     from saml_ros.core.mpc import closed_loop
     from saml_ros.core.mpc.config import MPCConfig
     from saml_ros.core.mpc.guard import GuardConfig, make_guarded_controller

@@ -40,12 +40,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import LoopStep, MPCResult, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from bench.pairing_timing import DT, MS, T0, N, config, mispaired, run, state, timer, triggered
-from saml_ros.core.resampling import ResamplingPairer
+from saml_ros.core.data.resampling import ResamplingPairer
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online import LoopConfig, OnlineConfig, OnlineLearner, run_loop
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system

@@ -38,10 +38,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
 GRID_NETS: tuple[tuple[int, int], ...] = ((2, 1), (4, 2), (8, 4), (16, 8))

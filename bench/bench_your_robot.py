@@ -219,7 +219,7 @@ def eval_env(setup: RobotSetup) -> dict[str, str]:
 
 def updates_of(run_dir: Path) -> int | None:
     """The update count of a run directory's newest checkpoint."""
-    from saml_ros.core.checkpoint import CheckpointStore, read_checkpoint
+    from saml_ros.core.model.checkpoint import CheckpointStore, read_checkpoint
 
     latest = CheckpointStore(run_dir).latest()
     if latest is None:

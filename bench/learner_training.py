@@ -45,8 +45,8 @@ class Rate:
 
 def training_rate(system_name: str, threads: int, flush_denormal: bool, seconds: float) -> Rate:
     """Updates per second of one training process of ``system_name`` with the given settings."""
+    from saml_ros.core.data.pairing import Transition
     from saml_ros.core.online import LearnerSetup, LoopConfig, OnlineConfig, TrainingProcess
-    from saml_ros.core.pairing import Transition
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems import get_system
 
@@ -105,7 +105,7 @@ def offline_rate(system_name: str, seconds: float) -> float:
 
     import torch
 
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.training import PrimalDualTrainer
     from saml_ros.core.training.dataset import Transitions
 

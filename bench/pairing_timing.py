@@ -1,6 +1,6 @@
 """A timing simulator of a robot, its controller and the learner's stamps, for the pairing rules (no ROS).
 
-:mod:`saml_ros.core.resampling` decides which command each interval of a robot's stream gets. Whether it is
+:mod:`saml_ros.core.data.resampling` decides which command each interval of a robot's stream gets. Whether it is
 right depends on timing no single process sees: when the robot received each command, when it applied it, when
 the learner received it. This module plays all three with delays modelled on what was measured on the shared
 development machine under load (``./dev bench pairing --part ros``: two processes' receive times of one message
@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
+from saml_ros.core.data.resampling import ResampleConfig, ResamplingPairer
 
 MS = 1_000_000
 DT = 10 * MS  # 100 Hz: state rate = controller rate = grid

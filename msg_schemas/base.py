@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.errors import SamlError
+
 #: version of the vector <-> message conventions; part of every schema hash
 CONVENTIONS_VERSION = 1
 
@@ -26,7 +28,7 @@ NS_PER_S = 1_000_000_000
 _INT32_MAX = 2**31 - 1
 
 
-class SchemaError(ValueError):
+class SchemaError(SamlError, ValueError):
     """A message does not match its schema (wrong length, unexpected names, NaN/Inf, bad stamp, ...).
 
     Attributes:

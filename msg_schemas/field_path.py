@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from msg_schemas.base import SchemaError
+from saml_ros.core.errors import SamlError
 
 #: conversions of a geometry_msgs/Quaternion to one Euler angle (rad)
 CONVERSIONS: tuple[str, ...] = ("yaw", "pitch", "roll")
@@ -52,7 +53,7 @@ _CONVERSION = re.compile(rf"^({_NAME})\((.*)\)$")
 _BASE, _NAME_T, _ARRAY, _SEQUENCE = 1, 2, 3, 4
 
 
-class FieldPathError(ValueError):
+class FieldPathError(SamlError, ValueError):
     """A field path that does not fit its message type; the message names both and what is wrong."""
 
     def __init__(self, path: str, msg_type: str, detail: str) -> None:

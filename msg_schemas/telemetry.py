@@ -49,13 +49,13 @@ CLOCK_TOPIC = "/clock"
 
 #: rejection reasons counted by nodes as ``rejected/<reason>``: the :class:`~msg_schemas.base.SchemaError`
 #: reasons, then the learner's pairing reasons, then ``bounds`` (a value outside the system's plausible range,
-#: ``saml_ros.core.plausibility``)
+#: ``saml_ros.core.data.plausibility``)
 REJECT_REASONS: tuple[str, ...] = (
     "shape", "names", "nan", "quaternion", "stamp", "format",
     "duplicate", "out_of_order", "late", "outlier", "unpaired", "bounds",
 )  # fmt: skip
 #: why the MPC refused a checkpoint (``checkpoints_refused/<reason>`` on /diagnostics): unreadable or foreign files
-#: (``saml_ros.core.model_watch``), then a model that fails the acceptance checks (``saml_ros.core.model_acceptance``:
+#: (``saml_ros.core.mpc.follower``), then a model that fails the acceptance checks (``saml_ros.core.mpc.acceptance``:
 #: non-finite weights, predictions outside the plausible range, residuals beyond what the training data showed, a
 #: held-out error worse than f_hat's on the same held-out data)
 CHECKPOINT_REFUSAL_REASONS: tuple[str, ...] = (

@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore, read_checkpoint
-from saml_ros.core.export import FORMATS, ExportResult, export_model
-from saml_ros.core.model_io import LoadedModel, model_from_payload
+from saml_ros.core.model.checkpoint import CheckpointStore, read_checkpoint
+from saml_ros.core.model.io import LoadedModel, model_from_payload
+from saml_ros.export import FORMATS, ExportResult, export_model
 
 
 class Model:
@@ -101,7 +101,7 @@ class Model:
         return self._run(x, u, "base")
 
     def export(self, out_dir: str | Path, formats: Sequence[str] = FORMATS, **kwargs: Any) -> ExportResult:
-        """Write ONNX / TorchScript / numpy files and check them (see :func:`saml_ros.core.export.export_model`)."""
+        """Write ONNX / TorchScript / numpy files and check them (see :func:`saml_ros.export.export_model`)."""
         return export_model(self.loaded.model, out_dir, formats, member=self.member,
                             extra_meta={"checkpoint": str(self.loaded.path), "version": self.loaded.version},
                             **kwargs)

@@ -6,7 +6,7 @@ path. ``base_model: {entry_point: NAME}`` names an entry point in the group ``sa
 package (docs/your_robot.md). The ROS-free core never imports by name (test/test_layers.py); the learner node,
 ``train``, ``bag_info`` and :mod:`saml_ros.api` load system files through :func:`load_system_file` here, which
 resolves the function and hands it to the core. Every failure raises
-:class:`~saml_ros.core.systems.base_models.BaseModelError` naming the target, the file or module that is missing
+:class:`~saml_ros.core.dynamics.base_models.BaseModelError` naming the target, the file or module that is missing
 and where it was looked for (wrapped in a ``SystemFileError`` naming the file).
 
 A system file's definition stores those directories absolute, and a checkpoint stores the definition: a process
@@ -26,7 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from saml_ros.core.systems.base_models import ENTRY_POINT_GROUP, BaseModelError, BaseModelSpec
+from saml_ros.core.dynamics.base_models import ENTRY_POINT_GROUP, BaseModelError, BaseModelSpec
 from saml_ros.core.systems.robot_entry import register_robot
 from saml_ros.core.systems.system_file import FileSystem, SystemFileError, read_system_file
 

@@ -11,8 +11,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from saml_ros.core.data.plausibility import parse_overrides
 from saml_ros.core.params import LIVE, Param, Problems, read_params
-from saml_ros.core.plausibility import parse_overrides
 from saml_ros.core.systems import default_params
 from saml_ros.core.worlds.sim_core import LOCKSTEP_T0_NS, MODES, SimConfig
 

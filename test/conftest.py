@@ -30,8 +30,8 @@ import torch
 from helpers.bag_test_helpers import bad_bags, friction_bag  # noqa: F401  (fixtures for every test, by name)
 from helpers.ros_helpers import ros_env, ros_node  # noqa: F401
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
-from saml_ros.core.systems.base import System
 
 # One intra-op thread, as the nodes and scripts use: on this shared 2-core machine torch's default of one thread
 # per core made a small network's training step 25x slower under load (150 ms instead of 6 ms, measured).

@@ -85,7 +85,7 @@ def main() -> int:
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
     from saml_ros.experiments.robot_eval import evaluate_nested

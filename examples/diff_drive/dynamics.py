@@ -121,7 +121,7 @@ def sample_approach_starts(n: int, rng: np.random.Generator) -> np.ndarray:
 
 def true_step(x: Any, u: Any, *, dt: float, xp: Any, substeps: int = 10, slide: float = 0.0) -> Any:
     """The true dynamics on the measured state, ``(B, 5), (B, 2) -> (B, 5)``, written once for any array namespace
-    ``xp`` (numpy, torch, CasADi: saml_ros.core.systems.base_forms; the walls are left out): the oracle the
+    ``xp`` (numpy, torch, CasADi: saml_ros.core.dynamics.base_forms; the walls are left out): the oracle the
     evaluation plans with, differentiated exactly by CasADi. ``slide``: as :class:`DiffDrive`'s."""
 
     def trac(px: Any, py: Any) -> tuple[Any, Any]:

@@ -2,8 +2,8 @@
 
 For every bag and every system namespace in it, the ``state``, ``applied_cmd`` (and, for the paddle ball,
 ``post_impact``) messages are decoded with ``msg_schemas`` and fed, in the order the recorder received
-them, to the learner's own pairing code (:class:`saml_ros.core.pairing.StampPairer`, one per bag and
-namespace; for a robot described by a system file, its :class:`saml_ros.core.resampling.ResamplingPairer`, an
+them, to the learner's own pairing code (:class:`saml_ros.core.data.pairing.StampPairer`, one per bag and
+namespace; for a robot described by a system file, its :class:`saml_ros.core.data.resampling.ResamplingPairer`, an
 unstamped message taking its log time as receipt time): one implementation pairs online and offline. Malformed
 messages are dropped and counted exactly as the learner counts them (``SchemaError.reason``). A transition
 never spans two bags.
@@ -28,9 +28,9 @@ from msg_schemas import SchemaError, SystemSchema, get_schema
 from msg_schemas.names import join_topic, normalize_namespace
 from msg_schemas.path_codec import FieldPathCodec
 from saml_ros.bags.io import CUSTOM_NAMESPACES, CUSTOM_SYSTEM, Bag, BagError
-from saml_ros.core.pairing import PairingConfig, StampPairer, total_counts
-from saml_ros.core.plausibility import Plausibility
-from saml_ros.core.resampling import ResamplingPairer
+from saml_ros.core.data.pairing import PairingConfig, StampPairer, total_counts
+from saml_ros.core.data.plausibility import Plausibility
+from saml_ros.core.data.resampling import ResamplingPairer
 from saml_ros.core.systems import get_system, system_names
 
 
@@ -178,10 +178,10 @@ def extract_transitions(
 
     Args:
         paths: bag directories (or the ``.mcap`` files inside them).
-        system: a :class:`~saml_ros.core.systems.base.System` or its name.
+        system: a :class:`~saml_ros.core.dynamics.system.System` or its name.
         namespaces: system namespaces to use (default: every namespace of the system found in each bag).
         config: exact-stamp pairing rule and limits (default: the learner's rule for the system: resampling
-            (:mod:`saml_ros.core.resampling`) for a robot from a system file, where an unstamped message's
+            (:mod:`saml_ros.core.data.resampling`) for a robot from a system file, where an unstamped message's
             receipt time is its log time, else exact stamps).
 
     One function on purpose (longer than 80 lines): one streaming pass over the bags' messages in log order

@@ -24,6 +24,8 @@ from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, S
 from dataclasses import dataclass, field
 from typing import Any
 
+from saml_ros.core.errors import SamlError
+
 #: a change applies at once on the running node
 LIVE = "live"
 #: a managed node reads it at ``configure``: change it while the node is unconfigured (a node that is not managed
@@ -68,7 +70,7 @@ def effective_when(param: Param, managed: bool) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ problems
-class ParamErrors(ValueError):
+class ParamErrors(SamlError, ValueError):
     """One or more bad parameters: ``problems`` holds one message per problem (each naming its parameter); the
     text is all of them, joined by ``"; "``."""
 

@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from saml_ros.core.errors import SamlError
 from saml_ros.core.layout import VectorLayout
 
 LOSS_TYPES = ("l2", "squared_l2", "l1", "huber", "normalized")
@@ -26,7 +27,7 @@ MEAN_TYPES = ("conditional", "unconditional")
 SOURCES = {"x": "state", "u": "control", "next": "target"}
 
 
-class SpecError(ValueError):
+class SpecError(SamlError, ValueError):
     """A spec that cannot be compiled; the message names the offending path and field."""
 
 
@@ -223,7 +224,7 @@ class ProblemSpec:
 
     @classmethod
     def for_system(cls, raw: Mapping[str, Any], system: Any) -> ProblemSpec:
-        """Compile ``raw`` against a :class:`~saml_ros.core.systems.base.System`'s layouts."""
+        """Compile ``raw`` against a :class:`~saml_ros.core.dynamics.system.System`'s layouts."""
         return cls.from_dict(raw, system.state, system.control, system.target)
 
     @classmethod

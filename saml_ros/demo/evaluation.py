@@ -58,7 +58,7 @@ def run_task_and_guard(config: dict[str, Any]) -> tuple[LandingTask, GuardConfig
 
 def newest_checkpoint(directory: Path) -> tuple[Path, int] | None:
     """The newest valid checkpoint in ``directory`` (path, version), or None."""
-    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model.checkpoint import CheckpointStore
 
     if not directory.is_dir():
         return None
@@ -99,7 +99,7 @@ def _episodes(arm: Arm, task: LandingTask, starts: np.ndarray, solver: str) -> d
     import torch
 
     torch.set_num_threads(1)
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.io import load_model
     from saml_ros.core.mpc import closed_loop, make_controller
     from saml_ros.core.mpc.guard import make_guarded_controller
 
@@ -170,7 +170,7 @@ def evaluate_arms(arms: Sequence[Arm], task: LandingTask, starts: np.ndarray, so
 def paired_diff(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     """``a - b`` over the same starts (positive = ``b`` better, for lower-is-better metrics): mean, 95 % t CI,
     p (paired t), fraction of starts where ``b < a``, and the two means."""
-    from saml_ros.experiments.common import paired
+    from saml_ros.core.paired import paired
 
     p = paired(b, a)  # paired(a, b) is b - a
     return {"mean_a": p.mean_b, "mean_b": p.mean_a, "diff": p.diff, "lo": p.ci_low, "hi": p.ci_high,

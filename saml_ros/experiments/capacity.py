@@ -193,7 +193,7 @@ def train_size(system: Any, spec: Any, flights: dict[int, Flight], hidden: tuple
     """Train one method's ensembles of one size for every seed as ONE ensemble (``seeds x ensemble`` members, a
     seed's members on its recording); save per seed the ensemble and its member 0 (the single net) as checkpoints
     under ``out/models/<method>_<size>/``. Returns ``{"paths": {(kind, seed): path}, "seconds": ...}``."""
-    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model.checkpoint import CheckpointStore
     from saml_ros.core.training import TrainConfig, save_checkpoint
     from saml_ros.core.training.selection import take_trainer
     from saml_ros.offline.pipelines import train_models
@@ -227,7 +227,7 @@ def heldout_errors(paths: dict[str, str], system: Any, flight: Flight) -> dict[s
     inside (pz <= 1.5 m) and outside the region; also f_hat's under ``"base"``."""
     import torch
 
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.io import load_model
 
     inside = flight.x[:, 2] <= 1.5
 
@@ -253,7 +253,7 @@ def time_solves(task: Any, guard: Any, models: dict[str, str | None], episodes: 
     The models take turns episode by episode (interleaved: the machine's load affects them alike). Returns per
     name: mean and median CPU ms per solve, mean SQP iterations, ms per iteration, the solves, and whether the C
     kernel solved them."""
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.io import load_model
     from saml_ros.core.mpc import make_controller
     from saml_ros.core.mpc.guard import make_guarded_controller
 

@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.base import System
 from saml_ros.core.training import TrainConfig, Transitions, evaluate_spec
 from saml_ros.experiments.common import (
     Timer,

@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.loop import LoopStep, StepHook
-from saml_ros.core.systems.base import System
 
 
 def bound_violation(plan_u: np.ndarray, low: np.ndarray, high: np.ndarray) -> float:

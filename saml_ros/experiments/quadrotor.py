@@ -168,7 +168,7 @@ def evaluate_controller(system: Quadrotor, model: PredictionModel, s: QuadrotorS
     """Closed loops from every start with one model: metrics per start and merged plan checks. A learned model
     flies with the demo's single-model guard when ``s.guard`` (``bound``: its residual bound; the monitor and the
     roll back start afresh at every start), else unguarded; every arm has the tilt bound ``s.tilt_max``."""
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.mpc.guard import GuardConfig, make_guarded_controller
 
     options = {"horizon": s.horizon, "tilt_max": s.tilt_max}

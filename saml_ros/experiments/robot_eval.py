@@ -241,13 +241,13 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
                    oracle: Callable[..., Any] | None = None, error: Callable[[np.ndarray, np.ndarray], float] | None = None,
                    member: int = 0, progress: Callable[[str], None] | None = None, task: Any = None,
                    **planner_options: Any) -> RobotEvaluation:
-    """See the module docstring. ``models``: label -> a :class:`~saml_ros.core.models.DynamicsModel` of ``system``
+    """See the module docstring. ``models``: label -> a :class:`~saml_ros.core.model.network.DynamicsModel` of ``system``
     (ensemble member ``member`` plans); the base model f_hat (label ``base``) and, with ``oracle``, the true dynamics
-    (label ``oracle``) fly the same starts. ``task``: an :class:`~saml_ros.core.systems.mpc_section.MPCTask` to plan
+    (label ``oracle``) fly the same starts. ``task``: an :class:`~saml_ros.core.mpc.generic.section.MPCTask` to plan
     and score instead of the file's (e.g. :func:`task_from_file`)."""
+    from saml_ros.core.dynamics.base_forms import is_form
     from saml_ros.core.mpc.generic import GenericSQP, system_task
     from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase
-    from saml_ros.core.systems.base_forms import is_form
 
     task = system_task(system) if task is None else task
     planner_options["task"] = task
@@ -293,13 +293,13 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
 
 
 def task_from_file(system: Any, path: str | Path) -> Any:
-    """The :class:`~saml_ros.core.systems.mpc_section.MPCTask` of a YAML file holding an ``mpc:`` mapping (the
+    """The :class:`~saml_ros.core.mpc.generic.section.MPCTask` of a YAML file holding an ``mpc:`` mapping (the
     file's section with some keys changed, e.g. another goal or horizon), checked as the system file's is."""
     import copy
 
     import yaml
 
-    from saml_ros.core.systems.mpc_section import mpc_task
+    from saml_ros.core.mpc.generic.section import mpc_task
 
     definition = copy.deepcopy(system.definition)
     raw = yaml.safe_load(Path(path).read_text())

@@ -1,6 +1,6 @@
 """Online learner node (``ros2 run saml_ros learner``): pairs simulator / robot data and trains the model live.
 
-Wiring over :class:`saml_ros.core.online.TrainingProcess` with :class:`saml_ros.core.learner_config.LearnerConfig`
+Wiring over :class:`saml_ros.core.online.TrainingProcess` with :class:`saml_ros.core.online.config.LearnerConfig`
 (docs/learner.md): it subscribes to each namespace's ``state``, ``applied_cmd`` (and the paddle ball's
 ``post_impact``) as serialized messages (:mod:`saml_ros.nodes.raw_ingest`); a niced training process decodes,
 pairs (bad input counted under ``rejected/<reason>``), trains and checkpoints every ``checkpoint_period`` s; the
@@ -26,18 +26,19 @@ from rclpy.clock import Clock, ClockType
 import msg_schemas.telemetry as tele
 from msg_schemas import CHECKPOINT_QOS, RCLPY, TELEMETRY_QOS, get_schema
 from msg_schemas.decode import make_decoder
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.child_launch import LaunchedChild, discard_child, launch_child
-from saml_ros.core.learner_config import LearnerConfig, learner_params
-from saml_ros.core.learner_report import (
+from saml_ros.core.data.publishers import PublisherGate, node_label, publisher_report
+from saml_ros.core.errors import SamlError
+from saml_ros.core.model.checkpoint import CheckpointStore
+from saml_ros.core.online.config import LearnerConfig, learner_params
+from saml_ros.core.online.recent_counts import RecentCounts
+from saml_ros.core.online.report import (
     configured_message,
     paused_message,
     stopped_message,
     training_diagnostics,
 )
-from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
-from saml_ros.core.publishers import PublisherGate, node_label, publisher_report
-from saml_ros.core.recent_counts import RecentCounts
+from saml_ros.core.runtime.child_launch import LaunchedChild, discard_child, launch_child
+from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.raw_ingest import subscribe_raw
@@ -53,7 +54,7 @@ NODE_NAME = "learner"
 EXCLUSIVE = (("system", "system_file"),)
 
 
-class ConfigError(Exception):
+class ConfigError(SamlError):
     """An unrecoverable configuration problem; the message says which parameter and why."""
 
 
@@ -81,7 +82,7 @@ class LearnerNode(ManagedNode):
     def configure_node(self) -> None:
         try:
             self.p, self.system, self.spec = self._check_values(current_values(self, self._table))
-        except ValueError as exc:
+        except (SamlError, ValueError) as exc:
             raise TransitionRefused(str(exc)) from None
         p = self.p
         self.schema = get_schema(p.system)
@@ -103,7 +104,7 @@ class LearnerNode(ManagedNode):
                                             paused=True, launched=launched, cancelled=self.stop_requested,
                                             on_checkpoint=self._announce, on_log=self._child_log,
                                             on_error=self._child_error)
-        except (ValueError, StartCancelled) as exc:
+        except (SamlError, ValueError, StartCancelled) as exc:
             raise TransitionRefused(str(exc)) from None
         self._create_publishers()
         ready = self.trainer.ready
@@ -259,7 +260,7 @@ class LearnerNode(ManagedNode):
         self.pub_diag.publish(tele.diagnostics_to_msg([entry], self._stamp_ns()))
 
     def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
-        """Several publishers on a subscribed topic (:func:`~saml_ros.core.publishers.publisher_report`; the node
+        """Several publishers on a subscribed topic (:func:`~saml_ros.core.data.publishers.publisher_report`; the node
         names from the ROS graph), logged when it changes."""
         # the resolved names (a remapped topic) once subscribed
         topics = [sub.topic_name for sub in self._subs] if self._subs else [c[2] for c in self.channels]

@@ -17,7 +17,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from msg_schemas.names import join_topic
-from saml_ros.core.lifecycle import MANAGER_PARAMS, check_manager_params
+from saml_ros.core.runtime.lifecycle import MANAGER_PARAMS, check_manager_params
 from saml_ros.nodes.lifecycle_client import drive
 from saml_ros.nodes.params import ParamGuard, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help

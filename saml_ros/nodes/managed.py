@@ -1,6 +1,6 @@
 """The managed-node base of the learner and the MPC (:class:`ManagedNode`, an ``rclpy.lifecycle.LifecycleNode``).
 
-A subclass fills in four steps, each raising :class:`~saml_ros.core.lifecycle.TransitionRefused` when it cannot be
+A subclass fills in four steps, each raising :class:`~saml_ros.core.runtime.lifecycle.TransitionRefused` when it cannot be
 done as configured: :meth:`ManagedNode.configure_node` (read and validate the parameters, build what the node
 needs, create its publishers and timers), :meth:`~ManagedNode.activate_node` (subscribe and start working),
 :meth:`~ManagedNode.deactivate_node` (stop working, keep the configuration) and
@@ -8,7 +8,7 @@ needs, create its publishers and timers), :meth:`~ManagedNode.activate_node` (su
 half-configured node). ``shutdown`` from any primary state runs :meth:`~ManagedNode.shutdown_node` (by default
 deactivate, then cleanup). What this class adds to rclpy's:
 
-* the ``autostart`` parameter (:data:`saml_ros.core.lifecycle.AUTOSTART`) and :func:`run_managed`, the spin
+* the ``autostart`` parameter (:data:`saml_ros.core.runtime.lifecycle.AUTOSTART`) and :func:`run_managed`, the spin
   loop of the executables: configure + activate at start-up unless ``autostart`` is false, spin until a stop
   signal or the ``finalized`` state, then shut down from wherever the node is;
 * a ``change_state`` request for a transition the current state does not have (e.g. ``activate`` while
@@ -24,8 +24,8 @@ from typing import Any
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from saml_ros.core.lifecycle import AUTOSTART, LIFECYCLE_PARAMS, Outcome, run_transition
 from saml_ros.core.params import problems_of
+from saml_ros.core.runtime.lifecycle import AUTOSTART, LIFECYCLE_PARAMS, Outcome, run_transition
 from saml_ros.nodes.params import declare_params
 from saml_ros.nodes.runtime import StopFlag, spin_until_stopped
 

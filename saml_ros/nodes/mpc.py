@@ -9,10 +9,10 @@ ball's ``post_impact`` while the live monitor's roll back is on (``guard.rollbac
   waits for that answer). ``mode: realtime``: a steady-clock timer at ``rate_hz`` answers the newest state
   received since the last tick (older ones are skipped and counted).
 * Models: the node starts on the base model f_hat when ``run_dir`` holds no checkpoint. A
-  :class:`~saml_ros.core.model_watch.ModelWatcher` follows ``learner/checkpoint`` and polls ``run_dir``
+  :class:`~saml_ros.core.mpc.follower.ModelWatcher` follows ``learner/checkpoint`` and polls ``run_dir``
   (``latest``) as a fallback, loads new checkpoints on a background thread and the control step swaps the
   ready model in between two solves. Incompatible, corrupt or unacceptable checkpoints (non-finite weights,
-  implausible predictions, residuals beyond the training data's: :mod:`saml_ros.core.model_acceptance`) are refused
+  implausible predictions, residuals beyond the training data's: :mod:`saml_ros.core.mpc.acceptance`) are refused
   (log + counter + ``mpc/status`` ``checkpoints_refused``) and the current model is kept.
 * Failure path: a state outside the system's plausible range, a failed or non-finite solve is answered with the
   system's safe command (``safe = 1`` and ``safe_commands`` on ``mpc/status``, ``safe_commands/<reason>`` on
@@ -64,11 +64,12 @@ from msg_schemas.telemetry import (
     diagnostics_to_msg,
     mpc_status_values,
 )
-from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
+from saml_ros.core.data.publishers import node_label, state_command_report
+from saml_ros.core.errors import SamlError
 from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
-from saml_ros.core.publishers import node_label, state_command_report
+from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
@@ -112,7 +113,7 @@ class MPCNode(ManagedNode):
                     raise ValueError(f"parameter 'system_file': {values['system_file']} now names another robot "
                                      f"than {self.system_name!r}")
             config = MPCConfig.from_params(values)
-        except ValueError as exc:
+        except (SamlError, ValueError) as exc:
             raise TransitionRefused(str(exc)) from None
         if config.system != self.system_name:
             raise TransitionRefused(f"parameter system={config.system!r} does not match the node's system "
@@ -308,7 +309,7 @@ class MPCNode(ManagedNode):
         self.diag_pub.publish(diagnostics_to_msg([entry], self.get_clock().now().nanoseconds))
 
     def _check_publishers(self) -> tuple[int, list[str], dict[str, Any]]:
-        """:func:`~saml_ros.core.publishers.state_command_report` of ``state`` and ``cmd`` from the ROS graph."""
+        """:func:`~saml_ros.core.data.publishers.state_command_report` of ``state`` and ``cmd`` from the ROS graph."""
         topics = [("state", self.state_sub.topic_name), ("cmd", self.cmd_pub.topic_name)]
         nodes = {topic: [node_label(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)]
                  for _, topic in topics}

@@ -16,7 +16,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy
 
 from msg_schemas import RCLPY, QosSpec
-from saml_ros.core.learner_config import Channel
+from saml_ros.core.online.config import Channel
 
 #: ``submit(channel, payload)``: ``payload`` is the serialized message, or ``(message, receive stamp ns)``
 Submit = Callable[[int, Any], None]

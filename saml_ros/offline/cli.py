@@ -21,9 +21,9 @@ import numpy as np
 import torch
 import yaml
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.device import DeviceError, resolve_device
-from saml_ros.core.model_evidence import DataEvidence
+from saml_ros.core.model.checkpoint import CheckpointStore
+from saml_ros.core.model.evidence import DataEvidence
+from saml_ros.core.runtime.device import DeviceError, resolve_device
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import get_entry, get_system, system_names
 from saml_ros.core.training import TrainConfig, Transitions, save_checkpoint

@@ -5,7 +5,7 @@ CasADi Function (the weights a parameter vector).
     export runs/dd/ckpt-000004.saml -o out --format onnx numpy
 
 Each file is checked against the in-package model on random inputs inside the system's ranges; the largest
-difference is printed and stored in ``model.json`` (see saml_ros.core.export and docs/your_robot.md).
+difference is printed and stored in ``model.json`` (see saml_ros.export and docs/your_robot.md).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from saml_ros.core.export import FORMATS, ONNX_EXPORTERS, ExportError
+from saml_ros.export import FORMATS, ONNX_EXPORTERS, ExportError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     from saml_ros.api import load_model
-    from saml_ros.core.checkpoint import CheckpointError
+    from saml_ros.core.model.checkpoint import CheckpointError
 
     try:
         model = load_model(args.model, member=args.member)

@@ -16,6 +16,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
+from saml_ros.core.errors import SamlError
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -25,7 +27,7 @@ RAY_MODES = ("none", "local", "auto")
 LOCAL_OBJECT_STORE = 200 * 1024 * 1024
 
 
-class RayUnavailable(RuntimeError):
+class RayUnavailable(SamlError, RuntimeError):
     """``--ray`` was asked for but the ``ray`` package is not installed, or the cluster cannot be reached."""
 
 

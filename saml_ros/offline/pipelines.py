@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems.base import System
 from saml_ros.core.training import History, PrimalDualTrainer, TrainConfig, Transitions
 from saml_ros.core.training.heldout import MIN_N
 from saml_ros.core.training.selection import Selection, select_members, take_trainer
@@ -134,7 +134,7 @@ def train_models(
     data (:func:`~saml_ros.core.training.selection.select_members`): on ``select`` (``(N_s, .)`` or
     ``(E, N_s, .)``) when given, else on the last ``holdout`` of each seed's data (the rest trains); all
     ``len(seeds) * restarts`` members train as one ensemble. ``prelu_init``: the first hidden layer's initial
-    PReLU slope (:class:`~saml_ros.core.models.DynamicsModel`).
+    PReLU slope (:class:`~saml_ros.core.model.network.DynamicsModel`).
 
     ``margin``: what training aims at (:mod:`saml_ros.core.training.verdict`): None (eps), a fraction ``f`` of eps
     (``(1 - f) eps``) or ``"auto"``: the first :data:`AIM_AT` of the epochs train at eps, then the standard errors

@@ -14,8 +14,8 @@ from saml_ros.core.training import History
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from saml_ros.core.models import DynamicsModel
-    from saml_ros.core.systems.base import System
+    from saml_ros.core.dynamics.system import System
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.offline.pipelines import Comparison
 
 

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.errors import SamlError
 from saml_ros.core.training import TrainConfig
 
 TRAIN_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name != "seed")
@@ -38,7 +39,7 @@ TEST_SEED = 10_000
 TASK_SYSTEMS = ("friction", "quadrotor")
 
 
-class SweepError(ValueError):
+class SweepError(SamlError, ValueError):
     """A sweep that cannot run as asked (unknown axis, bad value, task for a system without one)."""
 
 
@@ -169,7 +170,7 @@ def run_point(point: Point) -> dict[str, Any]:
 def _run_point(point: Point) -> dict[str, Any]:
     import torch
 
-    from saml_ros.core.device import resolve_device
+    from saml_ros.core.runtime.device import resolve_device
     from saml_ros.offline.pipelines import evaluate_models, generate_datasets, train_models
 
     setup = point.setup

@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
-    from saml_ros.core.device import DeviceError, resolve_device
+    from saml_ros.core.runtime.device import DeviceError, resolve_device
     from saml_ros.offline.parallel import RayUnavailable, check_ray
     from saml_ros.offline.sweep import (
         SweepError,

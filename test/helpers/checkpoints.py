@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore, atomic_write
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.checkpoint import CheckpointStore, atomic_write
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint

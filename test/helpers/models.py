@@ -4,14 +4,15 @@ poisoned), models that are f_hat except beyond a trap, and the online learner's 
 
 from __future__ import annotations
 
+import fcntl
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_evidence import DataEvidence
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.checkpoint import CheckpointStore, read_checkpoint
+from saml_ros.core.model.evidence import DataEvidence
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import make_controller
 from saml_ros.core.online import OnlineConfig, OnlineLearner
 from saml_ros.core.spec import ProblemSpec
@@ -82,7 +83,25 @@ def trap_model(system_name: str, field: str, above: float, weight: float, dtype:
 
 def hover_only_checkpoint(tmp_path: Path, z: float = 0.5, updates: int = 1500, n_models: int = 5) -> Path:
     """The online learner (an ``n_models``-member SA ensemble) fed only hovering at ``z`` m (motor noise 0.3 N):
-    its checkpoint, the next version in ``tmp_path / "hover"``."""
+    its checkpoint, the next version in ``tmp_path / "hover"``.
+
+    The learner runs once per test run and argument set (up to a minute of training under load), in a folder every
+    pytest-xdist worker of the run shares (next to the workers' temporary folders, removed with them); later calls
+    save that checkpoint's arrays and metadata as the next version of their own store, as the learner would."""
+    root = tmp_path.parent.parent if tmp_path.parent.name.startswith("popen-gw") else tmp_path.parent
+    cache = root / "hover_only_checkpoints" / f"z{z:g}-updates{updates}-models{n_models}"
+    cache.mkdir(parents=True, exist_ok=True)
+    with open(cache.parent / f"{cache.name}.lock", "wb") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one worker trains, the others wait for its checkpoint
+        if CheckpointStore(cache).latest() is None:
+            _train_hover_only(cache, z, updates, n_models)
+    arrays, meta = read_checkpoint(CheckpointStore(cache).path_for(1))
+    return CheckpointStore(tmp_path / "hover").save(arrays, {k: v for k, v in meta.items()
+                                                             if k not in ("version", "time")})[0]
+
+
+def _train_hover_only(run_dir: Path, z: float, updates: int, n_models: int) -> Path:
+    """:func:`hover_only_checkpoint`'s training: its checkpoint, version 1 of ``run_dir``."""
     f = plant(QUAD, TASK.landing_height)
     rng = np.random.default_rng(0)
     ctrl = make_controller(QUAD, None, **TASK.mpc_options())
@@ -99,7 +118,7 @@ def hover_only_checkpoint(tmp_path: Path, z: float = 0.5, updates: int = 1500, n
             ys.append(xn)
             x = xn
     spec = ProblemSpec.for_system(QUAD.paper_spec(), QUAD)
-    store = CheckpointStore(tmp_path / "hover")
+    store = CheckpointStore(run_dir)
     learner = OnlineLearner(QUAD, spec, OnlineConfig(train=TrainConfig(batch_size=128), min_transitions=200,
                                                      n_models=n_models), store=store, resume=False)
     learner.add_batch(np.array(xs), np.array(us), np.array(ys))

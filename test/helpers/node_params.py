@@ -25,9 +25,9 @@ RCLPY_PARAMS = {"use_sim_time", "start_type_description_service"}
 
 def table_parameters(executable: str, system: str) -> set[str]:
     """The parameter names ``executable`` declares for ``system``, from the tables it declares them from."""
-    from saml_ros.core.learner_config import learner_params
-    from saml_ros.core.lifecycle import LIFECYCLE_PARAMS, MANAGER_PARAMS
     from saml_ros.core.mpc.config import MPCConfig
+    from saml_ros.core.online.config import learner_params
+    from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, MANAGER_PARAMS
 
     managed = {p.name for p in LIFECYCLE_PARAMS}
     if executable == "learner":

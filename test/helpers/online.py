@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.data.pairing import Transition
+from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online import HeldoutConfig, OnlineConfig, OnlineLearner
-from saml_ros.core.pairing import Transition
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.training import TrainConfig

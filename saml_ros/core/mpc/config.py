@@ -14,11 +14,11 @@ from typing import Any
 
 import yaml
 
-from saml_ros.core.model_monitor import MonitorConfig
+from saml_ros.core.data.plausibility import parse_overrides
 from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.mpc.guard import GuardConfig
+from saml_ros.core.mpc.monitor import MonitorConfig
 from saml_ros.core.params import LIVE, START, Param, Problems, memory_problems, read_params
-from saml_ros.core.plausibility import parse_overrides
 from saml_ros.core.systems.registry import get_entry
 
 #: how the node answers states

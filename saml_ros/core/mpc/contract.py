@@ -7,8 +7,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
-from saml_ros.core.systems.base import System
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 
 
 @dataclass

@@ -26,9 +26,9 @@ from typing import Literal, Protocol
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.mlp_np import NumpyMLP
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.paddle_ball import PaddleBall
 from saml_ros.core.systems.quadrotor import Quadrotor

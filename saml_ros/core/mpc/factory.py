@@ -11,10 +11,10 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import Controller
 from saml_ros.core.mpc.dynamics_np import BaseModelNP, PredictionModel, TorchBaseNP, TorchTrueNP
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.registry import find_entry, get_entry
 
 #: the MPC solvers; every system's registry entry has a controller for each

@@ -13,7 +13,7 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   ``|y - f_hat(x, u)|`` in the learner's buffer times a margin (the learner records it in the checkpoint's meta,
   ``learner.residual_bound``): outside its data a network can extrapolate to any size, the physics cannot
   (:class:`BoundedDynamics`);
-* **a live monitor with roll back** (:class:`~saml_ros.core.model_monitor.LiveErrorMonitor`): every live
+* **a live monitor with roll back** (:class:`~saml_ros.core.mpc.monitor.LiveErrorMonitor`): every live
   transition :meth:`GuardedController.observe` is given scores the active model and f_hat; the steps the learned
   model planned (not those planned with f_hat on disagreement) enter the monitor's window, and when the active
   model is worse there, the controller rolls back to the previous model (if it had one that was not rolled back itself),
@@ -39,13 +39,13 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.model_monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import Jac3, NumpyDynamics
 from saml_ros.core.mpc.mlp_np import NumpyMLP
+from saml_ros.core.mpc.monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
-from saml_ros.core.systems.base import System
 
 #: the ``meta["learner"]`` key of a checkpoint's per-field residual bound (list of n_y floats)
 RESIDUAL_BOUND_KEY = "residual_bound"
@@ -439,7 +439,7 @@ class GuardedController:
     def retire(self) -> int:
         """Stop planning with the model in use for good (its tag is banned): back to the previous model, else f_hat.
         Returns the tag now in use (0 = f_hat). What a roll back does; also called when the model in use fails the
-        acceptance re-check (:mod:`saml_ros.core.model_watch`)."""
+        acceptance re-check (:mod:`saml_ros.core.mpc.follower`)."""
         if self._active.model is not None:
             self._banned.add(self._active.tag)
         prev, self._previous = self._previous, None

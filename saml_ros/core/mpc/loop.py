@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.paddle.problem import paddle_goal
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.paddle_ball import PaddleBall
 
 

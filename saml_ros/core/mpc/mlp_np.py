@@ -1,4 +1,4 @@
-"""A frozen float64 numpy copy of one member of a :class:`~saml_ros.core.models.DynamicsModel`'s network.
+"""A frozen float64 numpy copy of one member of a :class:`~saml_ros.core.model.network.DynamicsModel`'s network.
 
 The MPC evaluates the learned correction phi(x, u) thousands of times per second on batches of 1-40 samples,
 where PyTorch's per-call overhead (several microseconds per op) would dominate. This copy folds the input
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel, dense_input_layer
+from saml_ros.core.model.network import DynamicsModel, dense_input_layer
 
 
 class NumpyMLP:

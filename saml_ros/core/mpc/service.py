@@ -2,24 +2,24 @@
 
 The node decodes messages and publishes; everything in between is here and unit-testable:
 
-* a :class:`~saml_ros.core.model_watch.ModelWatcher` follows the learner's checkpoints (with the
-  ``gate.*`` hook, :func:`~saml_ros.core.model_watch.checkpoint_gate`); the model it loaded is swapped in
+* a :class:`~saml_ros.core.mpc.follower.ModelWatcher` follows the learner's checkpoints (with the
+  ``gate.*`` hook, :func:`~saml_ros.core.mpc.follower.checkpoint_gate`); the model it loaded is swapped in
   right before the next solve;
 * :meth:`MPCService.receive` takes a decoded state: in lockstep it is answered at once; in realtime it is kept
   until :meth:`MPCService.tick` (an older unanswered one is skipped and counted);
 * the watcher's ``vet`` hook refuses a checkpoint whose model is broken or poisoned
-  (:mod:`~saml_ros.core.model_acceptance`: non-finite weights, predictions outside the plausible range or further
+  (:mod:`~saml_ros.core.mpc.acceptance`: non-finite weights, predictions outside the plausible range or further
   from the base model than its training data showed, on its probe set and on the recent states answered here);
 * a control step resets the warm start after a stamp jump (reset, new episode, restarted simulator), solves,
   clips to the control bounds, sends the command (the node's ``send`` publishes ``cmd``) and returns the
   ``mpc/status`` values; a step (swap + solve + send) longer than the deadline is counted as a miss;
-* the failure path: a state outside the system's plausible range (:mod:`~saml_ros.core.plausibility`; counted
+* the failure path: a state outside the system's plausible range (:mod:`~saml_ros.core.data.plausibility`; counted
   ``rejected/bounds``, never solved from), a solver that raises, a non-finite result (cost, plan or control: the
   controller fell back), a plan through predicted states outside the plausible range (the model predicts nonsense
   there, though the solver may call it a success) and, with ``safe_on_infeasible``, a plan that violates a
   constraint some command could have kept (not one the current state fixes: ``MPCResult.unavoidable``, counted
   ``solves_unavoidable`` and sent, as the safe command cannot avoid it either) are answered with the
-  system's safe command (:meth:`~saml_ros.core.systems.base.System.safe_control`), counted
+  system's safe command (:meth:`~saml_ros.core.dynamics.system.System.safe_control`), counted
   ``safe_commands/<reason>`` (:data:`~msg_schemas.telemetry.SAFE_COMMAND_REASONS`) and flagged ``safe = 1`` on
   ``mpc/status``; a finite plan that violates a constraint is otherwise sent and counted ``solves_failed``;
 * counters (``solves``, ``solves_failed``, ``solves_unavoidable``, ``solver_errors``, ``safe_commands``, ``deadline_misses``, ``swaps``,
@@ -34,7 +34,7 @@ The node decodes messages and publishes; everything in between is here and unit-
   (the paddle ball), :meth:`MPCService.receive_target` shows it the target stamped like a state it answered; a
   roll back changes the model in use (``rollbacks``, logged); its counters go on ``mpc/status`` and
   ``/diagnostics`` (``guard_*``, ``monitor_error_*``);
-* the watcher knows the model in use (:meth:`~saml_ros.core.model_watch.ModelWatcher.set_in_use`): a checkpoint
+* the watcher knows the model in use (:meth:`~saml_ros.core.mpc.follower.ModelWatcher.set_in_use`): a checkpoint
   holding it again is a no-op (``checkpoints_reannounced``), and it is re-checked on the states flown as a new
   checkpoint is; one that fails is not used any more (``models_retired``, logged): the previous model (with the
   guard) or f_hat takes over before the next solve.
@@ -53,17 +53,17 @@ from typing import Any
 import numpy as np
 
 from msg_schemas.telemetry import SAFE_COMMAND_REASONS
-from saml_ros.core.model_acceptance import AcceptanceConfig, Probe, acceptance_hook
-from saml_ros.core.model_io import LoadedModel
-from saml_ros.core.model_watch import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, Retired, checkpoint_gate
+from saml_ros.core.data.plausibility import Plausibility
+from saml_ros.core.model.io import LoadedModel
+from saml_ros.core.mpc.acceptance import AcceptanceConfig, Probe, acceptance_hook
 from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import make_controller
+from saml_ros.core.mpc.follower import REFUSAL_REASONS, Logger, ModelWatcher, ReadyModel, Retired, checkpoint_gate
 from saml_ros.core.mpc.generic.goals import GoalRefused, GoalTracker
+from saml_ros.core.mpc.generic.section import MPCTask
 from saml_ros.core.mpc.guard import GuardedController, make_guarded_controller
 from saml_ros.core.mpc.shooting.native import NOT_SOLVED
-from saml_ros.core.plausibility import Plausibility
-from saml_ros.core.systems.mpc_section import MPCTask
 from saml_ros.core.systems.registry import get_entry
 
 #: recent (state, command) pairs kept as the acceptance check's probe rows

@@ -1,5 +1,5 @@
 """The training process of the online learner, child side: :func:`child_entry` runs in the fresh interpreter
-:func:`saml_ros.core.child_launch.launch_child` starts; it receives the
+:func:`saml_ros.core.runtime.child_launch.launch_child` starts; it receives the
 :class:`~saml_ros.core.online.process.LearnerSetup`, builds the learner (and the raw-message decoder the setup
 carries), reports ``ready`` and runs :func:`~saml_ros.core.online.loop.run_loop` until the parent says stop
 (the socket protocol is in :mod:`saml_ros.core.online.process`)."""

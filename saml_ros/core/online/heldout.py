@@ -14,7 +14,7 @@ the same for f_hat on the same transitions, the value on (a sample of) the train
 (:func:`~saml_ros.core.training.heldout.heldout_verdict`: met / unconfirmed / met on training data only / not met /
 no held-out data). The learner reports it on ``learner/model_error`` and ``/diagnostics`` and writes it into every
 checkpoint (``meta["heldout"]``, :meth:`HeldoutReport.to_meta`), where the MPC reads it
-(:mod:`saml_ros.core.model_acceptance`).
+(:mod:`saml_ros.core.mpc.acceptance`).
 
 Shapes: ``x (N, n_x)``, ``u (N, n_u)``, ``y (N, n_y)``, ``stamp (N,)`` in seconds; E ensemble members.
 """
@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.buffer import ReplayBuffer, Transitions
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.data.buffer import ReplayBuffer, Transitions
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, Term
 from saml_ros.core.training.heldout import (
     NO_HELDOUT,
@@ -40,7 +40,7 @@ from saml_ros.core.training.heldout import (
     heldout_verdict,
 )
 
-#: the ``meta`` key of a checkpoint's held-out record (read by :mod:`saml_ros.core.model_acceptance`)
+#: the ``meta`` key of a checkpoint's held-out record (read by :mod:`saml_ros.core.mpc.acceptance`)
 META_KEY = "heldout"
 #: rows evaluated per forward pass (bounds the memory of an evaluation)
 CHUNK = 8192

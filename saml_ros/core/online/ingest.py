@@ -1,8 +1,8 @@
 """The online learner's ingest path: (decode ->) pairing -> replay buffer and recent window.
 
 :class:`Ingest` pairs each source's ``(kind, stamp, vector)`` events with its own
-:class:`~saml_ros.core.pairing.StampPairer` and adds the paired transitions to the shared
-:class:`~saml_ros.core.buffer.ReplayBuffer` and to a :class:`RecentWindow` (what the live model error is computed
+:class:`~saml_ros.core.data.pairing.StampPairer` and adds the paired transitions to the shared
+:class:`~saml_ros.core.data.buffer.ReplayBuffer` and to a :class:`RecentWindow` (what the live model error is computed
 on). :class:`RawIngest` is the training process's front: it decodes raw (serialized) messages first, and counts
 and logs (throttled, :class:`Throttle`) every rejection.
 
@@ -21,11 +21,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from msg_schemas.telemetry import REJECT_REASONS
-from saml_ros.core.buffer import ReplayBuffer
+from saml_ros.core.data.buffer import ReplayBuffer
+from saml_ros.core.data.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
+from saml_ros.core.data.plausibility import Plausibility
+from saml_ros.core.data.resampling import ResampleConfig, ResamplingPairer
 from saml_ros.core.online.heldout import HeldoutSet, heldout_mask
-from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition, total_counts
-from saml_ros.core.plausibility import Plausibility
-from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 
 log = logging.getLogger("saml_ros.online")
 

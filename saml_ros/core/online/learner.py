@@ -28,11 +28,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.buffer import Policy, ReplayBuffer
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_evidence import DataEvidence
-from saml_ros.core.model_io import UnhealthyModel
-from saml_ros.core.models import MODEL_KINDS, DynamicsModel
+from saml_ros.core.data.buffer import Policy, ReplayBuffer
+from saml_ros.core.data.pairing import AddResult, PairingConfig, StampPairer, Transition
+from saml_ros.core.data.plausibility import Plausibility
+from saml_ros.core.data.resampling import ResampleConfig, ResamplingPairer
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.checkpoint import CheckpointStore
+from saml_ros.core.model.evidence import DataEvidence
+from saml_ros.core.model.io import UnhealthyModel
+from saml_ros.core.model.network import MODEL_KINDS, DynamicsModel
 from saml_ros.core.online.heldout import META_KEY as HELDOUT_KEY
 from saml_ros.core.online.heldout import HeldoutConfig, HeldoutReport, HeldoutSet, evaluate
 from saml_ros.core.online.ingest import Ingest, RecentWindow
@@ -40,11 +44,7 @@ from saml_ros.core.online.resume import ResumeInfo, resume_newest
 from saml_ros.core.online.storage import WriteBackoff
 from saml_ros.core.online.telemetry import StepAverages, assemble_telemetry, feasibility_metrics, model_metrics
 from saml_ros.core.online.updates import OnlineUpdates
-from saml_ros.core.pairing import AddResult, PairingConfig, StampPairer, Transition
-from saml_ros.core.plausibility import Plausibility
-from saml_ros.core.resampling import ResampleConfig, ResamplingPairer
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
 from saml_ros.core.training.health import HealthConfig, TrainingHealth
 from saml_ros.core.training.schedule import schedules_for
@@ -80,7 +80,7 @@ class OnlineConfig:
         telemetry_window: most recent transitions the live model error is computed on.
         checkpoint_keep: checkpoint files kept in the run directory (older ones are pruned).
         n_models: ensemble members (each its own initialisation and minibatches from the one buffer).
-        plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.plausibility`) for
+        plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.data.plausibility`) for
             already-paired batches (each source's pairing config carries its own).
         health: the training-health limits (:mod:`saml_ros.core.training.health`).
         heldout: which stretches of the stream are held out (never trained on) and how many are kept
@@ -479,7 +479,7 @@ class OnlineLearner:
         The checkpoint holds the model's and f_hat's errors on the held-out stretches, with the training values and
         verdicts (``meta["heldout"]``, :meth:`evaluate_heldout` of the weights written), the training health
         (``meta["health"]``) and the evidence of the data
-        (:class:`~saml_ros.core.model_evidence.DataEvidence` of the replay buffer, its residual maximum merged with
+        (:class:`~saml_ros.core.model.evidence.DataEvidence` of the replay buffer, its residual maximum merged with
         that of every earlier checkpoint of this process, and a probe set drawn from the buffer).
 
         A write that fails with an ``OSError`` (a full or read-only disk) is recorded in :attr:`writes` (which

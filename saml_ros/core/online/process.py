@@ -5,7 +5,7 @@ is the parent's handle that starts it, feeds it and restarts it.
 
 Why: ingest in the parent never competes with training for the GIL (the learner node ships raw messages, so
 decoding and pairing run in the child too; see docs/learner.md for the measurements). The child is started by
-:func:`saml_ros.core.child_launch.launch_child` (a fresh interpreter running
+:func:`saml_ros.core.runtime.child_launch.launch_child` (a fresh interpreter running
 :func:`saml_ros.core.online.child.child_entry` on its end of a socket pair) and builds everything from the setup.
 
 Socket protocol (``multiprocessing.connection`` messages, tuples):
@@ -38,14 +38,14 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.child_launch import LaunchedChild, launch_child
+from saml_ros.core.data.pairing import PairingConfig, Transition, total_counts
+from saml_ros.core.data.resampling import ResampleConfig
+from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online.ingest import Decode
 from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
 from saml_ros.core.online.loop import LoopConfig
 from saml_ros.core.online.resume import ResumeError
-from saml_ros.core.pairing import PairingConfig, Transition, total_counts
-from saml_ros.core.resampling import ResampleConfig
+from saml_ros.core.runtime.child_launch import LaunchedChild, launch_child
 from saml_ros.core.spec import ProblemSpec
 
 log = logging.getLogger("saml_ros.online")

@@ -13,17 +13,18 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointError, CheckpointStore, read_checkpoint
-from saml_ros.core.model_evidence import DataEvidence
-from saml_ros.core.model_io import MODEL_KIND, LoadedModel, model_from_payload
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.errors import SamlError
+from saml_ros.core.model.checkpoint import CheckpointError, CheckpointStore, read_checkpoint
+from saml_ros.core.model.evidence import DataEvidence
+from saml_ros.core.model.io import MODEL_KIND, LoadedModel, model_from_payload
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems.base import System
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, resume_trainer
 
 log = logging.getLogger("saml_ros.online")
 
 
-class ResumeError(RuntimeError):
+class ResumeError(SamlError, RuntimeError):
     """The run directory holds checkpoints that contradict the configuration (another system, another
     architecture, other constraints): resuming would silently mix two runs."""
 

@@ -6,7 +6,7 @@ A failed write is retried one checkpoint period after the failure, then 2, 4, ..
 that fail (each attempt costs what a checkpoint costs: the evidence of the whole replay buffer, the file), and the
 log gets one line per attempt, so at most one per checkpoint period. The first good write ends the back-off.
 Nothing already written is touched by a failed write: a checkpoint file is written to a temporary file and renamed
-(:func:`saml_ros.core.checkpoint.atomic_write`), so ``latest`` keeps naming the last good checkpoint throughout.
+(:func:`saml_ros.core.model.checkpoint.atomic_write`), so ``latest`` keeps naming the last good checkpoint throughout.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from msg_schemas.telemetry import model_error_names
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
 from saml_ros.core.training import PrimalDualTrainer
 from saml_ros.core.training.diagnosis import MIN_ROWS, VERDICT_CODES
@@ -68,7 +68,7 @@ def assemble_telemetry(
     Args:
         constraint_names: the spec's constraint names.
         status: an online learner's ``status()`` (missing model values are NaN).
-        counts: pairing counters (the learner's ``counts()`` or :func:`~saml_ros.core.pairing.total_counts`).
+        counts: pairing counters (the learner's ``counts()`` or :func:`~saml_ros.core.data.pairing.total_counts`).
     """
     out: dict[str, float] = {}
     for n in model_error_names(constraint_names):

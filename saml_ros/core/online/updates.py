@@ -15,7 +15,7 @@ import logging
 import numpy as np
 import torch
 
-from saml_ros.core.buffer import ReplayBuffer
+from saml_ros.core.data.buffer import ReplayBuffer
 from saml_ros.core.online.telemetry import StepAverages
 from saml_ros.core.training import PrimalDualTrainer
 from saml_ros.core.training.dataset import Transitions

@@ -17,10 +17,10 @@ from saml_ros.core.params import Param
 
 if TYPE_CHECKING:
     from msg_schemas.base import SystemSchema
+    from saml_ros.core.dynamics.system import System
     from saml_ros.core.mpc.contract import Controller
     from saml_ros.core.mpc.dynamics_np import BaseModelNP
     from saml_ros.core.mpc.shooting.tasks import ShootingTask
-    from saml_ros.core.systems.base import System
     from saml_ros.core.worlds.sim_core import SimConfig, SimCore, SteppedModel
 
 #: a controller class (or factory): ``(system, model | None, **options) -> Controller``

@@ -34,16 +34,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.layout import make_layout
-from saml_ros.core.systems import _checks
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.quaternion import (
+from saml_ros.core.dynamics.quaternion import (
     quat_derivative_body,
     quat_normalize,
     quat_rotate,
     random_quat_np,
     tilt_angle,
 )
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.layout import make_layout
+from saml_ros.core.systems import _checks
 
 _STATE = [
     ("px", "m", "position x (world)"), ("py", "m", "position y (world)"), ("pz", "m", "height above ground"),

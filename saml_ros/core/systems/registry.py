@@ -1,7 +1,7 @@
 """The system registry: one :class:`~saml_ros.core.systems.entry.SystemEntry` per system, from which every part
 of that system is reached.
 
-A system's dynamics (its :class:`~saml_ros.core.systems.base.System` class, which also holds the paper's spec
+A system's dynamics (its :class:`~saml_ros.core.dynamics.system.System` class, which also holds the paper's spec
 and the safe command), numpy twin of the base model, MPC controllers, task and goal parameters, topic schema,
 simulator core, bringup defaults, paper training budget and experiment are fields of its entry. Code outside
 the registry never asks "which system is this?": it looks the entry up by name (:func:`get_entry`) and uses
@@ -23,7 +23,7 @@ from saml_ros.core.systems import builtin
 from saml_ros.core.systems.entry import SystemEntry
 
 if TYPE_CHECKING:
-    from saml_ros.core.systems.base import System
+    from saml_ros.core.dynamics.system import System
     from saml_ros.core.worlds.sim_core import SimConfig, SteppedSim
 
 # ---------------------------------------------------------------------------------------------- the table

@@ -69,7 +69,7 @@ def robot_entry(system: FileSystem) -> SystemEntry:
                           function=base_function)
 
     Robot.__name__ = Robot.__qualname__ = f"Robot_{name}"
-    from saml_ros.core.systems.mpc_section import mpc_task
+    from saml_ros.core.mpc.generic.section import mpc_task
 
     task = mpc_task(definition)
     if task is None:

@@ -2,7 +2,7 @@
 
     system = read_system_file("examples/diff_drive/system.yaml")     # SystemFileError if anything is wrong
     system.schema()        # topics and field paths (msg_schemas.SystemSchema)
-    system.pairing()       # the resampling rule (saml_ros.core.resampling.ResampleConfig)
+    system.pairing()       # the resampling rule (saml_ros.core.data.resampling.ResampleConfig)
 
 The file names the state and control fields (SI units, bounds), the sampling period, which topic and message
 field carries each value, the base model f_hat and the Sufficiently Accurate spec. Everything is checked when it
@@ -12,7 +12,7 @@ the message type, units that are not SI symbols or do not match the message fiel
 declared in ``rad/s``), angle fields not in ``rad``, empty or reversed bounds, a safe command outside the control
 bounds, a spec region that lies outside the bounds, a base model that fails to import or returns the wrong shape.
 
-:class:`FileSystem` implements the :class:`~saml_ros.core.systems.base.System` contract. A robot has no simulator
+:class:`FileSystem` implements the :class:`~saml_ros.core.dynamics.system.System` contract. A robot has no simulator
 inside saml_ros, so ``true_step`` is not available (its data comes from its topics); ``sample_inputs`` draws
 uniformly inside the declared bounds (used to check exports and to seed searches, not as training data).
 :meth:`FileSystem.params` returns the whole definition, so a checkpoint carries it and rebuilds the system
@@ -32,10 +32,8 @@ import numpy as np
 import torch
 import yaml
 
-from saml_ros.core.layout import Field, VectorLayout
-from saml_ros.core.resampling import COMMAND_RULES, MIXED_POLICIES, STATE_RULES, ResampleConfig
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.base_models import (
+from saml_ros.core.data.resampling import COMMAND_RULES, MIXED_POLICIES, STATE_RULES, ResampleConfig
+from saml_ros.core.dynamics.base_models import (
     BaseModel,
     BaseModelError,
     BaseModelSpec,
@@ -43,6 +41,9 @@ from saml_ros.core.systems.base_models import (
     Layouts,
     build_base_model,
 )
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.errors import SamlError
+from saml_ros.core.layout import Field, VectorLayout
 
 #: format version of system files (``version:`` key, optional)
 FORMAT_VERSION = 1
@@ -61,7 +62,7 @@ _MODEL_KEYS = {"kind", "hidden", "inputs"}
 _QOS_KEYS = {"reliable", "depth"}
 
 
-class SystemFileError(ValueError):
+class SystemFileError(SamlError, ValueError):
     """A system file that cannot be used; the message names the file, the key and the problem."""
 
     def __init__(self, where: str, key: str, detail: str) -> None:
@@ -260,7 +261,7 @@ def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = No
 
 def _mpc_section(d: dict[str, Any], where: str, base_dir: Path | None) -> dict[str, Any]:
     """The checked ``mpc:`` section (inline, or the file ``mpc_file`` names); see :mod:`.mpc_section`."""
-    from saml_ros.core.systems.mpc_section import MPCSectionError, parse_mpc_section
+    from saml_ros.core.mpc.generic.section import MPCSectionError, parse_mpc_section
 
     if "mpc" in d and "mpc_file" in d:
         raise _fail(where, "mpc_file", "give either 'mpc' or 'mpc_file', not both")
@@ -326,7 +327,7 @@ def _pairing(raw: Any, where: str, d: dict[str, Any]) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------------------ the system
 class FileSystem(System):
-    """A :class:`~saml_ros.core.systems.base.System` built from a system file's definition.
+    """A :class:`~saml_ros.core.dynamics.system.System` built from a system file's definition.
 
     Args:
         definition: the dict :func:`parse_definition` returns (or a checkpoint stored).
@@ -400,7 +401,7 @@ class FileSystem(System):
     def input_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The declared bounds over ``[x, u]``, ``(low, high)`` each ``(n_x + n_u,)``: the model's input
         normalisation takes a tenth of their half-width as the smallest spread of a field
-        (:meth:`~saml_ros.core.models.DynamicsModel.input_floor`)."""
+        (:meth:`~saml_ros.core.model.network.DynamicsModel.input_floor`)."""
         return np.concatenate([self._x_low, self._u_low]), np.concatenate([self._x_high, self._u_high])
 
     def safe_control(self) -> np.ndarray:
@@ -442,7 +443,7 @@ class FileSystem(System):
         return robot_schema_from_definition(self.definition)
 
     def pairing(self) -> ResampleConfig:
-        """The resampling rule for this robot's topics (``pairing`` section; see saml_ros.core.resampling)."""
+        """The resampling rule for this robot's topics (``pairing`` section; see saml_ros.core.data.resampling)."""
         from msg_schemas.field_path import has_header
 
         p, st, ct = self.definition["pairing"], self.definition["state"], self.definition["control"]

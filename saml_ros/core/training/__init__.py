@@ -6,7 +6,7 @@ multipliers of each dual method: :class:`DualVariables` and its subclasses; ``nu
 (the end-of-run feasibility verdicts), ``engines`` (how ``fit`` runs: plain autograd or the fast hand-written
 engine), ``trainer`` (:class:`PrimalDualTrainer`), ``selection`` (restarts: keep the best feasible member),
 ``evaluate`` (dataset-level spec values), ``trainer_io`` (a trainer into a model checkpoint and back; loading a
-model alone is :mod:`saml_ros.core.model_io`, which does not import this package). docs/training.md says which
+model alone is :mod:`saml_ros.core.model.io`, which does not import this package). docs/training.md says which
 dual method to use when.
 """
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from saml_ros.core.device import resolve_device
+from saml_ros.core.runtime.device import resolve_device
 
 #: optimizer names of :attr:`TrainConfig.primal_optimizer` / :attr:`TrainConfig.dual_optimizer`
 OPTIMIZERS = ("adam", "sgd")
@@ -77,7 +77,7 @@ class TrainConfig:
         lr_gamma: factor of each step-schedule drop, in (0, 1].
         lr_drops: number of step-schedule drops (at T k / (drops + 1), k = 1..drops), >= 1.
         lr_floor: the cosine schedule's final learning rate as a fraction of the starting one, in [0, 1].
-        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.device.resolve_device`),
+        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.runtime.device.resolve_device`),
             so a device that cannot be used fails when the configuration is made, not mid-run.
     """
 

@@ -13,7 +13,7 @@ last healthy snapshot (taken every ``snapshot_every`` healthy steps: weights, bo
 variables). Skipped steps are counted per reason (the minibatch is used up; ``trainer.steps`` counts it), their
 values stay out of the training history, and :attr:`TrainingHealth.streak` counts consecutive skipped steps: the
 learner reports WARN on /diagnostics once a step was skipped and ERROR while the streak is ``error_after`` or
-longer (:mod:`saml_ros.core.learner_report`). A finite but exploding value in every step is a new scale, not an
+longer (:mod:`saml_ros.core.online.report`). A finite but exploding value in every step is a new scale, not an
 accident: after ``rebase_after`` consecutive skipped steps the running means start again (a new warm-up), so a
 real change of scale is learned from, while absurd minibatches among healthy ones never reach the model.
 
@@ -25,7 +25,7 @@ weights after them; a non-finite loss or gradient always reaches its weights thr
 restores the state from before them and counts all of them skipped: one check per block keeps its speed.
 
 :meth:`TrainingHealth.summary` goes into every checkpoint's metadata (``meta["health"]``), and a model with a
-non-finite weight is never written (:func:`saml_ros.core.model_io.model_payload` refuses it).
+non-finite weight is never written (:func:`saml_ros.core.model.io.model_payload` refuses it).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import torch
 
 from msg_schemas.telemetry import TRAINING_SKIP_REASONS
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.training.dual import DualVariables
 
 

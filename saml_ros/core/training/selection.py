@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.heldout import MET, NO_HELDOUT, UNCONFIRMED, Estimate, Z, heldout_verdict

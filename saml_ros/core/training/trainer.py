@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
 from saml_ros.core.training.config import TrainConfig, make_optimizer
 from saml_ros.core.training.dataset import Transitions

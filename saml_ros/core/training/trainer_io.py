@@ -1,4 +1,4 @@
-"""A trainer into a model checkpoint and back: the model's part (:func:`saml_ros.core.model_io.model_payload`) plus
+"""A trainer into a model checkpoint and back: the model's part (:func:`saml_ros.core.model.io.model_payload`) plus
 the trainer's (lambda, both optimizer states, training config, counters), and a trainer rebuilt from a loaded
 checkpoint that resumes exactly where it left off (:func:`resume_trainer`). The file format is
 ``docs/checkpoints.md``'s."""
@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore, arrays_to_torch_state, torch_state_to_arrays
-from saml_ros.core.model_evidence import DataEvidence
-from saml_ros.core.model_io import LoadedModel, UnhealthyModel, jsonable, model_payload
+from saml_ros.core.model.checkpoint import CheckpointStore, arrays_to_torch_state, torch_state_to_arrays
+from saml_ros.core.model.evidence import DataEvidence
+from saml_ros.core.model.io import LoadedModel, UnhealthyModel, jsonable, model_payload
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.schedule import schedules_for
 from saml_ros.core.training.trainer import PrimalDualTrainer
@@ -35,10 +35,10 @@ def checkpoint_payload(
     """Arrays and meta of a checkpoint holding ``trainer``'s model, lambda and optimizer states (``metrics`` and
     ``extra`` go into the meta as they are, made JSON-safe), its health (``meta["health"]``,
     :meth:`~saml_ros.core.training.health.TrainingHealth.summary`) and the training data's ``evidence`` (probe set
-    and residual statistics, :mod:`saml_ros.core.model_evidence`).
+    and residual statistics, :mod:`saml_ros.core.model.evidence`).
 
     Raises:
-        saml_ros.core.model_io.UnhealthyModel: a weight, multiplier or optimizer value is NaN or infinite.
+        saml_ros.core.model.io.UnhealthyModel: a weight, multiplier or optimizer value is NaN or infinite.
     """
     health = trainer.health.summary(trainer)
     if not health["finite"]:

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.systems.base import System
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,

@@ -33,8 +33,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.plausibility import Plausibility, parse_overrides
-from saml_ros.core.systems.base import System
+from saml_ros.core.data.plausibility import Plausibility, parse_overrides
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.errors import SamlError
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.quadrotor import Quadrotor
 
@@ -56,7 +57,7 @@ def seconds_to_ns(seconds: float) -> int:
 
 
 # --------------------------------------------------------------------------------------------- commands
-class CommandRejected(ValueError):
+class CommandRejected(SamlError, ValueError):
     """A command was refused; ``reason`` is the counter key suffix (``rejected/<reason>``)."""
 
     def __init__(self, reason: str, detail: str) -> None:
@@ -152,7 +153,7 @@ class SimConfig:
         seed: seed of the start sampler (negative = fresh OS entropy).
         reject_margin: see :class:`CommandValidator`.
         t0_ns: stamp of the first state (ns); lockstep runs use :data:`LOCKSTEP_T0_NS`.
-        plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.plausibility`); a
+        plausible_bounds: overrides of the system's plausible ranges (:mod:`saml_ros.core.data.plausibility`); a
             time-stepped simulator restarts the episode when its state leaves them (counted ``diverged``).
     """
 

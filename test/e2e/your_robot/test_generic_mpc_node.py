@@ -218,8 +218,8 @@ def test_checkpoints_of_a_robot_with_its_own_base_model_are_taken_and_swapped(
     import torch
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from saml_ros.core.checkpoint import CheckpointStore
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.checkpoint import CheckpointStore
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint
     from saml_ros.user_code import load_system_file

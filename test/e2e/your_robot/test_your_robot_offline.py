@@ -18,8 +18,8 @@ from msg_schemas import TypestoreFactory
 from saml_ros.api import load_model
 from saml_ros.bags.io import BagWriter
 from saml_ros.bags.transitions import extract_transitions
-from saml_ros.core.export import ExportError, export_model, numpy_residual
 from saml_ros.core.systems.system_file import read_system_file
+from saml_ros.export import ExportError, export_model, numpy_residual
 from saml_ros.offline import cli, export_cli
 from saml_ros.user_code import load_system_file
 
@@ -164,7 +164,7 @@ def test_train_from_bag_predict_and_export(recording: tuple[Path, dict], tmp_pat
 
 
 def test_export_refuses_unknown_formats(tmp_path: Path) -> None:
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.network import DynamicsModel
 
     m = DynamicsModel(load_system_file(SYSTEM_FILE), [4])
     with pytest.raises(ExportError, match="unknown export format"):

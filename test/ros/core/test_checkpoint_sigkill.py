@@ -1,4 +1,4 @@
-"""Checkpoint files, the run-directory store and torch state flattening (saml_ros.core.checkpoint)."""
+"""Checkpoint files, the run-directory store and torch state flattening (saml_ros.core.model.checkpoint)."""
 
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 from helpers import REPO
 
-from saml_ros.core.checkpoint import (
+from saml_ros.core.model.checkpoint import (
     CheckpointStore,
 )
 
 CHILD = r"""
 import sys
 import numpy as np
-from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.model.checkpoint import CheckpointStore
 
 store = CheckpointStore(sys.argv[1], keep=4)
 res = store.load_latest_valid()          # resume like a restarted learner

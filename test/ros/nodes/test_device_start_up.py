@@ -11,7 +11,7 @@ import torch
 from helpers import REPO
 from helpers.ros_helpers import RosDomain
 
-from saml_ros.core.device import DeviceError
+from saml_ros.core.runtime.device import DeviceError
 from saml_ros.core.training import TrainConfig
 
 NO_CUDA = not torch.cuda.is_available()

@@ -183,7 +183,7 @@ class LatestWatch:
         self._thread.start()
 
     def _read(self, view: Path) -> int:
-        from saml_ros.core.checkpoint import read_checkpoint
+        from saml_ros.core.model.checkpoint import read_checkpoint
 
         for _ in range(5):  # the named file may be pruned between reading the pointer and opening it: read again
             name, version = (view / "latest").read_text().split()

@@ -256,7 +256,7 @@ def test_a_single_wild_stamp_is_an_outlier_and_no_good_transition_is_lost(shared
 
 def test_sigterm_writes_a_final_checkpoint_and_exits_0(shared: tuple[Learner, RosSide, Path]) -> None:
     learner, tester, tmp = shared
-    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model.checkpoint import CheckpointStore
 
     assert tester.last().get("updates", 0) > 0
     rc = learner.stop(signal.SIGTERM)
@@ -301,9 +301,9 @@ def _proc_state(pid: int) -> str:
 
 def _make_run_dir(run_dir: Path, steps: tuple[int, ...]) -> list[tuple[Path, int, int, float]]:
     """Real checkpoints of a learner trained in-process: ``[(path, version, updates, lambda), ...]``."""
-    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.data.pairing import PairingConfig
+    from saml_ros.core.model.checkpoint import CheckpointStore
     from saml_ros.core.online import OnlineConfig, OnlineLearner
-    from saml_ros.core.pairing import PairingConfig
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems import get_system
     from saml_ros.core.training import TrainConfig
@@ -327,7 +327,7 @@ def _make_run_dir(run_dir: Path, steps: tuple[int, ...]) -> list[tuple[Path, int
 def test_resume_skips_a_corrupt_checkpoint_and_loads_the_last_good_one(
     tmp_path: Path, ros_env: ros_helpers.RosDomain
 ) -> None:
-    from saml_ros.core.checkpoint import atomic_write
+    from saml_ros.core.model.checkpoint import atomic_write
 
     run_dir = tmp_path / "run"
     saved = _make_run_dir(run_dir, (60, 40))  # versions 1 and 2
@@ -363,7 +363,7 @@ def test_resume_skips_a_corrupt_checkpoint_and_loads_the_last_good_one(
 def test_sigkill_while_checkpointing_then_restart_resumes_and_continues(
     tmp_path: Path, ros_env: ros_helpers.RosDomain
 ) -> None:
-    from saml_ros.core.checkpoint import CheckpointStore
+    from saml_ros.core.model.checkpoint import CheckpointStore
 
     run_dir = tmp_path / "run"
     params = dict(BASE_PARAMS, run_dir=str(run_dir), min_transitions=100, checkpoint_period=0.02)
@@ -410,8 +410,8 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
     the replay buffer: the training steps whose minibatch holds one are skipped (``train_health/*`` on /diagnostics,
     level WARN, never ERROR for health), the others keep training the model, and every checkpoint written is finite and
     records its health."""
-    from saml_ros.core.checkpoint import CheckpointStore
-    from saml_ros.core.model_io import load_model
+    from saml_ros.core.model.checkpoint import CheckpointStore
+    from saml_ros.core.model.io import load_model
     from saml_ros.core.systems import get_system
 
     run_dir = tmp_path / "run"

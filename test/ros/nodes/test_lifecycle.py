@@ -33,7 +33,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 
 from msg_schemas import DATA_QOS, TELEMETRY_QOS  # noqa: E402
 from msg_schemas.telemetry import diagnostics_from_msg  # noqa: E402
-from saml_ros.core.checkpoint import CheckpointStore  # noqa: E402
+from saml_ros.core.model.checkpoint import CheckpointStore  # noqa: E402
 
 NS = "/friction"
 LEARNER, MPC = f"{NS}/learner", f"{NS}/mpc"

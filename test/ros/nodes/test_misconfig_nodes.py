@@ -1,6 +1,6 @@
 """Misconfigured robots: several publishers on a topic that should have one are named, and can be refused.
 
-ROS-free: the decision (:mod:`saml_ros.core.publishers`). Real processes: a friction learner fed by the test's own
+ROS-free: the decision (:mod:`saml_ros.core.data.publishers`). Real processes: a friction learner fed by the test's own
 publishers (exact counts) and the example robot from its system file (examples/diff_drive), each time a second
 node starts publishing into the namespace: the learner names both nodes on ``/diagnostics`` (WARN) and, with
 ``pairing.refuse_multiple_publishers``, pairs nothing from that namespace until the second node is gone. The
@@ -17,7 +17,7 @@ import numpy as np
 from helpers.ros_helpers import RosDomain, TestNode, wait_for
 
 from msg_schemas import telemetry as tele
-from saml_ros.core.publishers import WARN
+from saml_ros.core.data.publishers import WARN
 
 
 # ------------------------------------------------------------------------------------- processes

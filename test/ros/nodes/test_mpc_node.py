@@ -1,6 +1,6 @@
 """The MPC node and its model watcher.
 
-ROS-free part: :class:`~saml_ros.core.model_watch.ModelWatcher` (loading, refusing, handing over).
+ROS-free part: :class:`~saml_ros.core.mpc.follower.ModelWatcher` (loading, refusing, handing over).
 Node part (real processes, private ROS_DOMAIN_ID): the node answers states with the right stamps and bounds,
 starts on the base model, switches to checkpoints that appear while it runs, refuses corrupt and foreign
 checkpoints and keeps running.
@@ -21,7 +21,7 @@ from helpers.models import quad_evidence, quad_model, save_quad_checkpoint, trap
 from helpers.mpc_node import DT_NS, T0_NS, MPCProcess, Probe
 from helpers.ros_helpers import RosDomain
 
-from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.systems import get_system
 
 

@@ -22,7 +22,7 @@ from helpers.ros_helpers import Process, RosDomain, wait_for
 
 from msg_schemas import DATA_QOS, TypestoreFactory, get_schema
 from saml_ros.bags.io import BagWriter, jazzy_typestore
-from saml_ros.core.checkpoint import CheckpointStore
+from saml_ros.core.model.checkpoint import CheckpointStore
 
 #: launch's grace period between its SIGINT and its SIGTERM (s)
 GRACE_S = 5.0

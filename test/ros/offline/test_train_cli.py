@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from helpers import REPO
 
-from saml_ros.core.model_io import load_model
+from saml_ros.core.model.io import load_model
 from saml_ros.core.systems import get_system
 
 

@@ -13,7 +13,7 @@ import pytest
 from helpers import REPO
 from helpers.offline import WIDE
 
-from saml_ros.core.checkpoint import read_checkpoint
+from saml_ros.core.model.checkpoint import read_checkpoint
 from saml_ros.core.training import heldout as H
 
 

@@ -1,6 +1,6 @@
 """Misconfigured robots: several publishers on a topic that should have one are named, and can be refused.
 
-ROS-free: the decision (:mod:`saml_ros.core.publishers`). Real processes: a friction learner fed by the test's own
+ROS-free: the decision (:mod:`saml_ros.core.data.publishers`). Real processes: a friction learner fed by the test's own
 publishers (exact counts) and the example robot from its system file (examples/diff_drive), each time a second
 node starts publishing into the namespace: the learner names both nodes on ``/diagnostics`` (WARN) and, with
 ``pairing.refuse_multiple_publishers``, pairs nothing from that namespace until the second node is gone. The
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from saml_ros.core.publishers import OK, WARN, PublisherGate, publisher_report, state_command_report
+from saml_ros.core.data.publishers import OK, WARN, PublisherGate, publisher_report, state_command_report
 
 
 # ------------------------------------------------------------------------------------------ ROS-free
@@ -51,7 +51,7 @@ def test_report_names_the_publishers_and_says_what_happens() -> None:
     level, parts, values = publisher_report(channels, {"/f/state": ["/f/sim"]}, [2, 1])
     assert level == WARN and values["multiple_publishers"] == "/f/state: /f/sim (2 publishers)"
     # a publisher whose node the graph has not discovered yet
-    from saml_ros.core.publishers import UNKNOWN_NODE, node_label
+    from saml_ros.core.data.publishers import UNKNOWN_NODE, node_label
 
     assert node_label("/_NODE_NAMESPACE_UNKNOWN_", "_NODE_NAME_UNKNOWN_") == UNKNOWN_NODE
     assert node_label("/", "sim") == "/sim" and node_label("/f", "sim") == "/f/sim"
@@ -80,7 +80,7 @@ def residual_model(system_name: str, scale: float, seed: int = 0, offset: float 
     one (in units of the residual's standard deviation)."""
     import torch
 
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.systems import get_system
 
     system = get_system(system_name)
@@ -95,8 +95,8 @@ def residual_model(system_name: str, scale: float, seed: int = 0, offset: float 
 
 def swap(service: Any, model: Any, version: int) -> None:
     """Hand ``model`` to the MPC service as its watcher hands over a checkpoint it loaded."""
-    from saml_ros.core.model_io import LoadedModel
-    from saml_ros.core.model_watch import ReadyModel
+    from saml_ros.core.model.io import LoadedModel
+    from saml_ros.core.mpc.follower import ReadyModel
 
     loaded = LoadedModel(model, None, service.system, None, {}, {})  # type: ignore[arg-type]
     service.swap(ReadyModel(loaded, Path(f"ckpt-{version}.saml"), version, None, 0.0, "poll"))
@@ -205,7 +205,7 @@ def test_the_monitor_pairs_each_state_with_the_one_answered_a_period_earlier() -
 def test_a_robot_on_which_f_hat_is_far_off_does_not_hide_a_model_worse_on_the_other() -> None:
     """Each stream has its own window: robot B (wired backwards) makes f_hat look terrible on its transitions, and
     mixed into one window that hid a model twice as far off as f_hat on robot A."""
-    from saml_ros.core.model_monitor import LiveErrorMonitor
+    from saml_ros.core.mpc.monitor import LiveErrorMonitor
 
     mixed, per_robot = LiveErrorMonitor(), LiveErrorMonitor()
     said = []

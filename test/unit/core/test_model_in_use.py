@@ -13,11 +13,11 @@ import numpy as np
 import torch
 from helpers.models import QUAD, quad_evidence, quad_model, save_quad_checkpoint
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_monitor import LiveErrorMonitor, MonitorConfig
-from saml_ros.core.model_watch import RECHECK_PERIOD_S
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.checkpoint import CheckpointStore
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.config import MPCConfig
+from saml_ros.core.mpc.follower import RECHECK_PERIOD_S
+from saml_ros.core.mpc.monitor import LiveErrorMonitor, MonitorConfig
 from saml_ros.core.mpc.service import MPCService
 
 

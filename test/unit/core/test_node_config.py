@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from saml_ros.core.learner_config import LearnerConfig, learner_params
 from saml_ros.core.mpc.config import PARAMS, MPCConfig
 from saml_ros.core.mpc.service import MPCService
+from saml_ros.core.online.config import LearnerConfig, learner_params
 from saml_ros.core.params import Param
 from saml_ros.core.systems import SYSTEM_NAMES, get_entry
 from saml_ros.core.training import TrainConfig

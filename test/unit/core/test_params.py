@@ -10,9 +10,8 @@ from typing import Any
 
 import pytest
 
-from saml_ros.core.learner_config import LearnerConfig, learner_params
-from saml_ros.core.lifecycle import AUTOSTART, MANAGER_PARAMS, check_manager_params
 from saml_ros.core.mpc.config import MPCConfig
+from saml_ros.core.online.config import LearnerConfig, learner_params
 from saml_ros.core.params import (
     CONFIGURE,
     LIVE,
@@ -28,6 +27,7 @@ from saml_ros.core.params import (
     review_change,
     unknown_problems,
 )
+from saml_ros.core.runtime.lifecycle import AUTOSTART, MANAGER_PARAMS, check_manager_params
 from saml_ros.viewers.foxglove_server import PARAMS as FOXGLOVE_PARAMS
 from saml_ros.viewers.foxglove_server import check_params as check_foxglove
 from sim_nodes.binding import read_sim_params

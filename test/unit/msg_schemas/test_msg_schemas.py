@@ -20,8 +20,8 @@ from msg_schemas import telemetry as tm
 from msg_schemas.base import CHECKPOINT_QOS, DATA_QOS
 from msg_schemas.codecs import JointStateCodec, rotation_matrix
 from msg_schemas.docs import render
+from saml_ros.core.dynamics.quaternion import quat_rotate
 from saml_ros.core.systems import get_system, system_names
-from saml_ros.core.systems.quaternion import quat_rotate
 
 FACTORIES = {"rclpy": RCLPY, "rosbags": BAGS}
 SYSTEMS = ("friction", "quadrotor", "paddle_ball")

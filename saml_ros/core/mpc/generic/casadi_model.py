@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 
 
 def theta_layout(n_in: int, hidden: Sequence[int], n_out: int) -> list[tuple[str, tuple[int, ...]]]:
@@ -100,7 +100,7 @@ def casadi_dynamics(system: Any, kind: str | None, hidden: Sequence[int], *, sym
     phi, None: f_hat alone; theta and bound unused then) of ``system`` as a CasADi Function, with phi clipped to
     ``+-bound`` (pass ``inf`` for none) and the angle fields handled as the planner does (the model sees them
     wrapped, the prediction keeps the turns). ``ValueError`` when f_hat has no symbolic form (a plain torch
-    function: write it as an array-namespace form, saml_ros.core.systems.base_forms)."""
+    function: write it as an array-namespace form, saml_ros.core.dynamics.base_forms)."""
     import casadi as ca
 
     from saml_ros.core.mpc.generic.dynamics import SymbolicBase, make_base
@@ -154,7 +154,7 @@ def export_function(model: DynamicsModel, member: int = 0, *, smooth: bool = Fal
             y, base_ok = base.function(x, u) + phi, True
         elif not why:
             why = (f"f_hat ({getattr(base, 'label', system.name)}) has no CasADi form: only the array-namespace forms "
-                   "of a system file's base models have one (saml_ros.core.systems.base_forms)")
+                   "of a system file's base models have one (saml_ros.core.dynamics.base_forms)")
     if smooth:
         fn = ca.Function("model_smooth", [x, u, theta, eps], [y, phi], ["x", "u", "theta", "eps"], ["y", "residual"])
     else:

@@ -1,7 +1,7 @@
 """The generic planner's prediction model: ``x' = f_hat(x, u) + phi(x, u)`` with exact Jacobians, for any robot.
 
 * **f_hat** (:func:`make_base`): a built-in base model or a user's array-namespace form
-  (:mod:`saml_ros.core.systems.base_forms`) is evaluated with numpy and differentiated by CasADi: its symbolic
+  (:mod:`saml_ros.core.dynamics.base_forms`) is evaluated with numpy and differentiated by CasADi: its symbolic
   Jacobians are built once and evaluated for a whole batch in one call (:class:`SymbolicBase`). A user's plain torch
   function is differentiated by torch autograd (:class:`TorchBase`; exact, about ten times slower). Nobody derives
   a Jacobian by hand.
@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.base_forms import CASADI, NUMPY, SCALAR, Form, Row, base_form
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.mlp_np import NumpyMLP
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.base_forms import CASADI, NUMPY, SCALAR, Form, Row, base_form
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
 

@@ -22,11 +22,12 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.errors import SamlError
 from saml_ros.core.mpc.generic.dynamics import wrap_angle
-from saml_ros.core.systems.mpc_section import GoalTopic, MPCTask
+from saml_ros.core.mpc.generic.section import GoalTopic, MPCTask
 
 
-class GoalRefused(ValueError):
+class GoalRefused(SamlError, ValueError):
     """A goal or reference message that was not used (NaN, out of bounds, malformed); the last goal is kept."""
 
 

@@ -21,14 +21,14 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.generic.casadi_model import casadi_dynamics, mlp_theta
 from saml_ros.core.mpc.generic.dynamics import GenericDynamics, make_base
 from saml_ros.core.mpc.generic.problem import GenericProblem
+from saml_ros.core.mpc.generic.section import MPCTask
 from saml_ros.core.mpc.generic.sqp import _options, system_task
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.mpc_section import MPCTask
 
 
 class CasadiNLP:

@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from saml_ros.core.mpc.generic.dynamics import wrap_angle
-from saml_ros.core.systems.mpc_section import MPCTask
+from saml_ros.core.mpc.generic.section import MPCTask
 
 
 class GenericProblem:

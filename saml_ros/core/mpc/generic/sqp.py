@@ -32,13 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.system import System
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase, make_base
 from saml_ros.core.mpc.generic.problem import GenericProblem
+from saml_ros.core.mpc.generic.section import MPCTask, mpc_task
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
-from saml_ros.core.systems.base import System
-from saml_ros.core.systems.mpc_section import MPCTask, mpc_task
 
 _ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
 

@@ -19,12 +19,12 @@ from typing import Any
 import numpy as np
 import scipy.optimize
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel
 from saml_ros.core.mpc.paddle.multistart import SearchSettings, search
 from saml_ros.core.mpc.paddle.problem import PaddleGoal, PaddleProblem, control_from_theta, paddle_goal
 from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton, RunResult
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.paddle_ball import PaddleBall
 
 

@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel, rollout_steps
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
-from saml_ros.core.systems.base import System
 
 #: the start rules of :class:`ShootingMPC` (option ``start``)
 START_MODES = ("robust", "plain")

@@ -18,7 +18,7 @@ operations in the same order without fused multiply-adds, so f_hat rollouts are 
 the network differ from numpy's by summation order only (``test/test_sqp_native.py`` bounds both).
 
 Building: :func:`load_library` compiles the source with the C compiler (``$CC``, else ``cc``) once per machine into
-:func:`~saml_ros.core.native_build.cache_root` under a name hashing the source, flags and CPU (an atomic rename,
+:func:`~saml_ros.core.runtime.native_build.cache_root` under a name hashing the source, flags and CPU (an atomic rename,
 under a file lock), and loads it with ctypes. No compiler, or ``SAML_MPC_NATIVE=0``: the numpy path (one warning).
 """
 
@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.native_build import cache_root, cpu_id
+from saml_ros.core.runtime.native_build import cache_root, cpu_id
 
 #: the kernel's source (package data)
 SOURCE = Path(__file__).resolve().parent / "kernels" / "sqp_native.c"

@@ -8,10 +8,10 @@ from typing import Any
 import numpy as np
 import scipy.optimize
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.dynamics_np import PredictionModel
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
-from saml_ros.core.systems.base import System
 
 
 class SLSQPShootingMPC(ShootingMPC):

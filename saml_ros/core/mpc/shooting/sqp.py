@@ -27,12 +27,12 @@ from typing import Any
 import numpy as np
 from scipy.linalg.blas import dtrsm as _dtrsm
 
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.dynamics_np import PredictionModel
 from saml_ros.core.mpc.shooting import native as _native
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, L1QP, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting.tasks import ShootingTask
-from saml_ros.core.systems.base import System
 
 #: one trial point of the line search: controls (T, m), predicted states (T+1, n), merit, residuals, constraints
 _Trial = tuple[np.ndarray, np.ndarray, float, np.ndarray | None, np.ndarray]

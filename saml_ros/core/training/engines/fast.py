@@ -4,7 +4,7 @@ At the paper's batch and network sizes (a 16-8 net needs ~3 kFLOP per sample) a 
 all Python and dispatcher overhead: ~40 autograd nodes, per-parameter optimizer bookkeeping, small allocations.
 This engine computes the same step with ~43 tensor operations in all (docs/performance.md has the profiles):
 
-* **hand-written forward/backward** for :class:`~saml_ros.core.models.EnsembleMLP`. Each layer's bias is stored as an extra weight row
+* **hand-written forward/backward** for :class:`~saml_ros.core.model.network.EnsembleMLP`. Each layer's bias is stored as an extra weight row
   and every activation carries a column of ones, so one ``bmm`` gives the pre-activation and one ``bmm`` gives
   the weight *and* bias gradient. PReLU keeps its derivative ``d = where(a >= 0, 1, slope)`` from the forward
   pass, computed as ``prelu(copysign(1, a), -slope)`` (the plain model's tie rule ``a >= 0`` included; only a
@@ -49,7 +49,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from saml_ros.core.models import EnsembleMLP
+from saml_ros.core.model.network import EnsembleMLP
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import AugmentedDual, DualVariables, LagrangianDual, NuPIDual, ResilientDual
 from saml_ros.core.training.engines.base import Engine, RunState, minibatch_plan

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from saml_ros.core.models import EnsembleMLP
+from saml_ros.core.model.network import EnsembleMLP
 from saml_ros.core.training.nupi import nupi_update
 
 

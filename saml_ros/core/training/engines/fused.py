@@ -41,7 +41,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from saml_ros.core.native_build import cache_root, cpu_id
+from saml_ros.core.runtime.native_build import cache_root, cpu_id
 from saml_ros.core.training.dataset import Transitions
 from saml_ros.core.training.dual import AugmentedDual, NuPIDual, ResilientDual
 from saml_ros.core.training.engines.base import RunState, minibatch_plan

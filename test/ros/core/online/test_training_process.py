@@ -11,14 +11,14 @@ from pathlib import Path
 import pytest
 from helpers.online import SPEC, checkpointed_learner, config, transitions, wait_until
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.child_launch import launch_child
+from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online import (
     LearnerSetup,
     LoopConfig,
     ResumeError,
     TrainingProcess,
 )
+from saml_ros.core.runtime.child_launch import launch_child
 
 
 # ------------------------------------------------------------------------------------------- training process

@@ -20,12 +20,12 @@ import torch
 import yaml
 
 from msg_schemas import RCLPY
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.dynamics.base_forms import NUMPY, TORCH, builtin_form
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.generic import GenericSQP
 from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase, make_base
 from saml_ros.core.mpc.generic.goals import GoalRefused, GoalTracker
-from saml_ros.core.systems.base_forms import NUMPY, TORCH, builtin_form
-from saml_ros.core.systems.mpc_section import mpc_task
+from saml_ros.core.mpc.generic.section import mpc_task
 from saml_ros.core.systems.system_file import FileSystem, SystemFileError, parse_definition
 from saml_ros.user_code import load_system_file, resolve_base_model
 
@@ -520,7 +520,7 @@ def test_casadi_export_equals_the_model_and_solves_an_ocp(tmp_path: Path) -> Non
 
     import casadi as ca
 
-    from saml_ros.core.export import export_model
+    from saml_ros.export import export_model
 
     s = build(example())
     model = fitted_model(s, members=2, scale=0.05).float()  # the learner's dtype

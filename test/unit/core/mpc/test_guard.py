@@ -17,10 +17,9 @@ import pytest
 import torch
 from helpers.models import QUAD, TASK, hover_only_checkpoint
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_io import load_model
-from saml_ros.core.model_monitor import LiveErrorMonitor, MonitorConfig
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.checkpoint import CheckpointStore
+from saml_ros.core.model.io import load_model
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import LoopStep, closed_loop, make_controller
 from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
@@ -34,6 +33,7 @@ from saml_ros.core.mpc.guard import (
     residual_bound,
 )
 from saml_ros.core.mpc.mlp_np import NumpyMLP
+from saml_ros.core.mpc.monitor import LiveErrorMonitor, MonitorConfig
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.online import OnlineConfig, OnlineLearner
 from saml_ros.core.online import learner as online_learner

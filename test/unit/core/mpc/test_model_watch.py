@@ -1,6 +1,6 @@
 """The MPC node and its model watcher.
 
-ROS-free part: :class:`~saml_ros.core.model_watch.ModelWatcher` (loading, refusing, handing over).
+ROS-free part: :class:`~saml_ros.core.mpc.follower.ModelWatcher` (loading, refusing, handing over).
 Node part (real processes, private ROS_DOMAIN_ID): the node answers states with the right stamps and bounds,
 starts on the base model, switches to checkpoints that appear while it runs, refuses corrupt and foreign
 checkpoints and keeps running.
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from helpers.checkpoints import save_model, write_corrupt
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_watch import ModelWatcher, checkpoint_gate
+from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.mpc.config import make_goal, parse_solver_options
+from saml_ros.core.mpc.follower import ModelWatcher, checkpoint_gate
 from saml_ros.core.systems import get_system
 
 # ------------------------------------------------------------------------------------ ModelWatcher

@@ -9,7 +9,7 @@ import pytest
 import scipy.optimize
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.shooting import ShootingMPC

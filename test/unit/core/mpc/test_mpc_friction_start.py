@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
 from saml_ros.core.mpc.factory import make_task
 from saml_ros.core.mpc.shooting import ShootingMPC

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import base_model_np, make_controller, paddle_goal
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleProblem

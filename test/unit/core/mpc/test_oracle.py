@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
 from saml_ros.core.mpc.dynamics_np import (
     ORACLE,

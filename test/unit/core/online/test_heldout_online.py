@@ -1,6 +1,6 @@
 """Held-out verdicts of the online learner (saml_ros.core.online.heldout), its normalisation, the residual's inputs
 chosen in a system file, the update budget, and the MPC's refusal of a checkpoint that is worse than f_hat on its own
-held-out data (saml_ros.core.model_acceptance)."""
+held-out data (saml_ros.core.mpc.acceptance)."""
 
 from __future__ import annotations
 
@@ -15,17 +15,17 @@ import pytest
 import torch
 import yaml
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.learner_report import learner_diagnostics
-from saml_ros.core.model_acceptance import check_model, heldout_refusal
-from saml_ros.core.model_io import load_model
-from saml_ros.core.models import NORM_FLOOR_FRACTION, DynamicsModel
+from saml_ros.core.data.pairing import PairingConfig, Transition
+from saml_ros.core.data.plausibility import Plausibility
+from saml_ros.core.model.checkpoint import CheckpointStore
+from saml_ros.core.model.io import load_model
+from saml_ros.core.model.network import NORM_FLOOR_FRACTION, DynamicsModel
+from saml_ros.core.mpc.acceptance import check_model, heldout_refusal
 from saml_ros.core.mpc.mlp_np import NumpyMLP
 from saml_ros.core.online import HeldoutConfig, OnlineConfig, OnlineLearner, ResumeError
 from saml_ros.core.online.heldout import heldout_mask
+from saml_ros.core.online.report import learner_diagnostics
 from saml_ros.core.online.telemetry import VERDICT_NUMBERS
-from saml_ros.core.pairing import PairingConfig, Transition
-from saml_ros.core.plausibility import Plausibility
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.systems.system_file import FileSystem, SystemFileError, parse_definition

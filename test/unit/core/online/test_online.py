@@ -13,7 +13,8 @@ import torch
 from helpers.online import DT, SPEC, SYSTEM, checkpointed_learner, config, new_learner, transitions, wait_until
 
 from msg_schemas.telemetry import REJECT_REASONS, model_error_names
-from saml_ros.core.checkpoint import CheckpointStore, atomic_write
+from saml_ros.core.data.pairing import PairingConfig, Transition
+from saml_ros.core.model.checkpoint import CheckpointStore, atomic_write
 from saml_ros.core.online import (
     LoopConfig,
     OnlineConfig,
@@ -21,7 +22,6 @@ from saml_ros.core.online import (
     RawIngest,
     ResumeError,
 )
-from saml_ros.core.pairing import PairingConfig, Transition
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.training import TrainConfig
@@ -389,7 +389,7 @@ def test_every_dual_method_trains_online_and_resumes_exactly(tmp_path: Path, met
 def test_feasibility_verdict_in_telemetry_and_diagnostics() -> None:
     """The learner diagnoses its history: a bound the model meets at once is 'met' (OK), one no model can meet
     (eps = 1e-6 m/s: below the float32 rounding of the targets) is 'likely infeasible' (ERROR) on /diagnostics."""
-    from saml_ros.core.learner_report import learner_diagnostics
+    from saml_ros.core.online.report import learner_diagnostics
 
     loose, tight = (ProblemSpec.for_system({**SYSTEM.paper_spec(), "constraints": [
         {**SYSTEM.paper_spec()["constraints"][0], "eps": e}]}, SYSTEM) for e in (5.0, 1e-6))

@@ -13,6 +13,7 @@ from helpers import REPO
 from msg_schemas import get_schema
 from msg_schemas.base import DATA_QOS, SystemSchema, TopicSpec
 from msg_schemas.codecs import JOINT_STATE, JointStateCodec
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
 from saml_ros.core.mpc import make_controller
 from saml_ros.core.mpc.dynamics_np import TorchBaseNP
@@ -29,7 +30,6 @@ from saml_ros.core.systems import (
     register_system,
     system_names,
 )
-from saml_ros.core.systems.base import System
 from saml_ros.core.worlds.sim_core import SimConfig, SimCore
 from saml_ros.executables import EXECUTABLES
 from saml_ros.experiments import EXPERIMENT_NAMES

@@ -19,7 +19,7 @@ from helpers import REPO
 
 from msg_schemas import RCLPY, SchemaError, TypestoreFactory
 from msg_schemas.field_path import FieldPathError, resolve
-from saml_ros.core.systems.base_models import BaseModelError
+from saml_ros.core.dynamics.base_models import BaseModelError
 from saml_ros.core.systems.system_file import (
     FileSystem,
     SystemFileError,
@@ -289,7 +289,7 @@ def test_builtin_base_models() -> None:
     again = system_from_params(lin.params())
     np.testing.assert_array_equal(again.base_step_np(xs, us), lin.base_step_np(xs, us))
     with pytest.raises(BaseModelError, match="A must have shape"):
-        from saml_ros.core.systems.base_models import BaseModelSpec, FieldInfo, Layouts, build_base_model
+        from saml_ros.core.dynamics.base_models import BaseModelSpec, FieldInfo, Layouts, build_base_model
 
         lay = Layouts((FieldInfo("p", "m", -1, 1),), (FieldInfo("a", "m/s^2", -1, 1),), 0.1)
         build_base_model(BaseModelSpec(builtin="linear", params={"A": [[1, 2]], "B": [[0]], "c": [0]}), lay)
@@ -312,8 +312,8 @@ def test_user_base_model_reaches_a_training_process_and_a_checkpoint(user_module
     import pickle
 
     from saml_ros.api import load_model
-    from saml_ros.core.checkpoint import CheckpointStore
-    from saml_ros.core.models import DynamicsModel
+    from saml_ros.core.model.checkpoint import CheckpointStore
+    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.systems import get_system
     from saml_ros.core.training import PrimalDualTrainer, TrainConfig, save_checkpoint

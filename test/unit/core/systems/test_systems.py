@@ -9,9 +9,16 @@ import numpy as np
 import pytest
 import torch
 
+from saml_ros.core.dynamics.quaternion import (
+    quat_from_axis_angle,
+    quat_mul,
+    quat_rotate,
+    quat_to_rotmat,
+    tilt_angle,
+)
+from saml_ros.core.dynamics.system import System
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import SYSTEM_NAMES, default_params, get_system
-from saml_ros.core.systems.base import System
 from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.core.systems.paddle_ball import (
     PaddleBall,
@@ -22,13 +29,6 @@ from saml_ros.core.systems.paddle_ball import (
 )
 from saml_ros.core.systems.plots import write_figures
 from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.systems.quaternion import (
-    quat_from_axis_angle,
-    quat_mul,
-    quat_rotate,
-    quat_to_rotmat,
-    tilt_angle,
-)
 
 F64 = torch.float64
 

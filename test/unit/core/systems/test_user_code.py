@@ -85,7 +85,7 @@ def test_two_robots_with_modules_of_one_name_are_refused_clearly(tmp_path: Path)
 
 
 def test_path_only_for_functions() -> None:
-    from saml_ros.core.systems.base_models import BaseModelError, BaseModelSpec
+    from saml_ros.core.dynamics.base_models import BaseModelError, BaseModelSpec
 
     with pytest.raises(BaseModelError, match="only a 'function' base model"):
         BaseModelSpec.parse({"builtin": "hold", "path": "."})

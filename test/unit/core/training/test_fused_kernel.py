@@ -18,7 +18,7 @@ import pytest
 import torch
 from helpers.training import FRICTION, METHODS, SPECS, assert_same_run, friction_data
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 from saml_ros.core.training.engines import fused

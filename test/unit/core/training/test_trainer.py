@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training import DualVariables, PrimalDualTrainer, TrainConfig, Transitions
 from saml_ros.core.training.diagnosis import INFEASIBLE, MET

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from saml_ros.core.checkpoint import CheckpointStore
-from saml_ros.core.model_io import UnhealthyModel, load_model
-from saml_ros.core.models import DynamicsModel
+from saml_ros.core.data.pairing import Transition
+from saml_ros.core.model.checkpoint import CheckpointStore
+from saml_ros.core.model.io import UnhealthyModel, load_model
+from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.online import OnlineConfig, OnlineLearner
-from saml_ros.core.pairing import Transition
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions, checkpoint_payload
