@@ -4,7 +4,7 @@ whether Sufficiently Accurate learning buys a smaller, faster one than Uniformly
 The paper's argument is finite capacity: a model that cannot be accurate everywhere should be accurate where the
 task needs it. A real-time MPC has little capacity to give: every solve evaluates the network and its Jacobians
 many times, so the net that runs at the control rate is small. This sweep measures it in the demo's world (the
-quadrotor with ground effect and a wind field above the pad's shelter, :data:`saml_ros.demo.landing.DEMO_WORLD`)
+quadrotor with ground effect and a wind field above the pad's shelter, :attr:`CapacitySettings.world`)
 and on the demo's task, closed loop:
 
 * **Data** (offline, one recording per seed): the demo's live loop replayed without ROS
@@ -92,8 +92,9 @@ class CapacitySettings:
     timing_starts: int = 3
     #: evaluation worker processes
     workers: int = 2
-    #: world parameters over the demo's (``Quadrotor`` constructor overrides, e.g. ``{"wind": 0.0}``)
-    world: dict[str, float] = field(default_factory=dict)
+    #: world parameters over the demo's (``Quadrotor`` constructor overrides): a wind field of 3 m/s^2, wavelength
+    #: 8 m, above the pad's shelter, beside the demo's ground effect (``{"wind": 0.0}``: the demo's world itself)
+    world: dict[str, float] = field(default_factory=lambda: {"wind": 3.0, "wind_length": 8.0})
     #: control steps per episode, recorded and evaluated (0: the demo's, 50 = 5 s)
     steps: int = 0
 

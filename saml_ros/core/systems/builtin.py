@@ -199,10 +199,9 @@ QUADROTOR = SystemEntry(
     bringup={
         "system": "quadrotor",
         "sim_time": 300.0,
-        # the world: the paper's ground effect and, above the pad's shelter (1.5 m), a wind field f_hat lacks
-        # either (Quadrotor.wind_acceleration): a model must share its capacity between them (docs/demo.md)
-        "sim": {"mode": "lockstep", "episode_steps": 50, "seed": 0, "lockstep_timeout": 5.0, "system.wind": 3.0,
-                "system.wind_length": 8.0},
+        # the world: the paper's ground effect. The capacity sweep adds a wind field above the pad's shelter
+        # (CapacitySettings.world); the demo in that world failed its worst-case check in 2 of 4 runs (docs/demo.md)
+        "sim": {"mode": "lockstep", "episode_steps": 50, "seed": 0, "lockstep_timeout": 5.0},
         "learner": {"min_transitions": 200, "checkpoint_period": 5.0, "updates_per_second": 0.0,
                     "training_niceness": 0, "train.batch_size": 128, "model.ensemble": 5},
         "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5, "gate.max_constraint": 0.002,

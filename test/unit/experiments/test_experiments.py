@@ -380,7 +380,7 @@ def test_capacity_sweep_quick(tmp_path: Path) -> None:
     assert s == CapacitySettings.quick()
     data = run(s, tmp_path, progress=False)
     saved = check_outputs(tmp_path, data)
-    assert data["world"].get("wind", 0.0) > 0  # the demo's world: the wind above the pad's shelter
+    assert data["world"].get("wind", 0.0) > 0  # the sweep's world: the demo's and the wind above the pad's shelter
     rows = {(r["size"], r["kind"]): r for r in data["rows"]}
     assert set(rows) == {(size, kind) for size in ("4-4", "8-8") for kind in ("single", "ens")}
     for r in rows.values():
