@@ -168,10 +168,9 @@ def test_a_second_effect_is_in_the_simulator_the_oracle_and_the_evaluation(tmp_p
     from saml_ros.demo.cli import demo_config
     from saml_ros.demo.evaluation import run_task_and_guard
     from saml_ros.demo.landing import plant
+    from saml_ros.experiments.capacity import CapacitySettings
     from sim_nodes.binding import read_sim_params
     from sim_nodes.quadrotor_sim import BINDING
-
-    from saml_ros.experiments.capacity import CapacitySettings
 
     config = demo_config(0, 60.0)
     assert dict(run_task_and_guard(config)[0].world).get("wind", 0.0) == 0.0  # the demo's world: the paper's
