@@ -168,7 +168,10 @@ class MPCNode(ManagedNode):
         if service is None:
             return
         config = MPCConfig.from_params(current_values(self, self.table))
-        service.config = config  # read by every solve (goal, safe_on_infeasible)
+        goal_changed = config.goal != service.config.goal
+        service.config = config  # read by every solve (safe_on_infeasible, state_timeout, ...)
+        if goal_changed:  # the goal.* parameters changed: plan for them (a goal from a topic stays otherwise)
+            service.set_goal(config.goal)
         service.deadline_s = config.deadline_s(service.system.dt)
         service.watcher.poll_period = config.poll_period
         self._diag_timer.timer_period_ns = int(1e9 / config.diagnostics_rate)

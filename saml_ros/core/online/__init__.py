@@ -8,13 +8,43 @@ them), ``process`` (:class:`TrainingProcess`, the parent's handle on the trainin
 interpreter, and the socket protocol) and ``child`` (what runs in that interpreter).
 """
 
-from saml_ros.core.online.heldout import HeldoutConfig, HeldoutReport
-from saml_ros.core.online.ingest import RawIngest
-from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
-from saml_ros.core.online.loop import LoopConfig, run_loop
-from saml_ros.core.online.process import LearnerSetup, ReadyInfo, StartCancelled, TrainingProcess
-from saml_ros.core.online.resume import ResumeError, ResumeInfo
-from saml_ros.core.online.telemetry import assemble_telemetry
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from saml_ros.core.online.heldout import HeldoutConfig, HeldoutReport
+    from saml_ros.core.online.ingest import RawIngest
+    from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
+    from saml_ros.core.online.loop import LoopConfig, run_loop
+    from saml_ros.core.online.process import LearnerSetup, ReadyInfo, StartCancelled, TrainingProcess
+    from saml_ros.core.online.resume import ResumeError, ResumeInfo
+    from saml_ros.core.online.telemetry import assemble_telemetry
+
+#: name -> module of this package; imported on first use (PEP 562), so that importing one module of the package
+#: (the learner node imports ``config``) does not import torch through the others
+_EXPORTS = {
+    "HeldoutConfig": "heldout",
+    "HeldoutReport": "heldout",
+    "LearnerSetup": "process",
+    "LoopConfig": "loop",
+    "OnlineConfig": "learner",
+    "OnlineLearner": "learner",
+    "RawIngest": "ingest",
+    "ReadyInfo": "process",
+    "ResumeError": "resume",
+    "ResumeInfo": "resume",
+    "StartCancelled": "process",
+    "TrainingProcess": "process",
+    "assemble_telemetry": "telemetry",
+    "run_loop": "loop",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+
 
 __all__ = [
     "HeldoutConfig",

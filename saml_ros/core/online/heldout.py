@@ -23,14 +23,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.data.buffer import ReplayBuffer, Transitions
-from saml_ros.core.model.network import DynamicsModel
-from saml_ros.core.spec import ProblemSpec, Term
 from saml_ros.core.training.heldout import (
     NO_HELDOUT,
     STREAM_BLOCKS,
@@ -39,6 +36,10 @@ from saml_ros.core.training.heldout import (
     constraint_estimate,
     heldout_verdict,
 )
+
+if TYPE_CHECKING:  # torch is imported where the model is evaluated: the learner node imports this module
+    from saml_ros.core.model.network import DynamicsModel
+    from saml_ros.core.spec import ProblemSpec, Term
 
 #: the ``meta`` key of a checkpoint's held-out record (read by :mod:`saml_ros.core.mpc.acceptance`)
 META_KEY = "heldout"
@@ -204,12 +205,21 @@ def _is_conditional(term: Term) -> bool:
     return term.region is not None and term.mean == "conditional"
 
 
-@torch.no_grad()
 def term_losses(model: DynamicsModel, spec: ProblemSpec, x: np.ndarray, u: np.ndarray, y: np.ndarray,
                 base: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per-sample losses of every spec term (objective first) and their region masks, ``(losses (E, N), in_region
     (N,))`` each, of ``model``'s prediction (every member), or with ``base`` of f_hat's (``(1, N)``: the system's
     base model, also for a full model)."""
+    import torch
+
+    with torch.no_grad():
+        return _term_losses(model, spec, x, u, y, base)
+
+
+def _term_losses(model: DynamicsModel, spec: ProblemSpec, x: np.ndarray, u: np.ndarray, y: np.ndarray,
+                 base: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    import torch
+
     terms = [spec.objective, *spec.constraints]
     n = len(x)
     e = 1 if base else model.n_models

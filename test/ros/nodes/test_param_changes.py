@@ -385,8 +385,7 @@ def test_every_executable_exits_2_naming_a_parameter_it_does_not_declare(ros_env
 def test_several_bad_parameters_are_reported_together_and_system_with_system_file_is_refused(
         ros_env: RosDomain, tmp_path: Path) -> None:
     """Start-up reports every bad parameter at once (the learner at configure, the MPC, a simulator); the learner
-    refuses ``system`` with ``system_file``; the MPC, which does not take a system file, refuses ``system_file``
-    by name instead of running as another system's controller."""
+    and the MPC refuse ``system`` with ``system_file`` (never running as another system's controller)."""
     runs = {
         "learner": (ros_env.launch(
             "learner", "-p", f"run_dir:={tmp_path / 'r1'}", "-p", "checkpoint_period:=-5.0", "-p", "buffer.policy:=lifo",
@@ -404,8 +403,9 @@ def test_several_bad_parameters_are_reported_together_and_system_with_system_fil
             namespace="/friction"),
             ["parameter 'mode' must be one of", "parameter 'rate_hz': expected float", "parameter 'horizon' must be >= 1",
              "parameter 'solver' must be one of"]),
-        "mpc_file": (ros_env.launch("mpc", "-p", f"system_file:={SYSTEM_FILE}", namespace="/dd"),
-                     ["parameter 'system_file' is not a parameter of /dd/mpc"]),
+        "mpc_file": (ros_env.launch("mpc", "-p", "system:=friction", "-p", f"system_file:={SYSTEM_FILE}",
+                                    namespace="/dd"),
+                     ["parameters 'system' and 'system_file' were both given"]),
         "sim": (ros_env.launch(
             "friction_sim", "-p", "mode:=x", "-p", "rate_hz:=abc", "-p", "seed:=1.5", "-p", "max_speed:=-1.0",
             namespace="/friction"),

@@ -150,7 +150,7 @@ def test_sizes_the_machine_cannot_hold_are_refused_with_their_size() -> None:
     with pytest.raises(ParamErrors, match=r"parameter 'horizon': the plan's dense matrices for a horizon of 1000000"):
         MPCConfig.from_params({"system": "friction", "horizon": 10**6})
     config, system, _ = LearnerConfig.validated({"model.ensemble": 5, "train.batch_size": 256})
-    (_, _, buffer), (_, _, batch), _ = config.memory_needs(system)
+    (_, _, buffer), (_, _, batch), *_ = config.memory_needs(system)
     assert buffer == 100_000 * (2 + 1 + 2 + 3) * 8 and 0 < batch < 2**20  # the defaults: small
 
 
