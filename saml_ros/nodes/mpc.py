@@ -168,7 +168,8 @@ class MPCNode(ManagedNode):
         if service is None:
             return
         config = MPCConfig.from_params(current_values(self, self.table))
-        goal_changed = config.goal != service.config.goal
+        goal_changed = not np.array_equal(np.asarray(config.goal, dtype=object), np.asarray(service.config.goal,
+                                                                                          dtype=object))
         service.config = config  # read by every solve (safe_on_infeasible, state_timeout, ...)
         if goal_changed:  # the goal.* parameters changed: plan for them (a goal from a topic stays otherwise)
             service.set_goal(config.goal)
