@@ -8,7 +8,6 @@ them), ``process`` (:class:`TrainingProcess`, the parent's handle on the trainin
 interpreter, and the socket protocol) and ``child`` (what runs in that interpreter).
 """
 
-import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -41,9 +40,36 @@ _EXPORTS = {
 
 
 def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    module = _EXPORTS.get(name)
+    if module == "heldout":
+        from saml_ros.core.online import heldout
+
+        return getattr(heldout, name)
+    elif module == "ingest":
+        from saml_ros.core.online import ingest
+
+        return getattr(ingest, name)
+    elif module == "learner":
+        from saml_ros.core.online import learner
+
+        return getattr(learner, name)
+    elif module == "loop":
+        from saml_ros.core.online import loop
+
+        return getattr(loop, name)
+    elif module == "process":
+        from saml_ros.core.online import process
+
+        return getattr(process, name)
+    elif module == "resume":
+        from saml_ros.core.online import resume
+
+        return getattr(resume, name)
+    elif module == "telemetry":
+        from saml_ros.core.online import telemetry
+
+        return getattr(telemetry, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 __all__ = [

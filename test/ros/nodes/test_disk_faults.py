@@ -314,8 +314,11 @@ def test_full_and_read_only_run_dir_under_a_running_learner(tmp_path: Path, ros_
         windows: dict[str, Window] = {}
         try:
             run.start(3)
-            tester.wait(lambda: tester.counter("model_version") >= 3 and tester.diag_level == 0, 60.0,
-                        "training, checkpoints and level OK")
+            # the level before any outage: OK, or WARN while the held-out stretches hold too few in-region
+            # transitions for a verdict (the first seconds of a stream); never ERROR
+            tester.wait(lambda: tester.counter("model_version") >= 3 and 0 <= tester.diag_level <= 1, 60.0,
+                        "training, checkpoints and level OK or WARN")
+            base_level = tester.diag_level
             watch = LatestWatch(outages)
             windows["normal 0"] = Window.measure(run, WINDOW)
             for i, outage in enumerate(outages):
@@ -346,8 +349,10 @@ def test_full_and_read_only_run_dir_under_a_running_learner(tmp_path: Path, ros_
                 # bounded log lines: at most one per checkpoint period
                 assert 1 <= lines <= duration / PERIOD + 1, (lines, duration)
                 # OK again once writes succeed: a new checkpoint, the cause gone, training errors not counted
-                tester.wait(lambda v=version: tester.diag_level == 0 and tester.counter("model_version") > v  # type: ignore[misc]
-                            and tester.diag.get("checkpoint_write_error") == "", 30.0, f"OK after the {outage.name}")
+                tester.wait(lambda v=version: tester.diag_level <= base_level  # type: ignore[misc]
+                            and tester.counter("model_version") > v
+                            and tester.diag.get("checkpoint_write_error") == "", 30.0,
+                            f"the level before the outage again after the {outage.name}")
                 assert tester.counter("checkpoint_write_failures") == 0 and tester.counter("train_errors") == 0
                 assert "writing works again after" in learner.log()
                 windows[f"normal {i + 1}"] = Window.measure(run, WINDOW)
