@@ -151,8 +151,10 @@ def test_training_process_runs_at_the_lower_priority_it_was_given(tmp_path: Path
         try:
             pid = proc.pid
             assert pid is not None
-            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-            assert len(tids) > 1  # torch's and the loop's threads too
+            deadline = time.monotonic() + 20.0  # the loop's threads start once the child has set itself up
+            while len(tids := [int(t) for t in os.listdir(f"/proc/{pid}/task")]) < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert len(tids) > 1, tids  # the loop's threads too
             assert {os.sched_getscheduler(t) for t in tids} == {policy}, kw
             if nice is not None:
                 assert {os.getpriority(os.PRIO_PROCESS, t) for t in tids} == {os.getpriority(os.PRIO_PROCESS, 0) + nice}
