@@ -19,53 +19,34 @@ if TYPE_CHECKING:
     from saml_ros.core.online.resume import ResumeError, ResumeInfo
     from saml_ros.core.online.telemetry import assemble_telemetry
 
-#: name -> module of this package; imported on first use (PEP 562), so that importing one module of the package
-#: (the learner node imports ``config``) does not import torch through the others
-_EXPORTS = {
-    "HeldoutConfig": "heldout",
-    "HeldoutReport": "heldout",
-    "LearnerSetup": "process",
-    "LoopConfig": "loop",
-    "OnlineConfig": "learner",
-    "OnlineLearner": "learner",
-    "RawIngest": "ingest",
-    "ReadyInfo": "process",
-    "ResumeError": "resume",
-    "ResumeInfo": "resume",
-    "StartCancelled": "process",
-    "TrainingProcess": "process",
-    "assemble_telemetry": "telemetry",
-    "run_loop": "loop",
-}
-
-
 def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module == "heldout":
+    """The package's names, each imported on first use (PEP 562): importing one module of the package (the learner
+    node imports ``config``) does not import torch through the others."""
+    if name in ("HeldoutConfig", "HeldoutReport"):
         from saml_ros.core.online import heldout
 
         return getattr(heldout, name)
-    elif module == "ingest":
+    if name in ("RawIngest",):
         from saml_ros.core.online import ingest
 
         return getattr(ingest, name)
-    elif module == "learner":
+    if name in ("OnlineConfig", "OnlineLearner"):
         from saml_ros.core.online import learner
 
         return getattr(learner, name)
-    elif module == "loop":
+    if name in ("LoopConfig", "run_loop"):
         from saml_ros.core.online import loop
 
         return getattr(loop, name)
-    elif module == "process":
+    if name in ("LearnerSetup", "ReadyInfo", "StartCancelled", "TrainingProcess"):
         from saml_ros.core.online import process
 
         return getattr(process, name)
-    elif module == "resume":
+    if name in ("ResumeError", "ResumeInfo"):
         from saml_ros.core.online import resume
 
         return getattr(resume, name)
-    elif module == "telemetry":
+    if name in ("assemble_telemetry",):
         from saml_ros.core.online import telemetry
 
         return getattr(telemetry, name)

@@ -212,30 +212,23 @@ def term_losses(model: DynamicsModel, spec: ProblemSpec, x: np.ndarray, u: np.nd
     base model, also for a full model)."""
     import torch
 
-    with torch.no_grad():
-        return _term_losses(model, spec, x, u, y, base)
-
-
-def _term_losses(model: DynamicsModel, spec: ProblemSpec, x: np.ndarray, u: np.ndarray, y: np.ndarray,
-                 base: bool) -> list[tuple[np.ndarray, np.ndarray]]:
-    import torch
-
     terms = [spec.objective, *spec.constraints]
     n = len(x)
     e = 1 if base else model.n_models
     losses = [np.empty((e, n)) for _ in terms]
     masks = [np.ones(n, dtype=bool) for _ in terms]
-    for s in range(0, n, CHUNK):
-        xs, us, ys = (torch.from_numpy(np.ascontiguousarray(a[s:s + CHUNK], dtype=np.float64)) for a in (x, u, y))
-        if base:
-            pred = model.system.base_step(xs, us).double()[None]
-        else:
-            dt = model.in_mean.dtype
-            pred = model(xs.to(dt), us.to(dt)).double()
-        for j, (t, m) in enumerate(zip(terms, spec.masks(xs, us, ys), strict=True)):
-            losses[j][:, s:s + len(xs)] = t.per_sample(pred, ys).numpy()
-            if m is not None:
-                masks[j][s:s + len(xs)] = m.numpy()
+    with torch.no_grad():
+        for s in range(0, n, CHUNK):
+            xs, us, ys = (torch.from_numpy(np.ascontiguousarray(a[s:s + CHUNK], dtype=np.float64)) for a in (x, u, y))
+            if base:
+                pred = model.system.base_step(xs, us).double()[None]
+            else:
+                dt = model.in_mean.dtype
+                pred = model(xs.to(dt), us.to(dt)).double()
+            for j, (t, m) in enumerate(zip(terms, spec.masks(xs, us, ys), strict=True)):
+                losses[j][:, s:s + len(xs)] = t.per_sample(pred, ys).numpy()
+                if m is not None:
+                    masks[j][s:s + len(xs)] = m.numpy()
     return list(zip(losses, masks, strict=True))
 
 
