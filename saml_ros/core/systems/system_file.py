@@ -381,6 +381,32 @@ class FileSystem(System):
         self._check_spec()
         self.pairing()  # the pairing times must fit dt
 
+    def __repr__(self) -> str:
+        return f"FileSystem({self.name!r}, where={self.where!r})"
+
+    def __str__(self) -> str:
+        """What the file defines, one part per line (what ``print(load_system_file(...))`` shows a user)."""
+        d = self.definition
+
+        def fields(section: str) -> str:
+            return ", ".join(f"{f['name']} [{f['unit']}] {f['bounds'][0]:g}..{f['bounds'][1]:g}"
+                             + (" (angle)" if f.get("angle") else "") for f in d[section]["fields"])
+
+        base = d["base_model"]
+        base_text = (f"built-in {base['builtin']}" if "builtin" in base else f"function {base.get('function')}")
+        lines = [f"robot {self.name!r} from {self.where}: dt {self.dt:g} s",
+                 f"  state   {d['state']['topic']} ({d['state']['type']}): {fields('state')}",
+                 f"  control {d['control']['topic']} ({d['control']['type']}): {fields('control')}; "
+                 f"safe {self.safe_command.tolist()}",
+                 f"  base model: {base_text}; learned: {self.model_kind} {list(self.paper_hidden)}"
+                 + (f" on {list(self.model_inputs)}" if self.model_inputs else "")]
+        for c in d["spec"].get("constraints", []):
+            lines.append(f"  constraint {c['name']}: {c['loss']} error <= {c['eps']:g} in {c.get('region', 'all')}")
+        if d.get("mpc"):
+            m = d["mpc"]
+            lines.append(f"  mpc: horizon {m['horizon']}, rate {m['rate']}, goal on {m['goal']['fields']}")
+        return "\n".join(lines)
+
     # ------------------------------------------------------------------------------------------ contract
     @property
     def control_low(self) -> np.ndarray:

@@ -2,8 +2,7 @@
 parameters it accepts (checked without running them: each command-line executable's own argument parser, each
 node's parameter table).
 
-The tutorial's workflow itself (the example robot driven, recorded and learned by real processes, trained from the
-bag, exported, controlled by the MPC) runs end to end in test/e2e/your_robot/.
+The tutorial's commands themselves run, in order, as real processes in test/e2e/your_robot/test_tutorial.py.
 """
 
 from __future__ import annotations
@@ -13,11 +12,11 @@ import contextlib
 import importlib
 import io
 import re
-import shlex
 from pathlib import Path
 
 import pytest
 from helpers import REPO
+from helpers.doc_commands import shell_commands
 from helpers.node_params import table_parameters
 
 from saml_ros.executables import EXECUTABLES
@@ -28,34 +27,7 @@ PAGES = [REPO / "README.md", REPO / "docs" / "tutorial.md"]
 DEV_COMMANDS = {"demo", "test", "bench", "lint", "python"}
 #: executables that are ROS nodes (parameters after --ros-args), with the system their parameters are read for
 NODES = {"learner", "mpc", "friction_sim", "quadrotor_sim", "paddle_ball_sim", "lifecycle_manager"}
-FENCE_RE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
-
-
-def _commands(page: Path) -> list[tuple[int, list[str]]]:
-    """(line, argv after ``./dev``) for every ``./dev`` command in the page's shell code blocks (continued lines
-    joined, comments dropped, ``$s`` of a loop as ``0``, several commands of one line split at ``;``)."""
-    text = page.read_text(encoding="utf-8")
-    found = []
-    for block in FENCE_RE.finditer(text):
-        if block.group(1) not in ("", "bash", "sh"):
-            continue
-        first_line = text.count("\n", 0, block.start()) + 2
-        for offset, line in enumerate(block.group(2).replace("\\\n", " ").splitlines()):
-            line = re.sub(r"(^|\s)#.*", "", line).replace("$s", "0")
-            lexer = shlex.shlex(line, posix=True, punctuation_chars=";&|")
-            lexer.whitespace_split = True
-            words: list[str] = []
-            for token in [*lexer, ";"]:
-                if token and set(token) <= set(";&|"):  # the end of one command
-                    if "./dev" in words:
-                        found.append((first_line + offset, words[words.index("./dev") + 1:]))
-                    words = []
-                else:
-                    words.append(token)
-    return found
-
-
-CASES = [(page, n, argv) for page in PAGES for n, argv in _commands(page)]
+CASES = [(page, c.line, c.dev_argv) for page in PAGES for c in shell_commands(page) if c.dev_argv is not None]
 
 
 def _parser(executable: str) -> argparse.ArgumentParser | None:
