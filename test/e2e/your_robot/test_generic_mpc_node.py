@@ -291,6 +291,16 @@ def test_launch_file_takes_a_system_file() -> None:
     (plain,) = [n for n in evaluate(REPO / "launch" / "mpc.launch.xml", {"system": "quadrotor"}).nodes
                 if n.executable == "mpc"]
     assert plain.parameters()["system"] == "quadrotor" and "system_file" not in plain.parameters()
+    # learner.launch.xml with the same arguments writes the checkpoints this MPC reads
+    from saml_ros.core.online.config import learner_params
+
+    (learner,) = [n for n in evaluate(REPO / "launch" / "learner.launch.xml", {
+        "system_file": str(SYSTEM_FILE), "namespace": NS, "run_dir": "runs/dd"}).nodes if n.executable == "learner"]
+    assert learner.fqn == "/dd/learner" and not [s for s in learner.params if s.path is not None]
+    assert learner.parameters() == {"system_file": str(SYSTEM_FILE), "run_dir": "runs/dd/checkpoints",
+                                    "use_sim_time": False, "autostart": False}
+    declared = {p.name for p in learner_params()} | {"autostart"}
+    assert set(learner.parameters()) - {"use_sim_time"} <= declared
 
 
 def test_bringup_takes_a_system_file(tmp_path: Path) -> None:

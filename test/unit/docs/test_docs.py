@@ -221,3 +221,16 @@ def test_the_readmes_claims_table_is_the_one_the_experiments_wrote() -> None:
     start = readme.index(rows[0]) if rows[0] in readme else -1
     assert start >= 0 and readme[start:start + len(rows)] == rows, (
         "README.md's claims table differs from docs/results/experiments/claims.md")
+
+
+def test_the_colcon_recipe_is_the_same_in_the_readme_and_packaging_md() -> None:
+    """One recipe for Ubuntu 24.04 with Jazzy from apt: the README's and docs/packaging.md's code blocks agree."""
+    def recipe(page: Path) -> str:
+        text = page.read_text(encoding="utf-8")
+        match = re.search(r"```bash\n(.*?)```", text[text.index("## Building with colcon"):], re.S)
+        assert match is not None, f"{page}: no code block under '## Building with colcon'"
+        return match.group(1)
+
+    readme = recipe(REPO / "README.md")
+    assert readme == recipe(REPO / "docs" / "packaging.md")
+    assert "daqp" in readme and "whl/cpu" in readme and "rosdep install" in readme
