@@ -1,15 +1,16 @@
 """``foxglove_server``: one system's loop topics on a Foxglove WebSocket, for set-ups without ``foxglove_bridge``.
 
     foxglove_server --ros-args -p system:=quadrotor [-p port:=8765] [-p host:=127.0.0.1] [-r __ns:=/robot1]
+    foxglove_server --ros-args -p system_file:=examples/diff_drive/system.yaml -r __ns:=/dd
 
 Then open ``ws://HOST:PORT`` in Foxglove (*Open connection* > *Foxglove WebSocket*) and import
 ``layouts/<system>.foxglove.json``. On a ROS machine with apt, ``ros2 launch foxglove_bridge
 foxglove_bridge_launch.xml`` does the same for every topic; this node needs only the ``foxglove-sdk`` package
 (PyPI) and serves exactly the loop's topics:
 
-* every topic of the system's schema (``state``, ``cmd``, ``applied_cmd``, ...), ``learner/model_error``,
-  ``learner/checkpoint``, ``mpc/status`` in the namespace (``/<system>`` unless ``__ns`` is remapped) and
-  ``/diagnostics``;
+* every topic of the system's schema (``state``, ``cmd``, ``applied_cmd``, ...; a system file's ``state`` and
+  ``control`` topics), ``learner/model_error``, ``learner/checkpoint``, ``mpc/status`` in the namespace
+  (``/<system>`` unless ``__ns`` is remapped) and ``/diagnostics``;
 * each one a channel with encoding ``cdr`` and its ``ros2msg`` schema (the message definition with its
   dependencies, as rosbag2 writes it into MCAP); messages are forwarded as received (serialized, ``raw=True``)
   with the receive time as log time.
@@ -33,9 +34,14 @@ USAGE_ERROR = 2
 #: the server's parameters (all read at start-up)
 PARAMS: tuple[Param, ...] = (
     Param("system", "friction", "system whose loop topics are served: friction | quadrotor | paddle_ball"),
+    Param("system_file", "", "a robot described by a system file (docs/your_robot.md): its own topics are served "
+                             "(replaces system)"),
     Param("host", "127.0.0.1", "address the WebSocket server listens on"),
     Param("port", 8765, "TCP port of the WebSocket server (0 = any free port)"),
 )
+
+#: parameters that cannot be given together
+EXCLUSIVE = (("system", "system_file"),)
 
 
 def check_params(values: dict[str, Any]) -> dict[str, Any]:
@@ -44,6 +50,11 @@ def check_params(values: dict[str, Any]) -> dict[str, Any]:
 
     problems = Problems()
     p = read_params(PARAMS, values, problems)
+    if p.get("system_file"):
+        from saml_ros.user_code import load_robot_param
+
+        with problems.capture("system_file"):
+            p["system"] = load_robot_param(p["system_file"]).name  # registers the robot's schema by its name
     with problems.capture("system", prefix="parameter 'system': "):
         get_schema(p["system"])
     problems.check(0 <= p["port"] <= 65535, "port", "in 0..65535", p["port"])
@@ -66,7 +77,8 @@ def served_topics(system: str, namespace: str) -> list[ServedTopic]:
     from msg_schemas.telemetry import GLOBAL_TOPICS, TELEMETRY_TOPICS
 
     ns = namespace.rstrip("/")
-    out = [ServedTopic(f"{ns}/{t.name}", t.msg_type, t.qos) for t in get_schema(system).topics]
+    out = [ServedTopic(t.name if t.name.startswith("/") else f"{ns}/{t.name}", t.msg_type, t.qos)
+           for t in get_schema(system).topics]  # a system file's topic may be absolute
     out += [ServedTopic(f"{ns}/{t.name}", t.msg_type, t.qos) for t in TELEMETRY_TOPICS]
     out += [ServedTopic(t.name, t.msg_type, t.qos) for t in GLOBAL_TOPICS if t.name == "/diagnostics"]
     return out
@@ -102,11 +114,11 @@ def _run(argv: Sequence[str] | None) -> int:
     try:
         node = Node(NODE_NAME)
         try:
-            p = check_params(start_params(node, PARAMS, check_params))
+            p = check_params(start_params(node, PARAMS, check_params, exclusive=EXCLUSIVE))
         except ValueError as exc:
             node.get_logger().fatal(f"configuration error: {exc}")
             return USAGE_ERROR
-        ParamGuard(node, PARAMS, check_params)  # every parameter is read at start-up
+        ParamGuard(node, PARAMS, check_params, exclusive=EXCLUSIVE)  # every parameter is read at start-up
         system, host, port = p["system"], p["host"], p["port"]
         namespace = node.get_namespace() if node.get_namespace() != "/" else f"/{system}"
         try:

@@ -67,3 +67,25 @@ def test_advertises_the_loops_channels_and_forwards_live_cdr(ros_env: RosDomain)
         assert x.shape == (2,) and stamp > 0
     assert sim.alive() and server.alive()
     assert server.stop() == 0, server.output()
+
+
+def test_serves_a_robot_of_a_system_file(ros_env: RosDomain) -> None:
+    """``system_file:=`` (a robot outside the package): its own state and command topics in its namespace; with
+    ``system`` beside it the server exits 2 naming both."""
+    from helpers import REPO
+
+    system_file = REPO / "examples" / "diff_drive" / "system.yaml"
+    server = ros_env.launch("foxglove_server", "-p", f"system_file:={system_file}", "-p", "port:=0", namespace="/dd")
+    found = wait_for(lambda: re.search(r"ws://127\.0\.0\.1:(\d+)", server.output()) or not server.alive(),
+                     timeout=60, what="the server to listen")
+    assert server.alive(), server.output()
+    with websockets_client.connect(f"ws://127.0.0.1:{found.group(1)}", subprotocols=[SUBPROTOCOL],
+                                   open_timeout=20) as ws:
+        assert _recv_json(ws, "serverInfo")["name"] == "saml_ros diff_drive"
+        channels = {c["topic"]: c["schemaName"] for c in _recv_json(ws, "advertise")["channels"]}
+    assert channels["/dd/odom"] == "nav_msgs/msg/Odometry" and channels["/dd/cmd_vel"] == "geometry_msgs/msg/Twist"
+    assert {"/dd/learner/model_error", "/dd/mpc/status", "/diagnostics"} <= set(channels), channels
+    assert server.stop() == 0
+    both = ros_env.launch("foxglove_server", "-p", f"system_file:={system_file}", "-p", "system:=friction",
+                          "-p", "port:=0")
+    assert both.wait(60) == 2 and "system_file" in both.output() and "system" in both.output(), both.output()
