@@ -2,6 +2,7 @@
 
     layouts write --out layouts                       # every system, default namespaces /<system>
     layouts write --out my_layouts --namespace /robot1
+    layouts write --system-file examples/diff_drive/system.yaml --namespace /dd     # a robot's own topics
     layouts render runs/bag --system quadrotor -o panels.png
 
 Open them with ``ros2 run plotjuggler plotjuggler -l layouts/quadrotor.plotjuggler.xml`` or Foxglove's
@@ -25,9 +26,12 @@ def build_parser() -> argparse.ArgumentParser:
     w = sub.add_parser("write", help="write <system>.plotjuggler.xml and <system>.foxglove.json")
     w.add_argument("--out", type=Path, default=Path("layouts"), help="directory (default: layouts)")
     w.add_argument("--namespace", help="namespace of the loop's topics (default: /<system> for each system)")
+    w.add_argument("--system-file", type=Path, help="only the layouts of this robot (docs/your_robot.md)")
     r = sub.add_parser("render", help="draw a layout's panels from a recorded bag into a PNG")
     r.add_argument("bag", type=Path)
-    r.add_argument("--system", required=True, choices=SYSTEM_NAMES)
+    which = r.add_mutually_exclusive_group(required=True)
+    which.add_argument("--system", choices=SYSTEM_NAMES)
+    which.add_argument("--system-file", type=Path, help="a robot described by a system file")
     r.add_argument("--namespace", help="namespace of the loop's topics in the bag (default: /<system>)")
     r.add_argument("-o", "--output", type=Path, required=True, help="PNG to write")
     r.add_argument("--title", help="figure title (default: names the bag)")
@@ -36,10 +40,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    systems = SYSTEM_NAMES
+    if args.system_file is not None:
+        from saml_ros.core.systems.system_file import SystemFileError
+        from saml_ros.user_code import load_system_file
+
+        try:
+            systems = (load_system_file(args.system_file).name,)
+        except SystemFileError as exc:
+            print(f"layouts: {exc}", file=sys.stderr)
+            return 2
+        if args.command == "render":
+            args.system = systems[0]
     if args.command == "write":
         from saml_ros.viewers.layouts import write_layouts
 
-        for path in write_layouts(args.out, args.namespace):
+        for path in write_layouts(args.out, args.namespace, systems):
             print(path)
         return 0
     from saml_ros.bags.io import BagError

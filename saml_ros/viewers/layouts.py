@@ -90,16 +90,37 @@ def _named_series(namespace: str, topic_name: str, names: Sequence[str], wanted:
     return out
 
 
+def _constraint_names(system: str) -> tuple[str, ...]:
+    """The constraints whose live error a layout plots: the paper's spec of a built-in system, the spec of a robot's
+    system file (loaded, so registered by its name)."""
+    if system in PAPER_CONSTRAINTS:
+        return PAPER_CONSTRAINTS[system]
+    from saml_ros.core.systems import get_system
+
+    definition: dict[str, Any] = getattr(get_system(system), "definition", {})
+    return tuple(c["name"] for c in definition.get("spec", {}).get("constraints", []))
+
+
+def _three_d_topics(system: str) -> tuple[str, ...]:
+    """Topics drawn in the 3D panel: a built-in's, or a robot's state topic when it is an Odometry with a frame."""
+    if system in THREE_D_TOPICS:
+        return THREE_D_TOPICS[system]
+    spec = get_schema(system).topic(get_schema(system).state_topic)
+    frame = getattr(spec.codec, "frame_id", "")
+    return (spec.name,) if spec.msg_type == "nav_msgs/msg/Odometry" and frame else ()
+
+
 def panels(system: str, namespace: str | None = None) -> list[PanelSpec]:
-    """The panels of ``system``'s layout in ``namespace`` (default ``/<system>``)."""
+    """The panels of ``system``'s layout in ``namespace`` (default ``/<system>``); ``system`` a built-in one or a
+    robot whose system file is loaded."""
     from msg_schemas.telemetry import TELEMETRY_TOPICS
 
     ns = namespace or f"/{system}"
-    constraints = PAPER_CONSTRAINTS[system]
+    constraints = _constraint_names(system)
     error_names = model_error_names(constraints)
     docs = {t.name: t.fields for t in TELEMETRY_TOPICS}
     out = [
-        PanelSpec("state", tuple(_vector_series(ns, system, get_schema(system).state_topic, STATE_FIELDS[system]))),
+        PanelSpec("state", tuple(_vector_series(ns, system, get_schema(system).state_topic, STATE_FIELDS.get(system)))),
         PanelSpec("applied command", tuple(_vector_series(ns, system, get_schema(system).applied_cmd_topic))),
     ]
     for k in constraints:
@@ -117,7 +138,7 @@ def subscribed_topics(system: str, namespace: str | None = None) -> list[str]:
     """Every topic the layout of ``system`` reads, in a stable order."""
     topics = [s.topic for p in panels(system, namespace) for s in p.series]
     ns = namespace or f"/{system}"
-    topics += [_topic(ns, t) for t in THREE_D_TOPICS[system]]
+    topics += [_topic(ns, t) for t in _three_d_topics(system)]
     return list(dict.fromkeys(topics))
 
 
@@ -157,18 +178,23 @@ def plotjuggler_layout(system: str, namespace: str | None = None) -> str:
 def foxglove_layout(system: str, namespace: str | None = None) -> dict[str, Any]:
     """A Foxglove layout (``foxglove.layouts.Layout`` JSON, version 1): the 3D panel (quadrotor, paddle ball) on
     the left, the plots stacked on the right; series are timed by their header stamps (simulated time)."""
+    from msg_schemas.field_path import has_header
+
     ns = namespace or f"/{system}"
+    # a message without a header (a robot's unstamped cmd_vel) is timed by its arrival
+    unstamped = {_topic(ns, t.name) for t in get_schema(system).topics if not has_header(t.msg_type)}
     plots: list[dict[str, Any]] = []
     for spec in panels(system, namespace):
         paths = [{"value": s.foxglove, "enabled": True, "color": COLORS[i % len(COLORS)],
                   "label": f"{s.name} ({s.unit})" if s.unit not in ("", "1", "count") else s.name,
-                  "timestampMethod": "headerStamp"} for i, s in enumerate(spec.series)]
+                  "timestampMethod": "receiveTime" if s.topic in unstamped else "headerStamp"}
+                 for i, s in enumerate(spec.series)]
         config = {"paths": paths, "showLegend": True, "legendDisplay": "floating", "showXAxisLabels": True,
                   "showYAxisLabels": True, "isSynced": True, "xAxisVal": "timestamp"}
         plots.append({"proportion": 1, "content": {"type": "panel", "panelType": "Plot", "config": config,
                                                    "title": spec.title, "version": 1}})
     column: dict[str, Any] = {"type": "split", "direction": "column", "items": plots}
-    odometry = THREE_D_TOPICS[system]
+    odometry = _three_d_topics(system)
     if not odometry:
         content = column
     else:
@@ -186,20 +212,21 @@ def foxglove_layout(system: str, namespace: str | None = None) -> dict[str, Any]
     return {"version": 1, "content": content}
 
 
-def layout_files(namespace: str | None = None) -> dict[str, str]:
-    """``{file name: text}`` of every system's layouts (``<system>.plotjuggler.xml``, ``<system>.foxglove.json``)."""
+def layout_files(namespace: str | None = None, systems: Sequence[str] = SYSTEM_NAMES) -> dict[str, str]:
+    """``{file name: text}`` of the layouts (``<system>.plotjuggler.xml``, ``<system>.foxglove.json``) of
+    ``systems`` (default: every built-in one)."""
     out: dict[str, str] = {}
-    for system in SYSTEM_NAMES:
+    for system in systems:
         out[f"{system}.plotjuggler.xml"] = plotjuggler_layout(system, namespace)
         out[f"{system}.foxglove.json"] = json.dumps(foxglove_layout(system, namespace), indent=1) + "\n"
     return out
 
 
-def write_layouts(out: Path, namespace: str | None = None) -> list[Path]:
+def write_layouts(out: Path, namespace: str | None = None, systems: Sequence[str] = SYSTEM_NAMES) -> list[Path]:
     """Write :func:`layout_files` into directory ``out``; returns the paths."""
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for name, text in layout_files(namespace).items():
+    for name, text in layout_files(namespace, systems).items():
         (out / name).write_text(text)
         written.append(out / name)
     return written

@@ -175,3 +175,39 @@ def test_render_draws_every_panel_from_a_bag(tmp_path: Path) -> None:
     np.testing.assert_allclose(data[(f"{ns}/state", "p")][:, 1], [ev["x"][0] for ev in events])
     out = render_layout(tmp_path / "bag", "friction", tmp_path / "panels.png")
     assert out.stat().st_size > 10_000
+
+
+@pytest.mark.usefixtures("restore_registry")
+def test_a_robots_layouts_from_its_system_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``layouts write --system-file``: the robot's own topics and fields, the live error of its file's constraints,
+    its unstamped command timed by arrival; a file that cannot be loaded exits 2 naming it."""
+    from saml_ros.viewers.cli import main
+
+    system_file = REPO / "examples" / "diff_drive" / "system.yaml"
+    assert main(["write", "--out", str(tmp_path), "--system-file", str(system_file), "--namespace", "/dd"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diff_drive.foxglove.json", "diff_drive.plotjuggler.xml"]
+    schema = get_schema("diff_drive")
+    valid = {f"/dd/{t.name}.{d.path}" for t in schema.topics for d in t.field_docs()}
+    series = {p["value"]: p["timestampMethod"] for p in _plot_paths(json.loads(
+        (tmp_path / "diff_drive.foxglove.json").read_text()))}
+    robot = {v: m for v, m in series.items() if not v.startswith(("/dd/learner", "/dd/mpc"))}
+    assert robot and set(robot) <= valid, set(robot) - valid
+    assert {m for v, m in robot.items() if v.startswith("/dd/cmd_vel")} == {"receiveTime"}
+    assert {m for v, m in robot.items() if v.startswith("/dd/odom")} == {"headerStamp"}
+    names = model_error_names(["dock_approach"])
+    assert f"/dd/learner/model_error.position[{names.index('error_in/dock_approach')}]" in series
+    xml = (tmp_path / "diff_drive.plotjuggler.xml").read_text()
+    assert "/dd/odom;/dd/cmd_vel;/dd/learner/model_error" in xml
+    assert main(["write", "--out", str(tmp_path), "--system-file", str(tmp_path / "missing.yaml")]) == 2
+    assert "missing.yaml" in capsys.readouterr().err
+
+
+def _plot_paths(node: Any) -> list[dict[str, Any]]:
+    """Every Plot panel's series in a Foxglove layout."""
+    if isinstance(node, dict):
+        if node.get("panelType") == "Plot":
+            return list(node["config"]["paths"])
+        return [p for v in node.values() for p in _plot_paths(v)]
+    if isinstance(node, list):
+        return [p for v in node for p in _plot_paths(v)]
+    return []
