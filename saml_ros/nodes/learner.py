@@ -13,7 +13,6 @@ has started the training interpreter (both import it at once, which halves the s
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -86,15 +85,15 @@ class LearnerNode(ManagedNode):
             raise TransitionRefused(str(exc)) from None
         p = self.p
         self.schema = get_schema(p.system)
-        self.run_dir = run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
+        self.run_dir = run_dir = Path(p.checkpoint.run_dir or f"runs/{p.system}").expanduser().resolve()
         try:
-            CheckpointStore(run_dir, keep=p.checkpoint_keep)  # fail here, clearly, if it cannot be created
+            CheckpointStore(run_dir, keep=p.checkpoint.keep)  # fail here, clearly, if it cannot be created
         except OSError as exc:
             raise TransitionRefused(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
         self.channels = p.channels(self.schema)
         self.unstamped, self.channel_qos = p.channel_traits(self.schema)  # no header: stamped on receipt
         self.received = [0] * len(self.channels)
-        self.gate = PublisherGate([ns for ns, _, _, _ in self.channels], p.refuse_multiple_publishers)
+        self.gate = PublisherGate([ns for ns, _, _, _ in self.channels], p.pairing.refuse_multiple_publishers)
         self._shared = ""  # the last multiple_publishers value logged
         launched, self._launched = self._launched, None
         from saml_ros.core.online import StartCancelled
@@ -162,10 +161,10 @@ class LearnerNode(ManagedNode):
         unconfigured node reads them at configure."""
         if self.trainer is None:
             return
-        self.p = dataclasses.replace(self.p, **{name.replace(".", "_"): value for name, value in live.items()})
+        self.p = self.p.with_params(live)
         self.trainer.set_loop(self.p.loop_config())
-        self._telemetry_timer.timer_period_ns = int(1e9 / self.p.telemetry_rate)
-        self._diagnostics_timer.timer_period_ns = int(1e9 / self.p.diagnostics_rate)
+        self._telemetry_timer.timer_period_ns = int(1e9 / self.p.telemetry.rate)
+        self._diagnostics_timer.timer_period_ns = int(1e9 / self.p.telemetry.diagnostics_rate)
 
     def discard_prelaunched(self) -> None:
         """Let an unused pre-launched training interpreter exit."""
@@ -185,9 +184,9 @@ class LearnerNode(ManagedNode):
         # wall-clock (steady) timers: with use_sim_time a lockstep loop at 10x real time would publish 10x as often
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timers = [
-            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group,
+            self.create_timer(1.0 / self.p.telemetry.rate, self._publish_telemetry, callback_group=self.timer_group,
                               clock=steady),
-            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group,
+            self.create_timer(1.0 / self.p.telemetry.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group,
                               clock=steady),
         ]
         self._telemetry_timer, self._diagnostics_timer = self._timers  # periods change with their parameters
