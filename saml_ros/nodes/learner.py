@@ -39,7 +39,7 @@ from saml_ros.core.online.report import (
 from saml_ros.core.runtime.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.nodes.managed import ManagedNode, run_managed
-from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
+from saml_ros.nodes.ros_params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.raw_ingest import subscribe_raw
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, log_at, process_main, shutdown, wants_help
 
@@ -67,7 +67,7 @@ class LearnerNode(ManagedNode):
         self.trainer: TrainingProcess | None = None
         try:
             start_params(self, self._table, self._check_values, EXCLUSIVE, earlier=self.param_problems)
-        except ValueError as exc:
+        except SamlError as exc:
             raise ConfigError(str(exc)) from None
         self.params_guard = ParamGuard(self, self._table, self._check_values, self._apply_live, exclusive=EXCLUSIVE,
                                        extra=LIFECYCLE_PARAMS)
@@ -81,7 +81,7 @@ class LearnerNode(ManagedNode):
     def configure_node(self) -> None:
         try:
             self.p, self.system, self.spec = self._check_values(current_values(self, self._table))
-        except (SamlError, ValueError) as exc:
+        except SamlError as exc:
             raise TransitionRefused(str(exc)) from None
         p = self.p
         self.schema = get_schema(p.system)
@@ -96,14 +96,12 @@ class LearnerNode(ManagedNode):
         self.gate = PublisherGate([ns for ns, _, _, _ in self.channels], p.pairing.refuse_multiple_publishers)
         self._shared = ""  # the last multiple_publishers value logged
         launched, self._launched = self._launched, None
-        from saml_ros.core.online import StartCancelled
-
         try:  # imports torch (the training interpreter is importing it meanwhile)
             self.trainer = p.start_training(self.system, self.spec, self.schema, str(run_dir), make_decoder,
                                             paused=True, launched=launched, cancelled=self.stop_requested,
                                             on_checkpoint=self._announce, on_log=self._child_log,
                                             on_error=self._child_error)
-        except (SamlError, ValueError, StartCancelled) as exc:
+        except SamlError as exc:  # a bad setting or run directory, a start that failed or was cancelled
             raise TransitionRefused(str(exc)) from None
         self._create_publishers()
         ready = self.trainer.ready
@@ -282,7 +280,7 @@ def create_node(launched: Any = None) -> LearnerNode:
     Raises :class:`ConfigError`."""
     try:
         system, remapped = probe_system(NODE_NAME, file_param="system_file")
-    except ValueError as exc:
+    except SamlError as exc:
         raise ConfigError(str(exc)) from None
     return LearnerNode(None if remapped else f"/{system}", launched)
 

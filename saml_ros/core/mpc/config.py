@@ -18,7 +18,7 @@ from saml_ros.core.data.plausibility import parse_overrides
 from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.mpc.guard import GuardConfig
 from saml_ros.core.mpc.monitor import MonitorConfig
-from saml_ros.core.params import LIVE, START, Param, Problems, memory_problems, read_params
+from saml_ros.core.params import LIVE, START, Param, ParamErrors, Problems, memory_problems, read_params
 from saml_ros.core.systems.registry import get_entry
 
 #: how the node answers states
@@ -187,18 +187,18 @@ class MPCConfig:
         """The configuration from parameter values by name (missing ones take their defaults).
 
         Raises:
-            ValueError: an unknown system or parameter, or a value of the wrong type or out of range; the
-                message names the parameter.
+            ParamErrors: (a ``ValueError``) an unknown system or parameter, or a value of the wrong type or out of
+                range; every bad parameter is named.
         """
         problems = Problems()
         check = problems.check
         system = values.get("system", PARAMS[0].default)
         if not isinstance(system, str):
-            raise ValueError(f"parameter 'system' must be a string, got {system!r}")
+            raise ParamErrors([f"parameter 'system' must be a string, got {system!r}"])
         try:
             entry = get_entry(system)
         except ValueError as exc:
-            raise ValueError(f"parameter 'system': {exc}") from None
+            raise ParamErrors([f"parameter 'system': {exc}"]) from None
         table = cls.params(system)
         unknown = sorted(set(values) - {p.name for p in table})
         if unknown:

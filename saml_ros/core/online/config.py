@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, get_args
 
 from msg_schemas.names import join_topic, normalize_namespace
+from saml_ros.core.errors import SamlError
 from saml_ros.core.params import LIVE, Param, Problems, memory_problems, read_params
 
 if TYPE_CHECKING:
@@ -29,6 +30,11 @@ if TYPE_CHECKING:
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.training import TrainConfig
     from saml_ros.core.training.health import HealthConfig
+
+class TrainingStartError(SamlError, ValueError):
+    """The learner's training process could not be set up or started as configured
+    (:meth:`LearnerConfig.start_training`); the message says which setting, run directory or start-up failed."""
+
 
 #: one subscription of the learner: namespace, kind (state, applied_cmd, target), topic, message type
 Channel = tuple[str, str, str, str]
@@ -538,21 +544,24 @@ class LearnerConfig:
         ``on_*`` arguments of :class:`~saml_ros.core.online.TrainingProcess`).
 
         Raises:
-            ValueError: an invalid setting, a run directory whose checkpoints contradict the configuration, or a
-                training process that could not start; the message says which.
+            TrainingStartError: an invalid setting, a run directory whose checkpoints contradict the
+                configuration, or a training process that could not start; the message says which.
             StartCancelled: ``cancelled()`` became true while the training process started.
         """
         from saml_ros.core.online import ResumeError, TrainingProcess
 
         channels = [(self.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels(schema)]
-        setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
+        try:
+            setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
+        except ValueError as exc:
+            raise TrainingStartError(str(exc)) from None
         trainer = TrainingProcess(dataclasses.replace(setup, paused=paused), **callbacks)
         try:
             trainer.start(launched=launched, cancelled=cancelled)
         except ResumeError as exc:
-            raise ValueError(str(exc)) from None
+            raise TrainingStartError(str(exc)) from None
         except RuntimeError as exc:
-            raise ValueError(f"the training process could not start: {exc}") from None
+            raise TrainingStartError(f"the training process could not start: {exc}") from None
         return trainer
 
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,

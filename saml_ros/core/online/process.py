@@ -35,6 +35,7 @@ import numpy as np
 
 from saml_ros.core.data.pairing import PairingConfig, Transition, total_counts
 from saml_ros.core.data.resampling import ResampleConfig
+from saml_ros.core.errors import SamlError
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online.ingest import Decode
 from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
@@ -69,7 +70,7 @@ DecoderFactory = Callable[[Any], Decode]
 CANCEL_POLL_S = 0.1
 
 
-class StartCancelled(Exception):
+class StartCancelled(SamlError):
     """:meth:`TrainingProcess.start` gave up because its ``cancelled`` predicate said so (a stop signal arrived
     while the training process was still starting); the child was killed, nothing was written."""
 
