@@ -19,12 +19,9 @@ imports it before its training interpreter has started), only numpy for the batc
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from saml_ros.core.online.loop import LoopConfig
 
 
 # ------------------------------------------------------------------------------------------ parent -> child
@@ -64,9 +61,10 @@ class Resume:
 
 @dataclass(frozen=True)
 class SetLoop:
-    """Pace the training loop by ``loop`` from now on (a parameter changed on the running node)."""
+    """Pace the training loop by ``loop`` (a :class:`~saml_ros.core.online.loop.LoopConfig`, typed ``Any`` here:
+    the loop module imports this one) from now on (a parameter changed on the running node)."""
 
-    loop: LoopConfig
+    loop: Any
 
 
 @dataclass(frozen=True)
