@@ -39,8 +39,8 @@ from saml_ros.core.online.report import (
 from saml_ros.core.runtime.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.nodes.managed import ManagedNode, run_managed
-from saml_ros.nodes.ros_params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.raw_ingest import subscribe_raw
+from saml_ros.nodes.ros_params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, log_at, process_main, shutdown, wants_help
 
 if TYPE_CHECKING:

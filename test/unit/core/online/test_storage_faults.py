@@ -219,7 +219,7 @@ def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_
     thread = threading.Thread(target=run_loop, args=(learner, loop, child, send), daemon=True)
     thread.start()
 
-    def of(kind: type, what: str | None = None, since: float = 0.0) -> list[tuple[float, Any]]:
+    def of(kind: type[Any], what: str | None = None, since: float = 0.0) -> list[tuple[float, Any]]:
         with lock:
             return [(t, m) for t, m in got if isinstance(m, kind) and t >= since and (what is None or m.what == what)]
 
