@@ -37,6 +37,7 @@ import torch
 
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online import LoopConfig, OnlineConfig, OnlineLearner, run_loop
+from saml_ros.core.online.messages import ErrorReport, Stop
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
 from saml_ros.core.training import TrainConfig
@@ -106,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parent, child = Pipe()
         loop = LoopConfig(telemetry_rate=5.0, checkpoint_period=args.period)
         thread = threading.Thread(target=run_loop, daemon=True,
-                                  args=(learner, loop, child, lambda m: errors.append(m) if m[0] == "error" else None))
+                                  args=(learner, loop, child, lambda m: errors.append(m) if isinstance(m, ErrorReport) else None))
         thread.start()
 
         in_writes = [0.0]  # seconds spent in checkpoint writes, good or failed (timed here, as for any version)
@@ -144,9 +145,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     rates[state].append((u1 - u0) / (t1 - t0))
                     shares[state].append((w1 - w0) / (t1 - t0))
         finally:
-            parent.send(("stop",))
+            parent.send(Stop())
             thread.join(30)
-        failed = [m for m in errors if m[1] == "checkpoint"]
+        failed = [m for m in errors if m.what == "checkpoint"]
         what = f"checkpoint writes failing with {how}"
         print(f"{f'A/A run, the disk never broken ({what})' if args.aa else what}; checkpoint period {args.period} s, "
               f"{args.rounds} rounds of {args.window} s per state, load {os.getloadavg()[0]:.1f}")

@@ -163,8 +163,11 @@ def system_from_definition(definition: dict[str, Any], where: str = "") -> FileS
 
 
 def load_robot_param(path: str, param: str = "system_file") -> FileSystem:
-    """:func:`load_system_file` for a node's parameter ``param``: ``ValueError`` naming it and the problem."""
+    """:func:`load_system_file` for a node's parameter ``param``: :class:`~saml_ros.core.params.ParamErrors` (a
+    ``ValueError``) naming it and the problem."""
+    from saml_ros.core.params import ParamErrors
+
     try:
         return load_system_file(path)
     except SystemFileError as exc:
-        raise ValueError(f"parameter '{param}': {exc}") from None
+        raise ParamErrors([f"parameter '{param}': {exc}"]) from None

@@ -45,7 +45,7 @@ from saml_ros.core.worlds.sim_core import (
     LOCKSTEP_T0_NS,
     Output,
 )
-from saml_ros.nodes.params import ParamGuard, start_params
+from saml_ros.nodes.ros_params import ParamGuard, start_params
 from saml_ros.nodes.runtime import (
     catch_stop_signals,
     exit_process,

@@ -175,7 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.node import Node
     from rclpy.utilities import remove_ros_args
 
-    from saml_ros.nodes.params import check_startup
+    from saml_ros.nodes.ros_params import check_startup
 
     full = full_argv("play", argv)
     args = build_parser().parse_args(remove_ros_args(full)[1:])

@@ -13,7 +13,6 @@ has started the training interpreter (both import it at once, which halves the s
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Sequence
 from pathlib import Path
@@ -40,8 +39,8 @@ from saml_ros.core.online.report import (
 from saml_ros.core.runtime.child_launch import LaunchedChild, discard_child, launch_child
 from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.nodes.managed import ManagedNode, run_managed
-from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.raw_ingest import subscribe_raw
+from saml_ros.nodes.ros_params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, log_at, process_main, shutdown, wants_help
 
 if TYPE_CHECKING:
@@ -68,7 +67,7 @@ class LearnerNode(ManagedNode):
         self.trainer: TrainingProcess | None = None
         try:
             start_params(self, self._table, self._check_values, EXCLUSIVE, earlier=self.param_problems)
-        except ValueError as exc:
+        except SamlError as exc:
             raise ConfigError(str(exc)) from None
         self.params_guard = ParamGuard(self, self._table, self._check_values, self._apply_live, exclusive=EXCLUSIVE,
                                        extra=LIFECYCLE_PARAMS)
@@ -82,29 +81,27 @@ class LearnerNode(ManagedNode):
     def configure_node(self) -> None:
         try:
             self.p, self.system, self.spec = self._check_values(current_values(self, self._table))
-        except (SamlError, ValueError) as exc:
+        except SamlError as exc:
             raise TransitionRefused(str(exc)) from None
         p = self.p
         self.schema = get_schema(p.system)
-        self.run_dir = run_dir = Path(p.run_dir or f"runs/{p.system}").expanduser().resolve()
+        self.run_dir = run_dir = Path(p.checkpoint.run_dir or f"runs/{p.system}").expanduser().resolve()
         try:
-            CheckpointStore(run_dir, keep=p.checkpoint_keep)  # fail here, clearly, if it cannot be created
+            CheckpointStore(run_dir, keep=p.checkpoint.keep)  # fail here, clearly, if it cannot be created
         except OSError as exc:
             raise TransitionRefused(f"parameter 'run_dir': cannot use {run_dir}: {exc}") from None
         self.channels = p.channels(self.schema)
         self.unstamped, self.channel_qos = p.channel_traits(self.schema)  # no header: stamped on receipt
         self.received = [0] * len(self.channels)
-        self.gate = PublisherGate([ns for ns, _, _, _ in self.channels], p.refuse_multiple_publishers)
+        self.gate = PublisherGate([ns for ns, _, _, _ in self.channels], p.pairing.refuse_multiple_publishers)
         self._shared = ""  # the last multiple_publishers value logged
         launched, self._launched = self._launched, None
-        from saml_ros.core.online import StartCancelled
-
         try:  # imports torch (the training interpreter is importing it meanwhile)
             self.trainer = p.start_training(self.system, self.spec, self.schema, str(run_dir), make_decoder,
                                             paused=True, launched=launched, cancelled=self.stop_requested,
                                             on_checkpoint=self._announce, on_log=self._child_log,
                                             on_error=self._child_error)
-        except (SamlError, ValueError, StartCancelled) as exc:
+        except SamlError as exc:  # a bad setting or run directory, a start that failed or was cancelled
             raise TransitionRefused(str(exc)) from None
         self._create_publishers()
         ready = self.trainer.ready
@@ -162,10 +159,10 @@ class LearnerNode(ManagedNode):
         unconfigured node reads them at configure."""
         if self.trainer is None:
             return
-        self.p = dataclasses.replace(self.p, **{name.replace(".", "_"): value for name, value in live.items()})
+        self.p = self.p.with_params(live)
         self.trainer.set_loop(self.p.loop_config())
-        self._telemetry_timer.timer_period_ns = int(1e9 / self.p.telemetry_rate)
-        self._diagnostics_timer.timer_period_ns = int(1e9 / self.p.diagnostics_rate)
+        self._telemetry_timer.timer_period_ns = int(1e9 / self.p.telemetry.rate)
+        self._diagnostics_timer.timer_period_ns = int(1e9 / self.p.telemetry.diagnostics_rate)
 
     def discard_prelaunched(self) -> None:
         """Let an unused pre-launched training interpreter exit."""
@@ -185,9 +182,9 @@ class LearnerNode(ManagedNode):
         # wall-clock (steady) timers: with use_sim_time a lockstep loop at 10x real time would publish 10x as often
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timers = [
-            self.create_timer(1.0 / self.p.telemetry_rate, self._publish_telemetry, callback_group=self.timer_group,
+            self.create_timer(1.0 / self.p.telemetry.rate, self._publish_telemetry, callback_group=self.timer_group,
                               clock=steady),
-            self.create_timer(1.0 / self.p.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group,
+            self.create_timer(1.0 / self.p.telemetry.diagnostics_rate, self._publish_diagnostics, callback_group=self.timer_group,
                               clock=steady),
         ]
         self._telemetry_timer, self._diagnostics_timer = self._timers  # periods change with their parameters
@@ -283,7 +280,7 @@ def create_node(launched: Any = None) -> LearnerNode:
     Raises :class:`ConfigError`."""
     try:
         system, remapped = probe_system(NODE_NAME, file_param="system_file")
-    except ValueError as exc:
+    except SamlError as exc:
         raise ConfigError(str(exc)) from None
     return LearnerNode(None if remapped else f"/{system}", launched)
 

@@ -17,9 +17,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from msg_schemas.names import join_topic
+from saml_ros.core.errors import SamlError
 from saml_ros.core.runtime.lifecycle import MANAGER_PARAMS, check_manager_params
 from saml_ros.nodes.lifecycle_client import drive
-from saml_ros.nodes.params import ParamGuard, start_params
+from saml_ros.nodes.ros_params import ParamGuard, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help
 
 #: exit code for invalid parameters
@@ -40,7 +41,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             p = start_params(node, MANAGER_PARAMS, check_manager_params)
             transitions = check_manager_params(p)
-        except ValueError as exc:
+        except SamlError as exc:
             node.get_logger().fatal(f"configuration error: {exc}")
             return USAGE_ERROR
         ParamGuard(node, MANAGER_PARAMS, check_manager_params)  # every parameter is read at start-up

@@ -26,7 +26,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 
 from saml_ros.core.params import problems_of
 from saml_ros.core.runtime.lifecycle import AUTOSTART, LIFECYCLE_PARAMS, Outcome, run_transition
-from saml_ros.nodes.params import declare_params
+from saml_ros.nodes.ros_params import declare_params
 from saml_ros.nodes.runtime import StopFlag, spin_until_stopped
 
 _RETURN: dict[Outcome, TransitionCallbackReturn] = {

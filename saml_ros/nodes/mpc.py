@@ -69,10 +69,11 @@ from saml_ros.core.errors import SamlError
 from saml_ros.core.mpc.config import EXECUTOR_CHOICES, EXECUTORS, MPCConfig, choose_executor
 from saml_ros.core.mpc.service import Answer, MPCService
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND as QP_BACKEND
+from saml_ros.core.params import ParamErrors
 from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
-from saml_ros.nodes.params import ParamGuard, current_values, probe_system, start_params
+from saml_ros.nodes.ros_params import ParamGuard, current_values, probe_system, start_params
 from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help
 
 #: exit code for invalid parameters (as argparse's usage errors)
@@ -82,7 +83,8 @@ EXCLUSIVE = (("system", "system_file"),)
 
 
 class MPCNode(ManagedNode):
-    """See the module docstring; raises ``ValueError`` naming the parameter when rclpy refuses a value."""
+    """See the module docstring; raises :class:`~saml_ros.core.params.ParamErrors` naming the parameter when
+    rclpy refuses a value."""
 
     def __init__(self, system_name: str, namespace: str | None = None) -> None:
         super().__init__("mpc", namespace)
@@ -110,10 +112,10 @@ class MPCNode(ManagedNode):
                 from saml_ros.user_code import load_robot_param
 
                 if load_robot_param(values["system_file"]).name != self.system_name:
-                    raise ValueError(f"parameter 'system_file': {values['system_file']} now names another robot "
-                                     f"than {self.system_name!r}")
+                    raise ParamErrors([f"parameter 'system_file': {values['system_file']} now names another robot "
+                                       f"than {self.system_name!r}"])
             config = MPCConfig.from_params(values)
-        except (SamlError, ValueError) as exc:
+        except SamlError as exc:
             raise TransitionRefused(str(exc)) from None
         if config.system != self.system_name:
             raise TransitionRefused(f"parameter system={config.system!r} does not match the node's system "
@@ -331,8 +333,12 @@ def create_node() -> MPCNode:
 
     The node lives in ``/<system>`` unless the command line remaps ``__ns``: a probe node reads ``system`` (and
     ``system_file``) first, because the namespace must be known when the node is created. A system file is loaded
-    here (its robot registered; ``ValueError`` naming the file and key when it is wrong); ``system`` next to
+    here (its robot registered; ``ParamErrors`` naming the file and key when it is wrong); ``system`` next to
     ``system_file`` is refused by the node's start-up check (both named).
+
+    Raises:
+        SamlError: (:class:`~saml_ros.core.params.ParamErrors`) a bad ``system`` / ``system_file`` or a value rclpy
+            refuses, each named.
     """
     system, remapped = probe_system("mpc", file_param="system_file")
     path, _ = _probe_system_file()
@@ -340,7 +346,10 @@ def create_node() -> MPCNode:
         from saml_ros.user_code import load_robot_param
 
         system = load_robot_param(path).name
-    get_entry(system)  # a clear error for an unknown name
+    try:
+        get_entry(system)  # a clear error for an unknown name
+    except ValueError as exc:
+        raise ParamErrors([str(exc)]) from None
     return MPCNode(system, None if remapped else f"/{system}")
 
 
@@ -352,7 +361,7 @@ def _probe_system_file() -> tuple[str, bool]:
     try:
         value = probe.declare_parameter("system_file", "").value
     except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad overrides
-        raise ValueError(f"parameter 'system_file': {exc}") from None
+        raise ParamErrors([f"parameter 'system_file': {exc}"]) from None
     finally:
         remapped = probe.get_namespace() != "/"
         probe.destroy_node()
@@ -378,9 +387,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             # the executor is chosen before configure (which reads the other parameters)
             executor = str(node.get_parameter("executor").value)
             if executor not in EXECUTOR_CHOICES:
-                raise ValueError(f"parameter 'executor' must be auto or one of {list(EXECUTORS)}, got {executor!r}")
+                raise ParamErrors([f"parameter 'executor' must be auto or one of {list(EXECUTORS)}, got "
+                                   f"{executor!r}"])
             executor = choose_executor(executor, str(node.get_parameter("mode").value))
-        except (ValueError, TypeError) as exc:
+        except SamlError as exc:
             rclpy.logging.get_logger("mpc").fatal(f"configuration error: {exc}")
             return USAGE_ERROR
         return run_managed(node, stop, USAGE_ERROR, executor=executor)

@@ -106,7 +106,7 @@ def _run(argv: Sequence[str] | None) -> int:
     from rclpy.node import Node
 
     from msg_schemas import RCLPY
-    from saml_ros.nodes.params import ParamGuard, start_params
+    from saml_ros.nodes.ros_params import ParamGuard, start_params
 
     init_rclpy(args)
     node = None

@@ -18,7 +18,7 @@ from saml_ros.core.data.plausibility import parse_overrides
 from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.mpc.guard import GuardConfig
 from saml_ros.core.mpc.monitor import MonitorConfig
-from saml_ros.core.params import LIVE, START, Param, Problems, memory_problems, read_params
+from saml_ros.core.params import LIVE, START, Param, ParamErrors, Problems, memory_problems, read_params
 from saml_ros.core.systems.registry import get_entry
 
 #: how the node answers states
@@ -128,11 +128,25 @@ def horizon_memory(system: str, horizon: int) -> tuple[str, str, int]:
 
 
 @dataclass(frozen=True)
+class GateConfig:
+    """``gate.*``: which checkpoints the MPC takes by what the learner recorded in them
+    (:func:`~saml_ros.core.mpc.follower.checkpoint_gate`).
+
+    Attributes:
+        max_constraint: hold back checkpoints whose constraint estimates exceed this (``inf``: no limit).
+        min_updates: hold back checkpoints with fewer learner updates than this.
+    """
+
+    max_constraint: float = math.inf
+    min_updates: int = 0
+
+
+@dataclass(frozen=True)
 class MPCConfig:
     """The MPC node's parameters after validation (units in :data:`PARAMS`' descriptions).
 
     ``goal`` is the built goal object (``Controller.solve``'s argument), ``task`` the ``task.*`` values without
-    the prefix, ``solver_options`` the parsed mapping.
+    the prefix, ``solver_options`` the parsed mapping; ``gate`` holds ``gate.*``, ``guard`` ``guard.*``.
     """
 
     system: str
@@ -146,11 +160,10 @@ class MPCConfig:
     run_dir: str
     poll_period: float
     diagnostics_rate: float
-    gate_max_constraint: float
-    gate_min_updates: int
     goal: Any
     task: dict[str, Any]
     guard: GuardConfig = GuardConfig()
+    gate: GateConfig = GateConfig()
     plausible_bounds: str = ""
     accept_residual_factor: float = 4.0
     safe_on_infeasible: bool = False
@@ -174,18 +187,18 @@ class MPCConfig:
         """The configuration from parameter values by name (missing ones take their defaults).
 
         Raises:
-            ValueError: an unknown system or parameter, or a value of the wrong type or out of range; the
-                message names the parameter.
+            ParamErrors: (a ``ValueError``) an unknown system or parameter, or a value of the wrong type or out of
+                range; every bad parameter is named.
         """
         problems = Problems()
         check = problems.check
         system = values.get("system", PARAMS[0].default)
         if not isinstance(system, str):
-            raise ValueError(f"parameter 'system' must be a string, got {system!r}")
+            raise ParamErrors([f"parameter 'system' must be a string, got {system!r}"])
         try:
             entry = get_entry(system)
         except ValueError as exc:
-            raise ValueError(f"parameter 'system': {exc}") from None
+            raise ParamErrors([f"parameter 'system': {exc}"]) from None
         table = cls.params(system)
         unknown = sorted(set(values) - {p.name for p in table})
         if unknown:
@@ -228,8 +241,8 @@ class MPCConfig:
             system=system, solver=p["solver"], horizon=p["horizon"], member=p["member"],
             solver_options=solver_options, mode=p["mode"], rate_hz=p["rate_hz"],
             deadline_ms=p["deadline_ms"], run_dir=p["run_dir"], poll_period=p["poll_period"],
-            diagnostics_rate=p["diagnostics_rate"], gate_max_constraint=p["gate.max_constraint"],
-            gate_min_updates=p["gate.min_updates"], goal=goal,
+            diagnostics_rate=p["diagnostics_rate"], goal=goal,
+            gate=GateConfig(max_constraint=p["gate.max_constraint"], min_updates=p["gate.min_updates"]),
             task={t.name: p[f"task.{t.name}"] for t in entry.task_params}, guard=guard,
             plausible_bounds=p["plausible_bounds"], accept_residual_factor=p["accept.residual_factor"],
             safe_on_infeasible=p["safe_on_infeasible"], executor=choose_executor(p["executor"], p["mode"]),

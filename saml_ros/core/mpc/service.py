@@ -132,7 +132,7 @@ class MPCService:
         run_dir = Path(config.run_dir) if config.run_dir else None
         vet = acceptance_hook(self.bounds, self.recent_probe, AcceptanceConfig(config.accept_residual_factor))
         self.watcher = ModelWatcher(self.system, run_dir, poll_period=config.poll_period, logger=logger,
-                                    accept=checkpoint_gate(config.gate_max_constraint, config.gate_min_updates),
+                                    accept=checkpoint_gate(config.gate.max_constraint, config.gate.min_updates),
                                     vet=vet)
 
     def start(self) -> None:

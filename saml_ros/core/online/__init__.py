@@ -5,7 +5,8 @@ ingest path: decode -> pairing -> buffer and recent window), ``telemetry`` (what
 reports), ``resume`` (the newest valid checkpoint of a run directory), ``loop`` (:func:`run_loop`: update pacing,
 telemetry and checkpoint periods), ``heldout`` (the held-out stretches of the stream and the errors read on
 them), ``process`` (:class:`TrainingProcess`, the parent's handle on the training
-interpreter, and the socket protocol) and ``child`` (what runs in that interpreter).
+interpreter), ``messages`` (the dataclasses the two processes exchange) and ``child`` (what runs in that
+interpreter).
 """
 
 from typing import TYPE_CHECKING, Any

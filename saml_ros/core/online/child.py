@@ -1,8 +1,8 @@
 """The training process of the online learner, child side: :func:`child_entry` runs in the fresh interpreter
 :func:`saml_ros.core.runtime.child_launch.launch_child` starts; it receives the
 :class:`~saml_ros.core.online.process.LearnerSetup`, builds the learner (and the raw-message decoder the setup
-carries), reports ``ready`` and runs :func:`~saml_ros.core.online.loop.run_loop` until the parent says stop
-(the socket protocol is in :mod:`saml_ros.core.online.process`)."""
+carries), reports :class:`~saml_ros.core.online.messages.Ready` and runs :func:`~saml_ros.core.online.loop.run_loop` until the parent says stop
+(the messages are :mod:`saml_ros.core.online.messages`)."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ import torch
 
 from saml_ros.core.online.ingest import RawIngest
 from saml_ros.core.online.loop import Send, run_loop
+from saml_ros.core.online.messages import Fatal, FromTrainer, Log, Ready
 from saml_ros.core.online.process import STOP_SIGNAL, LearnerSetup, thread_ids
 from saml_ros.core.online.resume import ResumeError
 
@@ -26,7 +27,7 @@ log = logging.getLogger("saml_ros.online")
 
 
 class _PipeLogHandler(logging.Handler):
-    """Ships ``saml_ros.*`` log records of the training process to its parent as ``("log", level, text)``."""
+    """Ships ``saml_ros.*`` log records of the training process to its parent as :class:`Log` messages."""
 
     def __init__(self, send: Send) -> None:
         super().__init__()
@@ -34,7 +35,7 @@ class _PipeLogHandler(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         with contextlib.suppress(Exception):
-            self._send(("log", record.levelno, self.format(record)))
+            self._send(Log(record.levelno, self.format(record)))
 
 
 def _die_with_parent() -> None:
@@ -127,7 +128,7 @@ def set_priority(niceness: int, idle: bool) -> str:
 def _child_main(conn: Any, setup: LearnerSetup) -> None:
     _die_with_parent()
     # the terminal's Ctrl-C reaches the whole process group: the parent decides when training stops, and tells
-    # this process with STOP_SIGNAL (then the ("stop",) message) so that it stops without working off its inbox
+    # this process with STOP_SIGNAL (then the Stop message) so that it stops without working off its inbox
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     stop_flag: list[int] = []
@@ -135,7 +136,7 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
     compute = apply_compute_settings(setup.threads, setup.flush_denormal)
     lock = threading.Lock()
 
-    def send(msg: tuple[Any, ...]) -> None:
+    def send(msg: FromTrainer) -> None:
         with lock:
             conn.send(msg)
 
@@ -148,10 +149,10 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
             learner = setup.build()
             decode = setup.make_decoder()
         except ResumeError as exc:
-            send(("fatal", "resume", str(exc)))
+            send(Fatal("resume", str(exc)))
             return
         except Exception as exc:  # noqa: BLE001 - reported to the parent, which exits with a message
-            send(("fatal", "error", f"{type(exc).__name__}: {exc}"))
+            send(Fatal("error", f"{type(exc).__name__}: {exc}"))
             return
         r = learner.resumed
         info = None if r is None else {"path": str(r.path), "version": r.version, "updates": r.updates,
@@ -164,7 +165,7 @@ def _child_main(conn: Any, setup: LearnerSetup) -> None:
         log.info("training process warmed up in %.1f s (fused kernel %s)", warm["seconds"], warm["kernel"])
         log.info("training process: %d torch intra-op thread(s), subnormal floats %s, CPU priority %s",
                  compute["threads"], "flushed to zero" if compute["flush_denormal"] else "not flushed", priority)
-        send(("ready", info, list(learner.model.hidden), learner.status(), compute))
+        send(Ready(info, list(learner.model.hidden), learner.status(), compute))
         run_loop(learner, setup.loop, conn, send, raw, stop_requested=lambda: bool(stop_flag),
                  paused=setup.paused)
     except (EOFError, OSError):

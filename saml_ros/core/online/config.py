@@ -14,10 +14,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, get_args
 
 from msg_schemas.names import join_topic, normalize_namespace
+from saml_ros.core.errors import SamlError
 from saml_ros.core.params import LIVE, Param, Problems, memory_problems, read_params
 
 if TYPE_CHECKING:
@@ -29,6 +30,11 @@ if TYPE_CHECKING:
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.training import TrainConfig
     from saml_ros.core.training.health import HealthConfig
+
+class TrainingStartError(SamlError, ValueError):
+    """The learner's training process could not be set up or started as configured
+    (:meth:`LearnerConfig.start_training`); the message says which setting, run directory or start-up failed."""
+
 
 #: one subscription of the learner: namespace, kind (state, applied_cmd, target), topic, message type
 Channel = tuple[str, str, str, str]
@@ -147,52 +153,172 @@ def learner_params() -> list[Param]:
     return [*_HEAD, *train, *_TAIL]
 
 
+def _from(param: str) -> dict[str, Any]:
+    """The metadata of a configuration field holding the value of the parameter ``param`` (read by
+    :meth:`LearnerConfig._build`)."""
+    return {"param": param}
+
+
+def _part(cls: type) -> dict[str, Any]:
+    """The metadata of a configuration field holding a part (``cls``, whose fields are each :func:`_from` a
+    parameter)."""
+    return {"part": cls}
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """``model.*``: the network (``kind`` 'residual' or 'full', ``hidden`` sizes, empty = the paper's; ``ensemble``
+    members)."""
+
+    kind: str = field(metadata=_from("model.kind"))
+    hidden: list[int] = field(metadata=_from("model.hidden"))
+    ensemble: int = field(metadata=_from("model.ensemble"))
+
+
+@dataclass(frozen=True)
+class BufferSettings:
+    """``buffer.*``: the replay buffer's ``capacity`` (transitions) and eviction ``policy``."""
+
+    capacity: int = field(metadata=_from("buffer.capacity"))
+    policy: str = field(metadata=_from("buffer.policy"))
+
+
+@dataclass(frozen=True)
+class PairingSettings:
+    """``pairing.*``: states remembered for pairing (``window``), the stamp ``tolerance`` (s) and whether a topic
+    with several publishers is refused (``refuse_multiple_publishers``)."""
+
+    window: int = field(metadata=_from("pairing.window"))
+    tolerance: float = field(metadata=_from("pairing.tolerance"))
+    refuse_multiple_publishers: bool = field(metadata=_from("pairing.refuse_multiple_publishers"))
+
+
+@dataclass(frozen=True)
+class CheckpointSettings:
+    """Where and how often checkpoints are written: ``period`` (s, ``checkpoint_period``), files kept (``keep``,
+    ``checkpoint_keep``), the directory (``run_dir``, empty = runs/<system>) and ``resume``."""
+
+    period: float = field(metadata=_from("checkpoint_period"))
+    keep: int = field(metadata=_from("checkpoint_keep"))
+    run_dir: str = field(metadata=_from("run_dir"))
+    resume: bool = field(metadata=_from("resume"))
+
+
+@dataclass(frozen=True)
+class TelemetrySettings:
+    """What the node reports: ``learner/model_error`` per second (``rate``, Hz, ``telemetry_rate``) on the newest
+    ``window`` transitions (``telemetry_window``), and ``/diagnostics`` per second (``diagnostics_rate``, Hz)."""
+
+    rate: float = field(metadata=_from("telemetry_rate"))
+    window: int = field(metadata=_from("telemetry_window"))
+    diagnostics_rate: float = field(metadata=_from("diagnostics_rate"))
+
+
+@dataclass(frozen=True)
+class HealthSettings:
+    """``health.*``: the limits of :class:`~saml_ros.core.training.health.HealthConfig` a user sets
+    (:meth:`LearnerConfig.health_config`)."""
+
+    explode_ratio: float = field(metadata=_from("health.explode_ratio"))
+    max_weight: float = field(metadata=_from("health.max_weight"))
+    error_after: int = field(metadata=_from("health.error_after"))
+
+
+@dataclass(frozen=True)
+class HeldoutSettings:
+    """``heldout.*``: the held-out stretches of the stream (``period`` s, ``fraction``, ``capacity`` transitions)
+    and the wall-clock seconds between two evaluations on them (``eval_period``)."""
+
+    period: float = field(metadata=_from("heldout.period"))
+    fraction: float = field(metadata=_from("heldout.fraction"))
+    capacity: int = field(metadata=_from("heldout.capacity"))
+    eval_period: float = field(metadata=_from("heldout.eval_period"))
+
+
+@dataclass(frozen=True)
+class ProcessSettings:
+    """How the training process runs: its nice increment (``niceness``, ``training_niceness``), ``SCHED_IDLE``
+    (``idle``, ``training_idle``) and torch intra-op ``threads`` (``train_threads``)."""
+
+    niceness: int = field(metadata=_from("training_niceness"))
+    idle: bool = field(metadata=_from("training_idle"))
+    threads: int = field(metadata=_from("train_threads"))
+
+
+def param_fields() -> dict[str, tuple[str | None, str]]:
+    """Where each parameter of :func:`learner_params` but ``train.*`` lives in :class:`LearnerConfig`: ``{name:
+    (part, field)}``, ``part`` None for a field of the configuration itself (``"checkpoint_period": ("checkpoint",
+    "period")``, ``"system": (None, "system")``)."""
+    out: dict[str, tuple[str | None, str]] = {}
+    for f in dataclasses.fields(LearnerConfig):
+        if "part" in f.metadata:
+            out.update({g.metadata["param"]: (f.name, g.name) for g in dataclasses.fields(f.metadata["part"])})
+        elif "param" in f.metadata:
+            out[f.metadata["param"]] = (None, f.name)
+    return out
+
+
 @dataclass(frozen=True)
 class LearnerConfig:
-    """The learner node's parameters after validation (units in :func:`learner_params`' descriptions).
+    """The learner node's parameters after validation (units in :func:`learner_params`' descriptions), in parts.
 
-    ``namespaces`` are normalised (``/name``) and never empty; ``train`` holds the ``train.*`` values by
-    TrainConfig field name.
+    Every field but ``train`` holds one parameter's value or is a part of several (:func:`param_fields` says
+    which); ``namespaces`` are normalised (``/name``) and never empty; ``train`` holds the ``train.*`` values by
+    TrainConfig field name. Built only from parameter values (:meth:`from_params`, :meth:`validated`), changed by
+    parameter name (:meth:`with_params`).
     """
 
-    system: str
-    namespaces: list[str]
-    spec_file: str
-    model_kind: str
-    model_hidden: list[int]
-    train: dict[str, Any]
-    buffer_capacity: int
-    buffer_policy: str
-    min_transitions: int
-    updates_per_second: float
-    checkpoint_period: float
-    checkpoint_keep: int
-    run_dir: str
-    resume: bool
-    telemetry_rate: float
-    telemetry_window: int
-    diagnostics_rate: float
-    dt: float
-    pairing_window: int
-    pairing_tolerance: float
-    training_niceness: int
-    train_threads: int
-    training_idle: bool = False
-    system_file: str = ""
-    model_ensemble: int = 1
-    uniform: bool = False
-    plausible_bounds: str = ""
-    health_explode_ratio: float = 1e4
-    health_max_weight: float = 1e6
-    health_error_after: int = 100
-    refuse_multiple_publishers: bool = False
-    normalization_refit: bool = True
-    heldout_period: float = 10.0
-    heldout_fraction: float = 0.2
-    heldout_capacity: int = 25_000
-    heldout_eval_period: float = 1.0
-    updates_per_transition: float = 0.0
-    average_updates: float = 1000.0
+    system: str = field(metadata=_from("system"))
+    system_file: str = field(metadata=_from("system_file"))
+    namespaces: list[str] = field(metadata=_from("namespaces"))
+    spec_file: str = field(metadata=_from("spec_file"))
+    uniform: bool = field(metadata=_from("uniform"))
+    model: ModelSettings = field(metadata=_part(ModelSettings))
+    train: dict[str, Any] = field()
+    buffer: BufferSettings = field(metadata=_part(BufferSettings))
+    min_transitions: int = field(metadata=_from("min_transitions"))
+    normalization_refit: bool = field(metadata=_from("normalization.refit"))
+    heldout: HeldoutSettings = field(metadata=_part(HeldoutSettings))
+    average_updates: float = field(metadata=_from("average_updates"))
+    updates_per_transition: float = field(metadata=_from("updates_per_transition"))
+    updates_per_second: float = field(metadata=_from("updates_per_second"))
+    checkpoint: CheckpointSettings = field(metadata=_part(CheckpointSettings))
+    telemetry: TelemetrySettings = field(metadata=_part(TelemetrySettings))
+    dt: float = field(metadata=_from("dt"))
+    pairing: PairingSettings = field(metadata=_part(PairingSettings))
+    process: ProcessSettings = field(metadata=_part(ProcessSettings))
+    plausible_bounds: str = field(metadata=_from("plausible_bounds"))
+    health: HealthSettings = field(metadata=_part(HealthSettings))
+
+    @classmethod
+    def _build(cls, p: Mapping[str, Any]) -> LearnerConfig:
+        """The configuration of checked parameter values ``p`` by name (every parameter of :func:`learner_params`):
+        the one place where parameters become fields."""
+        kwargs: dict[str, Any] = {"train": {k[len("train."):]: v for k, v in p.items() if k.startswith("train.")}}
+        for f in dataclasses.fields(cls):
+            if "part" in f.metadata:
+                part = f.metadata["part"]
+                kwargs[f.name] = part(**{g.name: p[g.metadata["param"]] for g in dataclasses.fields(part)})
+            elif "param" in f.metadata:
+                kwargs[f.name] = p[f.metadata["param"]]
+        return cls(**kwargs)
+
+    def with_params(self, values: Mapping[str, Any]) -> LearnerConfig:
+        """This configuration with the parameters ``values`` (by name, already checked) changed: a running
+        node's live parameters."""
+        where = param_fields()
+        flat: dict[str, Any] = {}
+        parts: dict[str, Any] = {}
+        for name, value in values.items():
+            if name.startswith("train."):
+                flat["train"] = {**flat.get("train", self.train), name[len("train."):]: value}
+                continue
+            part, attr = where[name]
+            if part is None:
+                flat[attr] = value
+            else:
+                parts[part] = dataclasses.replace(parts.get(part, getattr(self, part)), **{attr: value})
+        return dataclasses.replace(self, **flat, **parts)
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any], node_namespace: str = "/") -> LearnerConfig:
@@ -285,27 +411,7 @@ class LearnerConfig:
               "updates_per_transition", ">= 0 (0 = no limit)", p["updates_per_transition"])
         nss = [normalize_namespace(n) for n in p["namespaces"]] or [normalize_namespace(node_namespace)]
         check(len(set(nss)) == len(nss), "namespaces", "a list without repetitions", nss)
-        config = cls(
-            system=p["system"], namespaces=nss, spec_file=p["spec_file"], model_kind=p["model.kind"],
-            model_hidden=list(p["model.hidden"]),
-            train={k[len("train."):]: v for k, v in p.items() if k.startswith("train.")},
-            buffer_capacity=p["buffer.capacity"], buffer_policy=p["buffer.policy"],
-            min_transitions=p["min_transitions"], updates_per_second=p["updates_per_second"],
-            checkpoint_period=p["checkpoint_period"], checkpoint_keep=p["checkpoint_keep"], run_dir=p["run_dir"],
-            resume=p["resume"], telemetry_rate=p["telemetry_rate"], telemetry_window=p["telemetry_window"],
-            diagnostics_rate=p["diagnostics_rate"], dt=p["dt"], pairing_window=p["pairing.window"],
-            pairing_tolerance=p["pairing.tolerance"], training_niceness=p["training_niceness"],
-            training_idle=p["training_idle"],
-            train_threads=p["train_threads"], system_file=p["system_file"], model_ensemble=p["model.ensemble"],
-            uniform=p["uniform"], plausible_bounds=p["plausible_bounds"],
-            health_explode_ratio=p["health.explode_ratio"], health_max_weight=p["health.max_weight"],
-            health_error_after=p["health.error_after"],
-            refuse_multiple_publishers=p["pairing.refuse_multiple_publishers"],
-            normalization_refit=p["normalization.refit"],
-            heldout_period=p["heldout.period"], heldout_fraction=p["heldout.fraction"],
-            heldout_capacity=p["heldout.capacity"], heldout_eval_period=p["heldout.eval_period"],
-            updates_per_transition=p["updates_per_transition"], average_updates=p["average_updates"],
-        )
+        config = cls._build({**p, "namespaces": nss, "model.hidden": list(p["model.hidden"])})
         if p["system_file"]:
             check(p["dt"] == 0, "dt", "0 with system_file (a robot's period is the file's 'dt')", p["dt"])
         with problems.capture(*(n for n in p if n.startswith("train."))):
@@ -320,18 +426,18 @@ class LearnerConfig:
         minibatches of one update (``train.batch_size`` x ``model.ensemble`` rows, drawn in float64 and converted,
         with the network's activations and their gradients) and the telemetry window."""
         width = system.state.size + system.control.size + system.target.size
-        hidden = sum(self.model_hidden or system.paper_hidden)
+        hidden = sum(self.model.hidden or system.paper_hidden)
         itemsize = 8 if self.train.get("dtype") == "float64" else 4
         batch = int(self.train.get("batch_size", 1))
         return [
-            ("buffer.capacity", f"a replay buffer of {self.buffer_capacity} transitions",
-             self.buffer_capacity * (width + 3) * 8),
-            ("train.batch_size", f"minibatches of {batch} transitions x {self.model_ensemble} ensemble member(s)",
-             batch * self.model_ensemble * (width * (8 + itemsize) + 3 * hidden * itemsize)),
-            ("telemetry_window", f"a window of {self.telemetry_window} transitions",
-             self.telemetry_window * width * 8),
-            ("heldout.capacity", f"a held-out set of {self.heldout_capacity} transitions",
-             self.heldout_capacity * (width + 3) * 8),
+            ("buffer.capacity", f"a replay buffer of {self.buffer.capacity} transitions",
+             self.buffer.capacity * (width + 3) * 8),
+            ("train.batch_size", f"minibatches of {batch} transitions x {self.model.ensemble} ensemble member(s)",
+             batch * self.model.ensemble * (width * (8 + itemsize) + 3 * hidden * itemsize)),
+            ("telemetry_window", f"a window of {self.telemetry.window} transitions",
+             self.telemetry.window * width * 8),
+            ("heldout.capacity", f"a held-out set of {self.heldout.capacity} transitions",
+             self.heldout.capacity * (width + 3) * 8),
         ]
 
     def loop_config(self) -> LoopConfig:
@@ -340,8 +446,8 @@ class LearnerConfig:
         <saml_ros.core.online.TrainingProcess.set_loop>`)."""
         from saml_ros.core.online import LoopConfig
 
-        return LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry_rate,
-                          checkpoint_period=self.checkpoint_period)
+        return LoopConfig(updates_per_second=self.updates_per_second, telemetry_rate=self.telemetry.rate,
+                          checkpoint_period=self.checkpoint.period)
 
     def health_config(self) -> HealthConfig:
         """The :class:`~saml_ros.core.training.health.HealthConfig` of ``health.*``; ``ValueError`` naming them."""
@@ -349,12 +455,12 @@ class LearnerConfig:
 
         problems = Problems()
         check = problems.check
-        check(self.health_explode_ratio > 1, "health.explode_ratio", "> 1", self.health_explode_ratio)
-        check(self.health_max_weight > 0, "health.max_weight", "> 0", self.health_max_weight)
-        check(self.health_error_after >= 1, "health.error_after", ">= 1", self.health_error_after)
+        check(self.health.explode_ratio > 1, "health.explode_ratio", "> 1", self.health.explode_ratio)
+        check(self.health.max_weight > 0, "health.max_weight", "> 0", self.health.max_weight)
+        check(self.health.error_after >= 1, "health.error_after", ">= 1", self.health.error_after)
         problems.raise_if_any()
-        return HealthConfig(explode_ratio=self.health_explode_ratio, max_weight=self.health_max_weight,
-                            error_after=self.health_error_after)
+        return HealthConfig(explode_ratio=self.health.explode_ratio, max_weight=self.health.max_weight,
+                            error_after=self.health.error_after)
 
     def plausibility(self, system: System) -> Plausibility:
         """The system's plausible ranges with ``plausible_bounds``; ``ValueError`` naming the parameter."""
@@ -438,21 +544,24 @@ class LearnerConfig:
         ``on_*`` arguments of :class:`~saml_ros.core.online.TrainingProcess`).
 
         Raises:
-            ValueError: an invalid setting, a run directory whose checkpoints contradict the configuration, or a
-                training process that could not start; the message says which.
+            TrainingStartError: an invalid setting, a run directory whose checkpoints contradict the
+                configuration, or a training process that could not start; the message says which.
             StartCancelled: ``cancelled()`` became true while the training process started.
         """
         from saml_ros.core.online import ResumeError, TrainingProcess
 
         channels = [(self.namespaces.index(ns), kind, topic) for ns, kind, topic, _ in self.channels(schema)]
-        setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
+        try:
+            setup = self.training_setup(system, spec, schema.target_pairing, run_dir, channels, decoder)
+        except ValueError as exc:
+            raise TrainingStartError(str(exc)) from None
         trainer = TrainingProcess(dataclasses.replace(setup, paused=paused), **callbacks)
         try:
             trainer.start(launched=launched, cancelled=cancelled)
         except ResumeError as exc:
-            raise ValueError(str(exc)) from None
+            raise TrainingStartError(str(exc)) from None
         except RuntimeError as exc:
-            raise ValueError(f"the training process could not start: {exc}") from None
+            raise TrainingStartError(f"the training process could not start: {exc}") from None
         return trainer
 
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
@@ -478,20 +587,20 @@ class LearnerConfig:
         bounds = self.plausibility(system)
         try:
             config = OnlineConfig(
-                kind=self.model_kind, hidden=tuple(self.model_hidden) or None, train=self.train_config(),
-                buffer_capacity=self.buffer_capacity, buffer_policy=self.buffer_policy,
-                min_transitions=self.min_transitions, telemetry_window=self.telemetry_window,
-                checkpoint_keep=self.checkpoint_keep, n_models=self.model_ensemble,
+                kind=self.model.kind, hidden=tuple(self.model.hidden) or None, train=self.train_config(),
+                buffer_capacity=self.buffer.capacity, buffer_policy=self.buffer.policy,
+                min_transitions=self.min_transitions, telemetry_window=self.telemetry.window,
+                checkpoint_keep=self.checkpoint.keep, n_models=self.model.ensemble,
                 plausible_bounds=self.plausible_bounds, health=self.health_config(),
-                heldout=HeldoutConfig(period=self.heldout_period, fraction=self.heldout_fraction,
-                                      capacity=self.heldout_capacity),
-                heldout_period=self.heldout_eval_period, updates_per_transition=self.updates_per_transition,
+                heldout=HeldoutConfig(period=self.heldout.period, fraction=self.heldout.fraction,
+                                      capacity=self.heldout.capacity),
+                heldout_period=self.heldout.eval_period, updates_per_transition=self.updates_per_transition,
                 renormalize=self.normalization_refit, average_updates=self.average_updates,
             )
             own_pairing = getattr(system, "pairing", None)  # a robot's own topics: resampled onto its period
             pairing = own_pairing() if callable(own_pairing) else PairingConfig.for_system(
-                system, target_pairing, tolerance=self.pairing_tolerance, window=self.pairing_window,
-                max_slots=max(10_000, 10 * self.pairing_window))
+                system, target_pairing, tolerance=self.pairing.tolerance, window=self.pairing.window,
+                max_slots=max(10_000, 10 * self.pairing.window))
             pairing = dataclasses.replace(pairing, bounds=bounds)
             loop = self.loop_config()
         except TypeError as exc:
@@ -503,9 +612,9 @@ class LearnerConfig:
         definition = getattr(system, "definition", None)  # a robot's field paths, for the decoder
         return LearnerSetup(
             system=self.system, system_params=params, spec=spec.to_dict(), config=config,
-            run_dir=run_dir, resume=self.resume, loop=loop, niceness=self.training_niceness,
-            idle=self.training_idle,
-            threads=self.train_threads, sources=tuple((ns, pairing) for ns in self.namespaces),
+            run_dir=run_dir, resume=self.checkpoint.resume, loop=loop, niceness=self.process.niceness,
+            idle=self.process.idle,
+            threads=self.process.threads, sources=tuple((ns, pairing) for ns in self.namespaces),
             channels=tuple((index, kind) for index, kind, _ in channels), decoder=decoder,
             decoder_args=(self.system, [(kind, topic) for _, kind, topic in channels], definition),
         )

@@ -1,7 +1,8 @@
 """The training loop of an online learner (:func:`run_loop`): pacing the updates (:class:`LoopConfig`), reporting
 status at the telemetry rate, checkpointing every ``checkpoint_period`` and on stop, with the whole inbox handled
 before every chunk of updates (ingest goes first). It runs in the training process
-(:mod:`~saml_ros.core.online.process`, whose socket protocol it speaks), or in any thread owning the learner."""
+(:mod:`~saml_ros.core.online.process`; the messages it takes and sends are :mod:`~saml_ros.core.online.messages`),
+or in any thread owning the learner."""
 
 from __future__ import annotations
 
@@ -13,9 +14,24 @@ from typing import Any
 
 from saml_ros.core.online.ingest import RawIngest
 from saml_ros.core.online.learner import OnlineLearner
+from saml_ros.core.online.messages import (
+    Batch,
+    Checkpointed,
+    ErrorReport,
+    FromTrainer,
+    Pause,
+    Paused,
+    RawMessages,
+    Resume,
+    SetLoop,
+    Status,
+    Stop,
+    Stopped,
+    ToTrainer,
+)
 
 #: ``send(message)``: one message to the parent (see :func:`run_loop` for the messages)
-Send = Callable[[tuple[Any, ...]], None]
+Send = Callable[[FromTrainer], None]
 
 
 @dataclass(frozen=True)
@@ -50,29 +66,28 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
              stop_requested: Callable[[], bool] | None = None, paused: bool = False) -> None:
     """The training loop of a training process (or any thread owning ``learner``).
 
-    ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying ``("batch", x, u, y, stamp_s, source)``
-    (paired transitions), ``("raw", [(channel, payload), ...])`` (messages for ``raw``), ``("pause",)``,
-    ``("resume",)``, ``("loop", LoopConfig)`` (pace by it from now on) and ``("stop",)``.
+    ``conn`` is the inbox (``poll(timeout)`` / ``recv()``) carrying :data:`~saml_ros.core.online.messages.ToTrainer`
+    messages: :class:`Batch` (paired transitions), :class:`RawMessages` (messages for ``raw``), :class:`Pause`,
+    :class:`Resume`, :class:`SetLoop` (pace by its loop from now on) and :class:`Stop`.
     The whole inbox is handled before every chunk of updates, so ingest goes first (a backlog longer than one
     telemetry period is handled a period at a time, with a status report in between). ``send`` reports
-    ``("status", status, {source name: counters}, notes)`` at ``loop.telemetry_rate`` (``notes``: text values,
-    :func:`status_notes`), ``("checkpoint", path, version)`` after each save, ``("error", what, message)`` and, on
-    stop, ``("stopped", path | None, version, updates)`` after a final checkpoint (when there are updates not yet
-    saved). A checkpoint write that fails is reported as ``("error", "checkpoint", message)`` and tried again after
-    a back-off of 1, 2, 4, ... checkpoint periods (:mod:`~saml_ros.core.online.storage`); training goes on
-    meanwhile. Returns after a stop.
+    :class:`Status` at ``loop.telemetry_rate`` (its ``notes``: text values, :func:`status_notes`),
+    :class:`Checkpointed` after each save, :class:`ErrorReport` and, on stop, :class:`Stopped` after a final
+    checkpoint (when there are updates not yet saved). A checkpoint write that fails is reported as
+    ``ErrorReport("checkpoint", message)`` and tried again after a back-off of 1, 2, 4, ... checkpoint periods
+    (:mod:`~saml_ros.core.online.storage`); training goes on meanwhile. Returns after a stop.
     ``stop_requested()`` True (the training process got
-    :data:`~saml_ros.core.online.process.STOP_SIGNAL`) stops at once, as ``("stop",)`` would, without handling
+    :data:`~saml_ros.core.online.process.STOP_SIGNAL`) stops at once, as :class:`Stop` would, without handling
     what is still in the inbox: data not yet in the buffer cannot change the final checkpoint, and a backlog of
     it must not hold the shutdown past a launcher's grace period.
 
-    Paused (from the start when ``paused``, or after ``("pause",)``: a managed learner that was deactivated) the
+    Paused (from the start when ``paused``, or after :class:`Pause`: a managed learner that was deactivated) the
     loop still takes data into the buffer and reports its status, but makes no updates, computes no model
     metrics and writes no checkpoints;
     One function on purpose (longer than 80 lines): one event loop whose local state (pacing, paused, next
     report) every message kind and the training chunk share.
-    ``("pause",)`` first writes a checkpoint when there are unsaved updates and answers ``("paused", path |
-    None, version, updates)``; ``("resume",)`` goes back to training (the pacing restarts from then).
+    :class:`Pause` first writes a checkpoint when there are unsaved updates and answers :class:`Paused`;
+    :class:`Resume` goes back to training (the pacing restarts from then).
     """
     requested = stop_requested or (lambda: False)
 
@@ -81,8 +96,7 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             learner.compute_model_metrics()
         if raw is not None:
             raw.check_orphans()
-        send(("status", learner.status(), {p.name: dict(p.counts) for p in learner.sources},
-              status_notes(learner, loop)))
+        send(Status(learner.status(), {p.name: dict(p.counts) for p in learner.sources}, status_notes(learner, loop)))
 
     metrics_period = 1.0 / loop.telemetry_rate
     next_metrics = 0.0
@@ -93,31 +107,31 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
         # the inbox first, but at most one telemetry period at a time: a backlog must not silence the reports
         drain_until = time.monotonic() + metrics_period
         while True:
-            msg: Any = ("stop",) if requested() else (
+            msg: ToTrainer | None = Stop() if requested() else (
                 conn.recv() if conn.poll() and time.monotonic() < drain_until else None)
             if msg is None:
                 break
-            if msg[0] == "raw":
-                if raw is not None:
-                    raw.feed(msg[1])
-            elif msg[0] == "batch":
-                learner.add_batch(*msg[1:])
-            elif msg[0] == "pause":
-                saved = save_and_announce(learner, send) if learner.dirty and not paused else None
-                report()
-                paused, paced_from = True, None
-                send(("paused", str(saved[0]) if saved else None, learner.model_version, learner.updates))
-            elif msg[0] == "resume":
-                paused, paced_from = False, None
-            elif msg[0] == "loop":  # new pacing (a parameter changed on the running node)
-                loop, paced_from = msg[1], None
-                metrics_period, next_metrics = 1.0 / loop.telemetry_rate, 0.0
-            elif msg[0] == "stop":
-                saved = save_and_announce(learner, send) if learner.dirty else None
-                report()
-                path = str(saved[0]) if saved else None
-                send(("stopped", path, learner.model_version, learner.updates))
-                return
+            match msg:
+                case RawMessages(items):
+                    if raw is not None:
+                        raw.feed(items)
+                case Batch(x, u, y, stamp_s, source):
+                    learner.add_batch(x, u, y, stamp_s, source)
+                case Pause():
+                    saved = save_and_announce(learner, send) if learner.dirty and not paused else None
+                    report()
+                    paused, paced_from = True, None
+                    send(Paused(str(saved[0]) if saved else None, learner.model_version, learner.updates))
+                case Resume():
+                    paused, paced_from = False, None
+                case SetLoop(new_loop):  # new pacing (a parameter changed on the running node)
+                    loop, paced_from = new_loop, None
+                    metrics_period, next_metrics = 1.0 / loop.telemetry_rate, 0.0
+                case Stop():
+                    saved = save_and_announce(learner, send) if learner.dirty else None
+                    report()
+                    send(Stopped(str(saved[0]) if saved else None, learner.model_version, learner.updates))
+                    return
         now = time.monotonic()
         if now >= next_metrics:
             report(metrics=not paused)  # paused: the counters only, the model has not changed
@@ -155,7 +169,7 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             if not done:  # the update budget (updates_per_transition) is spent: wait for data
                 conn.poll(0.05)
         except Exception as exc:  # noqa: BLE001 - report, back off, keep going
-            send(("error", "training", f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s"))
+            send(ErrorReport("training", f"training step failed ({type(exc).__name__}: {exc}); retrying in 1 s"))
             time.sleep(1.0)
 
 
@@ -166,8 +180,8 @@ def status_notes(learner: OnlineLearner, loop: LoopConfig) -> dict[str, str]:
 
 
 def save_and_announce(learner: OnlineLearner, send: Send, period_s: float | None = None) -> tuple[Path, int] | None:
-    """Write a checkpoint and send ``("checkpoint", path, version)``; a write error is sent as ``("error",
-    "checkpoint", message)`` (and ``None`` returned: :meth:`OnlineLearner.checkpoint_due` says when to try again,
+    """Write a checkpoint and send :class:`Checkpointed`; a write error is sent as ``ErrorReport("checkpoint",
+    message)`` (and ``None`` returned: :meth:`OnlineLearner.checkpoint_due` says when to try again,
     ``period_s`` the checkpoint period the message counts the back-off in)."""
     try:
         saved = learner.save_checkpoint()
@@ -176,9 +190,10 @@ def save_and_announce(learner: OnlineLearner, send: Send, period_s: float | None
         retry = (f"; next attempt in {learner.writes.delay(period_s):.3g} s" if period_s is not None else "")
         kept = (f"the last good checkpoint, version {learner.model_version}, stays the latest" if learner.model_version
                 else "no checkpoint written yet")
-        send(("error", "checkpoint", f"cannot write a checkpoint into {run_dir}: {exc} ({learner.writes.failures} "
-              f"failed write(s) in a row, {learner.unsaved_updates} updates not yet saved; {kept}){retry}"))
+        send(ErrorReport("checkpoint", f"cannot write a checkpoint into {run_dir}: {exc} ({learner.writes.failures} "
+                                       f"failed write(s) in a row, {learner.unsaved_updates} updates not yet saved; "
+                                       f"{kept}){retry}"))
         return None
     if saved is not None:
-        send(("checkpoint", str(saved[0]), saved[1]))
+        send(Checkpointed(str(saved[0]), saved[1]))
     return saved

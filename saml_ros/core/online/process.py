@@ -8,17 +8,12 @@ decoding and pairing run in the child too; see docs/learner.md for the measureme
 :func:`saml_ros.core.runtime.child_launch.launch_child` (a fresh interpreter running
 :func:`saml_ros.core.online.child.child_entry` on its end of a socket pair) and builds everything from the setup.
 
-Socket protocol (``multiprocessing.connection`` messages, tuples):
-
-* parent -> child: first the :class:`LearnerSetup`; then ``("batch", x, u, y, stamp_s, source)`` (paired
-  transitions, arrays ``(B, .)`` / ``(B,)``), ``("raw", [(channel, payload), ...])`` (messages for the setup's
-  decoder), ``("pause",)`` / ``("resume",)`` (a managed learner's deactivation and activation), ``("loop",
-  LoopConfig)`` (new pacing, :meth:`TrainingProcess.set_loop`) and finally ``("stop",)``;
-* child -> parent: ``("ready", resumed, hidden, status, compute)`` once built (or ``("fatal", "resume" |
-  "error", message)`` and exit), then ``("status", status, {source: counters}, notes)`` (``notes``: text values
-  such as ``checkpoint_write_error``), ``("checkpoint", path,
-  version)``, ``("error", what, message)``, ``("log", level, text)``, after a pause ``("paused", path | None,
-  version, updates)`` and, after a stop, ``("stopped", path | None, version, updates)``.
+Socket protocol (``multiprocessing.connection`` messages): first the :class:`LearnerSetup`, then the dataclasses
+of :mod:`saml_ros.core.online.messages` both ways (:class:`~saml_ros.core.online.messages.Batch` of paired
+transitions, :class:`~saml_ros.core.online.messages.RawMessages` for the setup's decoder, ``Pause`` / ``Resume``
+(a managed learner's deactivation and activation), ``SetLoop`` (new pacing, :meth:`TrainingProcess.set_loop`) and
+``Stop`` to the child; ``Ready`` (or ``Fatal``), ``Status``, ``Checkpointed``, ``ErrorReport``, ``Log``,
+``Paused`` and ``Stopped`` back).
 """
 
 from __future__ import annotations
@@ -40,10 +35,28 @@ import numpy as np
 
 from saml_ros.core.data.pairing import PairingConfig, Transition, total_counts
 from saml_ros.core.data.resampling import ResampleConfig
+from saml_ros.core.errors import SamlError
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online.ingest import Decode
 from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
 from saml_ros.core.online.loop import LoopConfig
+from saml_ros.core.online.messages import (
+    Batch,
+    Checkpointed,
+    ErrorReport,
+    Fatal,
+    Log,
+    Pause,
+    Paused,
+    RawMessages,
+    Ready,
+    Resume,
+    SetLoop,
+    Status,
+    Stop,
+    Stopped,
+    ToTrainer,
+)
 from saml_ros.core.online.resume import ResumeError
 from saml_ros.core.runtime.child_launch import LaunchedChild, launch_child
 from saml_ros.core.spec import ProblemSpec
@@ -57,7 +70,7 @@ DecoderFactory = Callable[[Any], Decode]
 CANCEL_POLL_S = 0.1
 
 
-class StartCancelled(Exception):
+class StartCancelled(SamlError):
     """:meth:`TrainingProcess.start` gave up because its ``cancelled`` predicate said so (a stop signal arrived
     while the training process was still starting); the child was killed, nothing was written."""
 
@@ -271,16 +284,17 @@ class TrainingProcess:
             except (EOFError, OSError):
                 exit_code = proc.wait(5)
                 raise RuntimeError(f"the training process exited during start-up (exit code {exit_code})") from None
-            if msg[0] == "log":
-                self.on_log(msg[1], msg[2])
-            elif msg[0] == "fatal":
-                proc.wait(10)
-                raise (ResumeError if msg[1] == "resume" else RuntimeError)(msg[2])
-            elif msg[0] == "ready":
-                self._proc, self._conn = proc, parent
-                self.status = msg[3]
-                self.ready = ReadyInfo(msg[1], msg[2], msg[3], msg[4]["threads"], msg[4]["flush_denormal"])
-                return self.ready
+            match msg:
+                case Log(level, text):
+                    self.on_log(level, text)
+                case Fatal(kind, message):
+                    proc.wait(10)
+                    raise (ResumeError if kind == "resume" else RuntimeError)(message)
+                case Ready(resumed, hidden, status, compute):
+                    self._proc, self._conn = proc, parent
+                    self.status = status
+                    self.ready = ReadyInfo(resumed, hidden, status, compute["threads"], compute["flush_denormal"])
+                    return self.ready
 
     def stop(self, timeout: float = 60.0) -> tuple[str | None, int, int] | None:
         """Ask the child for a final checkpoint now and wait for it to exit.
@@ -300,7 +314,7 @@ class TrainingProcess:
                 t.join(timeout)
         try:
             with self._send_lock:
-                self._conn.send(("stop",))
+                self._conn.send(Stop())
         except (OSError, ValueError):
             pass
         self._stopped.wait(timeout)
@@ -330,14 +344,14 @@ class TrainingProcess:
         paused (after what is already queued for it), or None if it did not answer within ``timeout`` s."""
         self._paused = True
         self._pause_done.clear()
-        if not self._send_control(("pause",)):
+        if not self._send_control(Pause()):
             return None
         return self._pause_reply if self._pause_done.wait(timeout) else None
 
     def resume(self) -> bool:
         """Train again after :meth:`pause` (or a start with ``setup.paused``); False if the child is gone."""
         self._paused = False
-        return self._send_control(("resume",))
+        return self._send_control(Resume())
 
     @property
     def paused(self) -> bool:
@@ -347,9 +361,9 @@ class TrainingProcess:
         """Pace the running child by ``loop`` from now on (updates per second, telemetry rate, checkpoint period:
         a learner's parameters that apply at once); a restarted child starts with it. False if the child is gone."""
         self.setup = dataclasses.replace(self.setup, loop=loop)
-        return self._send_control(("loop", loop))
+        return self._send_control(SetLoop(loop))
 
-    def _send_control(self, msg: tuple[Any, ...]) -> bool:
+    def _send_control(self, msg: ToTrainer) -> bool:
         try:
             with self._send_lock:
                 self._conn.send(msg)
@@ -396,15 +410,14 @@ class TrainingProcess:
                 items = [self._raw.popleft() for _ in range(n)]
                 try:
                     with self._send_lock:
-                        self._conn.send(("raw", items))
+                        self._conn.send(RawMessages(items))
                 except (OSError, ValueError):  # the child is being restarted: keep them
                     self._raw.extendleft(reversed(items))
                     time.sleep(0.1)
             n = len(self._outbox)
             if n:
                 trs = [self._outbox.popleft() for _ in range(n)]
-                batch = (
-                    "batch",
+                batch = Batch(
                     np.stack([t.x for t in trs]),
                     np.stack([t.u for t in trs]),
                     np.stack([t.y for t in trs]),
@@ -430,27 +443,27 @@ class TrainingProcess:
                     return
                 self._restart()
                 continue
-            kind = msg[0]
-            if kind == "status":
-                self.status = msg[1]
-                self.source_counts = msg[2]
-                self.notes = dict(msg[3]) if len(msg) > 3 else {}
-                self.on_status(msg[1])
-            elif kind == "checkpoint":
-                self.on_checkpoint(msg[1], msg[2])
-            elif kind == "log":
-                self.on_log(msg[1], msg[2])
-            elif kind == "error":
-                self.errors += 1
-                self.error_counts[msg[1]] += 1
-                self.on_error(msg[1], msg[2])
-            elif kind == "paused":
-                self._pause_reply = (msg[1], msg[2], msg[3])
-                self._pause_done.set()
-            elif kind == "stopped":
-                self._final = (msg[1], msg[2], msg[3])
-                self._stopped.set()
-                return
+            match msg:
+                case Status(status, counts, notes):
+                    self.status = status
+                    self.source_counts = counts
+                    self.notes = dict(notes)
+                    self.on_status(status)
+                case Checkpointed(path, version):
+                    self.on_checkpoint(path, version)
+                case Log(level, text):
+                    self.on_log(level, text)
+                case ErrorReport(what, message):
+                    self.errors += 1
+                    self.error_counts[what] += 1
+                    self.on_error(what, message)
+                case Paused(path, version, updates):
+                    self._pause_reply = (path, version, updates)
+                    self._pause_done.set()
+                case Stopped(path, version, updates):
+                    self._final = (path, version, updates)
+                    self._stopped.set()
+                    return
 
     def _restart(self) -> None:
         code = None

@@ -219,14 +219,14 @@ def configured_message(p: LearnerConfig, spec: ProblemSpec, ready: ReadyInfo, ru
     r = ready.resumed
     return (f"learner for {p.system!r}" + (f" (system file {p.system_file})" if p.system_file else "")
             + f" on {p.namespaces}: spec '{spec.raw.get('name')}' ({spec.describe()}), "
-            f"model {p.model_kind} {ready.hidden}, run_dir {run_dir}, "
+            f"model {p.model.kind} {ready.hidden}, run_dir {run_dir}, "
             + (f"resumed from version {r['version']} ({r['updates']} updates, lambda {r['lam']})" if r
                else "fresh start")
             + f"; training process pid {pid} ({ready.threads} torch thread(s), subnormals "
             + ("flushed" if ready.flush_denormal else "not flushed")
             + f"); training starts after {p.min_transitions} transitions once active; "
-            + (f"held out (never trained on, verdicts read there): the last {p.heldout_fraction * p.heldout_period:g} s "
-               f"of every {p.heldout_period:g} s of the stream" if p.heldout_fraction > 0 else
+            + (f"held out (never trained on, verdicts read there): the last {p.heldout.fraction * p.heldout.period:g} s "
+               f"of every {p.heldout.period:g} s of the stream" if p.heldout.fraction > 0 else
                "no held-out stretches (heldout.fraction 0): no held-out verdict"))
 
 
@@ -270,7 +270,7 @@ def training_diagnostics(trainer: TrainingProcess, p: LearnerConfig, spec: Probl
     grew = None if recent is None else recent.update(level_counters(totals, trainer.status, process))
     level, message, values = learner_diagnostics(
         totals, trainer.status, process, trainer.source_counts, p.namespaces, channels,
-        [(t.name, t.eps) for t in spec.constraints], p.health_error_after, grew, trainer.notes)
+        [(t.name, t.eps) for t in spec.constraints], p.health.error_after, grew, trainer.notes)
     values["lifecycle"] = lifecycle
     values["invalid_transitions"] = invalid_transitions
     return level, (message if active else f"{lifecycle}: {message}"), values

@@ -42,8 +42,9 @@ from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.training.dual import DualVariables
 
 
-class RunState(Protocol):
-    """What the checks read and restore of a run (a :class:`~saml_ros.core.training.PrimalDualTrainer`)."""
+class CheckedRun(Protocol):
+    """What the checks read and restore of a run (a :class:`~saml_ros.core.training.PrimalDualTrainer`): a part of
+    the engines' :class:`~saml_ros.core.training.engines.base.RunState`."""
 
     model: DynamicsModel
     primal_opt: torch.optim.Optimizer
@@ -179,7 +180,7 @@ class TrainingHealth:
         self._pending_grad = norm
         return None
 
-    def check_weights(self, run: RunState) -> str | None:
+    def check_weights(self, run: CheckedRun) -> str | None:
         """``"weights"`` if a network weight or multiplier of ``run`` is non-finite or larger than ``max_weight``."""
         return self._weights_problem(max_abs([*run.model.net.parameters(), run.dual.value]))
 
@@ -195,7 +196,7 @@ class TrainingHealth:
                                         f"health.max_weight = {self.config.max_weight:g})")
 
     # ------------------------------------------------------------------------------ outcomes
-    def healthy(self, run: RunState) -> None:
+    def healthy(self, run: CheckedRun) -> None:
         """A healthy step: update the running means and, every ``snapshot_every`` such steps, the snapshot."""
         self.count_healthy()
         self._since_snapshot += 1
@@ -220,12 +221,12 @@ class TrainingHealth:
         if self.streak >= self.config.rebase_after and self.streak - n < self.config.rebase_after:
             self._loss, self._grad = _Mean(), _Mean()  # every step explodes: a new scale, warm up again
 
-    def ensure_snapshot(self, run: RunState) -> None:
+    def ensure_snapshot(self, run: CheckedRun) -> None:
         """Take a snapshot of ``run`` if there is none yet (before the first update of a run or a resume)."""
         if self._snapshot is None:
             self.take_snapshot(run)
 
-    def take_snapshot(self, run: RunState) -> None:
+    def take_snapshot(self, run: CheckedRun) -> None:
         """Remember ``run``'s state (network parameters, the primal optimizer's state, the dual variables'
         ``state_dict``) as the last healthy one."""
         with torch.no_grad():
@@ -237,7 +238,7 @@ class TrainingHealth:
         self._snapshot = (params, state, dual)
         self._since_snapshot = 0
 
-    def restore(self, run: RunState) -> bool:
+    def restore(self, run: CheckedRun) -> bool:
         """Put the last healthy snapshot back into ``run`` (False if there is none: :meth:`ensure_snapshot` was
         never called)."""
         if self._snapshot is None:
@@ -315,7 +316,7 @@ class TrainingHealth:
                     "train_health/healthy_steps": self.healthy_steps})
         return out
 
-    def summary(self, run: RunState) -> dict[str, Any]:
+    def summary(self, run: CheckedRun) -> dict[str, Any]:
         """What a checkpoint records about the model's health (``meta["health"]``): whether it is healthy (finite
         weights within ``max_weight``), the largest weight, the counters (with the current streak of skipped
         steps) and the last problem."""

@@ -13,9 +13,8 @@ from helpers import REPO
 from saml_ros.core.errors import SamlError, saml_errors
 
 BUILTIN_BASES = {"Exception", "ValueError", "RuntimeError", "OSError", "TypeError", "KeyError", "LookupError"}
-#: exception classes that are not errors: a start-up cancelled on request; a command line's private early exit
-NOT_ERRORS = {"saml_ros.core.online.process.StartCancelled", "saml_ros.offline.cli._Refused",
-              "saml_ros.core.errors.SamlError"}
+#: exception classes that are not errors: a command line's private early exit
+NOT_ERRORS = {"saml_ros.offline.cli._Refused", "saml_ros.core.errors.SamlError"}
 
 
 def _exception_classes() -> dict[str, list[str]]:
@@ -61,6 +60,8 @@ def _is_saml(module: str, base: str) -> bool:
     ("saml_ros.core.online.resume.ResumeError", RuntimeError),
     ("msg_schemas.base.SchemaError", ValueError),
     ("saml_ros.bags.io.BagError", ValueError),
+    ("saml_ros.core.online.config.TrainingStartError", ValueError),
+    ("saml_ros.core.online.process.StartCancelled", Exception),
 ])
 def test_errors_keep_the_base_their_callers_catch(path: str, builtin: type[Exception]) -> None:
     module, name = path.rsplit(".", 1)

@@ -14,7 +14,7 @@ import pytest
 
 from saml_ros.core.mpc.config import PARAMS, MPCConfig
 from saml_ros.core.mpc.service import MPCService
-from saml_ros.core.online.config import LearnerConfig, learner_params
+from saml_ros.core.online.config import LearnerConfig, learner_params, param_fields
 from saml_ros.core.params import Param
 from saml_ros.core.systems import SYSTEM_NAMES, get_entry
 from saml_ros.core.training import TrainConfig
@@ -40,7 +40,7 @@ def test_mpc_parameter_table_has_goal_and_task_parameters_from_the_registry() ->
 def test_mpc_config_defaults_and_controller_options() -> None:
     c = MPCConfig.from_params({"system": "quadrotor", "goal.position": [1.0, 2.0, 0.5], "rate_hz": 20})
     assert c.solver == "fast" and c.horizon == 10 and c.mode == "lockstep" and c.rate_hz == 20.0
-    assert math.isinf(c.gate_max_constraint) and c.gate_min_updates == 0
+    assert math.isinf(c.gate.max_constraint) and c.gate.min_updates == 0
     np.testing.assert_array_equal(c.goal, [1.0, 2.0, 0.5])
     assert c.controller_options() == {"min_height": 0.2, "qw_tol": 0.05, "tilt_max": math.inf, "horizon": 10}
     assert c.deadline_s(0.1) == 0.1
@@ -49,7 +49,7 @@ def test_mpc_config_defaults_and_controller_options() -> None:
     paddle = MPCConfig.from_params({"system": "paddle_ball", "horizon": 0, "solver_options": "{max_iter: 20}"})
     assert paddle.controller_options() == {"max_iter": 20}  # one-shot: no horizon
     assert paddle.deadline_s(0.0) == 0.1
-    assert MPCConfig.from_params({"system": "friction", "gate.max_constraint": 0.002}).gate_max_constraint == 0.002
+    assert MPCConfig.from_params({"system": "friction", "gate.max_constraint": 0.002}).gate.max_constraint == 0.002
     # executor auto: EventsExecutor in lockstep (simulation), SingleThreadedExecutor in realtime (beside a robot)
     assert MPCConfig.from_params({"system": "friction"}).executor == "events"
     assert MPCConfig.from_params({"system": "friction", "mode": "realtime"}).executor == "single"
@@ -137,15 +137,42 @@ def test_learner_parameter_table() -> None:
 
 def test_learner_config_defaults_namespaces_system_and_spec(tmp_path: Path) -> None:
     c = LearnerConfig.from_params({"system": "quadrotor", "dt": 0.05, "train.batch_size": 64}, "/quadrotor/")
-    assert c.namespaces == ["/quadrotor"] and c.min_transitions == 1000 and c.resume is True
+    assert c.namespaces == ["/quadrotor"] and c.min_transitions == 1000 and c.checkpoint.resume is True
     assert c.train_config().batch_size == 64
     system = c.make_system()
     assert system.name == "quadrotor" and system.dt == 0.05
     assert c.load_spec(system).to_dict()["name"] == system.paper_spec()["name"]
     two = LearnerConfig.from_params({"namespaces": ["a", " /b/ "], "model.hidden": [8.0, 4]})
-    assert two.namespaces == ["/a", "/b"] and two.model_hidden == [8, 4]
+    assert two.namespaces == ["/a", "/b"] and two.model.hidden == [8, 4]
     with pytest.raises(ValueError, match="parameter 'spec_file': no such file"):
         LearnerConfig.from_params({"spec_file": str(tmp_path / "none.yaml")}).load_spec(system)
+
+
+def test_learner_config_parts_hold_every_parameter_once_under_its_own_name() -> None:
+    """LearnerConfig is built from parts (model, buffer, pairing, checkpoint, telemetry, health, heldout, process);
+    every parameter but train.* lives in exactly one field, read from the parameter of the same name, and a
+    running node's change reaches that field (with_params)."""
+    declared = [p.name for p in learner_params() if not p.name.startswith("train.")]
+    where = param_fields()
+    assert sorted(where) == sorted(declared) and len(set(where.values())) == len(where)
+    assert where["checkpoint_period"] == ("checkpoint", "period") and where["health.max_weight"] == ("health",
+                                                                                                   "max_weight")
+    values = {"health.max_weight": 7.0, "pairing.window": 33, "telemetry_rate": 4.0, "train_threads": 3,
+              "checkpoint_keep": 2, "heldout.fraction": 0.3, "model.ensemble": 2, "buffer.policy": "reservoir",
+              "diagnostics_rate": 2.5, "train.batch_size": 32}
+    c = LearnerConfig.from_params(values)
+    for name, value in values.items():
+        if name.startswith("train."):
+            assert c.train[name[len("train."):]] == value
+            continue
+        part, field = where[name]
+        assert getattr(c if part is None else getattr(c, part), field) == value, name
+    assert c.health_config().max_weight == 7.0 and c.loop_config().telemetry_rate == 4.0
+    live = c.with_params({"checkpoint_period": 3.0, "telemetry_rate": 9.0, "updates_per_second": 50.0,
+                          "train.seed": 4})
+    assert (live.checkpoint.period, live.telemetry.rate, live.updates_per_second) == (3.0, 9.0, 50.0)
+    assert live.train["seed"] == 4 and live.train["batch_size"] == 32
+    assert live.checkpoint.keep == 2 and live.telemetry.diagnostics_rate == 2.5 and c.checkpoint.period == 10.0
 
 
 @pytest.mark.parametrize(("values", "message"), [

@@ -101,7 +101,7 @@ def test_learner_configuration_reports_every_bad_parameter_at_once() -> None:
     with pytest.raises(ParamErrors, match=r"parameter 'buffer.capacity' must be >= min_transitions \(1000\), got 10"):
         LearnerConfig.from_params({"buffer.capacity": 10})
     config, system, spec = LearnerConfig.validated({"system": "quadrotor", "checkpoint_period": 2})
-    assert config.checkpoint_period == 2.0 and system.name == "quadrotor" and spec.n_constraints >= 1
+    assert config.checkpoint.period == 2.0 and system.name == "quadrotor" and spec.n_constraints >= 1
     assert config.loop_config().checkpoint_period == 2.0
 
 

@@ -269,6 +269,7 @@ def test_a_slow_start_of_training_does_not_hold_the_chunks_at_one_update() -> No
     from multiprocessing import Pipe
 
     from saml_ros.core.online.loop import run_loop
+    from saml_ros.core.online.messages import Stop
 
     learner = new_learner()
     start, update = learner._start_training, learner.update
@@ -293,7 +294,7 @@ def test_a_slow_start_of_training_does_not_hold_the_chunks_at_one_update() -> No
     try:
         wait_until(lambda: len(sizes) >= 6, timeout=60)
     finally:
-        parent.send(("stop",))
+        parent.send(Stop())
         thread.join(30)
     assert sizes[0] == 1 and max(sizes[2:6]) > 1, sizes
 

@@ -21,6 +21,7 @@ import pytest
 from msg_schemas.telemetry import ERROR, OK, WARN
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online import LoopConfig, OnlineConfig, OnlineLearner, run_loop
+from saml_ros.core.online.messages import Checkpointed, ErrorReport, Status, Stop
 from saml_ros.core.online.recent_counts import RecentCounts
 from saml_ros.core.online.report import learner_diagnostics, level_counters, stopped_message
 from saml_ros.core.online.storage import MAX_BACKOFF_PERIODS, WriteBackoff, WriteFailure
@@ -218,9 +219,9 @@ def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_
     thread = threading.Thread(target=run_loop, args=(learner, loop, child, send), daemon=True)
     thread.start()
 
-    def of(kind: str, what: str | None = None, since: float = 0.0) -> list[tuple[float, Any]]:
+    def of(kind: type[Any], what: str | None = None, since: float = 0.0) -> list[tuple[float, Any]]:
         with lock:
-            return [(t, m) for t, m in got if m[0] == kind and t >= since and (what is None or m[1] == what)]
+            return [(t, m) for t, m in got if isinstance(m, kind) and t >= since and (what is None or m.what == what)]
 
     def wait(pred: Any, timeout: float = 60.0) -> None:
         deadline = time.monotonic() + timeout
@@ -229,27 +230,27 @@ def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_
             time.sleep(0.02)
 
     try:
-        wait(lambda: len(of("checkpoint")) >= 2)
+        wait(lambda: len(of(Checkpointed)) >= 2)
         disk.start()
         t0 = time.monotonic()
         updates0 = learner.updates
         wait(lambda: time.monotonic() - t0 >= 2.5)
-        errors = of("error", "checkpoint", t0)
-        statuses = [m for t, m in of("status", since=t0 + 0.3)]
+        errors = of(ErrorReport, "checkpoint", t0)
+        statuses = [m for t, m in of(Status, since=t0 + 0.3)]
         updates1 = learner.updates
         disk.end()
         t1 = time.monotonic()
-        wait(lambda: len(of("checkpoint", since=t1)) >= 1, timeout=30.0)
+        wait(lambda: len(of(Checkpointed, since=t1)) >= 1, timeout=30.0)
     finally:
-        parent.send(("stop",))
+        parent.send(Stop())
         thread.join(30)
     assert 1 <= len(errors) <= 2.5 / 0.25 + 1, [m for _, m in errors]
-    assert all("Not a directory" in m[2] and "stays the latest" in m[2] for _, m in errors)
-    assert statuses and all(m[1]["checkpoint_write_failures"] >= 1 for m in statuses)
-    assert all("Not a directory [errno 20]" in m[3]["checkpoint_write_error"] for m in statuses)
+    assert all("Not a directory" in m.message and "stays the latest" in m.message for _, m in errors)
+    assert statuses and all(m.status["checkpoint_write_failures"] >= 1 for m in statuses)
+    assert all("Not a directory [errno 20]" in m.notes["checkpoint_write_error"] for m in statuses)
     assert updates1 > updates0  # training went on
-    last = of("status")[-1][1]
-    assert last[1]["checkpoint_write_failures"] == 0 and last[3]["checkpoint_write_error"] == ""
+    last = of(Status)[-1][1]
+    assert last.status["checkpoint_write_failures"] == 0 and last.notes["checkpoint_write_error"] == ""
 
 
 # ------------------------------------------------------------------------------------------ a bag cut off

@@ -254,13 +254,13 @@ def probe_system(node_name: str, default: str = "friction", file_param: str | No
     a parameter file) and whether ``__ns`` is remapped, read by a short-lived probe node: a node's namespace
     (``/<system>`` unless remapped) must be known when it is created. With ``file_param`` (e.g. ``system_file``)
     set to a system file, the system is the ``name`` in that file (the node reports a bad file when it loads it).
-    ``ValueError`` naming ``system`` if rclpy refuses the value."""
+    :class:`~saml_ros.core.params.ParamErrors` naming ``system`` if rclpy refuses the value."""
     probe = Node(node_name)
     try:
         system = probe.declare_parameter("system", default).value
         path = probe.declare_parameter(file_param, "").value if file_param else ""
     except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad overrides
-        raise ValueError(f"parameter 'system': {exc}") from None
+        raise ParamErrors([f"parameter 'system': {exc}"]) from None
     finally:
         remapped = probe.get_namespace() != "/"
         probe.destroy_node()
