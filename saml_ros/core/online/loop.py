@@ -78,7 +78,7 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
 
     def report(metrics: bool = True) -> None:
         if metrics:
-            learner.compute_model_metrics()
+            learner.compute_model_metrics(paced=True)  # evaluations yield to the updates on a busy CPU
         if raw is not None:
             raw.check_orphans()
         send(("status", learner.status(), {p.name: dict(p.counts) for p in learner.sources},
