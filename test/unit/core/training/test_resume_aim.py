@@ -29,7 +29,7 @@ def _aimed_checkpoint(run: Path) -> tuple[Any, ProblemSpec, float, Path]:
     x, u, y = system.make_dataset(256, np.random.default_rng(0))
     model = DynamicsModel(system, seed=0)
     model.fit_normalization(x, u, y)
-    tr = PrimalDualTrainer(model, spec, TrainConfig(epochs=1, batch_size=64))
+    tr = PrimalDualTrainer(model, spec, TrainConfig(epochs=1, batch_size=64, engine="plain"))
     report = AimReport("auto", spec.constraint_names, [eps], [0.9 * eps], [0.001], [0.0005], 1.0)
     tr.spec = aimed_spec(spec, report.aim)
     tr.fit(Transitions(model, tr.spec, x, u, y), diagnose=False)
