@@ -9,7 +9,8 @@ stream replayed in real time, in batches of 0.1 s of stream time). One runs the 
 held-out evaluation and the model metrics yield to the updates, :data:`~saml_ros.core.online.learner.EVAL_SHARE`),
 the other evaluates every ``heldout.eval_period`` and every telemetry period whatever the updates cost (``wall
 clock``, the loop before). Both start together and share whatever CPU the machine leaves them, so the load is the
-same for both. Printed per loop: updates, updates in the last quarter of the stream, and the published model's
+same for both. Printed per loop: updates, updates in the last quarter of the stream, the CPU time it got and the
+share of it spent in updates, and the published model's
 in-region error on the held-out recording (other flights) at the stop, beside f_hat's. The numbers depend on the
 machine's load (printed).
 """
@@ -56,7 +57,9 @@ def _loop(mode: str, system_file: str, train: list[str], heldout: list[str], nic
         if msg[0] == "status":
             counts.append((time.monotonic(), int(msg[1].get("updates", 0))))
 
+    cpu0 = time.process_time()
     run_loop(learner, LoopConfig(), conn, send)
+    cpu = time.process_time() - cpu0
     held = extract_transitions(heldout, system)
     model = learner.published_model()
     xt, ut, yt = (torch.as_tensor(a) for a in (held.x, held.u, held.y))
@@ -64,7 +67,7 @@ def _loop(mode: str, system_file: str, train: list[str], heldout: list[str], nic
         pred = model(xt.to(model.in_mean.dtype), ut.to(model.in_mean.dtype)).double()[:1]
     err = spec.region_errors(xt, ut, yt, pred)
     base = spec.region_errors(xt, ut, yt, torch.as_tensor(system.base_step_np(held.x, held.u))[None])
-    out.put((mode, {"updates": learner.updates, "counts": counts,
+    out.put((mode, {"updates": learner.updates, "counts": counts, "cpu": cpu, "update_cpu": learner._update_cpu,
                     "in": {k: float(v["in"][0]) for k, v in err.items()},
                     "f_hat": {k: float(v["in"][0]) for k, v in base.items()}}))
 
@@ -120,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         last = [n for t, n in r["counts"] if t <= stopped - 0.25 * (stopped - t0)]
         late = r["updates"] - (last[-1] if last else 0)
         errs = ", ".join(f"'{k}' in-region {v:.5f} (f_hat {r['f_hat'][k]:.5f})" for k, v in r["in"].items())
-        print(f"  {mode:10s}: {r['updates']} updates, {late} in the last quarter of the stream; {errs}", flush=True)
+        print(f"  {mode:10s}: {r['updates']} updates, {late} in the last quarter of the stream; {r['cpu']:.1f} CPU s, "
+              f"{100 * r['update_cpu'] / max(r['cpu'], 1e-9):.0f} % of it in updates; {errs}", flush=True)
     print(f"bench_online_paced: load average {os.getloadavg()[0]:.1f}")
     return 0
 
