@@ -61,9 +61,10 @@ def _loop(mode: str, system_file: str, train: list[str], heldout: list[str], nic
             monotonic=time.monotonic, sleep=time.sleep, thread_time=time.monotonic)
     counts: list[tuple[float, int]] = []
 
-    def send(msg: tuple[Any, ...]) -> None:
-        if msg[0] == "status":
-            counts.append((time.monotonic(), int(msg[1].get("updates", 0))))
+    def send(msg: Any) -> None:  # tuples ("status", status, ...) or typed messages (Status(status, ...))
+        status = msg[1] if isinstance(msg, tuple) and msg[0] == "status" else getattr(msg, "status", None)
+        if isinstance(status, dict):
+            counts.append((time.monotonic(), int(status.get("updates", 0))))
 
     cpu0 = time.process_time()
     run_loop(learner, LoopConfig(), conn, send)
@@ -97,6 +98,18 @@ def main(argv: list[str] | None = None) -> int:
     order = np.argsort(tr.stamps, kind="stable")
     x, u, y, stamp = tr.x[order], tr.u[order], tr.y[order], tr.stamps[order] * 1e-9
     end = stamp[0] + (args.seconds or (stamp[-1] - stamp[0]))
+    try:  # the training loop's inbox messages: typed where they are, tuples before
+        from saml_ros.core.online import messages  # type: ignore[attr-defined,unused-ignore]
+
+        def batch(*fields: Any) -> Any:
+            return messages.Batch(*fields)
+
+        stop: Any = messages.Stop()
+    except ImportError:
+        def batch(*fields: Any) -> Any:
+            return ("batch", *fields)
+
+        stop = ("stop",)
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
     modes = ("paced", "wall clock", "as before")
@@ -117,12 +130,12 @@ def main(argv: list[str] | None = None) -> int:
         j = int(np.searchsorted(stamp, min(now, end), side="right"))
         if j > i:
             for c in pipes:
-                c.send(("batch", x[i:j], u[i:j], y[i:j], stamp[i:j], 0))
+                c.send(batch(x[i:j], u[i:j], y[i:j], stamp[i:j], np.zeros(j - i, dtype=np.int64)))
             i = j
         time.sleep(0.1)
     stopped = time.monotonic()
     for c in pipes:
-        c.send(("stop",))
+        c.send(stop)
     results = dict(out.get() for _ in modes)
     for p in procs:
         p.join(60)
