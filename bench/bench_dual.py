@@ -356,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write every number into this file")
     ap.add_argument("--fresh", type=int, default=200_000,
                     help="fresh transitions the reported verdicts are checked on (--quick: a quarter)")
-    ap.add_argument("--per-seed", nargs="*", default=["augmented (default)", "default, no margin"],
+    ap.add_argument("--per-seed", nargs="*", default=[f"{TrainConfig().dual_method} (default)", "default, no margin"],
                     help="recipes whose seeds are listed one by one (verdict, training, held-out +- se, fresh)")
     ap.add_argument("--budgets", metavar="PROBLEM=E1,E2,...",
                     help="instead of the recipe tables: the default recipe on PROBLEM at each epoch budget, the "

@@ -63,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="train.seed")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="an OnlineConfig field")
     ap.add_argument("--train-set", action="append", default=[], metavar="FIELD=VALUE", help="a TrainConfig field")
+    ap.add_argument("--settle", type=int, nargs="*", default=[], metavar="UPDATES",
+                    help="after the stream: keep training on the buffer (the robot parked) and evaluate again after "
+                         "each of these cumulative update counts, e.g. --settle 2000 10000")
     ap.add_argument("--json", type=Path, help="write the evaluations here")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -145,6 +148,25 @@ def main(argv: list[str] | None = None) -> int:
                       f"{learner.published}: '{name}' on the held-out flights in {e['in']:.5f} out {e['out']:.5f} "
                       f"(the trainer's weights {row['latest_on_flights'][name]['in']:.5f}); on the data trained on in "
                       f"{row['trained_on'][name]['in']:.5f}{own} [{time.perf_counter() - wall:.0f} s]", flush=True)
+    done = 0
+    for total in sorted(args.settle):  # the stream has paused: training goes on on the buffer
+        while done < total:
+            n = min(500, total - done)
+            learner.update(n)
+            done += n
+            now += 0.2
+            clock[0] = now
+            learner.compute_model_metrics()
+        learner.evaluate_heldout()
+        model = learner.published_model()
+        row = {"t": now - stamp[0], "transitions": i, "updates": learner.updates, "settled": done,
+               "published": learner.published, "flights": errors(model, held.x, held.u, held.y)}
+        rows.append(row)
+        for name, e in row["flights"].items():
+            print(f"  settled {done} updates ({done * config.train.batch_size / max(1, len(learner.buffer)):.0f} "
+                  f"passes over the buffer), {learner.updates} updates, published {learner.published}: '{name}' on "
+                  f"the held-out flights in {e['in']:.5f} out {e['out']:.5f} [{time.perf_counter() - wall:.0f} s]",
+                  flush=True)
     if args.json:
         args.json.write_text(json.dumps({"settings": {k: str(v) for k, v in vars(args).items()}, "evaluations": rows,
                                          "f_hat": {k: {w: float(v[w][0]) for w in ("in", "out", "n_in")}

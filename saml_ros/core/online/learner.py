@@ -63,6 +63,16 @@ RESIDUAL_BOUND_KEY = "residual_bound"
 #: spread of an input or of the residual grew beyond this factor times the fitted one, or the mean of an input moved
 #: by more than the fitted spread (statistics clipped to the 1st..99th percentiles; a spread never shrinks)
 RENORM_FACTOR = 2.0
+#: with ``paced`` (:meth:`OnlineLearner.compute_model_metrics`, what the training loop asks for) the held-out
+#: evaluation and the model metrics take at most this share of the training thread's CPU time: each is put off until
+#: the updates since its previous run used ``(1 - EVAL_SHARE) / EVAL_SHARE`` times its measured cost. On a busy CPU a
+#: niced training process gets little time, and evaluations paced by the wall clock alone ate most of it (measured
+#: on the diff-drive: one held-out evaluation costs about 280 updates, the 5 Hz model metrics 120 updates a second)
+EVAL_SHARE = 0.1
+#: ... but a paced evaluation is never put off longer than this (s of the learner's clock; the held-out one: this
+#: many ``heldout_period``), so the values follow new data while few or no updates run
+METRICS_MAX_DELAY = 2.0
+HELDOUT_MAX_PERIODS = 10.0
 
 
 @dataclass
@@ -210,6 +220,10 @@ class OnlineLearner:
         #: ``"latest"`` (the trainer's weights) or ``"average"`` (chosen on the held-out stretches)
         self.average: DynamicsModel | None = None
         self.published = "latest"
+        #: CPU time (s, the training thread's) spent in updates, and per paced evaluation its last cost, the update
+        #: CPU time then and when it ran (:data:`EVAL_SHARE`)
+        self._update_cpu = 0.0
+        self._paced: dict[str, tuple[float, float, float]] = {}
         if store is not None and resume:
             self._resume(store)
         self.compute_model_metrics()
@@ -296,8 +310,10 @@ class OnlineLearner:
                 self._budget_from = (self.updates, self.buffer.total_added)
             if self._updates is None or self._updates.trainer is not self.trainer:
                 self._updates = OnlineUpdates(self.trainer, HISTORY_ROWS, self.config.n_models)
+            cpu = time.thread_time()
             self._updates.run(n_steps, self.buffer, self._rng, self._averages)
             self._average_in(n_steps)
+            self._update_cpu += time.thread_time() - cpu
             return n_steps
 
     @torch.no_grad()
@@ -404,17 +420,46 @@ class OnlineLearner:
         return self.average if self.published == "average" and self.average is not None else self.model
 
     # ------------------------------------------------------------------------------------------ telemetry
-    def compute_model_metrics(self) -> dict[str, float]:
+    def _due(self, name: str, min_interval: float, max_delay: float) -> bool:
+        """Whether the paced evaluation ``name`` may run now (:data:`EVAL_SHARE`): ``min_interval`` s since its last
+        run and either enough update CPU time since then or ``max_delay`` s."""
+        last = self._paced.get(name)
+        if last is None:
+            return True
+        cost, cpu0, t0 = last
+        waited = self._clock() - t0
+        if waited < min_interval:
+            return False
+        return self._update_cpu - cpu0 >= cost * (1.0 - EVAL_SHARE) / EVAL_SHARE or waited >= max_delay
+
+    def _ran(self, name: str, cpu0: float) -> None:
+        self._paced[name] = (time.thread_time() - cpu0, self._update_cpu, self._clock())
+
+    def compute_model_metrics(self, paced: bool = False) -> dict[str, float]:
         """Evaluate the current model on the recent window and summarise training since the last call.
 
         Heavier than :meth:`telemetry` (one forward pass over the window): call it at the telemetry rate
         from the thread that trains. Returns (and caches for :meth:`telemetry`) the model part of the metrics
         (:func:`~saml_ros.core.online.telemetry.model_metrics`) and the feasibility diagnosis of the training
-        history (:func:`~saml_ros.core.online.telemetry.feasibility_metrics`).
+        history (:func:`~saml_ros.core.online.telemetry.feasibility_metrics`). The held-out evaluation
+        (:meth:`evaluate_heldout`) runs first when ``heldout_period`` has passed since the last.
+
+        ``paced`` (the training loop): while training, each of the two evaluations runs only when the updates since
+        its previous run used nine times its cost in CPU time (:data:`EVAL_SHARE`), or after
+        :data:`METRICS_MAX_DELAY` s (the held-out one: :data:`HELDOUT_MAX_PERIODS` periods); otherwise the cached
+        metrics are returned. So a training process that gets little CPU spends it on updates.
         """
+        training = paced and self.trainer is not None
+        if training and not self._due("metrics", 0.0, METRICS_MAX_DELAY):
+            return dict(self._metrics)
         window = self._recent.arrays()
-        if self.trainer is not None and self._clock() - self._heldout_at >= self.config.heldout_period:
+        period = self.config.heldout_period
+        if self.trainer is not None and self._clock() - self._heldout_at >= period and (
+                not training or self._due("heldout", period, HELDOUT_MAX_PERIODS * period)):
+            cpu = time.thread_time()
             self.evaluate_heldout()
+            self._ran("heldout", cpu)
+        cpu = time.thread_time()
         with self._lock:
             out = model_metrics(self.model, self.spec, window, self._averages.take(), self.lam, self.updates,
                                 self.model_version)
@@ -422,6 +467,8 @@ class OnlineLearner:
         if self.heldout_report is not None:
             out.update(self.heldout_report.metrics(0))
         self._metrics = out
+        if training:
+            self._ran("metrics", cpu)
         return dict(out)
 
     def status(self) -> dict[str, float]:

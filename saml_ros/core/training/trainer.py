@@ -56,6 +56,11 @@ class PrimalDualTrainer:
         kernel_used: True when the last :meth:`fit` ran its steps in the fused C++ kernel
             (:mod:`~saml_ros.core.training.engines.fused`; ``engine_used`` is then ``"fast"``).
         diagnosis: the feasibility diagnosis at the end of the last :meth:`fit` (None before).
+        aim: how the bounds trained at were chosen when they are not the problem's (``spec`` is then the aimed
+            problem and ``given_spec`` the problem as given, what checkpoints record): the ``meta["aim"]`` record
+            of :class:`~saml_ros.core.training.verdict.AimReport` (:func:`~saml_ros.core.training.trainer_io.
+            resume_trainer` re-applies a checkpoint's); None: training aims at eps.
+        given_spec: the problem as given while ``spec`` is an aimed one; None otherwise.
     """
 
     def __init__(self, model: DynamicsModel, spec: ProblemSpec, config: TrainConfig | None = None,
@@ -81,6 +86,8 @@ class PrimalDualTrainer:
         self.engine_used: str | None = None
         self.kernel_used = False
         self.diagnosis: FeasibilityDiagnosis | None = None
+        self.aim: dict[str, Any] | None = None
+        self.given_spec: ProblemSpec | None = None
 
     @property
     def lam(self) -> torch.Tensor:

@@ -18,6 +18,7 @@ from saml_ros.core.model.io import LoadedModel, UnhealthyModel, jsonable, model_
 from saml_ros.core.training.config import TrainConfig
 from saml_ros.core.training.schedule import schedules_for
 from saml_ros.core.training.trainer import PrimalDualTrainer
+from saml_ros.core.training.verdict import aimed_spec, recorded_aim
 
 log = logging.getLogger("saml_ros.trainer")
 
@@ -46,7 +47,8 @@ def checkpoint_payload(
                              "not written")
     dual = trainer.dual.state_dict()
     arrays: dict[str, np.ndarray] = {"lam": dual["lam"].double().numpy().copy()}
-    model_arrays, meta, model_skeleton = model_payload(trainer.model, trainer.spec)
+    spec = trainer.given_spec or trainer.spec  # the problem as given, never the bounds trained at
+    model_arrays, meta, model_skeleton = model_payload(trainer.model, spec)
     arrays.update(model_arrays)
     skeletons = {"model": model_skeleton}
     for prefix, state in (("primal_opt", trainer.primal_opt.state_dict()), ("dual_opt", dual["optimizer"])):
@@ -57,7 +59,7 @@ def checkpoint_payload(
         "train_config": dict(trainer.config.__dict__),
         "dual_methods": DUAL_METHODS_VERSION,
         "lambda": trainer.lam.double().tolist(),
-        "constraint_names": trainer.spec.constraint_names,
+        "constraint_names": spec.constraint_names,
         "updates": trainer.steps,
         "epochs": trainer.epochs_done,
         # the learning-rate schedules' horizon T in updates (fit() sets it from the data; 0: none)
@@ -66,6 +68,8 @@ def checkpoint_payload(
         "skeletons": skeletons,
         "health": jsonable(health),
     })
+    if trainer.aim is not None:  # the aim it trains at (a resumed one: its checkpoint's, resume_trainer)
+        meta["aim"] = jsonable(trainer.aim)
     if evidence is not None:
         ev_arrays, ev_meta = evidence.to_payload(trainer.model.system.target.names)
         arrays.update(ev_arrays)
@@ -120,8 +124,14 @@ def _lagrangian_moments(state: dict[str, Any], rho: np.ndarray) -> dict[str, Any
 
 def resume_trainer(loaded: LoadedModel, config: TrainConfig | None = None) -> PrimalDualTrainer:
     """A trainer of ``loaded``'s model and spec that resumes exactly where the checkpoint left off (weights, lambda,
-    optimizer states, update and epoch counts, and, without ``config``, the learning-rate schedules' horizon);
-    ``config`` defaults to the checkpoint's training config.
+    optimizer states, update and epoch counts, the bounds training aimed at, and, without ``config``, the
+    learning-rate schedules' horizon); ``config`` defaults to the checkpoint's training config.
+
+    A checkpoint whose training aimed below eps (``meta["aim"]``, written by ``train``: the margin sized by the
+    held-out uncertainty, :mod:`~saml_ros.core.training.verdict`) resumes aiming there: the trainer's ``spec`` is
+    the aimed problem, ``given_spec`` ``loaded.spec`` (what its checkpoints record) and ``aim`` the record
+    (:func:`~saml_ros.core.training.verdict.recorded_aim`: only when ``loaded.spec`` has the record's constraints
+    and eps; else it trains at eps, logged).
 
     With a ``config`` of another dual method or dual optimizer than the checkpoint's, lambda is kept and the dual
     optimizer starts afresh (its state belongs to the other method; logged)."""
@@ -154,4 +164,25 @@ def resume_trainer(loaded: LoadedModel, config: TrainConfig | None = None) -> Pr
     horizon = int(loaded.meta.get("schedule_horizon", 0))
     if horizon > 0 and config is None:  # the same schedules as the run that wrote it
         tr.schedules = schedules_for(cfg, horizon)
+    _reapply_aim(tr, loaded)
     return tr
+
+
+def _reapply_aim(tr: PrimalDualTrainer, loaded: LoadedModel) -> None:
+    """Train at the bounds ``loaded``'s training aimed at (its ``meta["aim"]``), when they belong to its spec."""
+    record = loaded.meta.get("aim")
+    if not isinstance(record, dict) or record.get("margin", "none") == "none":
+        return
+    bounds = recorded_aim(record, loaded.spec)
+    if bounds is None:
+        log.warning("resume: the checkpoint's training aimed below eps (%s), but not for this spec's constraints "
+                    "and bounds %s: training aims at eps", record.get("constraints"),
+                    {t.name: t.eps for t in loaded.spec.constraints})
+        return
+    if all(b == t.eps for b, t in zip(bounds, loaded.spec.constraints)):
+        return  # aimed at eps (nothing measured to size a margin by)
+    tr.given_spec, tr.aim = loaded.spec, record
+    tr.spec = aimed_spec(loaded.spec, bounds)
+    log.info("resume: training aims at %s (the checkpoint's aim, eps %s)",
+             {t.name: round(b, 6) for t, b in zip(loaded.spec.constraints, bounds)},
+             {t.name: t.eps for t in loaded.spec.constraints})

@@ -123,6 +123,29 @@ def aim_bounds(eps: Sequence[float], train_se: Sequence[float], heldout_se: Sequ
     return out
 
 
+def recorded_aim(record: Any, spec: ProblemSpec) -> list[float] | None:
+    """The bounds a checkpoint's aim record (``meta["aim"]``, :meth:`AimReport.to_dict`) says training aimed at,
+    per constraint of ``spec`` (eps itself where no margin was applied); None when there is no such record or it
+    does not belong to ``spec`` (other constraint names, or an ``eps`` other than the record's: the margin was
+    sized for that bound). Raises nothing: a malformed record is none."""
+    if not isinstance(record, dict) or not isinstance(record.get("constraints"), dict) or not spec.constraints:
+        return None
+    cons = record["constraints"]
+    out = []
+    for t in spec.constraints:
+        c = cons.get(t.name)
+        if not isinstance(c, dict):
+            return None
+        try:
+            eps, bound = float(c["eps"]), float(c["aim"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if not (math.isfinite(bound) and 0.0 < bound <= t.eps) or not math.isclose(eps, t.eps, rel_tol=1e-9):
+            return None
+        out.append(bound)
+    return out
+
+
 @dataclass
 class AimReport:
     """How the aim was chosen: per constraint its ``eps``, the ``aim`` trained at, the standard errors it was sized
