@@ -1,0 +1,57 @@
+"""The quadrotor's f_hat as an array-namespace form (:mod:`saml_ros.core.dynamics.base_forms`), for the generic
+planner: the same explicit Euler step as :meth:`saml_ros.core.systems.quadrotor.Quadrotor.euler_step` (torch),
+written once for numpy, torch and CasADi, so the generic SQP differentiates it symbolically (CasADi) instead of by
+torch autograd. Equal to the torch f_hat to rounding (``test/unit/core/mpc/test_quadrotor_form.py``).
+
+State ``[px, py, pz, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz]``, control the four motor forces (N); see the system's
+module docstring for the frame and the torques.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from saml_ros.core.mpc.generic.dynamics import SymbolicBase
+
+
+def quadrotor_f_hat(x: Any, u: Any, *, dt: float, xp: Any, mass: float, inertia: tuple[float, float, float],
+                    g: float) -> Any:
+    """One Euler step of the rigid body under the motor forces ``u (B, 4)`` from ``x (B, 13)``; ``-> (B, 13)``
+    (the quaternion renormalised before and after, as the torch f_hat does)."""
+    px, py, pz, vx, vy, vz = (x[:, i] for i in range(6))
+    qn = xp.clip(xp.sqrt(x[:, 6] ** 2 + x[:, 7] ** 2 + x[:, 8] ** 2 + x[:, 9] ** 2), 1e-12, 1e300)
+    qw, qx, qy, qz = x[:, 6] / qn, x[:, 7] / qn, x[:, 8] / qn, x[:, 9] / qn
+    wx, wy, wz = x[:, 10], x[:, 11], x[:, 12]
+    f1, f2, f3, f4 = u[:, 0], u[:, 1], u[:, 2], u[:, 3]
+    a = (f1 + f2 + f3 + f4) / mass  # body z acceleration
+    # R(q) [0, 0, a]: the third column of the rotation matrix times a
+    ax = 2.0 * (qx * qz + qw * qy) * a
+    ay = 2.0 * (qy * qz - qw * qx) * a
+    az = (1.0 - 2.0 * (qx * qx + qy * qy)) * a - g
+    ix, iy, iz = inertia
+    tx, ty, tz = f4 - f2, f3 - f1, (f1 + f3) - (f2 + f4)
+    # omega x (I omega)
+    cx = wy * (iz * wz) - wz * (iy * wy)
+    cy = wz * (ix * wx) - wx * (iz * wz)
+    cz = wx * (iy * wy) - wy * (ix * wx)
+    # q_dot = 1/2 q (x) [0, omega]
+    dw = 0.5 * (-qx * wx - qy * wy - qz * wz)
+    dx = 0.5 * (qw * wx + qy * wz - qz * wy)
+    dy = 0.5 * (qw * wy - qx * wz + qz * wx)
+    dz = 0.5 * (qw * wz + qx * wy - qy * wx)
+    nw, nx, ny, nz = qw + dt * dw, qx + dt * dx, qy + dt * dy, qz + dt * dz
+    nn = xp.clip(xp.sqrt(nw * nw + nx * nx + ny * ny + nz * nz), 1e-12, 1e300)
+    return xp.stack([px + dt * vx, py + dt * vy, pz + dt * vz, vx + dt * ax, vy + dt * ay, vz + dt * az,
+                     nw / nn, nx / nn, ny / nn, nz / nn,
+                     wx + dt * (tx - cx) / ix, wy + dt * (ty - cy) / iy, wz + dt * (tz - cz) / iz])
+
+
+def quadrotor_params(system: Any) -> dict[str, Any]:
+    """The form's parameters of a :class:`~saml_ros.core.systems.quadrotor.Quadrotor` instance."""
+    return {"mass": float(system.mass), "inertia": tuple(float(v) for v in system.inertia), "g": float(system.g)}
+
+
+def quadrotor_base(system: Any) -> SymbolicBase:
+    """f_hat of the quadrotor for :class:`~saml_ros.core.mpc.generic.GenericSQP` (numpy values, CasADi
+    Jacobians): assign it to the planner's ``_base`` and rebuild its ``dyn``, as the evaluation's oracle does."""
+    return SymbolicBase(quadrotor_f_hat, quadrotor_params(system), 13, 4, system.dt, "quadrotor Euler step (xp form)")
