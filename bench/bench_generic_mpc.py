@@ -21,6 +21,15 @@ ensemble of 32-32 residual networks trained here on transitions of the robot's o
    there (the previous plan) by the SQP with f_hat's CasADi form, the SQP with torch autograd for f_hat, and the
    IPOPT path (the whole NLP in CasADi): CPU time per solve and the plans' mean cost ratio.
 
+4. **quadrotor parity**: the quadrotor demo's landing task (horizon 10, unsquared distance cost, height and tilt
+   bounds, final attitude bound) planned with f_hat by the hand-written SQP with its C kernel and by the generic
+   SQP (the task as a generic ``MPCTask``: ``cost.norm``, the attitude bound ``at: terminal``; f_hat's
+   array-namespace form, :mod:`saml_ros.core.mpc.generic.quadrotor_form`), each flying the true dynamics (ground
+   effect) from the same three starts for 50 steps: CPU time per solve and the landing error (distance from
+   (0, 0, min_height) at the end), their ratios (goal: within 2x); then identical problems (states the hand-written
+   loop visited, each from the warm start it had there) solved by both to a tight tolerance: the largest plan
+   difference (N; goal 1e-3) and the cost ratio.
+
 CPU time (``time.process_time``) is reported beside wall time: on a shared machine wall time also counts the other
 processes' turns. The load average is printed.
 """
@@ -269,21 +278,93 @@ def identical(system: Any, model: Any, visited: list[Visit], n: int) -> None:
         print(f"  {name:22s} {1e3 * np.mean(cpu):8.2f} {1 / np.mean(cpu):9.0f} {np.mean(np.array(cost) / ref):18.4f}")
 
 
+def quadrotor_parity(quick: bool) -> None:
+    from saml_ros.core.mpc.factory import make_controller
+    from saml_ros.core.mpc.generic import GenericSQP
+    from saml_ros.core.mpc.generic.quadrotor_form import quadrotor_base, quadrotor_generic_task
+    from saml_ros.core.systems.quadrotor import Quadrotor
+
+    system = Quadrotor()
+    task = quadrotor_generic_task(system)
+    hand = make_controller(system, None, "fast", horizon=10, tilt_max=0.2)
+    gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=20)
+    starts = [system.hover_state(p) for p in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
+    steps = 20 if quick else 50
+    goal = np.array([0.0, 0.0, 0.2])
+    rows: dict[str, dict[str, list[float]]] = {k: {"cpu": [], "err": [], "its": []} for k in ("hand-written", "generic")}
+    visited: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for x0 in starts:
+        for name, ctrl in (("hand-written", hand), ("generic", gen)):
+            ctrl.reset()
+            x = x0.copy()
+            for _ in range(steps):
+                warm = ctrl.warm_start_plan() if ctrl is hand else None
+                c0 = time.process_time()
+                res = ctrl.solve(x, np.zeros(3))
+                rows[name]["cpu"].append(time.process_time() - c0)
+                rows[name]["its"].append(res.iterations)
+                if warm is not None:
+                    visited.append((x.copy(), *warm))
+                x = system.true_step(torch.from_numpy(x[None]), torch.from_numpy(res.u[None]))[0].numpy()
+            rows[name]["err"].append(float(np.linalg.norm(x[:3] - goal)))
+    print(f"\n4. quadrotor parity: the demo's landing task (T = 10, tilt 0.2), f_hat, true plant; {len(starts)} starts x "
+          f"{steps} steps, one core")
+    print(f"  {'planner':14s} {'cpu ms':>7s} {'iters':>6s} {'landing error m (per start)':>30s}")
+    for name, r in rows.items():
+        print(f"  {name:14s} {1e3 * np.mean(r['cpu']):7.2f} {np.mean(r['its']):6.1f}   "
+              f"{np.mean(r['err']):.4f} ({', '.join(f'{e:.4f}' for e in r['err'])})")
+    t_ratio = np.mean(rows["generic"]["cpu"]) / np.mean(rows["hand-written"]["cpu"])
+    e_ratio = np.mean(rows["generic"]["err"]) / np.mean(rows["hand-written"]["err"])
+    print(f"  ratios generic / hand-written: solve time {t_ratio:.2f}x, landing error {e_ratio:.2f}x "
+          f"(goal: both within 2x: {'yes' if t_ratio <= 2 and e_ratio <= 2 else 'NO'})")
+    tight_hand = make_controller(system, None, "fast", horizon=10, tilt_max=0.2, tol=1e-10, max_iter=200)
+    tight_gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=200, tol=1e-10)
+    rng = np.random.default_rng(4)
+    picks = [visited[i] for i in rng.choice(len(visited), size=min(10 if quick else 30, len(visited)), replace=False)]
+    diffs, first, pos, costs = [], [], [], []
+    for x, wu, wx in picks:
+        plans = []
+        for ctrl in (tight_hand, tight_gen):
+            ctrl.reset()
+            ctrl.set_warm_start(wu, wx)
+            plans.append(ctrl.solve(x, np.zeros(3)))
+        diffs.append(float(np.abs(plans[0].plan_u - plans[1].plan_u).max()))
+        first.append(float(np.abs(plans[0].u - plans[1].u).max()))
+        pos.append(float(np.abs(plans[0].plan_x[:, :3] - plans[1].plan_x[:, :3]).max()))
+        pb = tight_gen.problem
+        ref = pb.reference(x, np.zeros(3))
+        c = [pb.cost(tight_gen.dyn.rollout(x, r.plan_u), r.plan_u, ref, None, exact=True) for r in plans]
+        costs.append(c[1] / c[0])
+    print(f"  identical problems ({len(picks)} visited states, tol 1e-10): exact cost generic / hand-written mean "
+          f"{np.mean(costs):.5f} (min {np.min(costs):.5f}, max {np.max(costs):.5f})")
+    for label, d, unit in (("whole plan U", diffs, "N"), ("first control u_0 (flown)", first, "N"),
+                           ("predicted positions", pos, "m")):
+        a = np.array(d)
+        print(f"    largest difference, {label:26s}: median {np.median(a):.2e} {unit}, max {a.max():.2e} {unit} "
+              f"({int((a <= 1e-3).sum())} of {len(a)} within 1e-3)")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench_generic_mpc", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="fewer starts, steps and training epochs")
+    p.add_argument("--only", choices=("quadrotor",), help="run one part alone")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     from saml_ros.user_code import load_system_file
 
     t_all = time.perf_counter()
     print(f"load average {os.getloadavg()[0]:.1f} (2 cores)")
+    if args.only == "quadrotor":
+        quadrotor_parity(args.quick)
+        print(f"\nload average {os.getloadavg()[0]:.1f}; total {time.perf_counter() - t_all:.0f} s")
+        return 0
     system = load_system_file(EXAMPLE / "system.yaml")
     model, secs, bound = train(system, 8000 if args.quick else 30000, 5 if args.quick else 100)
     print(f"trained a 5-member 32-32 residual ensemble for {secs:.0f} s")
     derivatives(system, model, args.quick)
     visited = closed_loops(system, model, bound, 2 if args.quick else 6, 150 if args.quick else 750)
     identical(system, model, visited, 10 if args.quick else 40)
+    quadrotor_parity(args.quick)
     print(f"\nload average {os.getloadavg()[0]:.1f}; total {time.perf_counter() - t_all:.0f} s")
     return 0
 

@@ -55,3 +55,35 @@ def quadrotor_base(system: Any) -> SymbolicBase:
     """f_hat of the quadrotor for :class:`~saml_ros.core.mpc.generic.GenericSQP` (numpy values, CasADi
     Jacobians): assign it to the planner's ``_base`` and rebuild its ``dyn``, as the evaluation's oracle does."""
     return SymbolicBase(quadrotor_f_hat, quadrotor_params(system), 13, 4, system.dt, "quadrotor Euler step (xp form)")
+
+
+def quadrotor_generic_task(system: Any, horizon: int = 10, min_height: float = 0.2, qw_tol: float = 0.05,
+                           tilt_max: float = 0.2) -> Any:
+    """The quadrotor demo's landing task (:func:`saml_ros.core.mpc.shooting.tasks.quadrotor_task`) as a generic
+    :class:`~saml_ros.core.mpc.generic.section.MPCTask`: the unsquared distance of ``(px, py, pz)`` from the goal at
+    every step (``norm_cost``, smoothed by 1e-3 as the hand-written SQP's ``eps``), ``pz >= min_height`` and
+    ``|qx|, |qy| <= tilt_max`` at every step, and the final attitude bound ``|qw_T - 1| <= qw_tol`` in the form the
+    hand-written planner linearises, ``||(qx, qy, qz)_T|| <= sqrt(1 - (1 - qw_tol)^2)`` (``at: terminal``); motor
+    forces in ``[0, f_max]``, hover thrust as the safe command. The penalty of a violation is fixed (1000; the
+    hand-written planner starts at 10 and raises it while a movable violation remains)."""
+    import math
+
+    import numpy as np
+
+    from saml_ros.core.mpc.generic.section import MPCTask, StateConstraint
+
+    names = tuple(system.state.names)
+    ix = tuple(names.index(n) for n in ("px", "py", "pz"))
+    cons = [StateConstraint("height", "box", (names.index("pz"),), low=(float(min_height),), high=(math.inf,))]
+    if math.isfinite(tilt_max):
+        cons.append(StateConstraint("tilt", "box", (names.index("qx"), names.index("qy")),
+                                    low=(-tilt_max, -tilt_max), high=(tilt_max, tilt_max)))
+    cons.append(StateConstraint("attitude", "norm", tuple(names.index(n) for n in ("qx", "qy", "qz")),
+                                max=math.sqrt(1.0 - (1.0 - qw_tol) ** 2), terminal=True))
+    return MPCTask(horizon=int(horizon), rate=0.0, state_timeout=0.0, goal_idx=ix, goal_default=np.zeros(3),
+                   goal_low=np.full(3, -1e3), goal_high=np.full(3, 1e3), goal_angle=(False, False, False),
+                   w_stage=np.ones(3), w_terminal=np.ones(3), w_effort=np.zeros(4), w_rate=np.zeros(4),
+                   u_low=np.asarray(system.control_low, dtype=np.float64),
+                   u_high=np.asarray(system.control_high, dtype=np.float64),
+                   u_safe=np.asarray(system.hover_thrust(), dtype=np.float64), constraints=tuple(cons),
+                   state_names=names, control_names=tuple(system.control.names), norm_cost=True, norm_eps=1e-3)
