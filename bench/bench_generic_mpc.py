@@ -286,7 +286,7 @@ def quadrotor_parity(quick: bool) -> None:
 
     system = Quadrotor()
     task = quadrotor_generic_task(system)
-    hand = make_controller(system, None, "fast", horizon=10, tilt_max=0.2)
+    hand: Any = make_controller(system, None, "fast", horizon=10, tilt_max=0.2)
     gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=20)
     starts = [system.hover_state(p) for p in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
     steps = 20 if quick else 50
@@ -317,7 +317,7 @@ def quadrotor_parity(quick: bool) -> None:
     e_ratio = np.mean(rows["generic"]["err"]) / np.mean(rows["hand-written"]["err"])
     print(f"  ratios generic / hand-written: solve time {t_ratio:.2f}x, landing error {e_ratio:.2f}x "
           f"(goal: both within 2x: {'yes' if t_ratio <= 2 and e_ratio <= 2 else 'NO'})")
-    tight_hand = make_controller(system, None, "fast", horizon=10, tilt_max=0.2, tol=1e-10, max_iter=200)
+    tight_hand: Any = make_controller(system, None, "fast", horizon=10, tilt_max=0.2, tol=1e-10, max_iter=200)
     tight_gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=200, tol=1e-10)
     rng = np.random.default_rng(4)
     picks = [visited[i] for i in rng.choice(len(visited), size=min(10 if quick else 30, len(visited)), replace=False)]

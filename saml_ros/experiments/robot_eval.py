@@ -323,10 +323,11 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
             continue
         from saml_ros.core.mpc.guard import GuardedController
 
-        ctrl = GuardedController(GenericSQP(system, None, member=member, **planner_options),
-                                 GenericSQP(system, None, member=member, **planner_options), guard)
-        ctrl.set_model(model, 1, {})
-        controllers[label] = guarded[label] = ctrl
+        learned: Any = GenericSQP(system, None, member=member, **planner_options)  # the guard's planner protocol
+        fallback: Any = GenericSQP(system, None, member=member, **planner_options)
+        wrapped = GuardedController(learned, fallback, guard)
+        wrapped.set_model(model, 1, {})
+        controllers[label] = guarded[label] = wrapped
     angles = np.asarray(getattr(system, "angle_indices", ()), dtype=int)
     starts = np.asarray(starts, dtype=np.float64)
     errors = {k: np.zeros(len(starts)) for k in controllers}
