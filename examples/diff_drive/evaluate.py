@@ -157,6 +157,18 @@ def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, 
         e = pred - ys
         lines.append(f"  {label:8s} mean |error| {np.round(1e3 * np.abs(e).mean(0), 4).tolist()}  "
                      f"mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
+    # the planner's model rounds only the network's Jacobians (solver_options.smoothing); rounding its values too
+    # (what the planner did before) shifts every unit: the bias that costs at the dock
+    from saml_ros.core.mpc.mlp_np import NumpyMLP
+
+    mlp = NumpyMLP(model, 0)  # type: ignore[arg-type]
+    eps2 = 0.2 ** 2
+    h = xs @ mlp.w_x + us @ mlp.w_u + mlp.biases[0]
+    for i in range(1, len(mlp.weights)):
+        a = mlp.slopes[i - 1]
+        h = (0.5 * (1 + a) * h + 0.5 * (1 - a) * np.sqrt(h * h + eps2)) @ mlp.weights[i] + mlp.biases[i]
+    e = base + h - ys
+    lines.append(f"  learned, values rounded by 0.2 too: mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
     x, u, _ = data
     near = (np.abs(x[:, 0] - 1.5) < 0.1) & (np.abs(x[:, 1]) < 0.1) & (np.abs(x[:, 3]) < 0.05)
     lines.append(f"training transitions within 0.1 m of the dock at rest (|v| < 0.05 m/s): {int(near.sum())} of "
