@@ -133,10 +133,10 @@ class SmoothMLP:
     pre-activations, which the folded input normalisation makes order 1): ``act'(h) = 0.5 (1 + a) + 0.5 (1 - a) h /
     sqrt(h^2 + eps^2)``. Smooth Jacobians let the Gauss-Newton SQP converge where the exact kinks make it zig-zag.
 
-    Rounding the values too (``act(h) = 0.5 (1 + a) h + 0.5 (1 - a) sqrt(h^2 + eps^2)``, what this class did before)
-    shifts every unit up by as much as ``0.5 (1 - a) eps``: on the diff-drive's dock with ``eps = 0.2`` a bias of
-    -5.6e-4 rad per step in yaw and 3.3e-3 m/s in v (the trained network's own: 1.2e-5 and -5.3e-4,
-    ``examples/diff_drive/evaluate.py --diagnose``), which held the robot turning beside its dock. Same interface."""
+    Rounding the values too (``act(h) = 0.5 (1 + a) h + 0.5 (1 - a) sqrt(h^2 + eps^2)``, what this planner did before)
+    shifts every unit up by as much as ``0.5 (1 - a) eps``: at the diff-drive's dock with ``eps = 0.2`` it moved the
+    model's one-step bias in v from 1.3 to 5.3 mm/s and in yaw from -0.12 to +0.30 mrad per step
+    (``examples/diff_drive/evaluate.py --diagnose --rounds 1``). Same interface."""
 
     def __init__(self, mlp: NumpyMLP, eps: float) -> None:
         self.mlp, self.eps2 = mlp, float(eps) ** 2
