@@ -348,6 +348,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench_generic_mpc", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="fewer starts, steps and training epochs")
     p.add_argument("--only", choices=("quadrotor",), help="run one part alone")
+    p.add_argument("--starts", type=int, help="closed-loop starts of part 2 (default 6, --quick 2)")
+    p.add_argument("--steps", type=int, help="steps per start in part 2 (default 750, --quick 150)")
+    p.add_argument("--problems", type=int, help="identical problems of part 3 (default 40, --quick 10; 0 skips it)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     from saml_ros.user_code import load_system_file
@@ -362,8 +365,11 @@ def main(argv: list[str] | None = None) -> int:
     model, secs, bound = train(system, 8000 if args.quick else 30000, 5 if args.quick else 100)
     print(f"trained a 5-member 32-32 residual ensemble for {secs:.0f} s")
     derivatives(system, model, args.quick)
-    visited = closed_loops(system, model, bound, 2 if args.quick else 6, 150 if args.quick else 750)
-    identical(system, model, visited, 10 if args.quick else 40)
+    visited = closed_loops(system, model, bound, args.starts or (2 if args.quick else 6),
+                           args.steps or (150 if args.quick else 750))
+    problems = (10 if args.quick else 40) if args.problems is None else args.problems
+    if problems:
+        identical(system, model, visited, problems)
     quadrotor_parity(args.quick)
     print(f"\nload average {os.getloadavg()[0]:.1f}; total {time.perf_counter() - t_all:.0f} s")
     return 0
