@@ -11,14 +11,24 @@ ensemble of 32-32 residual networks trained here on transitions of the robot's o
    own reverse pass (numpy) against CasADi (the network written symbolically, weights a parameter) and torch
    autograd; and of a rollout on floats against numpy arrays;
 2. **closed loop** on the robot's simulator from the same starts: the guarded planner (ensemble disagreement, bounded
-   residual, live monitor with roll back; each step's time includes the guard's checks and the monitor's scoring),
-   the same with the network's PReLU kinks rounded by 0.5 in the planner (option ``smoothing``), the same ensemble
-   unguarded, and f_hat alone: mean / p95 CPU time per step and SQP iterations, the rate by CPU
-   time (the target: 100 Hz or more with the guard on), the guard's counters, and the distance to the dock at the
-   end (15 s);
+   residual, live monitor with roll back; each step's time includes the guard's checks and the monitor's scoring)
+   with the file's solver options (up to 15 SQP iterations per step), with 2, and as a real-time iteration (one
+   SQP step per control step from the shifted previous plan: ``solver_options: {max_iter: 1}``); the planner
+   unguarded (full and RTI), and f_hat alone: mean / p95 CPU time per step and SQP iterations, the rate by CPU
+   time (the target: 100 Hz or more with the guard on), the guard's counters (the share of steps the learned model
+   planned), and the distance to the dock at the end (15 s);
 3. **identical problems**: states the unguarded ensemble planner visited, each solved from the warm start it had
    there (the previous plan) by the SQP with f_hat's CasADi form, the SQP with torch autograd for f_hat, and the
    IPOPT path (the whole NLP in CasADi): CPU time per solve and the plans' mean cost ratio.
+
+4. **quadrotor parity**: the quadrotor demo's landing task (horizon 10, unsquared distance cost, height and tilt
+   bounds, final attitude bound) planned with f_hat by the hand-written SQP with its C kernel and by the generic
+   SQP (the task as a generic ``MPCTask``: ``cost.norm``, the attitude bound ``at: terminal``; f_hat's
+   array-namespace form, :mod:`saml_ros.core.mpc.generic.quadrotor_form`), each flying the true dynamics (ground
+   effect) from the same three starts for 50 steps: CPU time per solve and the landing error (distance from
+   (0, 0, min_height) at the end), their ratios (goal: within 2x); then identical problems (states the hand-written
+   loop visited, each from the warm start it had there) solved by both to a tight tolerance: the largest plan
+   difference (N; goal 1e-3) and the cost ratio.
 
 CPU time (``time.process_time``) is reported beside wall time: on a shared machine wall time also counts the other
 processes' turns. The load average is printed.
@@ -184,23 +194,22 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
     from saml_ros.core.mpc.monitor import MonitorConfig
 
     dyn = _robot()
-    guarded = make_guarded_controller(system, "fast", GuardConfig(max_disagreement=0.02, bound_residual=True,
-                                                                  rollback=True, monitor=MonitorConfig()),
-                                      horizon=20)
-    guarded.set_model(model, 1, {"learner": {RESIDUAL_BOUND_KEY: bound.tolist()}})
+    cfg = GuardConfig(max_disagreement=0.02, bound_residual=True, rollback=True, monitor=MonitorConfig())
+    meta = {"learner": {RESIDUAL_BOUND_KEY: bound.tolist()}}
+    guarded_runs: dict[str, Any] = {}
+    for name, opts in (("guarded", {}), ("guarded, 2 SQP steps", {"max_iter": 2}),
+                       ("guarded, RTI (1 step)", {"max_iter": 1})):
+        guarded_runs[name] = make_guarded_controller(system, "fast", cfg, horizon=20, **opts)
+        guarded_runs[name].set_model(model, 1, meta)
     plain, base = GenericSQP(system, model), GenericSQP(system)
-    rounded = make_guarded_controller(system, "fast", GuardConfig(max_disagreement=0.02, bound_residual=True,
-                                                                  rollback=True, monitor=MonitorConfig()),
-                                      horizon=20, smoothing=0.5)
-    rounded.set_model(model, 1, {"learner": {RESIDUAL_BOUND_KEY: bound.tolist()}})
-    runs: dict[str, dict[str, list[float]]] = {n: {"cpu": [], "wall": [], "err": [], "its": []}
-                                              for n in ("guarded", "guarded, kinks 0.5", "ensemble, unguarded",
-                                                        "f_hat alone")}
+    rti = GenericSQP(system, model, max_iter=1)
+    planners: list[tuple[str, Any]] = [*guarded_runs.items(), ("ensemble, unguarded", plain),
+                                       ("unguarded, RTI (1 step)", rti), ("f_hat alone", base)]
+    runs: dict[str, dict[str, list[float]]] = {n: {"cpu": [], "wall": [], "err": [], "its": []} for n, _ in planners}
     visited: list[Visit] = []
     for x0 in starts(k, 7):
         ctrl: Any
-        for name, ctrl in (("guarded", guarded), ("guarded, kinks 0.5", rounded), ("ensemble, unguarded", plain),
-                           ("f_hat alone", base)):
+        for name, ctrl in planners:
             ctrl.reset()
             robot = dyn.DiffDrive(*x0[:3])
             prev: tuple[np.ndarray, np.ndarray] | None = None
@@ -208,7 +217,7 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
                 x = robot.state()
                 warm = ctrl.warm_start_plan() if ctrl is plain else None
                 t0, c0 = time.perf_counter(), time.process_time()
-                if ctrl in (guarded, rounded) and prev is not None:
+                if name in guarded_runs and prev is not None:
                     ctrl.observe(prev[0], prev[1], x)
                 res = ctrl.solve(x)
                 runs[name]["cpu"].append(time.process_time() - c0)
@@ -227,11 +236,15 @@ def closed_loops(system: Any, model: Any, bound: np.ndarray, k: int, steps: int)
         cpu, wall = np.array(r["cpu"]), np.array(r["wall"])
         print(f"  {name:22s} {1e3 * cpu.mean():7.2f} {1e3 * np.percentile(cpu, 95):7.2f} {1e3 * wall.mean():8.2f} "
               f"{np.mean(r['its']):6.2f} {1 / cpu.mean():9.0f} {np.mean(r['err']):8.3f} (max {np.max(r['err']):.3f})")
-    g = guarded.counters
-    hz = 1 / np.mean(runs["guarded"]["cpu"])
-    print(f"  guard: {g['solves']} solves, {g['fallbacks']} fallbacks to f_hat, {g['rollbacks']} roll backs, "
-          f"{g['clipped']} plans clipped by the residual bound")
-    print(f"  target (guarded, >= 100 Hz by CPU time): {'yes' if hz >= 100 else 'NO'} ({hz:.0f} Hz)")
+    for name, ctrl in guarded_runs.items():
+        g = ctrl.counters
+        print(f"  guard ({name}): {g['solves']} solves, {100 * (1 - g['solves_base'] / max(g['solves'], 1)):.0f} % planned "
+              f"with the learned model, {g['fallbacks']} fallbacks to f_hat, {g['rollbacks']} roll backs, "
+              f"{g['clipped']} plans clipped by the residual bound")
+    for name in guarded_runs:
+        hz = 1 / np.mean(runs[name]["cpu"])
+        print(f"  target (guarded ensemble, >= 100 Hz by CPU time), {name}: {'yes' if hz >= 100 else 'NO'} ({hz:.0f} Hz; "
+              f"{np.mean(runs['guarded']['cpu']) / np.mean(runs[name]['cpu']):.2f}x the full SQP's rate)")
     return visited
 
 
@@ -241,22 +254,21 @@ def identical(system: Any, model: Any, visited: list[Visit], n: int) -> None:
     from saml_ros.core.mpc.generic.nlp import CasadiNLP
 
     casadi_sqp, torch_sqp, ipopt = GenericSQP(system, model), GenericSQP(system, model), CasadiNLP(system, model)
-    rounded = GenericSQP(system, model, smoothing=0.5)
     torch_sqp._base = TorchBase(system.base_step, "torch")  # the same planner, f_hat differentiated by autograd
     torch_sqp.dyn = GenericDynamics(system, torch_sqp._base, model, 0)
     rng = np.random.default_rng(3)
     picks = [visited[i] for i in rng.choice(len(visited), size=min(n, len(visited)), replace=False)]
     rows: dict[str, tuple[list[float], list[float]]] = {k: ([], []) for k in (
-        "SQP, CasADi f_hat", "SQP, torch f_hat", "SQP, kinks 0.5", "IPOPT (CasADi NLP)")}
+        "SQP, CasADi f_hat", "SQP, torch f_hat", "IPOPT (CasADi NLP)")}
     for x, warm_u, warm_x in picks:
         for name, ctrl in (("SQP, CasADi f_hat", casadi_sqp), ("SQP, torch f_hat", torch_sqp),
-                           ("SQP, kinks 0.5", rounded), ("IPOPT (CasADi NLP)", ipopt)):
+                           ("IPOPT (CasADi NLP)", ipopt)):
             ctrl.reset()
             ctrl.set_warm_start(warm_u, warm_x)  # the previous plan, as in the closed loop
             c0 = time.process_time()
             res = ctrl.solve(x)
             rows[name][0].append(time.process_time() - c0)
-            # every plan's cost under the exact model (the rounded SQP and IPOPT plan on rounded kinks)
+            # every plan's cost under the exact model (IPOPT plans on rounded kinks)
             rows[name][1].append(casadi_sqp.problem.cost(casadi_sqp.dyn.rollout(x, res.plan_u), res.plan_u,
                                                          casadi_sqp.problem.reference(x, None), warm_u[0]))
     ref = np.array(rows["SQP, CasADi f_hat"][1])
@@ -266,21 +278,99 @@ def identical(system: Any, model: Any, visited: list[Visit], n: int) -> None:
         print(f"  {name:22s} {1e3 * np.mean(cpu):8.2f} {1 / np.mean(cpu):9.0f} {np.mean(np.array(cost) / ref):18.4f}")
 
 
+def quadrotor_parity(quick: bool) -> None:
+    from saml_ros.core.mpc.factory import make_controller
+    from saml_ros.core.mpc.generic import GenericSQP
+    from saml_ros.core.mpc.generic.quadrotor_form import quadrotor_base, quadrotor_generic_task
+    from saml_ros.core.systems.quadrotor import Quadrotor
+
+    system = Quadrotor()
+    task = quadrotor_generic_task(system)
+    hand: Any = make_controller(system, None, "fast", horizon=10, tilt_max=0.2)
+    gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=20)
+    starts = [system.hover_state(p) for p in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
+    steps = 20 if quick else 50
+    goal = np.array([0.0, 0.0, 0.2])
+    rows: dict[str, dict[str, list[float]]] = {k: {"cpu": [], "err": [], "its": []} for k in ("hand-written", "generic")}
+    visited: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for x0 in starts:
+        for name, ctrl in (("hand-written", hand), ("generic", gen)):
+            ctrl.reset()
+            x = x0.copy()
+            for _ in range(steps):
+                warm = ctrl.warm_start_plan() if ctrl is hand else None
+                c0 = time.process_time()
+                res = ctrl.solve(x, np.zeros(3))
+                rows[name]["cpu"].append(time.process_time() - c0)
+                rows[name]["its"].append(res.iterations)
+                if warm is not None:
+                    visited.append((x.copy(), *warm))
+                x = system.true_step(torch.from_numpy(x[None]), torch.from_numpy(res.u[None]))[0].numpy()
+            rows[name]["err"].append(float(np.linalg.norm(x[:3] - goal)))
+    print(f"\n4. quadrotor parity: the demo's landing task (T = 10, tilt 0.2), f_hat, true plant; {len(starts)} starts x "
+          f"{steps} steps, one core")
+    print(f"  {'planner':14s} {'cpu ms':>7s} {'iters':>6s} {'landing error m (per start)':>30s}")
+    for name, r in rows.items():
+        print(f"  {name:14s} {1e3 * np.mean(r['cpu']):7.2f} {np.mean(r['its']):6.1f}   "
+              f"{np.mean(r['err']):.4f} ({', '.join(f'{e:.4f}' for e in r['err'])})")
+    t_ratio = np.mean(rows["generic"]["cpu"]) / np.mean(rows["hand-written"]["cpu"])
+    e_ratio = np.mean(rows["generic"]["err"]) / np.mean(rows["hand-written"]["err"])
+    print(f"  ratios generic / hand-written: solve time {t_ratio:.2f}x, landing error {e_ratio:.2f}x "
+          f"(goal: both within 2x: {'yes' if t_ratio <= 2 and e_ratio <= 2 else 'NO'})")
+    tight_hand: Any = make_controller(system, None, "fast", horizon=10, tilt_max=0.2, tol=1e-10, max_iter=200)
+    tight_gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=200, tol=1e-10)
+    rng = np.random.default_rng(4)
+    picks = [visited[i] for i in rng.choice(len(visited), size=min(10 if quick else 30, len(visited)), replace=False)]
+    diffs, first, pos, costs = [], [], [], []
+    for x, wu, wx in picks:
+        plans = []
+        for ctrl in (tight_hand, tight_gen):
+            ctrl.reset()
+            ctrl.set_warm_start(wu, wx)
+            plans.append(ctrl.solve(x, np.zeros(3)))
+        diffs.append(float(np.abs(plans[0].plan_u - plans[1].plan_u).max()))
+        first.append(float(np.abs(plans[0].u - plans[1].u).max()))
+        pos.append(float(np.abs(plans[0].plan_x[:, :3] - plans[1].plan_x[:, :3]).max()))
+        pb = tight_gen.problem
+        ref = pb.reference(x, np.zeros(3))
+        c = [pb.cost(tight_gen.dyn.rollout(x, r.plan_u), r.plan_u, ref, None, exact=True) for r in plans]
+        costs.append(c[1] / c[0])
+    print(f"  identical problems ({len(picks)} visited states, tol 1e-10): exact cost generic / hand-written mean "
+          f"{np.mean(costs):.5f} (min {np.min(costs):.5f}, max {np.max(costs):.5f})")
+    for label, d, unit in (("whole plan U", diffs, "N"), ("first control u_0 (flown)", first, "N"),
+                           ("predicted positions", pos, "m")):
+        a = np.array(d)
+        print(f"    largest difference, {label:26s}: median {np.median(a):.2e} {unit}, max {a.max():.2e} {unit} "
+              f"({int((a <= 1e-3).sum())} of {len(a)} within 1e-3)")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench_generic_mpc", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="fewer starts, steps and training epochs")
+    p.add_argument("--only", choices=("quadrotor",), help="run one part alone")
+    p.add_argument("--starts", type=int, help="closed-loop starts of part 2 (default 6, --quick 2)")
+    p.add_argument("--steps", type=int, help="steps per start in part 2 (default 750, --quick 150)")
+    p.add_argument("--problems", type=int, help="identical problems of part 3 (default 40, --quick 10; 0 skips it)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     from saml_ros.user_code import load_system_file
 
     t_all = time.perf_counter()
     print(f"load average {os.getloadavg()[0]:.1f} (2 cores)")
+    if args.only == "quadrotor":
+        quadrotor_parity(args.quick)
+        print(f"\nload average {os.getloadavg()[0]:.1f}; total {time.perf_counter() - t_all:.0f} s")
+        return 0
     system = load_system_file(EXAMPLE / "system.yaml")
     model, secs, bound = train(system, 8000 if args.quick else 30000, 5 if args.quick else 100)
     print(f"trained a 5-member 32-32 residual ensemble for {secs:.0f} s")
     derivatives(system, model, args.quick)
-    visited = closed_loops(system, model, bound, 2 if args.quick else 6, 150 if args.quick else 750)
-    identical(system, model, visited, 10 if args.quick else 40)
+    visited = closed_loops(system, model, bound, args.starts or (2 if args.quick else 6),
+                           args.steps or (150 if args.quick else 750))
+    problems = (10 if args.quick else 40) if args.problems is None else args.problems
+    if problems:
+        identical(system, model, visited, problems)
+    quadrotor_parity(args.quick)
     print(f"\nload average {os.getloadavg()[0]:.1f}; total {time.perf_counter() - t_all:.0f} s")
     return 0
 

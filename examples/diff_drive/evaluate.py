@@ -10,11 +10,19 @@ back at up to 0.15 m/s whatever its wheels do; f_hat knows neither the slip nor 
 distance of the last state from the dock (x, y, v, w; ``saml_ros.experiments.robot_eval``).
 
 Trains ``--seeds`` residual models (the file's 32-32 network and spec, one training seed and one data set each) on
-transitions of this robot's simulator (random starts, half of them in the dock approach, random commands held
-0.1-1 s, a fifth of them stops; what the learner would collect while ``wander.py`` drives), then flies each
-model from its own ``--starts`` starts (nested in the seed) beside the base model f_hat and the oracle (the same
-planner on the true dynamics, ``dynamics.true_step_on_ramp``) for ``--steps`` steps of 20 ms, and prints the
-statistics with the seed as the unit; results.md and results.json go to ``-o``.
+what the learner would collect (:func:`dataset`): transitions of this robot's simulator while ``wander.py`` drives
+(random starts, half of them in the dock approach, random commands held 0.1-1 s, a fifth of them stops), docking
+runs under the MPC with f_hat, and (``--rounds 2``, the default) docking runs under the MPC with the first model,
+then retrains on all of it: the online learner's loop, where the robot spends its time at the dock. Each model must
+pass the MPC node's checkpoint acceptance, then flies inside the guard the node runs by default (live monitor with
+roll back: ``robot_eval.node_guard``) from its own ``--starts`` starts (nested in the seed, other starts than the
+training runs') beside the base model f_hat and the oracle (the same planner on the true dynamics,
+``dynamics.true_step_on_ramp``) for ``--steps`` steps of 20 ms, with the planner options of the file's ``mpc:``
+section; the statistics use the seed as the unit; results.md and results.json go to ``-o``.
+
+``--diagnose``: instead, the measurements behind this set-up for one seed: the one-step error of f_hat and of the
+learned model at the dock (held at rest against the slide) beside the slide's own step, its mean (bias) per field,
+and how many training transitions are near the dock at rest.
 """
 
 from __future__ import annotations
@@ -35,8 +43,8 @@ import dynamics  # noqa: E402
 
 
 def transitions(n: int, seed: int, slide: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``n`` transitions of the simulator at 20 ms (the target's yaw unwrapped relative to the state, as the learner
-    pairs an angle field)."""
+    """``n`` transitions of the simulator at 20 ms while a wander node drives (the target's yaw unwrapped relative to
+    the state, as the learner pairs an angle field)."""
     rng = np.random.default_rng(seed)
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
@@ -53,12 +61,119 @@ def transitions(n: int, seed: int, slide: float) -> tuple[np.ndarray, np.ndarray
             for _ in range(int(rng.integers(5, 50))):
                 x = r.state()
                 r.step(u, 0.02)
-                y = r.state()
-                y[2] = x[2] + (y[2] - x[2] + math.pi) % (2 * math.pi) - math.pi
                 xs.append(x)
                 us.append(u)
-                ys.append(y)
+                ys.append(_paired(x, r.state()))
     return np.array(xs[:n]), np.array(us[:n]), np.array(ys[:n])
+
+
+def _paired(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    y = y.copy()
+    y[2] = x[2] + (y[2] - x[2] + math.pi) % (2 * math.pi) - math.pi
+    return y
+
+
+def docking_runs(system: object, model: object, runs: int, steps: int, seed: int,
+                 explore: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
+    evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
+    ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
+    from saml_ros.core.mpc.generic import GenericSQP
+
+    rng = np.random.default_rng(seed)
+    ctrl = GenericSQP(system, model)  # type: ignore[arg-type]
+    xs: list[np.ndarray] = []
+    us: list[np.ndarray] = []
+    ys: list[np.ndarray] = []
+    for x0 in dynamics.sample_approach_starts(runs, rng):
+        ctrl.reset()
+        sim = dynamics.make_robot_on_ramp(x0)
+        held, hold = np.zeros(2), 0
+        for _ in range(steps):
+            x = sim.state()
+            u = ctrl.solve(x).u
+            if hold > 0:
+                u, hold = held, hold - 1
+            elif rng.random() < explore:
+                held = np.clip(u + rng.normal(0.0, [0.1, 0.3]), [-0.5, -1.5], [0.5, 1.5])
+                u, hold = held, int(rng.integers(0, 14))
+            sim.step(u, 0.02)
+            xs.append(x)
+            us.append(u)
+            ys.append(_paired(x, sim.state()))
+    return np.array(xs), np.array(us), np.array(ys)
+
+
+def train(system: object, spec: object, x: np.ndarray, u: np.ndarray, y: np.ndarray, seed: int,
+          epochs: int) -> object:
+    """A residual model of the file's network on ``(x, u, y)`` with the file's spec (float64 for planning)."""
+    from saml_ros.core.model.network import DynamicsModel
+    from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
+
+    model = DynamicsModel(system, tuple(system.paper_hidden), "residual", seed=seed)  # type: ignore[attr-defined]
+    model.fit_normalization(x, u, y)
+    trainer = PrimalDualTrainer(model, spec, TrainConfig.paper(epochs=epochs, batch_size=256, primal_lr=3e-3,
+                                                               seed=seed))
+    trainer.fit(Transitions(model, spec, x, u, y))
+    return model.double()
+
+
+def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Namespace,
+                      log: object = print) -> tuple[object, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Round 1: wander transitions + docking runs under f_hat -> model; each further round (``--rounds``) adds
+    docking runs under the newest model and retrains on everything (the online learner's loop)."""
+    parts = [transitions(args.transitions, 100 + seed, dynamics.RAMP_SLIDE)]
+    model = None
+    for r in range(args.rounds):
+        if args.dock_runs:
+            parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r))
+        x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        model = train(system, spec, x, u, y, seed, args.epochs)
+        log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
+    return model, (x, u, y)
+
+
+def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, np.ndarray]) -> str:
+    """The measurements behind the set-up (module docstring, ``--diagnose``) as text."""
+    rng = np.random.default_rng(5)
+    rows = []
+    for _ in range(200):  # the robot near the dock, held by a forward command against the slide for 0.6 s
+        x0 = np.array([1.5 + rng.normal(0, 0.02), rng.normal(0, 0.01), rng.normal(0, 0.05), 0.0, 0.0])
+        sim = dynamics.make_robot_on_ramp(x0)
+        u = np.array([rng.uniform(0.1, 0.2), rng.normal(0, 0.02)])
+        for _ in range(30):
+            sim.step(u, 0.02)
+        x = sim.state()
+        sim.step(u, 0.02)
+        rows.append((x, u, _paired(x, sim.state())))
+    xs, us, ys = (np.array([r[i] for r in rows]) for i in range(3))
+    base = system.base_step_np(xs, us)  # type: ignore[attr-defined]
+    learned = model.predict_np(xs, us)  # type: ignore[attr-defined]
+    slide = np.mean([dynamics.slide_speed(float(a[0]), float(a[1]), dynamics.RAMP_SLIDE) for a in xs]) * 0.02
+    lines = ["one-step error at the dock, held at rest against the slide (200 states; fields x, y (mm), yaw (mrad), "
+             "v (mm/s), w (mrad/s)):",
+             f"  the slide's own step (slide speed x 20 ms): {1e3 * slide:.3f} mm"]
+    for label, pred in (("f_hat", base), ("learned", learned)):
+        e = pred - ys
+        lines.append(f"  {label:8s} mean |error| {np.round(1e3 * np.abs(e).mean(0), 4).tolist()}  "
+                     f"mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
+    # the planner's model rounds only the network's Jacobians (solver_options.smoothing); rounding its values too
+    # (what the planner did before) shifts every unit: the bias that costs at the dock
+    from saml_ros.core.mpc.mlp_np import NumpyMLP
+
+    mlp = NumpyMLP(model, 0)  # type: ignore[arg-type]
+    eps2 = 0.2 ** 2
+    h = xs @ mlp.w_x + us @ mlp.w_u + mlp.biases[0]
+    for i in range(1, len(mlp.weights)):
+        a = mlp.slopes[i - 1]
+        h = (0.5 * (1 + a) * h + 0.5 * (1 - a) * np.sqrt(h * h + eps2)) @ mlp.weights[i] + mlp.biases[i]
+    e = base + h - ys
+    lines.append(f"  learned, values rounded by 0.2 too: mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
+    x, u, _ = data
+    near = (np.abs(x[:, 0] - 1.5) < 0.1) & (np.abs(x[:, 1]) < 0.1) & (np.abs(x[:, 3]) < 0.05)
+    lines.append(f"training transitions within 0.1 m of the dock at rest (|v| < 0.05 m/s): {int(near.sum())} of "
+                 f"{len(x)}")
+    return "\n".join(lines)
 
 
 def main() -> int:
@@ -66,36 +181,43 @@ def main() -> int:
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--starts", type=int, default=10, help="starts per seed")
     p.add_argument("--steps", type=int, default=500)
-    p.add_argument("--transitions", type=int, default=30000)
-    p.add_argument("--epochs", type=int, default=60)
-    p.add_argument("--smoothing", type=float, default=0.2, help="the planner's rounding of the network's PReLU kinks "
-                   "(0 = exact; without it the learned models' plans chatter at the dock)")
+    p.add_argument("--transitions", type=int, default=30000, help="wander transitions per seed")
+    p.add_argument("--dock-runs", type=int, default=16, help="docking runs per round (0: wander data only)")
+    p.add_argument("--dock-steps", type=int, default=300, help="steps per docking run")
+    p.add_argument("--rounds", type=int, default=2, help="training rounds (2: retrain with runs under the model)")
+    p.add_argument("--epochs", type=int, default=200)
+    p.add_argument("--unguarded", action="store_true", help="fly the bare planner (no guard, no acceptance)")
+    p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
-    from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.spec import ProblemSpec
-    from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
-    from saml_ros.experiments.robot_eval import evaluate_nested
+    from saml_ros.experiments.robot_eval import acceptance, evaluate_nested, node_guard
     from saml_ros.user_code import load_system_file
 
     t0 = time.perf_counter()
     system = load_system_file(HERE / "system.yaml")
     spec = ProblemSpec.for_system(system.paper_spec(), system)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.diagnose:
+        model, data = dataset_and_model(system, spec, 0, args)
+        text = diagnose(system, model, data)
+        (args.out / "diagnose.txt").write_text(text + "\n")
+        print(text)
+        return 0
     models = {}
     for seed in range(args.seeds):
-        x, u, y = transitions(args.transitions, 100 + seed, dynamics.RAMP_SLIDE)
-        model = DynamicsModel(system, tuple(system.paper_hidden), "residual", seed=seed)
-        model.fit_normalization(x, u, y)
-        trainer = PrimalDualTrainer(model, spec, TrainConfig.paper(epochs=args.epochs, batch_size=256,
-                                                                   primal_lr=3e-3, seed=seed))
-        trainer.fit(Transitions(model, spec, x, u, y))
-        models[f"seed{seed}"] = model.double()
+        model, (x, u, y) = dataset_and_model(system, spec, seed, args)
+        refused = None if args.unguarded else acceptance(system, model, spec, x, u, y)
+        if refused is not None:
+            print(f"seed {seed}: the MPC node would refuse this model ({refused[0]}: {refused[1]}); it flies f_hat")
+            model = None
+        models[f"seed{seed}"] = model
         print(f"trained seed {seed} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    ev = evaluate_nested(system, dynamics.make_robot_on_ramp, models, dynamics.sample_approach_starts, args.starts,
-                         args.steps, seed=3000, oracle=dynamics.true_step_on_ramp, smoothing=args.smoothing,
+    ev = evaluate_nested(system, dynamics.make_robot_on_ramp, models,
+                         dynamics.sample_approach_starts, args.starts, args.steps, seed=3000,
+                         oracle=dynamics.true_step_on_ramp, guard=None if args.unguarded else node_guard(),
                          progress=lambda s: print(s, flush=True))
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
     (args.out / "results.md").write_text(ev.report() + "\n")
     print(ev.report())

@@ -61,6 +61,9 @@ class RobotEvaluation:
     steps: int
     dt: float
     stats: dict[str, Paired] = field(default_factory=dict)  #: learned label (and "pooled") -> paired vs base
+    #: learned label -> the guard's counters summed over the starts (``solves``, ``solves_base``, ``rollbacks``, ...;
+    #: empty without a guard)
+    guard: dict[str, dict[str, int]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         base = self.errors["base"]
@@ -92,6 +95,8 @@ class RobotEvaluation:
             lines.append(f"| {label} | {e.mean():.4f} | {e.max():.4f} | {ms:.2f} |")
         if "oracle" in self.errors:
             lines += ["", f"headroom (base - oracle): {self.headroom:.4f}"]
+        for label, c in self.guard.items():
+            lines += ["", f"guard ({label}): {_guard_line(c)}"]
         if self.stats:
             lines += ["", "| learned vs base | pairs | mean diff (learned - base) | 95% CI | paired t p | "
                           "Wilcoxon p | learned better |", "|---|---|---|---|---|---|---|"]
@@ -110,7 +115,7 @@ class RobotEvaluation:
         return {"starts": self.starts.tolist(), "errors": {k: v.tolist() for k, v in self.errors.items()},
                 "solve_ms": self.solve_ms, "learned": self.learned, "goal": self.goal.tolist(), "steps": self.steps,
                 "dt": self.dt, "headroom": self.headroom, "worse_than_base_worst": self.worse_than_base_worst,
-                "paired": {k: v.to_dict() for k, v in self.stats.items()}}
+                "paired": {k: v.to_dict() for k, v in self.stats.items()}, "guard": self.guard}
 
     def figure(self, path: str | Path) -> None:
         """``path`` (PNG): each start's error per controller, and the paired differences learned - base."""
@@ -188,6 +193,9 @@ class NestedEvaluation:
             lines.append(f"| {label} | {b.mean():.4f} | {b.max():.4f} | {e.mean():.4f} | {e.max():.4f} | "
                          f"{'n/a' if o is None else f'{o.mean():.4f}'} | {st.diff:+.4f} [{st.ci_low:+.4f}, "
                          f"{st.ci_high:+.4f}] | {100 * st.frac_b_better:.0f}% | {ev.worse_than_base_worst} |")
+        for label, ev in self.runs.items():
+            for c in ev.guard.values():
+                lines.append(f"guard ({label}): {_guard_line(c)}")
         seed, pooled = self.seed_level, self.pooled
         base, oracle, rel = self.headroom()
         lines += ["", f"seed level (unit: the training seed, n = {seed.n}): learned - base {seed.diff:+.4f} "
@@ -225,6 +233,44 @@ def evaluate_nested(system: Any, simulator: Callable[[np.ndarray], Any], models:
     return NestedEvaluation(runs)
 
 
+def _guard_line(c: Mapping[str, int]) -> str:
+    solves = max(int(c.get("solves", 0)), 1)
+    return (f"{c.get('solves', 0)} solves, {100 * (1 - c.get('solves_base', 0) / solves):.0f} % planned with the learned "
+            f"model, {c.get('fallbacks', 0)} disagreement fallbacks, {c.get('rollbacks', 0)} roll backs "
+            f"({c.get('refused_before_flight', 0)} refused before flight), {c.get('clipped', 0)} plans clipped")
+
+
+def node_guard() -> Any:
+    """The guard the MPC node runs with its default parameters (:class:`~saml_ros.core.mpc.config.MPCConfig`:
+    the live monitor with roll back on, ensemble disagreement and residual bound off)."""
+    from saml_ros.core.mpc.config import MPCConfig
+
+    return MPCConfig.from_params({}).guard
+
+
+def acceptance(system: Any, model: Any, spec: Any, x: np.ndarray, u: np.ndarray, y: np.ndarray,
+               residual_factor: float = 4.0) -> tuple[str, str] | None:
+    """The MPC node's checkpoint acceptance (:func:`saml_ros.core.mpc.acceptance.check_model`, its default limits)
+    for ``model`` trained on ``(x, u, y)`` with ``spec``: the evidence a learner stores in a checkpoint (residual
+    statistics and a probe set of the training inputs) is built from the data; ``None`` = accepted, else
+    ``(reason, message)``."""
+    import torch
+
+    from saml_ros.core.data.plausibility import Plausibility
+    from saml_ros.core.model.evidence import DataEvidence
+    from saml_ros.core.model.io import LoadedModel
+    from saml_ros.core.mpc.acceptance import AcceptanceConfig, check_model
+
+    evidence = DataEvidence.from_data(system, x, u, y)
+    arrays: dict[str, np.ndarray] = {}
+    meta: dict[str, Any] = {}
+    if evidence is not None:
+        arrays, meta["evidence"] = evidence.to_payload(tuple(system.target.names))
+    loaded = LoadedModel(model, spec, system, torch.zeros(len(spec.constraints)), meta, arrays)
+    return check_model(loaded, Plausibility.for_system(system), None,
+                       AcceptanceConfig(residual_factor=residual_factor))
+
+
 def default_error(system: Any, task: Any) -> Callable[[np.ndarray, np.ndarray], float]:
     """Distance of a state from the goal over the goal fields that are not angles."""
     idx = [i for i, a in zip(task.goal_idx, task.goal_angle, strict=True) if not a]
@@ -240,11 +286,14 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
                    starts: np.ndarray, steps: int, *, goal: np.ndarray | None = None,
                    oracle: Callable[..., Any] | None = None, error: Callable[[np.ndarray, np.ndarray], float] | None = None,
                    member: int = 0, progress: Callable[[str], None] | None = None, task: Any = None,
-                   **planner_options: Any) -> RobotEvaluation:
+                   guard: Any = None, **planner_options: Any) -> RobotEvaluation:
     """See the module docstring. ``models``: label -> a :class:`~saml_ros.core.model.network.DynamicsModel` of ``system``
     (ensemble member ``member`` plans); the base model f_hat (label ``base``) and, with ``oracle``, the true dynamics
     (label ``oracle``) fly the same starts. ``task``: an :class:`~saml_ros.core.mpc.generic.section.MPCTask` to plan
-    and score instead of the file's (e.g. :func:`task_from_file`)."""
+    and score instead of the file's (e.g. :func:`task_from_file`). ``guard``: a
+    :class:`~saml_ros.core.mpc.guard.GuardConfig` (e.g. :func:`node_guard`): each learned model flies inside the
+    guarded controller as the MPC node runs it (its live monitor given every transition; counters in
+    :attr:`RobotEvaluation.guard`); None = the bare planner."""
     from saml_ros.core.dynamics.base_forms import is_form
     from saml_ros.core.mpc.generic import GenericSQP, system_task
     from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase
@@ -267,8 +316,19 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
             ctrl._base = TorchBase(true_torch, "oracle (true dynamics, torch autograd)")
         ctrl.dyn = GenericDynamics(system, ctrl._base)
         controllers["oracle"] = ctrl
+    guarded: dict[str, Any] = {}
     for label, model in models.items():
-        controllers[label] = GenericSQP(system, model, member=member, **planner_options)
+        if guard is None:
+            controllers[label] = GenericSQP(system, model, member=member, **planner_options)
+            continue
+        from saml_ros.core.mpc.guard import GuardedController
+
+        learned: Any = GenericSQP(system, None, member=member, **planner_options)  # the guard's planner protocol
+        fallback: Any = GenericSQP(system, None, member=member, **planner_options)
+        wrapped = GuardedController(learned, fallback, guard)
+        wrapped.set_model(model, 1, {})
+        controllers[label] = guarded[label] = wrapped
+    angles = np.asarray(getattr(system, "angle_indices", ()), dtype=int)
     starts = np.asarray(starts, dtype=np.float64)
     errors = {k: np.zeros(len(starts)) for k in controllers}
     finals = {k: np.zeros_like(starts) for k in controllers}
@@ -278,10 +338,17 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
         for label, ctrl in controllers.items():
             ctrl.reset()
             sim = simulator(x0)
+            x_now = np.asarray(sim.state(), dtype=np.float64)
             for _ in range(steps):
-                res = ctrl.solve(np.asarray(sim.state(), dtype=np.float64), goal)
+                res = ctrl.solve(x_now, goal)
                 times[label].append(res.solve_time)
                 sim.step(res.u, system.dt)
+                x_next = np.asarray(sim.state(), dtype=np.float64)
+                if label in guarded:  # the live transition, its angle fields unwrapped as the learner pairs them
+                    y = x_next.copy()
+                    y[angles] = x_now[angles] + (y[angles] - x_now[angles] + math.pi) % (2 * math.pi) - math.pi
+                    ctrl.observe(x_now, res.u, y)
+                x_now = x_next
             x = np.asarray(sim.state(), dtype=np.float64)
             finals[label][i] = x
             errors[label][i] = err(x, goal)
@@ -289,7 +356,8 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
             progress(f"start {i + 1}/{len(starts)} ({time.perf_counter() - t0:.0f} s): "
                      + ", ".join(f"{k} {errors[k][i]:.3f}" for k in controllers))
     return RobotEvaluation(starts, errors, finals, {k: 1e3 * float(np.mean(v)) for k, v in times.items()},
-                           list(models), goal, steps, system.dt)
+                           list(models), goal, steps, system.dt,
+                           guard={k: dict(c.counters) for k, c in guarded.items()})
 
 
 def task_from_file(system: Any, path: str | Path) -> Any:
@@ -339,6 +407,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    "own --n-starts starts (seeded --seed + i); statistics with the seed as the unit")
     p.add_argument("--task", type=Path, help="a YAML file with an mpc: mapping to plan and score instead of the "
                    "system file's")
+    p.add_argument("--guard", action="store_true", help="fly each learned model inside the guard the MPC node runs "
+                   "with its default parameters (live monitor with roll back)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args(argv)
     import torch
@@ -355,7 +425,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             p.error("--nested needs --starts and --runs")
         nested = evaluate_nested(system, _load(args.simulator), models, _load(args.starts), args.n_starts,
                                  args.steps, seed=args.seed, oracle=_load(args.oracle) if args.oracle else None,
-                                 member=args.member, task=task, progress=lambda s: print(s, flush=True))
+                                 member=args.member, task=task, guard=node_guard() if args.guard else None,
+                                 progress=lambda s: print(s, flush=True))
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "results.json").write_text(json.dumps(nested.to_json(), indent=1))
         (args.out / "results.md").write_text(nested.report() + "\n")
@@ -368,7 +439,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         starts = rng.uniform(system.state_low, system.state_high, (args.n_starts, system.state.size))
     ev = evaluate_robot(system, _load(args.simulator), models, starts, args.steps,
                         oracle=_load(args.oracle) if args.oracle else None, member=args.member, task=task,
-                        progress=lambda s: print(s, flush=True))
+                        guard=node_guard() if args.guard else None, progress=lambda s: print(s, flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
     (args.out / "results.md").write_text(ev.report() + "\n")

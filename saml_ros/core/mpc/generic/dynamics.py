@@ -127,10 +127,16 @@ def make_base(system: System) -> SymbolicBase | TorchBase:
 
 
 class SmoothMLP:
-    """The network of a :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP` with its PReLU kinks rounded by ``eps`` (in the
-    units of the pre-activations, which the folded input normalisation makes order 1): ``act(h) = 0.5 (1 + a) h +
-    0.5 (1 - a) sqrt(h^2 + eps^2)``, which differs from PReLU by at most ``0.5 |1 - a| eps`` per unit; smooth
-    Jacobians let the Gauss-Newton SQP converge where the exact kinks make it zig-zag. Same interface."""
+    """The network of a :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP` with **exact values and rounded derivatives**:
+    phi is the network's own (what the plan predicts and the robot flies is the trained model, with no offset), while
+    its Jacobians are those of the network with its PReLU kinks rounded by ``eps`` (in the units of the
+    pre-activations, which the folded input normalisation makes order 1): ``act'(h) = 0.5 (1 + a) + 0.5 (1 - a) h /
+    sqrt(h^2 + eps^2)``. Smooth Jacobians let the Gauss-Newton SQP converge where the exact kinks make it zig-zag.
+
+    Rounding the values too (``act(h) = 0.5 (1 + a) h + 0.5 (1 - a) sqrt(h^2 + eps^2)``, what this planner did before)
+    shifts every unit up by as much as ``0.5 (1 - a) eps``: at the diff-drive's dock with ``eps = 0.2`` it moved the
+    model's one-step bias in v from 1.3 to 5.3 mm/s and in yaw from -0.12 to +0.30 mrad per step
+    (``examples/diff_drive/evaluate.py --diagnose --rounds 1``). Same interface."""
 
     def __init__(self, mlp: NumpyMLP, eps: float) -> None:
         self.mlp, self.eps2 = mlp, float(eps) ** 2
@@ -139,20 +145,17 @@ class SmoothMLP:
         self._wxt, self._wut = np.ascontiguousarray(mlp.w_x.T), np.ascontiguousarray(mlp.w_u.T)
 
     def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        h = np.dot(x, self.w_x) + np.dot(u, self.w_u) + self.biases[0]
-        for i in range(1, len(self.weights)):
-            a = self.slopes[i - 1]
-            h = np.dot(0.5 * (1 + a) * h + 0.5 * (1 - a) * np.sqrt(h * h + self.eps2), self.weights[i]) + self.biases[i]
-        return h
+        """The exact network's phi (:meth:`NumpyMLP.forward`)."""
+        return self.mlp.forward(x, u)
 
     def forward_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The exact phi and the rounded network's Jacobians ``(B, n_y)``, ``(B, n_y, n_x)``, ``(B, n_y, n_u)``."""
         h = np.dot(x, self.w_x) + np.dot(u, self.w_u) + self.biases[0]
         grads = []
         for i in range(1, len(self.weights)):
             a = self.slopes[i - 1]
-            r = np.sqrt(h * h + self.eps2)
-            grads.append(0.5 * (1 + a) + 0.5 * (1 - a) * h / r)
-            h = np.dot(0.5 * (1 + a) * h + 0.5 * (1 - a) * r, self.weights[i]) + self.biases[i]
+            grads.append(0.5 * (1 + a) + 0.5 * (1 - a) * h / np.sqrt(h * h + self.eps2))
+            h = np.dot(np.where(h >= 0.0, h, a * h), self.weights[i]) + self.biases[i]
         g = self._wt[-1] * grads[-1][:, None, :]
         for i in range(len(self.weights) - 2, 0, -1):
             g = np.dot(g, self._wt[i]) * grads[i - 1][:, None, :]
@@ -169,7 +172,8 @@ class GenericDynamics:
         model: the learned model, or None.
         member: the ensemble member planned with.
         bound: per-field residual bound ``(n,)`` (phi clipped to +-bound), or None.
-        smoothing: round the network's PReLU kinks by this (:class:`SmoothMLP`; 0 = the exact network).
+        smoothing: the network's Jacobians with its PReLU kinks rounded by this (:class:`SmoothMLP`: its values
+            stay exact; 0 = the exact Jacobians).
     """
 
     def __init__(self, system: System, base: SymbolicBase | TorchBase, model: DynamicsModel | None = None,
@@ -291,5 +295,5 @@ class GenericDynamics:
                "full": "phi alone (full model), numpy PReLU network"}[self.kind]
         bound = ", phi clipped to the residual bound" if self.bound is not None else ""
         if self.smoothing > 0:
-            bound += f", its PReLU kinks rounded by {self.smoothing:g}"
+            bound += f", its Jacobians with the PReLU kinks rounded by {self.smoothing:g}"
         return f"f_hat {self.base.label} ({self.base.derivatives} derivatives); {phi}{bound}"

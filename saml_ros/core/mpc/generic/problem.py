@@ -7,6 +7,9 @@ Over the controls ``U = (u_0 .. u_{T-1})`` from the current state ``x_0``, with 
     s.t. u_low <= u_t <= u_high                                                      (hard)
          c_j(x_t) <= 0,  t = 1..T                                                    (soft: + penalty * max(c, 0))
 
+With ``cost.norm`` each step's goal term is the weighted distance instead, ``sqrt(||x_t[g] - r_t||^2_W + eps^2)``
+(the paper's quadrotor cost; the SQP models it with its exact Hessian through the linearisation, generalised
+Gauss-Newton). A constraint with ``at: terminal`` binds x_T only (its rows at t < T read -1: never active).
 ``g`` are the goal fields, ``r_t`` the goal (a setpoint, the same at every step) or the reference trajectory;
 an angle field's goal is unwrapped relative to the current state (and each reference point relative to the one
 before), so the plan turns the short way round. The cost is a sum of squared residuals (:meth:`residuals`), which
@@ -110,10 +113,14 @@ class GenericProblem:
                 r[row] -= s * u_prev[i]
         return r
 
-    def cost(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None) -> float:
-        """The objective (see the module docstring) of a plan."""
+    def cost(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
+             exact: bool = False) -> float:
+        """The objective (see the module docstring) of a plan; ``exact``: a norm cost without its smoothing."""
         rx = self.state_residuals(xs, ref)
         ru = self.control_residuals(us, u_prev)
+        if self.task.norm_cost:
+            eps2 = 0.0 if exact else self.task.norm_eps ** 2
+            return float(np.sqrt(np.einsum("ij,ij->i", rx, rx) + eps2).sum() + ru @ ru)
         return float(np.einsum("ij,ij->", rx, rx) + ru @ ru)
 
     # ------------------------------------------------------------------------------------------ constraints
@@ -122,6 +129,7 @@ class GenericProblem:
         x = xs[..., 1:, :]
         parts: list[np.ndarray] = []
         for c in self.cons:
+            first = len(parts)
             if c.kind == "box":
                 for i, lo, hi in zip(c.idx, c.low, c.high, strict=True):
                     if math.isfinite(lo):
@@ -134,6 +142,9 @@ class GenericProblem:
                 rad = np.asarray(c.radius)
                 z = (x[..., list(c.idx)] - np.asarray(c.center)) / rad
                 parts.append(rad.min() * (1.0 - np.linalg.norm(z, axis=-1)))
+            if c.terminal:  # x_T only: the rows before never bind
+                for j in range(first, len(parts)):
+                    parts[j] = np.where(np.arange(self.T) == self.T - 1, parts[j], -1.0)
         if not parts:
             return np.zeros((*x.shape[:-1], 0))
         return np.stack(parts, axis=-1)
@@ -145,7 +156,7 @@ class GenericProblem:
         out = np.zeros((self.T, self.rows_per_step, self.n))
         r = 0
         for c in self.cons:
-            idx = list(c.idx)
+            idx, r0 = list(c.idx), r
             if c.kind == "box":
                 for i, lo, hi in zip(c.idx, c.low, c.high, strict=True):
                     if math.isfinite(lo):
@@ -154,18 +165,20 @@ class GenericProblem:
                     if math.isfinite(hi):
                         out[:, r, i] = 1.0
                         r += 1
-                continue
-            if c.kind == "norm":
+            elif c.kind == "norm":
                 v = x[:, idx]
                 nrm = np.linalg.norm(v, axis=-1, keepdims=True)
                 out[:, r, idx] = np.where(nrm > 1e-12, v / np.maximum(nrm, 1e-12), 0.0)
+                r += 1
             else:
                 rad = np.asarray(c.radius)
                 z = (x[:, idx] - np.asarray(c.center)) / rad
                 nrm = np.linalg.norm(z, axis=-1, keepdims=True)
                 unit = np.where(nrm > 1e-12, z / np.maximum(nrm, 1e-12), np.eye(len(idx))[0])
                 out[:, r, idx] = -rad.min() * unit / rad
-            r += 1
+                r += 1
+            if c.terminal:  # x_T only: constant rows before
+                out[:-1, r0:r] = 0.0
         return out
 
     def violation_names(self) -> list[str]:

@@ -21,9 +21,12 @@
         terminal: {x: 100.0, y: 100.0, yaw: 10.0}  # at t = T (default: stage)
         effort: {v_cmd: 0.1, w_cmd: 0.1}        # weight of u_t^2 per control field
         rate: {v_cmd: 1.0, w_cmd: 1.0}          # weight of (u_t - u_{t-1})^2 (u_{-1}: the last command sent)
+        norm: false                   # true: each step's goal term is the weighted distance, not its square
+        norm_eps: 0.001               #   (smoothed: sqrt(d^2 + norm_eps^2); the paper's quadrotor cost)
       constraints:                    # on the predicted states x_1 .. x_T (soft: exact l1 penalty)
         - {name: speed, box: {v: [-0.4, 0.4]}}
         - {name: slow_turns, norm: {fields: [v, w], max: 1.2}}
+        - {name: arrive_slow, norm: {fields: [v], max: 0.05}, at: terminal}   # only on x_T
         - {name: pillar, keep_out: {fields: [x, y], center: [0.5, 0.8], radius: 0.25}}
       penalty: 1000                   # price of one unit of constraint violation in the planner's merit
       solver: sqp                     # sqp (Gauss-Newton SQP, exact derivatives) | ipopt (CasADi NLP)
@@ -55,7 +58,7 @@ MPC_KEYS = frozenset({"horizon", "rate", "state_timeout", "goal", "reference", "
                       "solver", "solver_options", "description"})
 _GOAL_KEYS = frozenset({"fields", "default", "bounds", "topic", "type", "paths"})
 _REF_KEYS = frozenset({"topic", "type", "paths", "timeout"})
-_COST_KEYS = frozenset({"stage", "terminal", "effort", "rate"})
+_COST_KEYS = frozenset({"stage", "terminal", "effort", "rate", "norm", "norm_eps"})
 _CONSTRAINT_KINDS = ("box", "norm", "keep_out")
 #: the planner paths a section may choose (``saml_ros.core.mpc.generic``) and the options each takes
 PLANNERS = ("sqp", "ipopt")
@@ -80,7 +83,8 @@ class MPCSectionError(SamlError, ValueError):
 
 @dataclass(frozen=True)
 class StateConstraint:
-    """One constraint on every predicted state ``x_1 .. x_T``, as ``g(x) <= 0`` rows.
+    """One constraint on every predicted state ``x_1 .. x_T`` (``terminal``: on ``x_T`` only), as ``g(x) <= 0``
+    rows.
 
     ``kind``: ``box`` (``low <= x[i] <= high`` per field, either side may be open: ``+-inf``), ``norm``
     (``||x[idx]||_2 <= max``) or ``keep_out`` (``||(x[idx] - center) / radius||_2 >= 1``: a disc, ball or, with one
@@ -95,6 +99,7 @@ class StateConstraint:
     max: float = math.inf
     center: tuple[float, ...] = ()
     radius: tuple[float, ...] = ()
+    terminal: bool = False
 
     @property
     def rows(self) -> int:
@@ -144,6 +149,10 @@ class MPCTask:
     reference: GoalTopic | None = None
     state_names: tuple[str, ...] = ()
     control_names: tuple[str, ...] = ()
+    #: each step's goal term is the weighted distance ``sqrt(||sqrt(W) (x_t - r_t)||^2 + norm_eps^2)`` instead of
+    #: its square (the paper's quadrotor cost)
+    norm_cost: bool = False
+    norm_eps: float = 1e-3
 
     @property
     def goal_fields(self) -> tuple[str, ...]:
@@ -357,6 +366,12 @@ def parse_mpc_section(raw: Any, definition: Mapping[str, Any], key: str = "mpc")
     if not any(stage.values()) and not any(terminal.values()):
         raise MPCSectionError(f"{key}.cost", "every stage and terminal weight is 0: the plan would ignore the goal")
     out["cost"] = {"stage": stage, "terminal": terminal, "effort": effort, "rate": rate_w}
+    if "norm" in c:
+        if not isinstance(c["norm"], bool):
+            raise MPCSectionError(f"{key}.cost.norm", f"expected true or false, got {c['norm']!r}")
+        out["cost"]["norm"] = c["norm"]
+    if "norm_eps" in c:
+        out["cost"]["norm_eps"] = _number(c["norm_eps"], f"{key}.cost.norm_eps", positive=True)
 
     # constraints
     cons = d.get("constraints") or []
@@ -390,10 +405,22 @@ def _constraint(raw: Any, key: str, names: Sequence[str], bounds: Mapping[str, t
                 angles: set[str], i: int) -> dict[str, Any]:
     if not isinstance(raw, Mapping):
         raise MPCSectionError(key, "expected a mapping such as {name: speed, box: {v: [-0.4, 0.4]}}")
-    kinds = [k for k in _CONSTRAINT_KINDS if k in raw]
-    unknown = sorted(set(raw) - {"name", *_CONSTRAINT_KINDS})
+    unknown = sorted(set(raw) - {"name", "at", *_CONSTRAINT_KINDS})
     if unknown:
-        raise MPCSectionError(key, f"unknown key(s) {unknown}; valid keys: ['name', {', '.join(map(repr, _CONSTRAINT_KINDS))}]")
+        raise MPCSectionError(key, f"unknown key(s) {unknown}; valid keys: ['name', 'at', "
+                                   f"{', '.join(map(repr, _CONSTRAINT_KINDS))}]")
+    at = raw.get("at", "all")
+    if at not in ("all", "terminal"):
+        raise MPCSectionError(f"{key}.at", f"expected 'all' (every predicted state) or 'terminal' (x_T), got {at!r}")
+    out = _constraint_body(raw, key, names, bounds, angles, i)
+    if at == "terminal":
+        out["at"] = "terminal"
+    return out
+
+
+def _constraint_body(raw: Mapping[str, Any], key: str, names: Sequence[str], bounds: Mapping[str, tuple[float, float]],
+                     angles: set[str], i: int) -> dict[str, Any]:
+    kinds = [k for k in _CONSTRAINT_KINDS if k in raw]
     if len(kinds) != 1:
         raise MPCSectionError(key, f"give exactly one of {list(_CONSTRAINT_KINDS)}, got {kinds or 'none'}")
     kind = kinds[0]
@@ -462,19 +489,20 @@ def mpc_task(definition: Mapping[str, Any]) -> MPCTask | None:
     cost = sec["cost"]
     cons: list[StateConstraint] = []
     for c in sec["constraints"]:
+        terminal = c.get("at") == "terminal"
         if "box" in c:
             items = list(c["box"].items())
             cons.append(StateConstraint(c["name"], "box", tuple(names.index(n) for n, _ in items),
                                         low=tuple(float(b[0]) for _, b in items),
-                                        high=tuple(float(b[1]) for _, b in items)))
+                                        high=tuple(float(b[1]) for _, b in items), terminal=terminal))
         elif "norm" in c:
             cons.append(StateConstraint(c["name"], "norm", tuple(names.index(n) for n in c["norm"]["fields"]),
-                                        max=float(c["norm"]["max"])))
+                                        max=float(c["norm"]["max"]), terminal=terminal))
         else:
             k = c["keep_out"]
             cons.append(StateConstraint(c["name"], "keep_out", tuple(names.index(n) for n in k["fields"]),
                                         center=tuple(float(v) for v in k["center"]),
-                                        radius=tuple(float(v) for v in k["radius"])))
+                                        radius=tuple(float(v) for v in k["radius"]), terminal=terminal))
 
     def topic(t: Mapping[str, Any] | None) -> GoalTopic | None:
         if not t or "topic" not in t:
@@ -508,4 +536,6 @@ def mpc_task(definition: Mapping[str, Any]) -> MPCTask | None:
         reference=topic(sec.get("reference")),
         state_names=names,
         control_names=cnames,
+        norm_cost=bool(cost.get("norm", False)),
+        norm_eps=float(cost.get("norm_eps", 1e-3)),
     )

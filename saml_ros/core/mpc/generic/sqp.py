@@ -71,13 +71,16 @@ class GenericSQP:
         The solver options not given here come from the section's ``mpc.solver_options``.
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
             controller; not used (this planner builds f_hat from the system file, :func:`make_base`).
+        f_hat: the base model to plan with instead of :func:`make_base`'s (e.g. a built-in system's form:
+            :func:`~saml_ros.core.mpc.generic.quadrotor_form.quadrotor_base`, or the true dynamics for an oracle).
     """
 
     def __init__(self, system: System, model: DynamicsModel | None = None, horizon: int | None = None,
                  member: int = 0, *, task: MPCTask | None = None, max_iter: int | None = None,
                  tol: float | None = None, max_time: float | None = None, rho0: float | None = None,
                  lm_floor: float | None = None, feas_tol: float | None = None, qp_backend: str | None = None,
-                 smoothing: float | None = None, base: Any = None, true: Any = None) -> None:
+                 smoothing: float | None = None, base: Any = None, true: Any = None,
+                 f_hat: SymbolicBase | TorchBase | None = None) -> None:
         self.system = system
         self.task = task if task is not None else system_task(system)
         self.problem = GenericProblem(self.task, system.state.size, system.control.size, horizon)
@@ -95,7 +98,7 @@ class GenericSQP:
         if self.max_iter < 1 or not self.tol > 0 or not self.feas_tol > 0:
             raise ValueError(f"{system.name} MPC: max_iter must be >= 1, tol and feas_tol > 0")
         self.penalty = float(self.task.penalty)
-        self._base: SymbolicBase | TorchBase = make_base(system)
+        self._base: SymbolicBase | TorchBase = make_base(system) if f_hat is None else f_hat
         self._base_params: Any = _base_params(system)
         self._bound: np.ndarray | None = None
         self.model: DynamicsModel | None = None
@@ -220,14 +223,26 @@ class GenericSQP:
         eye = np.eye(T * m)
         msg, converged, it = "max_iter", False, 0
         undamped = False
+        norm_cost, eps2 = bool(self.task.norm_cost), float(self.task.norm_eps) ** 2
         for it in range(1, self.max_iter + 1):  # noqa: B007
             _, a_mat, b_mat = dyn.step_jac(xs[:-1], us)
             sens = _condense(a_mat, b_mat)  # (T, n, T m): d x_{t+1} / d U
             jx = (pb.sw[:, :, None] * sens[:, pb.g_idx, :]).reshape(T * k, T * m)
             rx = pb.state_residuals(xs, ref).reshape(-1)
             ru = pb.control_residuals(us, u_prev)
-            h_gn = 2.0 * (jx.T @ jx + hu)
-            grad = 2.0 * (jx.T @ rx + ju.T @ ru)
+            if norm_cost:
+                # sum_t sqrt(||r_t||^2 + eps^2): gradient J_t' r_t / n_t, exact Hessian through the linearisation
+                # J_t' (I - r_t r_t' / n_t^2) J_t / n_t (generalised Gauss-Newton; positive semi-definite)
+                r2 = rx.reshape(T, k)
+                nt = np.sqrt(np.einsum("ij,ij->i", r2, r2) + eps2)
+                j3 = jx.reshape(T, k, T * m)
+                jr = np.einsum("tk,tkv->tv", r2, j3)  # r_t' J_t
+                h_gn = (np.einsum("tkv,tkw->vw", j3 / nt[:, None, None], j3)
+                        - (jr / nt[:, None] ** 3).T @ jr + 2.0 * hu)
+                grad = jr.T @ (1.0 / nt) + 2.0 * (ju.T @ ru)
+            else:
+                h_gn = 2.0 * (jx.T @ jx + hu)
+                grad = 2.0 * (jx.T @ rx + ju.T @ ru)
             lm = self._rho * float(np.mean(np.diag(h_gn))) + self.lm_floor
             hess = h_gn + lm * eye
             u_flat = us.reshape(-1)

@@ -289,20 +289,25 @@ def test_derivatives_are_exact(user_module: str, fn: str | None, kind: type) -> 
         np.testing.assert_allclose(dyn.rollout(x[0], u), _steps(dyn, x[0], u), rtol=1e-12, atol=1e-12)
 
 
-def test_rounded_kinks_have_exact_derivatives_and_stay_close() -> None:
+def test_rounded_kinks_keep_the_networks_values_and_round_only_its_jacobians() -> None:
     s = build(example())
     model = fitted_model(s, members=2)
     exact = GenericDynamics(s, make_base(s), model, member=1)
     smooth = GenericDynamics(s, make_base(s), model, member=1, smoothing=0.5)
+    tiny = GenericDynamics(s, make_base(s), model, member=1, smoothing=1e-12)
     x, u = s.sample_inputs(6, np.random.default_rng(9))
-    _, a, b = smooth.step_jac(x, u)
-    for i in range(len(x)):
-        fa, fb = _fd_jac(smooth.step, x[i:i + 1], u[i:i + 1])
-        np.testing.assert_allclose(a[i], fa, atol=2e-6)
-        np.testing.assert_allclose(b[i], fb, atol=2e-6)
-    np.testing.assert_allclose(smooth.rollout(x[0], u), _steps(smooth, x[0], u), rtol=1e-12, atol=1e-12)
-    gap = np.abs(smooth.step(x, u) - exact.step(x, u)).max()
-    assert 0 < gap < 0.05 and "kinks rounded by 0.5" in smooth.describe()
+    y_s, a_s, b_s = smooth.step_jac(x, u)
+    y_e, a_e, b_e = exact.step_jac(x, u)
+    # the values are the network's own: no offset in what the plan predicts (the rounded values biased the dock)
+    np.testing.assert_allclose(y_s, y_e, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(smooth.step(x, u), exact.step(x, u), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(smooth.rollout(x[0], u), exact.rollout(x[0], u), rtol=1e-12, atol=1e-12)
+    # the Jacobians are rounded near the kinks, and tend to the exact ones as the rounding goes to 0
+    assert np.abs(a_s - a_e).max() > 0
+    _, a_t, b_t = tiny.step_jac(x, u)
+    np.testing.assert_allclose(a_t, a_e, atol=1e-9)
+    np.testing.assert_allclose(b_t, b_e, atol=1e-9)
+    assert "Jacobians with the PReLU kinks rounded by 0.5" in smooth.describe()
 
 
 def _steps(dyn: GenericDynamics, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
@@ -612,3 +617,72 @@ def test_nested_evaluation_flies_each_seed_from_its_own_starts() -> None:
     assert ev.seed_level.diff == pytest.approx(0.0, abs=1e-9)  # zero residuals plan as f_hat
     base, oracle, rel = ev.headroom()
     assert math.isfinite(oracle) and "seed level (unit: the training seed, n = 2)" in ev.report()
+
+
+def test_guarded_evaluation_flies_the_nodes_guard_and_acceptance_refuses_a_wild_model() -> None:
+    """``guard=node_guard()``: the learned model flies inside the MPC node's default guard (live monitor fed every
+    transition; counters reported), the same episodes as the bare planner while the monitor keeps it; the node's
+    acceptance passes a model near its data and refuses one that predicts far beyond any residual the data showed."""
+    sys.path.insert(0, str(EXAMPLE.parent))
+    try:
+        import dynamics as dd
+    finally:
+        sys.path.remove(str(EXAMPLE.parent))
+    from saml_ros.core.spec import ProblemSpec
+    from saml_ros.experiments.robot_eval import acceptance, evaluate_robot, node_guard
+
+    s = build(example())
+    guard = node_guard()
+    assert guard.rollback and not math.isfinite(guard.max_disagreement) and not guard.bound_residual
+    starts = dd.sample_approach_starts(1, np.random.default_rng(0))
+    model = fitted_model(s, scale=0.0)
+    ev = evaluate_robot(s, dd.make_robot_on_ramp, {"m": model}, starts, 12, guard=guard)
+    c = ev.guard["m"]
+    assert c["solves"] == 12 and c.get("rollbacks", 0) == 0 and c.get("solves_base", 0) == 0
+    np.testing.assert_allclose(ev.errors["m"], ev.errors["base"], atol=1e-9)
+    assert "planned with the learned model" in ev.report()
+    spec = ProblemSpec.for_system(s.paper_spec(), s)
+    rng = np.random.default_rng(1)
+    x, u = s.sample_inputs(300, rng)
+    y = s.base_step_np(x, u) + 1e-3 * rng.normal(size=x.shape)
+    assert acceptance(s, model, spec, x, u, y) is None
+    wild = fitted_model(s, scale=0.0)
+    with torch.no_grad():
+        wild.net.biases[-1].fill_(50.0)  # phi = 50 output scales everywhere
+    refused = acceptance(s, wild, spec, x, u, y)
+    assert refused is not None and refused[0] in ("residual", "implausible")
+
+
+def test_norm_cost_and_a_terminal_constraint() -> None:
+    """``cost.norm``: each step's goal term is the (smoothed) distance, and the SQP's gradient is its exact one; a
+    constraint ``at: terminal`` binds x_T only; both are checked at load naming the key."""
+    from saml_ros.core.mpc.generic.problem import GenericProblem
+    from saml_ros.core.mpc.generic.section import MPCSectionError
+
+    raw = mutate("mpc.cost.norm", True)
+    raw["mpc"]["constraints"].append({"name": "stop", "norm": {"fields": ["v"], "max": 0.05}, "at": "terminal"})
+    task = mpc_task(build(raw).definition)
+    assert task is not None and task.norm_cost and task.constraints[-1].terminal
+    pb = GenericProblem(task, 5, 2)
+    rng = np.random.default_rng(2)
+    xs, us = rng.normal(size=(pb.T + 1, 5)), rng.normal(size=(pb.T, 2))
+    ref = pb.reference(xs[0], None)
+    r = pb.state_residuals(xs, ref)
+    ru = pb.control_residuals(us, None)
+    want = np.sqrt((r * r).sum(1) + task.norm_eps ** 2).sum() + ru @ ru
+    assert pb.cost(xs, us, ref, None) == pytest.approx(want, rel=1e-12)
+    c = pb.constraints(xs)
+    assert np.all(c[:-1, -1] == -1.0) and c[-1, -1] == pytest.approx(abs(xs[-1, 3]) - 0.05)
+    cj = pb.constraint_jac(xs)
+    assert np.all(cj[:-1, -1] == 0.0) and cj[-1, -1, 3] == pytest.approx(np.sign(xs[-1, 3]))
+    # the planner reaches a plan whose x_T keeps the terminal bound, from rest towards the dock
+    ctrl = GenericSQP(build(raw), None, task=task, max_iter=30)
+    res = ctrl.solve(np.array([1.2, 0.0, 0.0, 0.0, 0.0]))
+    assert np.isfinite(res.cost) and abs(res.plan_x[-1, 3]) <= 0.05 + 1e-3
+    for path, value, key in (("mpc.cost.norm", "yes", "mpc.cost.norm"), ("mpc.cost.norm_eps", -1.0, "norm_eps")):
+        with pytest.raises((MPCSectionError, SystemFileError), match=key):
+            build(mutate(path, value))
+    bad = copy.deepcopy(example())
+    bad["mpc"]["constraints"][0]["at"] = "first"
+    with pytest.raises((MPCSectionError, SystemFileError), match="constraints\\[0\\].at"):
+        build(bad)
