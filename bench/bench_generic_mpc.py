@@ -24,7 +24,7 @@ ensemble of 32-32 residual networks trained here on transitions of the robot's o
 4. **quadrotor parity**: the quadrotor demo's landing task (horizon 10, unsquared distance cost, height and tilt
    bounds, final attitude bound) planned with f_hat by the hand-written SQP with its C kernel and by the generic
    SQP (the task as a generic ``MPCTask``: ``cost.norm``, the attitude bound ``at: terminal``; f_hat's
-   array-namespace form, :mod:`saml_ros.core.mpc.generic.quadrotor_form`), each flying the true dynamics (ground
+   array-namespace form, :mod:`saml_ros.systems.quadrotor.generic_form`), each flying the true dynamics (ground
    effect) from the same three starts for 50 steps: CPU time per solve and the landing error (distance from
    (0, 0, min_height) at the end), their ratios (goal: within 2x); then identical problems (states the hand-written
    loop visited, each from the warm start it had there) solved by both to a tight tolerance: the largest plan
@@ -281,8 +281,8 @@ def identical(system: Any, model: Any, visited: list[Visit], n: int) -> None:
 def quadrotor_parity(quick: bool) -> None:
     from saml_ros.core.mpc.factory import make_controller
     from saml_ros.core.mpc.generic import GenericSQP
-    from saml_ros.core.mpc.generic.quadrotor_form import quadrotor_base, quadrotor_generic_task
-    from saml_ros.core.systems.quadrotor import Quadrotor
+    from saml_ros.systems.quadrotor.generic_form import quadrotor_base, quadrotor_generic_task
+    from saml_ros.systems.quadrotor.model import Quadrotor
 
     system = Quadrotor()
     task = quadrotor_generic_task(system)

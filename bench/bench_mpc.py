@@ -42,12 +42,13 @@ import torch
 
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.model.network import DynamicsModel
-from saml_ros.core.mpc import LoopStep, MPCResult, closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc import LoopStep, MPCResult, closed_loop, make_controller
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.systems.paddle_ball.mpc import paddle_goal
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 
 def train_quick(system: System, n: int, epochs: int, seed: int = 0) -> tuple[DynamicsModel, float]:

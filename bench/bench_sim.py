@@ -44,8 +44,7 @@ def bench_core(system_name: str, steps: int, with_messages: bool, cdr: bool = Fa
     from msg_schemas.cdr import CdrCodec
     from msg_schemas.telemetry import clock_to_msg
     from saml_ros.core.systems import get_system
-    from saml_ros.core.systems.registry import build_stepped_sim
-    from saml_ros.core.worlds.sim_core import APPLIED, CLOCK, STATE, SimConfig
+    from saml_ros.core.worlds.sim_core import APPLIED, CLOCK, STATE, SimConfig, build_stepped_sim
 
     system = get_system(system_name)
     schema = get_schema(system_name)

@@ -136,7 +136,7 @@ def robot_schema(system: str, state_topic: str, state: FieldPathCodec, cmd_topic
 
 
 def robot_schema_from_definition(definition: Mapping[str, Any]) -> SystemSchema:
-    """The :class:`SystemSchema` of a robot from its parsed system file (``saml_ros.core.systems.system_file``):
+    """The :class:`SystemSchema` of a robot from its parsed system file (``saml_ros.systems.system_file``):
     the ``state`` and ``control`` sections' topics, message types, field paths, frames and QoS."""
 
     def codec(sec: Mapping[str, Any]) -> FieldPathCodec:

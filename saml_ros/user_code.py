@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any
 
 from saml_ros.core.dynamics.base_models import ENTRY_POINT_GROUP, BaseModelError, BaseModelSpec
-from saml_ros.core.systems.robot_entry import register_robot
-from saml_ros.core.systems.system_file import FileSystem, SystemFileError, read_system_file
+from saml_ros.systems.robot_entry import register_robot
+from saml_ros.systems.system_file import FileSystem, SystemFileError, read_system_file
 
 
 class UserFunction:
@@ -144,8 +144,8 @@ def resolve_base_model(spec: BaseModelSpec) -> Callable[..., Any] | None:
 
 def load_system_file(path: str | Path) -> FileSystem:
     """Read, validate and build the robot of system file ``path``, importing its base model if it is user code
-    (see :func:`saml_ros.core.systems.system_file.read_system_file`), and register it under its name
-    (:func:`saml_ros.core.systems.robot_entry.register_robot`); ``SystemFileError`` on any problem."""
+    (see :func:`saml_ros.systems.system_file.read_system_file`), and register it under its name
+    (:func:`saml_ros.systems.robot_entry.register_robot`); ``SystemFileError`` on any problem."""
     system = read_system_file(path, resolve=resolve_base_model)
     try:
         register_robot(system)
@@ -156,7 +156,7 @@ def load_system_file(path: str | Path) -> FileSystem:
 
 def system_from_definition(definition: dict[str, Any], where: str = "") -> FileSystem:
     """A robot from a parsed (e.g. checkpoint-stored) definition, importing its base model if it is user code."""
-    from saml_ros.core.systems.system_file import parse_definition
+    from saml_ros.systems.system_file import parse_definition
 
     label = where or f"stored definition of {definition.get('name')!r}"
     return FileSystem(parse_definition(definition, label), label, resolve=resolve_base_model)

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from saml_ros.core.mpc.dynamics_np import ORACLE
-from saml_ros.core.systems.friction import DEFAULT_BUMPS, FrictionDoubleIntegrator
+from saml_ros.systems.friction.model import DEFAULT_BUMPS, FrictionDoubleIntegrator
 
 #: one candidate: (name, mu_base, bumps (a, c, w), waves (A, L, phase), tanh steps (a, c, s) a/2 (1 + tanh((p-c)/s)))
 Candidate = tuple[str, float, tuple[tuple[float, float, float], ...], tuple[tuple[float, float, float], ...],

@@ -115,7 +115,7 @@ SAML_ERRORS: tuple[str, ...] = (
     "saml_ros/core/runtime/lifecycle.py:TransitionRefused",
     "saml_ros/core/runtime/device.py:DeviceError",
     "saml_ros/core/dynamics/base_models.py:BaseModelError",
-    "saml_ros/core/systems/system_file.py:SystemFileError",
+    "saml_ros/systems/system_file.py:SystemFileError",
     "saml_ros/core/worlds/sim_core.py:CommandRejected",
     "saml_ros/core/online/resume.py:ResumeError",
     "saml_ros/bags/io.py:BagError",

@@ -1,8 +1,8 @@
 """``paddle_ball_sim``: the MuJoCo paddle-ball world as a ROS 2 node (namespace ``/paddle_ball``).
 
-Node wiring only: the simulator core is :class:`saml_ros.core.worlds.paddle_sim.PaddleBallSim` (its docstring
+Node wiring only: the simulator core is :class:`saml_ros.systems.paddle_ball.sim.PaddleBallSim` (its docstring
 has the protocol: one step per impact, lockstep and realtime modes, episodes, the safe default), built from
-these parameters by :func:`saml_ros.core.worlds.paddle_sim.paddle_ball_simulator`.
+these parameters by :func:`saml_ros.systems.paddle_ball.sim.paddle_ball_simulator`.
 """
 
 from __future__ import annotations

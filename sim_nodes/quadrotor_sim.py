@@ -3,7 +3,7 @@
 State: 13-d rigid body (``state`` is a ``nav_msgs/Odometry``, so 3D viewers show the vehicle); command: four
 motor forces (N). Start states like the paper's landing task: x, y ~ U[-2, 2] m, z ~ U[1, 3] m, level, at
 rest. Safe default: hover thrust. Ground: the centre of mass stays at or above ``landing_height``
-(:func:`saml_ros.core.worlds.sim_core.ground_contact`); a step changed by the ground publishes no ``applied_cmd``.
+(:func:`saml_ros.systems.quadrotor.world.ground_contact`); a step changed by the ground publishes no ``applied_cmd``.
 See docs/simulators.md.
 """
 

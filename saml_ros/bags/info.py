@@ -204,7 +204,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     path = args.bag
     system: Any = args.system
     if args.system_file is not None:
-        from saml_ros.core.systems.system_file import SystemFileError
+        from saml_ros.systems.system_file import SystemFileError
         from saml_ros.user_code import load_system_file
 
         try:

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 #: metric name -> (label, unit); the order of the tables
 METRICS: dict[str, tuple[str, str]] = {
@@ -112,7 +112,7 @@ def world_params(sim: dict[str, Any]) -> dict[str, float]:
 # ------------------------------------------------------------------------------------------ starts
 def standard_starts(system: Quadrotor, n: int, seed: int) -> np.ndarray:
     """``(n, 13)`` starts from the simulator's sampler (x, y ~ U[-2, 2] m, z ~ U[1, 3] m, level, at rest)."""
-    from saml_ros.core.worlds.sim_core import quadrotor_start
+    from saml_ros.systems.quadrotor.world import quadrotor_start
 
     rng = np.random.default_rng(seed)
     return np.stack([quadrotor_start(system, rng) for _ in range(n)]) if n else np.zeros((0, 13))
@@ -131,7 +131,8 @@ def aggressive_starts(system: Quadrotor, n: int, seed: int) -> np.ndarray:
 
 def plant(system: Quadrotor, landing_height: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """The simulated true system: ``true_step`` then the simulator's ground contact; ``(13,), (4,) -> (13,)``."""
-    from saml_ros.core.worlds.sim_core import FastStep, quadrotor_model
+    from saml_ros.core.worlds.sim_core import FastStep
+    from saml_ros.systems.quadrotor.world import quadrotor_model
 
     step = FastStep(system)
     constrain = quadrotor_model(system, landing_height).constrain

@@ -134,7 +134,8 @@ def record_flight(task: Any, seed: int, sim_time: float, progress: Any = None) -
     """The demo's live loop without ROS (see the module docstring): episodes of ``task.steps`` steps from the
     simulator's start sampler (``seed``), the MPC on f_hat, the true dynamics with ground contact; ``sim_time`` s."""
     from saml_ros.core.mpc import make_controller
-    from saml_ros.core.worlds.sim_core import FastStep, ground_contact, quadrotor_start
+    from saml_ros.core.worlds.sim_core import FastStep
+    from saml_ros.systems.quadrotor.world import ground_contact, quadrotor_start
 
     system = task.system()
     ctrl = make_controller(system, None, "fast", **task.mpc_options())

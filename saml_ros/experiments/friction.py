@@ -33,7 +33,6 @@ import numpy as np
 from saml_ros.core.mpc import closed_loop, make_controller
 from saml_ros.core.mpc.dynamics_np import ORACLE, PredictionModel
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
@@ -59,6 +58,7 @@ from saml_ros.experiments.headroom import (
 from saml_ros.experiments.plan_checks import PlanChecks
 from saml_ros.offline.pipelines import Comparison
 from saml_ros.offline.plots import plot_error_map, plot_training_curves, save_figure
+from saml_ros.systems.friction.model import FrictionDoubleIntegrator
 
 #: the paper's controller-performance table (200 trials, mean ± std)
 PAPER_COST = {"uniform": ("5.51 ± 3.46", "5.66 ± 0.89"), "sufficient": ("4.73 ± 3.38", "4.57 ± 0.73")}

@@ -1,7 +1,7 @@
 """Ball bouncing (paper, "Ball Bouncing"): full and residual impact models, Uniformly vs Sufficiently Accurate,
 evaluated by an MPC that must KEEP a ball bouncing in the MuJoCo world, next to the base model and the oracle.
 
-Data: random bounces in the MuJoCo world (:func:`saml_ros.core.worlds.paddle_world.collect_impacts`; the paper's
+Data: random bounces in the MuJoCo world (:func:`saml_ros.systems.paddle_ball.bounces.collect_impacts`; the paper's
 "42 minutes" of bounces are about 2500 impacts) and a separate validation set from another world and seed, both
 with the paddle's **tracking error** (``tracking``: the low-level controller realises the commanded paddle velocity
 with Gaussian noise of ``velocity_noise`` m/s per component and the normal with two random rotations of
@@ -18,7 +18,7 @@ over all impacts (:func:`uniform_spec`). Recipe ``"paper"`` (the default): Adam 
 
 Control trials (paper eq. ball_paddle_opt, repeated): a ball is dropped so that it reaches the impact plane at
 px, py ~ U[-1, 1] m with vx, vy ~ U[-1, 1], vz ~ U[-6, -2] m/s, and the controller must bounce it ``n_bounces``
-times in a row (:func:`saml_ros.core.worlds.paddle_world.bounce_sequence`): the first target is
+times in a row (:func:`saml_ros.systems.paddle_ball.bounces.bounce_sequence`): the first target is
 target_xy ~ U[-1, 1]^2 m, every later one the impact point plus U[-target_step, target_step]^2 (clipped to
 [-1, 1]^2), and each bounce's relative speed must lie in [v_min, v_max], v_min ~ U[4, 5), v_max = v_min + U[1, 2]
 m/s (fully random targets every bounce are infeasible even for the oracle: a ball arriving with 3 m/s of horizontal
@@ -40,19 +40,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from saml_ros.core.mpc import Controller, make_controller, paddle_goal
+from saml_ros.core.mpc import Controller, make_controller
 from saml_ros.core.mpc.dynamics_np import ORACLE, PredictionModel
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.systems.paddle_ball import PaddleBall, roll_pitch_from_normal
 from saml_ros.core.training import TrainConfig, Transitions, evaluate_spec
-from saml_ros.core.worlds.paddle_world import (
-    BounceRecord,
-    CollectStats,
-    PaddleBallWorld,
-    bounce_sequence,
-    collect_impacts,
-    impacts_to_arrays,
-)
 from saml_ros.experiments.common import (
     Timer,
     flush_denormals,
@@ -70,6 +61,16 @@ from saml_ros.experiments.headroom import Claim, Power, claims_table, headroom, 
 from saml_ros.experiments.plan_checks import bound_violation
 from saml_ros.offline.pipelines import TrainedModels, finetune_models, train_models
 from saml_ros.offline.plots import save_figure
+from saml_ros.systems.paddle_ball.bounces import (
+    BounceRecord,
+    CollectStats,
+    bounce_sequence,
+    collect_impacts,
+    impacts_to_arrays,
+)
+from saml_ros.systems.paddle_ball.model import PaddleBall, roll_pitch_from_normal
+from saml_ros.systems.paddle_ball.mpc import paddle_goal
+from saml_ros.systems.paddle_ball.world import PaddleBallWorld
 
 PAPER = {("full", "uniform"): ("20.8%", "0.3136"), ("full", "sufficient"): ("0.8%", "0.2124"),
          ("residual", "uniform"): ("0%", "0.164"), ("residual", "sufficient"): ("0%", "0.156")}

@@ -33,7 +33,6 @@ import numpy as np
 from saml_ros.core.mpc import ClosedLoopRun, MPCResult, closed_loop, make_controller
 from saml_ros.core.mpc.dynamics_np import ORACLE, PredictionModel
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.experiments.common import (
     PAIRED_HEADER,
     Timer,
@@ -53,6 +52,7 @@ from saml_ros.experiments.headroom import Claim, claims_table, headroom, power, 
 from saml_ros.experiments.plan_checks import PlanChecks
 from saml_ros.offline.pipelines import Comparison
 from saml_ros.offline.plots import plot_training_curves, save_figure
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 PAPER = {"mpc_cost": {"sufficient": "4.21 ± 1.88", "uniform": "4.55 ± 1.90"},
          "loss": {"sufficient": "6.52e-4", "uniform": "6.16e-4"},
@@ -120,10 +120,10 @@ def spec_dict(system: Quadrotor, loss: str, eps: float) -> dict[str, Any]:
 
 def landing_starts(system: Quadrotor, n: int, seed: int, z: tuple[float, float] | None = None) -> np.ndarray:
     """``(n, 13)`` level, motionless starts at x, y ~ U[-2, 2] m, height ~ U[z]; ``z`` None: the simulator's
-    sampler (``saml_ros.core.worlds.sim_core.quadrotor_start``, z ~ U[1, 3] m; the demo's evaluation)."""
+    sampler (``saml_ros.systems.quadrotor.world.quadrotor_start``, z ~ U[1, 3] m; the demo's evaluation)."""
     rng = np.random.default_rng(seed)
     if z is None:
-        from saml_ros.core.worlds.sim_core import quadrotor_start
+        from saml_ros.systems.quadrotor.world import quadrotor_start
 
         return np.stack([quadrotor_start(system, rng) for _ in range(n)])
     return np.stack([system.hover_state((rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(*z)))
@@ -132,7 +132,8 @@ def landing_starts(system: Quadrotor, n: int, seed: int, z: tuple[float, float] 
 
 def plant(system: Quadrotor, landing_height: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """The simulated true system: ``true_step`` then the simulator's ground contact; ``(13,), (4,) -> (13,)``."""
-    from saml_ros.core.worlds.sim_core import FastStep, quadrotor_model
+    from saml_ros.core.worlds.sim_core import FastStep
+    from saml_ros.systems.quadrotor.world import quadrotor_model
 
     step = FastStep(system)
     model = quadrotor_model(system, landing_height)

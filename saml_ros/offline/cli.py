@@ -145,7 +145,7 @@ def _load_system(args: argparse.Namespace) -> Any:
     """The system of ``--system`` or ``--system-file`` (a robot: registered, and it needs ``--bag``)."""
     if args.system_file is None:
         return get_system(args.system)
-    from saml_ros.core.systems.system_file import SystemFileError
+    from saml_ros.systems.system_file import SystemFileError
     from saml_ros.user_code import load_system_file
 
     try:

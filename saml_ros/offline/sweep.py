@@ -214,7 +214,8 @@ def _jsonable(v: Any) -> Any:
 
 
 def task_starts(system: Any, task: Task) -> np.ndarray:
-    from saml_ros.core.worlds.sim_core import friction_start, quadrotor_start
+    from saml_ros.systems.friction.world import friction_start
+    from saml_ros.systems.quadrotor.world import quadrotor_start
 
     rng = np.random.default_rng(task.seed)
     if system.name == "friction":

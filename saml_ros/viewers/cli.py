@@ -42,7 +42,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     systems = SYSTEM_NAMES
     if args.system_file is not None:
-        from saml_ros.core.systems.system_file import SystemFileError
+        from saml_ros.systems.system_file import SystemFileError
         from saml_ros.user_code import load_system_file
 
         try:

@@ -17,9 +17,9 @@ from saml_ros.core.mpc import make_controller
 from saml_ros.core.online import OnlineConfig, OnlineLearner
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, checkpoint_payload
 from saml_ros.demo.landing import LandingTask, plant
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 _QUAD = get_system("quadrotor")
 assert isinstance(_QUAD, Quadrotor)

@@ -14,8 +14,8 @@ ball bouncing problem).
 from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import SOLVERS, base_model_np, make_controller, make_task
 from saml_ros.core.mpc.loop import ClosedLoopRun, LoopStep, StepHook, closed_loop
-from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleGoal, SLSQPPaddle, paddle_goal
 from saml_ros.core.mpc.shooting import ShootingMPC, ShootingTask, SLSQPShootingMPC, SQPShootingMPC
+from saml_ros.systems.paddle_ball.mpc import GaussNewtonPaddle, PaddleGoal, SLSQPPaddle, paddle_goal
 
 __all__ = [
     "SOLVERS",

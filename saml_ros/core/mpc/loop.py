@@ -12,8 +12,8 @@ import numpy as np
 
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import Controller, MPCResult
-from saml_ros.core.mpc.paddle.problem import paddle_goal
-from saml_ros.core.systems.paddle_ball import PaddleBall
+from saml_ros.systems.paddle_ball.model import PaddleBall
+from saml_ros.systems.paddle_ball.mpc.problem import paddle_goal
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,6 @@ This face imports no torch (the registry imports a system's module only when it 
 
 from __future__ import annotations
 
-from saml_ros.core.systems import robot_entry  # noqa: F401 - installs the loader of robots' stored definitions
 from saml_ros.core.systems.entry import SystemEntry
 from saml_ros.core.systems.registry import (
     SYSTEM_NAMES,
@@ -26,6 +25,7 @@ from saml_ros.core.systems.registry import (
     system_names,
     unregister_system,
 )
+from saml_ros.systems import robot_entry  # noqa: F401 - installs the loader of robots' stored definitions
 
 __all__ = [
     "SYSTEM_NAMES",

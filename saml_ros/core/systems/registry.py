@@ -8,9 +8,9 @@ the registry never asks "which system is this?": it looks the entry up by name (
 what the entry holds.
 
 The table is open: :func:`register_system` adds an entry at run time (a robot from a system file:
-:mod:`saml_ros.core.systems.robot_entry`; :func:`register_loader` rebuilds one from a stored definition in a
+:mod:`saml_ros.systems.robot_entry`; :func:`register_loader` rebuilds one from a stored definition in a
 process that never read its file); the built-in three
-(:mod:`saml_ros.core.systems.builtin`) are registered when this module is first imported. Importing the
+(:mod:`saml_ros.systems`) are registered when this module is first imported. Importing the
 registry imports neither torch, MuJoCo nor the MPC.
 """
 
@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
-from saml_ros.core.systems import builtin
+from saml_ros import systems as builtin
 from saml_ros.core.systems.entry import SystemEntry
 
 if TYPE_CHECKING:
@@ -84,7 +84,7 @@ def default_params(name: str) -> dict[str, Any]:
 
 
 #: ``loader(name, overrides) -> entry | None``: builds and registers a system this process has not registered from
-#: what it is asked with (a robot's stored definition: :mod:`saml_ros.core.systems.robot_entry`)
+#: what it is asked with (a robot's stored definition: :mod:`saml_ros.systems.robot_entry`)
 Loader = Callable[[str, Mapping[str, Any]], "SystemEntry | None"]
 _LOADERS: list[Loader] = []
 

@@ -18,9 +18,9 @@ from msg_schemas import TypestoreFactory
 from saml_ros.api import load_model
 from saml_ros.bags.io import BagWriter
 from saml_ros.bags.transitions import extract_transitions
-from saml_ros.core.systems.system_file import read_system_file
 from saml_ros.export import ExportError, export_model, numpy_residual
 from saml_ros.offline import cli, export_cli
+from saml_ros.systems.system_file import read_system_file
 from saml_ros.user_code import load_system_file
 
 SYSTEM_FILE = REPO / "examples" / "diff_drive" / "system.yaml"

@@ -23,7 +23,7 @@ from std_srvs.srv import Trigger
 
 from msg_schemas import DATA_QOS, get_schema
 from msg_schemas.telemetry import clock_from_msg, diagnostics_from_msg
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 DT_NS = 100_000_000
 TIMEOUT = 60.0  # start-up on a loaded 2-core machine

@@ -51,7 +51,7 @@ def _is_saml(module: str, base: str) -> bool:
 
 @pytest.mark.parametrize(("path", "builtin"), [
     ("saml_ros.core.spec.SpecError", ValueError),
-    ("saml_ros.core.systems.system_file.SystemFileError", ValueError),
+    ("saml_ros.systems.system_file.SystemFileError", ValueError),
     ("saml_ros.core.params.ParamErrors", ValueError),
     ("saml_ros.core.runtime.device.DeviceError", ValueError),
     ("saml_ros.core.worlds.sim_core.CommandRejected", ValueError),

@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.quadrotor import Quadrotor
 from saml_ros.demo.aggregate import aggregate, format_aggregate, load_runs
 from saml_ros.demo.evaluation import Arm, captured, evaluate_arms, paired_diff, summarize
 from saml_ros.demo.landing import LandingTask, aggressive_starts, episode_metrics, standard_starts
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 _QUAD = get_system("quadrotor")
 assert isinstance(_QUAD, Quadrotor)

@@ -292,8 +292,8 @@ def test_paddle_trials_are_paired_and_count_failures_as_defined() -> None:
     """The same trial gives every model the same drop and target offsets; the oracle keeps the ball bouncing where
     f_hat alone does not; failures are trials with fewer than n_bounces bounces."""
     from saml_ros.core.mpc import make_controller
-    from saml_ros.core.worlds.paddle_world import PaddleBallWorld
     from saml_ros.experiments.paddle_ball import PaddleSettings, TrialChecks, make_trials, run_trial
+    from saml_ros.systems.paddle_ball.world import PaddleBallWorld
 
     s = PaddleSettings(n_bounces=6)
     world = PaddleBallWorld(seed=0, **s.scene())

@@ -72,7 +72,7 @@ class GenericSQP:
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
             controller; not used (this planner builds f_hat from the system file, :func:`make_base`).
         f_hat: the base model to plan with instead of :func:`make_base`'s (e.g. a built-in system's form:
-            :func:`~saml_ros.core.mpc.generic.quadrotor_form.quadrotor_base`, or the true dynamics for an oracle).
+            :func:`~saml_ros.systems.quadrotor.generic_form.quadrotor_base`, or the true dynamics for an oracle).
     """
 
     def __init__(self, system: System, model: DynamicsModel | None = None, horizon: int | None = None,

@@ -7,7 +7,7 @@ rollouts) around one DAQP solve of 60-80 us. The C kernel does those numerics in
 changes); the solver's control flow and the QP stay in Python. It applies to a Euclidean stage cost (the
 quadrotor task) with the prediction models the quadrotor MPC flies:
 
-* f_hat alone (:class:`~saml_ros.core.mpc.dynamics_np.QuadrotorBaseNP`),
+* f_hat alone (:class:`~saml_ros.systems.quadrotor.dynamics_np.QuadrotorBaseNP`),
 * f_hat + phi (a residual model) or phi alone (a full model), phi a PReLU network (:class:`NumpyMLP`'s folded
   weights: one ensemble member),
 * the guard's bounded residual (:class:`~saml_ros.core.mpc.guard.BoundedDynamics`: phi clipped per field).
@@ -178,8 +178,9 @@ def _addr(a: np.ndarray) -> int:
 
 def unsupported_reason(dyn: Any, task: Any) -> str | None:
     """Why :class:`NativeSQP` cannot serve this prediction model and task (None: it can)."""
-    from saml_ros.core.mpc.dynamics_np import NumpyDynamics, QuadrotorBaseNP
+    from saml_ros.core.mpc.dynamics_np import NumpyDynamics
     from saml_ros.core.mpc.mlp_np import NumpyMLP
+    from saml_ros.systems.quadrotor.dynamics_np import QuadrotorBaseNP
 
     if task.res_idx.size < 2:
         return "a scalar stage cost (the exact l1 model runs in numpy)"

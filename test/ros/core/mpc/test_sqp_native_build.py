@@ -11,7 +11,7 @@ from pathlib import Path
 from helpers import REPO
 
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 _QUAD = get_system("quadrotor")
 assert isinstance(_QUAD, Quadrotor)

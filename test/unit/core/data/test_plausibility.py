@@ -28,8 +28,7 @@ from saml_ros.core.mpc.config import MPCConfig
 from saml_ros.core.mpc.service import MPCService
 from saml_ros.core.online.ingest import Ingest, RecentWindow
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
-from saml_ros.core.systems.registry import build_stepped_sim
-from saml_ros.core.worlds.sim_core import APPLIED, STATE, SimConfig
+from saml_ros.core.worlds.sim_core import APPLIED, STATE, SimConfig, build_stepped_sim
 
 LOG = logging.getLogger("test_plausibility")
 DT = 100_000_000

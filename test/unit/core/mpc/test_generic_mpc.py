@@ -26,7 +26,7 @@ from saml_ros.core.mpc.generic import GenericSQP
 from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase, make_base
 from saml_ros.core.mpc.generic.goals import GoalRefused, GoalTracker
 from saml_ros.core.mpc.generic.section import mpc_task
-from saml_ros.core.systems.system_file import FileSystem, SystemFileError, parse_definition
+from saml_ros.systems.system_file import FileSystem, SystemFileError, parse_definition
 from saml_ros.user_code import load_system_file, resolve_base_model
 
 REPO = Path(__file__).resolve().parents[4]
@@ -164,7 +164,7 @@ def test_robot_without_mpc_section_says_what_to_add() -> None:
     raw = example()
     del raw["mpc"]
     from saml_ros.core.systems.registry import get_entry
-    from saml_ros.core.systems.robot_entry import register_robot
+    from saml_ros.systems.robot_entry import register_robot
 
     register_robot(build(raw))
     with pytest.raises(ValueError, match="without an 'mpc:' section: add one"):
@@ -398,7 +398,7 @@ def test_guarded_generic_planner_falls_back_where_the_ensemble_disagrees() -> No
     from saml_ros.core.mpc.guard import GuardConfig, make_guarded_controller
 
     s = build(example())
-    from saml_ros.core.systems.robot_entry import register_robot
+    from saml_ros.systems.robot_entry import register_robot
 
     register_robot(s)
     g = make_guarded_controller(s, "fast", GuardConfig(max_disagreement=1e-6, bound_residual=True), member=0,

@@ -10,13 +10,14 @@ import scipy.optimize
 import torch
 
 from saml_ros.core.model.network import DynamicsModel
-from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller, paddle_goal
+from saml_ros.core.mpc import LoopStep, base_model_np, closed_loop, make_controller
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, L1QP, solve_box_qp, solve_qp
 from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.paddle_ball import landing_point
+from saml_ros.systems.paddle_ball.model import landing_point
+from saml_ros.systems.paddle_ball.mpc import paddle_goal
 
 SYSTEMS = ("friction", "quadrotor", "paddle_ball")
 #: both QP backends where daqp is installed (requirements.txt installs it), else the numpy one

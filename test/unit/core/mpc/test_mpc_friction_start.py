@@ -15,7 +15,7 @@ from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
 from saml_ros.core.mpc.shooting.tasks import push_brake_sequences
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
+from saml_ros.systems.friction.model import FrictionDoubleIntegrator
 
 SYSTEM = FrictionDoubleIntegrator()
 #: friction deceleration of the dead-zone model (m/s^2): the true sticky patch near p = 0.3 m has ~3

@@ -12,18 +12,14 @@ import torch
 
 from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc import closed_loop, make_controller
-from saml_ros.core.mpc.dynamics_np import (
-    ORACLE,
-    FrictionTrueNP,
-    NumpyDynamics,
-    PaddleTrueNP,
-    QuadrotorTrueNP,
-    TorchTrueNP,
-)
+from saml_ros.core.mpc.dynamics_np import ORACLE, NumpyDynamics, TorchTrueNP
 from saml_ros.core.mpc.factory import true_model_np
 from saml_ros.core.systems import SYSTEM_NAMES, get_system
-from saml_ros.core.systems.friction import FRICTION_PROFILES, FrictionDoubleIntegrator
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.systems.friction.dynamics_np import FrictionTrueNP
+from saml_ros.systems.friction.model import FRICTION_PROFILES, FrictionDoubleIntegrator
+from saml_ros.systems.paddle_ball.dynamics_np import PaddleTrueNP
+from saml_ros.systems.quadrotor.dynamics_np import QuadrotorTrueNP
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 
 def autograd_jac(system: object, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +139,7 @@ def test_a_model_with_the_exact_residual_gives_the_oracle_cost() -> None:
 
 
 def test_paddle_oracle_lands_the_true_impact_map_on_target() -> None:
-    from saml_ros.core.mpc import paddle_goal
+    from saml_ros.systems.paddle_ball.mpc import paddle_goal
 
     system = get_system("paddle_ball")
     rng = np.random.default_rng(2)

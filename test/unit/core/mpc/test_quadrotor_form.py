@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from saml_ros.core.dynamics.base_forms import TORCH
-from saml_ros.core.mpc.generic.quadrotor_form import quadrotor_base, quadrotor_f_hat, quadrotor_params
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.systems.quadrotor.generic_form import quadrotor_base, quadrotor_f_hat, quadrotor_params
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 
 def test_form_equals_the_torch_f_hat_and_its_jacobians_equal_autograd() -> None:

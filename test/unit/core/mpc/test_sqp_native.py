@@ -13,10 +13,11 @@ from saml_ros.core.mpc.dynamics_np import NumpyDynamics
 from saml_ros.core.mpc.guard import BoundedDynamics
 from saml_ros.core.mpc.shooting import native
 from saml_ros.core.mpc.shooting.sqp import SQPShootingMPC
-from saml_ros.core.mpc.shooting.tasks import friction_task, quadrotor_task
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.systems.friction.model import FrictionDoubleIntegrator
+from saml_ros.systems.friction.task import friction_task
+from saml_ros.systems.quadrotor.model import Quadrotor
+from saml_ros.systems.quadrotor.task import quadrotor_task
 
 _QUAD = get_system("quadrotor")
 assert isinstance(_QUAD, Quadrotor)

@@ -28,9 +28,9 @@ from saml_ros.core.online.report import learner_diagnostics
 from saml_ros.core.online.telemetry import VERDICT_NUMBERS
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.system_file import FileSystem, SystemFileError, parse_definition
 from saml_ros.core.training import TrainConfig
 from saml_ros.core.training.heldout import MET, MET_ON_TRAINING_ONLY, Estimate, heldout_verdict
+from saml_ros.systems.system_file import FileSystem, SystemFileError, parse_definition
 
 REPO = Path(__file__).resolve().parents[4]
 EXAMPLE = REPO / "examples" / "diff_drive" / "system.yaml"

@@ -99,7 +99,7 @@ def test_the_simulator_core_is_built_from_the_sim_nodes_default_parameters(name:
     np.testing.assert_array_equal(core.holder.safe_default, get_system(name).safe_control())
     assert core.begin(0)  # the first state (and /clock) come out
     if entry.stepped_model is not None:
-        from saml_ros.core.systems.registry import build_stepped_sim
+        from saml_ros.core.worlds.sim_core import build_stepped_sim
 
         assert build_stepped_sim(get_system(name), SimConfig()).system.name == name
 

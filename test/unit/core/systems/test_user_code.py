@@ -20,7 +20,7 @@ import pytest
 import yaml
 from helpers.your_robot import f_hat_np, robot_folder
 
-from saml_ros.core.systems.system_file import SystemFileError
+from saml_ros.systems.system_file import SystemFileError
 
 
 # ------------------------------------------------------------------------------------------ in process

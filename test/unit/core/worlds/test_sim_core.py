@@ -11,9 +11,6 @@ import pytest
 
 from saml_ros.core.params import coerce_param
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.systems.quadrotor import Quadrotor
-from saml_ros.core.systems.registry import build_stepped_sim
 from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
@@ -25,11 +22,12 @@ from saml_ros.core.worlds.sim_core import (
     FastStep,
     SimConfig,
     SteppedSim,
-    friction_model,
-    friction_start,
-    ground_contact,
-    quadrotor_start,
+    build_stepped_sim,
 )
+from saml_ros.systems.friction.model import FrictionDoubleIntegrator
+from saml_ros.systems.friction.world import friction_model, friction_start
+from saml_ros.systems.quadrotor.model import Quadrotor
+from saml_ros.systems.quadrotor.world import ground_contact, quadrotor_start
 
 DT_NS = 100_000_000  # both time-stepped systems use dt = 0.1 s
 QUAD_START = (0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -297,14 +295,14 @@ def test_coerce_param_accepts_yaml_spellings_and_names_bad_ones() -> None:
 # ---------------------------------------------------------------------------------------- paddle ball
 @pytest.fixture(scope="module")
 def ball_world() -> Any:
-    from saml_ros.core.worlds.paddle_world import PaddleBallWorld
+    from saml_ros.systems.paddle_ball.world import PaddleBallWorld
 
     return PaddleBallWorld(seed=0)
 
 
 def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world: Any) -> None:
-    from saml_ros.core.worlds.paddle_sim import PaddleBallSim
     from saml_ros.core.worlds.sim_core import FLIGHT, TARGET
+    from saml_ros.systems.paddle_ball.sim import PaddleBallSim
 
     sim = PaddleBallSim(ball_world, SimConfig(mode="lockstep", initial_state=(0, 0, 1.0, 0, 0, 0)),
                         flight_rate_hz=30.0)
@@ -333,8 +331,8 @@ def test_paddle_ball_lockstep_publishes_consistent_impact_triples(ball_world: An
 
 
 def test_paddle_ball_realtime_bounces_on_the_safe_default_and_restarts_lost_balls(ball_world: Any) -> None:
-    from saml_ros.core.worlds.paddle_sim import PaddleBallSim
     from saml_ros.core.worlds.sim_core import TARGET
+    from saml_ros.systems.paddle_ball.sim import PaddleBallSim
 
     sim = PaddleBallSim(ball_world, SimConfig(mode="realtime", seed=2, cmd_timeout=0.1), publish_clock=False,
                         flight_rate_hz=0.0, tick_seconds=0.02)

@@ -1,6 +1,6 @@
 """The per-start iterations of the fast paddle-ball solver, in plain Python floats: projected Gauss-Newton / Newton
-on ``F = 1/2 ||r(theta)||^2`` (``r`` the landing error, m, :mod:`~saml_ros.core.mpc.paddle.landing_error`) within
-the feasible set (:mod:`~saml_ros.core.mpc.paddle.feasible_set`). Per iteration:
+on ``F = 1/2 ||r(theta)||^2`` (``r`` the landing error, m, :mod:`~saml_ros.systems.paddle_ball.mpc.landing_error`) within
+the feasible set (:mod:`~saml_ros.systems.paddle_ball.mpc.feasible_set`). Per iteration:
 
 1. **active set** (Bertsekas' projected Newton): the bounds touched by ``theta`` (within ``eps``) are held:
    coordinates moved exactly onto their box bound, the step kept tangent to an active speed bound (``P``: the
@@ -39,8 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from saml_ros.core.mpc.paddle.feasible_set import FeasibleSet
-from saml_ros.core.mpc.paddle.landing_error import LandingError, Point
+from saml_ros.systems.paddle_ball.mpc.feasible_set import FeasibleSet
+from saml_ros.systems.paddle_ball.mpc.landing_error import LandingError, Point
 
 MODES = ("velocity", "gauss-newton", "newton")
 _ZERO = [0.0] * 5

@@ -1,5 +1,5 @@
 """The fast paddle-ball solver's internals: exact derivatives, the feasible-set projection, the search, and its
-agreement with the SLSQP reference (saml_ros.core.mpc.paddle: landing_error, feasible_set, projected_newton,
+agreement with the SLSQP reference (saml_ros.systems.paddle_ball.mpc: landing_error, feasible_set, projected_newton,
 multistart)."""
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ import pytest
 import torch
 
 from saml_ros.core.model.network import DynamicsModel
-from saml_ros.core.mpc import base_model_np, make_controller, paddle_goal
+from saml_ros.core.mpc import base_model_np, make_controller
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.paddle import GaussNewtonPaddle, PaddleProblem
-from saml_ros.core.mpc.paddle.landing_error import LandingError
-from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton
 from saml_ros.core.systems import get_system
-from saml_ros.core.systems.paddle_ball import PaddleBall, landing_point
+from saml_ros.systems.paddle_ball.model import PaddleBall, landing_point
+from saml_ros.systems.paddle_ball.mpc import GaussNewtonPaddle, PaddleProblem, paddle_goal
+from saml_ros.systems.paddle_ball.mpc.landing_error import LandingError
+from saml_ros.systems.paddle_ball.mpc.projected_newton import ProjectedNewton
 
 _SYSTEM = get_system("paddle_ball")
 assert isinstance(_SYSTEM, PaddleBall)

@@ -8,15 +8,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from saml_ros.core.systems.paddle_ball import PaddleBall
-from saml_ros.core.worlds.paddle_world import (
-    CollectStats,
-    Impact,
-    PaddleBallWorld,
-    collect_impacts,
-    impacts_to_arrays,
-    random_commands,
-)
+from saml_ros.systems.paddle_ball.bounces import CollectStats, collect_impacts, impacts_to_arrays, random_commands
+from saml_ros.systems.paddle_ball.model import PaddleBall
+from saml_ros.systems.paddle_ball.world import Impact, PaddleBallWorld
 
 BIAS = PaddleBall().normal_bias_y
 
@@ -228,7 +222,7 @@ def test_tracking_error_is_reproducible_from_the_seed() -> None:
 
 # ------------------------------------------------------------------------------------------------ multi-bounce
 def test_bounce_sequence_completes_with_a_keeping_command_and_counts_bounces() -> None:
-    from saml_ros.core.worlds.paddle_world import bounce_sequence
+    from saml_ros.systems.paddle_ball.bounces import bounce_sequence
 
     w = PaddleBallWorld(seed=0)
     w.reset()
@@ -248,7 +242,7 @@ def test_bounce_sequence_completes_with_a_keeping_command_and_counts_bounces() -
 
 
 def test_bounce_sequence_fails_when_the_ball_is_not_kept_bouncing() -> None:
-    from saml_ros.core.worlds.paddle_world import LANDS_OUT, bounce_sequence
+    from saml_ros.systems.paddle_ball.bounces import LANDS_OUT, bounce_sequence
 
     w = PaddleBallWorld(seed=0)
     w.reset()

@@ -19,16 +19,16 @@ from saml_ros.core.dynamics.quaternion import (
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import SYSTEM_NAMES, default_params, get_system
-from saml_ros.core.systems.friction import FrictionDoubleIntegrator
-from saml_ros.core.systems.paddle_ball import (
+from saml_ros.systems.friction.model import FrictionDoubleIntegrator
+from saml_ros.systems.paddle_ball.model import (
     PaddleBall,
     landing_point,
     normal_from_roll_pitch,
     roll_pitch_from_normal,
     rotate_y,
 )
-from saml_ros.core.systems.plots import write_figures
-from saml_ros.core.systems.quadrotor import Quadrotor
+from saml_ros.systems.plots import write_figures
+from saml_ros.systems.quadrotor.model import Quadrotor
 
 F64 = torch.float64
 

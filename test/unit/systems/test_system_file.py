@@ -1,4 +1,4 @@
-"""System files (saml_ros.core.systems.system_file): a robot described in YAML, every bad configuration fails at
+"""System files (saml_ros.systems.system_file): a robot described in YAML, every bad configuration fails at
 load time with a message naming what is wrong; field paths read rclpy and rosbags messages; base models."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from helpers import REPO
 from msg_schemas import RCLPY, SchemaError, TypestoreFactory
 from msg_schemas.field_path import FieldPathError, resolve
 from saml_ros.core.dynamics.base_models import BaseModelError
-from saml_ros.core.systems.system_file import (
+from saml_ros.systems.system_file import (
     FileSystem,
     SystemFileError,
     parse_definition,

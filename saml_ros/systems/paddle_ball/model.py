@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from saml_ros.core.dynamics import checks as _checks
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
-from saml_ros.core.systems import _checks
 
 _STATE = [
     ("px", "m", "ball position x before impact"), ("py", "m", "ball position y before impact"),

@@ -1,5 +1,5 @@
 """The quadrotor's f_hat as an array-namespace form (:mod:`saml_ros.core.dynamics.base_forms`), for the generic
-planner: the same explicit Euler step as :meth:`saml_ros.core.systems.quadrotor.Quadrotor.euler_step` (torch),
+planner: the same explicit Euler step as :meth:`saml_ros.systems.quadrotor.model.Quadrotor.euler_step` (torch),
 written once for numpy, torch and CasADi, so the generic SQP differentiates it symbolically (CasADi) instead of by
 torch autograd. Equal to the torch f_hat to rounding (``test/unit/core/mpc/test_quadrotor_form.py``).
 
@@ -47,7 +47,7 @@ def quadrotor_f_hat(x: Any, u: Any, *, dt: float, xp: Any, mass: float, inertia:
 
 
 def quadrotor_params(system: Any) -> dict[str, Any]:
-    """The form's parameters of a :class:`~saml_ros.core.systems.quadrotor.Quadrotor` instance."""
+    """The form's parameters of a :class:`~saml_ros.systems.quadrotor.model.Quadrotor` instance."""
     return {"mass": float(system.mass), "inertia": tuple(float(v) for v in system.inertia), "g": float(system.g)}
 
 
@@ -59,7 +59,7 @@ def quadrotor_base(system: Any) -> SymbolicBase:
 
 def quadrotor_generic_task(system: Any, horizon: int = 10, min_height: float = 0.2, qw_tol: float = 0.05,
                            tilt_max: float = 0.2) -> Any:
-    """The quadrotor demo's landing task (:func:`saml_ros.core.mpc.shooting.tasks.quadrotor_task`) as a generic
+    """The quadrotor demo's landing task (:func:`saml_ros.systems.quadrotor.task.quadrotor_task`) as a generic
     :class:`~saml_ros.core.mpc.generic.section.MPCTask`: the unsquared distance of ``(px, py, pz)`` from the goal at
     every step (``norm_cost``, smoothed by 1e-3 as the hand-written SQP's ``eps``), ``pz >= min_height`` and
     ``|qx|, |qy| <= tilt_max`` at every step, and the final attitude bound ``|qw_T - 1| <= qw_tol`` in the form the

@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from saml_ros.core.dynamics import checks as _checks
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
-from saml_ros.core.systems import _checks
 
 #: default friction bumps (amplitude m/s^2, centre m, width m): a sticky patch just right of the origin
 #: (inside the |p| <= 0.5 accuracy region) and a broad one at p = -1.2

@@ -8,7 +8,7 @@
 * :mod:`.landing_error`: the landing error and its exact first and second derivatives.
 """
 
-from saml_ros.core.mpc.paddle.controller import GaussNewtonPaddle, PaddleController, SLSQPPaddle
-from saml_ros.core.mpc.paddle.problem import PaddleGoal, PaddleProblem, paddle_goal
+from saml_ros.systems.paddle_ball.mpc.controller import GaussNewtonPaddle, PaddleController, SLSQPPaddle
+from saml_ros.systems.paddle_ball.mpc.problem import PaddleGoal, PaddleProblem, paddle_goal
 
 __all__ = ["GaussNewtonPaddle", "PaddleController", "PaddleGoal", "PaddleProblem", "SLSQPPaddle", "paddle_goal"]

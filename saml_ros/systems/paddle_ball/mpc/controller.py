@@ -1,12 +1,12 @@
-"""The paper's one-shot ball-bouncing controllers (eq. ball_paddle_opt, :mod:`~saml_ros.core.mpc.paddle.problem`):
+"""The paper's one-shot ball-bouncing controllers (eq. ball_paddle_opt, :mod:`~saml_ros.systems.paddle_ball.mpc.problem`):
 choose the paddle velocity and orientation at impact so that the ball comes back down at a target xy.
 
 Both solvers start from the same list (:meth:`PaddleProblem.guesses`, the previous solution first) and return the
 best feasible end point. Fast solver (:class:`GaussNewtonPaddle`): projected Gauss-Newton / Newton on
 ``1/2 ||r||^2`` with exact first and second derivatives, in plain Python floats
-(:mod:`~saml_ros.core.mpc.paddle.landing_error`, :mod:`~saml_ros.core.mpc.paddle.projected_newton`,
-:mod:`~saml_ros.core.mpc.paddle.feasible_set`) and its own multi-start rule
-(:mod:`~saml_ros.core.mpc.paddle.multistart`). Reference (:class:`SLSQPPaddle`): scipy SLSQP on the exact non-smooth
+(:mod:`~saml_ros.systems.paddle_ball.mpc.landing_error`, :mod:`~saml_ros.systems.paddle_ball.mpc.projected_newton`,
+:mod:`~saml_ros.systems.paddle_ball.mpc.feasible_set`) and its own multi-start rule
+(:mod:`~saml_ros.systems.paddle_ball.mpc.multistart`). Reference (:class:`SLSQPPaddle`): scipy SLSQP on the exact non-smooth
 objective with finite differences, restarting until a start reaches the target or two starts agree.
 """
 
@@ -22,10 +22,10 @@ import scipy.optimize
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import BaseModelNP, NumpyDynamics, PredictionModel
-from saml_ros.core.mpc.paddle.multistart import SearchSettings, search
-from saml_ros.core.mpc.paddle.problem import PaddleGoal, PaddleProblem, control_from_theta, paddle_goal
-from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton, RunResult
-from saml_ros.core.systems.paddle_ball import PaddleBall
+from saml_ros.systems.paddle_ball.model import PaddleBall
+from saml_ros.systems.paddle_ball.mpc.multistart import SearchSettings, search
+from saml_ros.systems.paddle_ball.mpc.problem import PaddleGoal, PaddleProblem, control_from_theta, paddle_goal
+from saml_ros.systems.paddle_ball.mpc.projected_newton import ProjectedNewton, RunResult
 
 
 class PaddleController:
@@ -114,7 +114,7 @@ class PaddleController:
 
 class GaussNewtonPaddle(PaddleController):
     """The fast paddle solver: exact-derivative projected Gauss-Newton / Newton from the same starts
-    (:mod:`~saml_ros.core.mpc.paddle.multistart`, :mod:`~saml_ros.core.mpc.paddle.projected_newton`).
+    (:mod:`~saml_ros.systems.paddle_ball.mpc.multistart`, :mod:`~saml_ros.systems.paddle_ball.mpc.projected_newton`).
 
     Options: ``max_iter`` (iterations of one Newton run), ``max_time`` (s, optional budget of a solve; the best
     point found by then is returned).

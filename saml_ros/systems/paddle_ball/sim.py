@@ -48,7 +48,7 @@ RESTART_GAP_NS = 100_000_000
 
 
 class PaddleBallSim(SimCore):
-    """Impact-by-impact simulator core around a :class:`~saml_ros.core.worlds.paddle_world.PaddleBallWorld`.
+    """Impact-by-impact simulator core around a :class:`~saml_ros.systems.paddle_ball.world.PaddleBallWorld`.
 
     Args:
         world: the MuJoCo world (its system is the simulated :class:`PaddleBall`).
@@ -229,8 +229,8 @@ def paddle_ball_simulator(system: System, config: SimConfig, params: Mapping[str
     """The paddle-ball simulator core from the ``paddle_ball_sim`` node's parameter values ``params``
     (``timestep``, ``publish_clock``, ``flight_rate_hz``, ``rate_hz``, ``impact_time_tolerance``); imports MuJoCo.
     ``ValueError`` naming a bad parameter."""
-    from saml_ros.core.systems.paddle_ball import PaddleBall
-    from saml_ros.core.worlds.paddle_world import PaddleBallWorld
+    from saml_ros.systems.paddle_ball.model import PaddleBall
+    from saml_ros.systems.paddle_ball.world import PaddleBallWorld
 
     if not isinstance(system, PaddleBall):
         raise ValueError(f"the paddle-ball simulator needs a PaddleBall system, got {system.name!r}")

@@ -10,7 +10,7 @@ Decision variables ``theta = [pvx, pvy, pvz (m/s), roll, pitch (rad)]``; the com
                v_min <= |v_ball - v_paddle| <= v_max        (relative speed at impact)
 
 ``v_post`` is the model in use (``f_hat + phi``, ``phi`` for a full model, or ``f_hat``), ``landing`` the
-ballistic landing point at the impact height (:func:`~saml_ros.core.systems.paddle_ball.landing_point`).
+ballistic landing point at the impact height (:func:`~saml_ros.systems.paddle_ball.model.landing_point`).
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 
 from saml_ros.core.mpc.dynamics_np import NumpyDynamics
-from saml_ros.core.mpc.paddle.feasible_set import FeasibleSet
-from saml_ros.core.mpc.paddle.landing_error import LandingError
-from saml_ros.core.systems.paddle_ball import PaddleBall
+from saml_ros.systems.paddle_ball.model import PaddleBall
+from saml_ros.systems.paddle_ball.mpc.feasible_set import FeasibleSet
+from saml_ros.systems.paddle_ball.mpc.landing_error import LandingError
 
 _TILTS = ((0.0, 0.5), (0.0, -0.5), (0.5, 0.0), (-0.5, 0.0), (0.5, 0.5), (-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5))
 _DEFAULTS: dict[str, Any] = {"target_xy": (0.0, 0.0), "roll": (-0.4, 0.4), "pitch": (-0.4, 0.4), "v_rel": (3.0, 5.0)}

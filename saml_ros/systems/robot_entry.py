@@ -1,6 +1,6 @@
 """Robots described by a system file (:mod:`.system_file`) as entries of the open registry.
 
-:func:`register_robot` registers a loaded :class:`~saml_ros.core.systems.system_file.FileSystem` under its name,
+:func:`register_robot` registers a loaded :class:`~saml_ros.systems.system_file.FileSystem` under its name,
 so everything that looks a system up by name (the learner node's configuration, ``msg_schemas.get_schema``, the bag
 tools, ``train``, checkpoint loading) reaches it like a built-in. A process that never read the file (a training
 process, a script loading a checkpoint) meets the robot as ``get_system(name, definition=...)`` with the definition
@@ -25,7 +25,7 @@ from saml_ros.core.systems.entry import SystemEntry
 from saml_ros.core.systems.registry import find_entry, register_loader, register_system
 
 if TYPE_CHECKING:
-    from saml_ros.core.systems.system_file import FileSystem
+    from saml_ros.systems.system_file import FileSystem
 
 
 def _no_mpc(name: str) -> Any:
@@ -125,7 +125,7 @@ def load_stored_robot(name: str, overrides: Mapping[str, Any]) -> SystemEntry | 
     definition = overrides.get("definition")
     if not isinstance(definition, Mapping) or definition.get("name") != name:
         return None
-    from saml_ros.core.systems.system_file import system_from_params
+    from saml_ros.systems.system_file import system_from_params
 
     return register_robot(system_from_params(overrides))
 

@@ -1,5 +1,5 @@
 """The paddle-ball controller's feasible set and its active constraints, in plain Python floats (used by
-:mod:`~saml_ros.core.mpc.paddle.projected_newton`).
+:mod:`~saml_ros.systems.paddle_ball.mpc.projected_newton`).
 
 ``theta = [pv (3) m/s, roll, pitch (rad)]`` lies in a box, and the relative speed ``s = |v_ball - pv|`` in
 ``[v_min, v_max]``: a spherical shell around ``v_ball`` in the paddle-velocity space. :meth:`FeasibleSet.project`

@@ -1,6 +1,6 @@
 """Figures of the systems' hidden effects: the friction profile mu(p) and the ground-effect gain K_ground.
 
-Run ``./dev python -m saml_ros.core.systems.plots OUTDIR`` (the repo keeps its copies in ``docs/figures/``).
+Run ``./dev python -m saml_ros.systems.plots OUTDIR`` (the repo keeps its copies in ``docs/figures/``).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from numpy.typing import ArrayLike  # noqa: E402
 
-from saml_ros.core.systems.friction import FRICTION_PROFILES, FrictionDoubleIntegrator  # noqa: E402
-from saml_ros.core.systems.quadrotor import Quadrotor, ground_effect_factor  # noqa: E402
+from saml_ros.systems.friction.model import FRICTION_PROFILES, FrictionDoubleIntegrator  # noqa: E402
+from saml_ros.systems.quadrotor.model import Quadrotor, ground_effect_factor  # noqa: E402
 
 
 def plot_friction(path: Path, systems: dict[str, FrictionDoubleIntegrator] | None = None) -> Path:

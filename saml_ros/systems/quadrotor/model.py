@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from saml_ros.core.dynamics import checks as _checks
 from saml_ros.core.dynamics.quaternion import (
     quat_derivative_body,
     quat_normalize,
@@ -43,7 +44,6 @@ from saml_ros.core.dynamics.quaternion import (
 )
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
-from saml_ros.core.systems import _checks
 
 _STATE = [
     ("px", "m", "position x (world)"), ("py", "m", "position y (world)"), ("pz", "m", "height above ground"),

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from saml_ros.core.mpc.dynamics_np import NumpyDynamics, PaddleBaseNP
+from saml_ros.core.mpc.dynamics_np import NumpyDynamics
+from saml_ros.systems.paddle_ball.dynamics_np import PaddleBaseNP
 
 
 @dataclass(slots=True)

@@ -1,5 +1,5 @@
 """The fast paddle-ball solver's multi-start strategy, on top of the per-start iterations of
-:class:`~saml_ros.core.mpc.paddle.projected_newton.ProjectedNewton`.
+:class:`~saml_ros.systems.paddle_ball.mpc.projected_newton.ProjectedNewton`.
 
 1. **Probe** (a reachable target, most problems): from the first start, Gauss-Newton towards the nearest
    post-impact velocity that lands on the target (``"velocity"``, a few iterations), then on the landing error
@@ -25,8 +25,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from saml_ros.core.mpc.paddle.landing_error import Point
-from saml_ros.core.mpc.paddle.projected_newton import ProjectedNewton, RunResult
+from saml_ros.systems.paddle_ball.mpc.landing_error import Point
+from saml_ros.systems.paddle_ball.mpc.projected_newton import ProjectedNewton, RunResult
 
 
 @dataclass(frozen=True)

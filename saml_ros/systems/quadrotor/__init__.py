@@ -1,0 +1,3 @@
+"""The quadrotor with ground effect: its dynamics (:mod:`.model`), numpy twins (:mod:`.dynamics_np`), MPC task
+(:mod:`.task`), simulator world (:mod:`.world`) and registry entry (:mod:`.entry`).
+"""
