@@ -32,7 +32,7 @@ setup(
     packages=find_packages(
         include=["saml_ros", "saml_ros.*", "sim_nodes", "sim_nodes.*", "msg_schemas", "msg_schemas.*"]
     ),
-    package_data={"saml_ros.core.worlds": ["assets/*.xml"],
+    package_data={"saml_ros.systems.paddle_ball": ["assets/*.xml"],
                   # the fused training kernel's source, compiled on first use (saml_ros/core/training/engines/fused.py)
                   "saml_ros.core.training.engines": ["kernels/*.cpp"],
                   # the fast SQP's C kernel, compiled on first use (saml_ros/core/mpc/shooting/native.py)

@@ -8,7 +8,7 @@ the checkpoint or the learner stored: :func:`load_stored_robot`, installed as th
 names, rebuilds and registers it from that alone.
 
 A robot has its own topics and base model but no simulator inside saml_ros: its entry's ``simulator`` raises
-``ValueError`` saying so. A robot whose file has an ``mpc:`` section (:mod:`.mpc_section`) is controlled by the
+``ValueError`` saying so. A robot whose file has an ``mpc:`` section (:mod:`saml_ros.core.mpc.generic.section`) is controlled by the
 generic planner (``saml_ros.core.mpc.generic``): its entry's controllers are that planner's, its goal parameter
 ``goal.setpoint`` (the goal fields' default) and its MPC node defaults (horizon, rate, state timeout) the section's.
 Without one, ``controllers`` raise ``ValueError`` naming what to add (the MPC node then exits with a configuration

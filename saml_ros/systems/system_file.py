@@ -260,7 +260,7 @@ def parse_definition(raw: Any, where: str = "<dict>", base_dir: Path | None = No
 
 
 def _mpc_section(d: dict[str, Any], where: str, base_dir: Path | None) -> dict[str, Any]:
-    """The checked ``mpc:`` section (inline, or the file ``mpc_file`` names); see :mod:`.mpc_section`."""
+    """The checked ``mpc:`` section (inline, or the file ``mpc_file`` names); see :mod:`saml_ros.core.mpc.generic.section`."""
     from saml_ros.core.mpc.generic.section import MPCSectionError, parse_mpc_section
 
     if "mpc" in d and "mpc_file" in d:

@@ -7,25 +7,23 @@ runs it on the true system.
 
 Modules: :mod:`.contract` (``MPCResult``, the ``Controller`` protocol), :mod:`.factory` (``make_controller``),
 :mod:`.loop` (the closed-loop runner), :mod:`.dynamics_np` / :mod:`.mlp_np` (the numpy prediction model
-``f_hat + phi`` with exact Jacobians), :mod:`.shooting` (time-stepped systems) and :mod:`.paddle` (the one-shot
-ball bouncing problem).
+``f_hat + phi`` with exact Jacobians), :mod:`.shooting` (time-stepped systems) and :mod:`.generic` (robots'
+system files). A system's own planner parts (its numpy twins, its shooting task, the paddle ball's one-shot
+planner ``saml_ros.systems.paddle_ball.mpc``) live in its folder, ``saml_ros.systems.<name>``, reached through
+its registry entry.
 """
 
 from saml_ros.core.mpc.contract import Controller, MPCResult
 from saml_ros.core.mpc.factory import SOLVERS, base_model_np, make_controller, make_task
 from saml_ros.core.mpc.loop import ClosedLoopRun, LoopStep, StepHook, closed_loop
 from saml_ros.core.mpc.shooting import ShootingMPC, ShootingTask, SLSQPShootingMPC, SQPShootingMPC
-from saml_ros.systems.paddle_ball.mpc import GaussNewtonPaddle, PaddleGoal, SLSQPPaddle, paddle_goal
 
 __all__ = [
     "SOLVERS",
     "ClosedLoopRun",
     "Controller",
-    "GaussNewtonPaddle",
     "LoopStep",
     "MPCResult",
-    "PaddleGoal",
-    "SLSQPPaddle",
     "SLSQPShootingMPC",
     "SQPShootingMPC",
     "ShootingMPC",
@@ -35,5 +33,4 @@ __all__ = [
     "base_model_np",
     "make_controller",
     "make_task",
-    "paddle_goal",
 ]

@@ -1,17 +1,17 @@
 """The MPC's prediction model ``f_hat + phi`` on float64 numpy arrays, with exact Jacobians.
 
-The base models f_hat of the three systems are re-implemented here in numpy with hand-derived Jacobians
-(the torch versions in ``core.systems`` stay the single source of truth: ``test/test_mpc.py`` checks values
-and Jacobians against them and torch autograd). A system without a numpy twin falls back to torch autograd
-(``torch.func.jacrev``), which is exact but slow.
+The base models f_hat of the systems are re-implemented in numpy with hand-derived Jacobians, one module per
+system beside its torch model (``saml_ros/systems/<name>/dynamics_np.py``, named by the registry entry's
+``base_model_np``; the torch versions stay the single source of truth: ``test/unit/core/mpc/test_mpc.py`` checks
+values and Jacobians against them and torch autograd). A system without a numpy twin falls back to torch autograd
+(:class:`TorchBaseNP`: ``torch.func.jacrev``), which is exact but slow.
 
 The *oracle* is the true dynamics ``f`` as the MPC's model (``NumpyDynamics(system, "oracle")``,
 ``make_controller(system, "oracle")``): the best any learned model can do inside the same MPC, used to measure
-how much a model can matter on a task (the headroom, docs/experiments.md). Its numpy twins
-(:class:`FrictionTrueNP`, :class:`QuadrotorTrueNP`, :class:`PaddleTrueNP`) are named by the registry entry's
-``true_model_np``; their Jacobians are exact wherever ``f`` is differentiable (friction: except where the
-friction just holds the cart, ``|w| = b(p)``; quadrotor: at the level attitude the tilt has a cone-shaped kink and
-the derivative 0 is used, as torch's ``tilt_angle``).
+how much a model can matter on a task (the headroom, docs/experiments.md). Its numpy twins (in the same system
+modules) are named by the registry entry's ``true_model_np``; their Jacobians are exact wherever ``f`` is
+differentiable (friction: except where the friction just holds the cart, ``|w| = b(p)``; quadrotor: at the level
+attitude the tilt has a cone-shaped kink and the derivative 0 is used, as torch's ``tilt_angle``).
 
 Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``y`` ``(B, n_y)``, ``A = dy/dx`` ``(B, n_y, n_x)``,
 ``Bu = dy/du`` ``(B, n_y, n_u)``.

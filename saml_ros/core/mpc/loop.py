@@ -12,8 +12,7 @@ import numpy as np
 
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.mpc.contract import Controller, MPCResult
-from saml_ros.systems.paddle_ball.model import PaddleBall
-from saml_ros.systems.paddle_ball.mpc.problem import paddle_goal
+from saml_ros.core.systems.registry import find_entry
 
 
 @dataclass(frozen=True)
@@ -70,7 +69,8 @@ def closed_loop(
     step = true_step if true_step is not None else system.true_step_np
     controller.reset()
     x = np.asarray(x0, dtype=np.float64).copy()
-    paddle = system if isinstance(system, PaddleBall) else None
+    entry = find_entry(system.name)
+    event = entry.loop_event if entry is not None else None  # the paddle ball's bounce
     xs, results, cpus, stage, landing = [x.copy()], [], [], [], []
     dropped = False
     for k in range(steps):
@@ -80,11 +80,10 @@ def closed_loop(
         results.append(res)
         u = np.asarray(res.u, dtype=np.float64)
         y = np.asarray(step(x, u), dtype=np.float64)
-        if paddle is not None:
-            land, x_next = _bounce(paddle, x, y)
+        if event is not None:
+            land, x_next, cost, dropped = event(system, x, y, goal)
             landing.append(land)
-            stage.append(float(np.linalg.norm(land - paddle_goal(goal).target_xy)))
-            dropped = float(y[2]) <= 0.0
+            stage.append(cost)
         else:
             x_next = y
             stage.append(_stage_cost(controller, x_next, goal))
@@ -101,17 +100,8 @@ def closed_loop(
         cpu_times=np.array(cpus), iterations=np.array([r.iterations for r in results]),
         success=np.array([r.success for r in results], dtype=bool),
         unavoidable=np.array([r.unavoidable for r in results], dtype=bool), stage_costs=np.array(stage),
-        landing=np.array(landing).reshape(len(landing), 2) if paddle is not None else None, dropped=dropped,
+        landing=np.array(landing).reshape(len(landing), 2) if event is not None else None, dropped=dropped,
     )  # fmt: skip
-
-
-def _bounce(system: PaddleBall, x: np.ndarray, v_post: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Landing point (2,) of the ball leaving pre-impact state ``x`` (6,) with ``v_post`` (3,), and the next
-    pre-impact state (6,) there (ballistic flight back to the impact height)."""
-    vz = float(v_post[2])
-    flight = 2.0 * max(vz, 0.0) / system.g
-    land = x[0:2] + v_post[0:2] * flight
-    return land, np.array([land[0], land[1], x[2], v_post[0], v_post[1], -max(vz, 0.0)])
 
 
 def _stage_cost(controller: Controller, x: np.ndarray, goal: Any | None) -> float:

@@ -1,31 +1,40 @@
-"""The systems and their registry.
+"""The system registry: the table of :class:`~saml_ros.core.systems.entry.SystemEntry` records by name.
 
 ``get_system(name, **overrides)`` builds a system by its registry name with physical parameters overridden,
-e.g. ``get_system("quadrotor", alpha=0.3)``; ``get_entry(name)`` is the system's
-:class:`~saml_ros.core.systems.entry.SystemEntry` (dynamics, numpy twin, MPC, goals, schema, simulator, bringup
-defaults, experiment). The dynamics live in :mod:`.friction`, :mod:`.quadrotor` and :mod:`.paddle_ball`
-(import the classes from there); the contract they implement is :mod:`.base`. See ``docs/systems.md``.
+e.g. ``get_system("quadrotor", alpha=0.3)``; ``get_entry(name)`` is the system's entry (dynamics, numpy twins,
+MPC, goals, schema, simulator, bringup defaults, experiment). The systems themselves live above the core, one
+folder each (``saml_ros.systems``: the built-in three and robots described by a YAML system file), and register
+themselves here when ``saml_ros`` is imported; the contract their classes implement is
+:mod:`saml_ros.core.dynamics.system`. See ``docs/systems.md``.
 
-Robots described by a YAML system file (:mod:`.system_file`) are registered by :mod:`.robot_entry`.
-
-This face imports no torch (the registry imports a system's module only when it is asked for it).
+This face imports no torch (an entry imports a system's modules only when it is asked for them).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
+from saml_ros.core.systems import registry as _registry
 from saml_ros.core.systems.entry import SystemEntry
 from saml_ros.core.systems.registry import (
-    SYSTEM_NAMES,
     default_params,
     find_entry,
     get_entry,
     get_system,
+    register_builtin,
     register_system,
     system_class,
     system_names,
     unregister_system,
 )
-from saml_ros.systems import robot_entry  # noqa: F401 - installs the loader of robots' stored definitions
+
+
+def __getattr__(name: str) -> Any:
+    """``SYSTEM_NAMES``, read from the registry when asked (it fills as the built-in systems register)."""
+    if name == "SYSTEM_NAMES":
+        return _registry.SYSTEM_NAMES
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "SYSTEM_NAMES",
@@ -34,6 +43,7 @@ __all__ = [
     "find_entry",
     "get_entry",
     "get_system",
+    "register_builtin",
     "register_system",
     "system_class",
     "system_names",

@@ -16,15 +16,19 @@ import numpy as np
 from saml_ros.core.params import Param
 
 if TYPE_CHECKING:
-    from msg_schemas.base import SystemSchema
     from saml_ros.core.dynamics.system import System
-    from saml_ros.core.mpc.contract import Controller
-    from saml_ros.core.mpc.dynamics_np import BaseModelNP
-    from saml_ros.core.mpc.shooting.tasks import ShootingTask
-    from saml_ros.core.worlds.sim_core import SimConfig, SimCore, SteppedModel
 
-#: a controller class (or factory): ``(system, model | None, **options) -> Controller``
-ControllerFactory = Callable[..., "Controller"]
+#: a controller class (or factory): ``(system, model | None, **options) -> saml_ros.core.mpc.contract.Controller``
+ControllerFactory = Callable[..., Any]
+#: what the factories build belongs to layers above the table (message schemas, the MPC, the simulator worlds), which
+#: import the table: the fields name those types in their descriptions and are typed ``Any`` here, so the table
+#: imports none of them (test_layers.py)
+SystemSchema = Any  #: ``msg_schemas.base.SystemSchema``
+BaseModelNP = Any  #: ``saml_ros.core.mpc.dynamics_np.BaseModelNP``
+ShootingTask = Any  #: ``saml_ros.core.mpc.shooting.tasks.ShootingTask``
+SimConfig = Any  #: ``saml_ros.core.worlds.sim_core.SimConfig``
+SimCore = Any  #: ``saml_ros.core.worlds.sim_core.SimCore``
+SteppedModel = Any  #: ``saml_ros.core.worlds.sim_core.SteppedModel``
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,10 @@ class SystemEntry:
         spec_file: the paper's spec as YAML, relative to the repository's ``config/`` directory.
         mpc_defaults: defaults of the MPC node's parameters this system sets (a system file's ``mpc:`` section:
             ``horizon``, ``mode``, ``rate_hz``, ``state_timeout``), by parameter name.
+        loop_event: for an event-based system, one step of the closed-loop runner
+            (:func:`saml_ros.core.mpc.loop.closed_loop`): ``(system, x, y, goal) -> (landing point, next state,
+            stage cost, stop)`` from the true model's output ``y``; None for a time-stepped system (``y`` is the
+            next state).
     """
 
     name: str
@@ -92,6 +100,7 @@ class SystemEntry:
     experiment: str | None = None
     spec_file: str | None = None
     mpc_defaults: Mapping[str, Any] = field(default_factory=dict)
+    loop_event: Callable[[System, np.ndarray, np.ndarray, Any], tuple[np.ndarray, np.ndarray, float, bool]] | None = None
 
     # ------------------------------------------------------------------------------------------ dynamics
     def default_params(self) -> dict[str, Any]:

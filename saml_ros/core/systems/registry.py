@@ -9,9 +9,10 @@ what the entry holds.
 
 The table is open: :func:`register_system` adds an entry at run time (a robot from a system file:
 :mod:`saml_ros.systems.robot_entry`; :func:`register_loader` rebuilds one from a stored definition in a
-process that never read its file); the built-in three
-(:mod:`saml_ros.systems`) are registered when this module is first imported. Importing the
-registry imports neither torch, MuJoCo nor the MPC.
+process that never read its file). The table sits below the layers its entries wire (MPC, worlds, message
+schemas) and imports none of them: the built-in systems (:mod:`saml_ros.systems`, above those layers) register
+themselves through :func:`register_builtin` when the ``saml_ros`` package is imported, which happens before any of
+its modules runs. Importing the registry imports neither torch, MuJoCo nor the MPC.
 """
 
 from __future__ import annotations
@@ -19,12 +20,10 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
-from saml_ros import systems as builtin
 from saml_ros.core.systems.entry import SystemEntry
 
 if TYPE_CHECKING:
     from saml_ros.core.dynamics.system import System
-    from saml_ros.core.worlds.sim_core import SimConfig, SteppedSim
 
 # ---------------------------------------------------------------------------------------------- the table
 _ENTRIES: dict[str, SystemEntry] = {}
@@ -110,21 +109,18 @@ def get_system(name: str, **overrides: Any) -> System:
     return (entry or get_entry(name)).make_system(**overrides)
 
 
-for _entry in builtin.ENTRIES:
-    register_system(_entry)
-
-#: the built-in systems, in a stable order (:func:`system_names` also lists systems registered later)
-SYSTEM_NAMES: tuple[str, ...] = tuple(e.name for e in builtin.ENTRIES)
+#: the built-in systems, in registration order (:func:`register_builtin`; :func:`system_names` also lists systems
+#: registered later). Read it as ``registry.SYSTEM_NAMES`` or from the package face, which both see it filled.
+SYSTEM_NAMES: tuple[str, ...] = ()
 
 
-def build_stepped_sim(system: System, config: SimConfig, *, publish_clock: bool = True,
-                      **options: Any) -> SteppedSim:
-    """The :class:`~saml_ros.core.worlds.sim_core.SteppedSim` of a time-stepped system: its registry entry's
-    ``stepped_model`` with ``options`` (the quadrotor's ``landing_height``, m, default 0.1). ``ValueError`` for an
-    event-based system."""
-    from saml_ros.core.worlds.sim_core import SteppedSim
-
-    model = get_entry(system.name).stepped_model
-    if model is None:
-        raise ValueError(f"no time-stepped simulator for system {system.name!r}")
-    return SteppedSim(model(system, **options), config, publish_clock=publish_clock)
+def register_builtin(*entries: SystemEntry) -> None:
+    """Register the built-in systems (``saml_ros.systems`` does, when ``saml_ros`` is imported): like
+    :func:`register_system`, and they join :data:`SYSTEM_NAMES` (never unregistered). A second call with the same
+    entries changes nothing."""
+    global SYSTEM_NAMES
+    for entry in entries:
+        if entry.name in SYSTEM_NAMES and _ENTRIES.get(entry.name) is entry:
+            continue
+        register_system(entry)
+        SYSTEM_NAMES = (*SYSTEM_NAMES, entry.name)

@@ -1,9 +1,10 @@
-"""ROS-free simulator worlds: what the simulator nodes and the experiments step.
+"""ROS-free simulator cores: what the simulator nodes and the experiments step.
 
-* :mod:`.sim_core`: the event-driven simulator core (commands, lockstep / realtime stepping, episodes,
-  stamps) and the time-stepped systems' cores;
-* :mod:`.paddle_world`: the MuJoCo paddle-ball world (a kinematic paddle with a low-level impact controller);
-* :mod:`.paddle_sim`: the paddle-ball simulator core (one protocol step per impact).
+* :mod:`.sim_core`: the event-driven simulator core (commands, lockstep / realtime stepping, episodes, stamps),
+  the time-stepped core :class:`~.sim_core.SteppedSim` and :func:`~.sim_core.build_stepped_sim` (a system's
+  stepped simulator from its registry entry);
+* :mod:`.pacing`: the realtime loop's wall-clock pacing.
 
-Modules are imported by name (``paddle_world`` imports MuJoCo).
+Each system's own world (start states, ground contact, the paddle ball's MuJoCo world and its core) lives in its
+folder, ``saml_ros.systems.<name>``.
 """

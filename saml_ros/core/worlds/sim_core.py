@@ -36,6 +36,7 @@ import torch
 from saml_ros.core.data.plausibility import Plausibility, parse_overrides
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.errors import SamlError
+from saml_ros.core.systems.registry import get_entry
 
 NS_PER_S = 1_000_000_000
 MODES = ("realtime", "lockstep")
@@ -516,3 +517,13 @@ class SteppedSim(SimCore):
         self.episode_step = 0
         self.counters["episodes"] += 1
         return self._emit_state(self.x, self.sim_now_ns(), now_ns)
+
+
+def build_stepped_sim(system: System, config: SimConfig, *, publish_clock: bool = True,
+                      **options: Any) -> SteppedSim:
+    """The :class:`SteppedSim` of a time-stepped system: its registry entry's ``stepped_model`` with ``options``
+    (the quadrotor's ``landing_height``, m, default 0.1). ``ValueError`` for an event-based system."""
+    model = get_entry(system.name).stepped_model
+    if model is None:
+        raise ValueError(f"no time-stepped simulator for system {system.name!r}")
+    return SteppedSim(model(system, **options), config, publish_clock=publish_clock)

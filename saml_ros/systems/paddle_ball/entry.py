@@ -10,6 +10,8 @@ from saml_ros.core.systems.entry import ControllerFactory, SystemEntry
 from saml_ros.systems.common import _as
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from msg_schemas.base import SystemSchema
     from saml_ros.core.dynamics.system import System
     from saml_ros.core.mpc.dynamics_np import BaseModelNP
@@ -71,6 +73,14 @@ def _paddle_goal(entry: SystemEntry, values: Mapping[str, Any]) -> PaddleGoal:
                        v_rel=bounds["v_rel"])
 
 
+def _paddle_loop_event(system: System, x: np.ndarray, y: np.ndarray,
+                       goal: Any) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    from saml_ros.systems.paddle_ball.model import PaddleBall
+    from saml_ros.systems.paddle_ball.mpc.problem import loop_bounce
+
+    return loop_bounce(_as(system, PaddleBall), x, y, goal)
+
+
 PADDLE_BALL = SystemEntry(
     name="paddle_ball",
     summary="ball bouncing on a paddle (MuJoCo), one transition per impact: the paddle's velocity and normal set "
@@ -107,4 +117,5 @@ PADDLE_BALL = SystemEntry(
     },
     experiment="paddle_ball",
     spec_file="specs/paddle_ball.yaml",
+    loop_event=_paddle_loop_event,
 )

@@ -1,7 +1,8 @@
 """MuJoCo paddle-ball world: a ball bounced by a kinematic paddle with a low-level impact controller.
 
-ROS-free (the ``paddle_ball_sim`` node and the ball experiment wrap it). See docs/systems.md,
-"MuJoCo paddle-ball scene", for the scene, the controller and measured numbers.
+ROS-free (the ``paddle_ball_sim`` node, through :mod:`.sim`, and the ball experiment wrap it); sequences of
+impacts and the collection of transitions are in :mod:`.bounces`. See docs/systems.md, "MuJoCo paddle-ball
+scene", for the scene, the controller and measured numbers.
 
 Frames and units: world frame, z up, SI units (m, m/s, rad, s). The *impact plane* is z = 0: the controller
 meets the ball when its centre is at z = 0, so pre-impact states look like ``PaddleBall.sample_inputs``

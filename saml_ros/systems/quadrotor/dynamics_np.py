@@ -13,7 +13,11 @@ from saml_ros.systems.quadrotor.model import Quadrotor
 
 
 class QuadrotorBaseNP:
-    """One explicit Euler step of the rigid-body quadrotor (see ``systems.quadrotor.model``)."""
+    """One explicit Euler step of the rigid-body quadrotor (see :mod:`.model`)."""
+
+    #: the shooting SQP's C kernel holds this step (``quad_step``, rounding as :meth:`step1`): see
+    #: :data:`saml_ros.core.mpc.shooting.native.C_QUADROTOR`
+    C_BASE = 1
 
     def __init__(self, system: Quadrotor) -> None:
         self.dt, self.mass, self.g = system.dt, system.mass, system.g

@@ -46,6 +46,10 @@ SOURCE = Path(__file__).resolve().parent / "kernels" / "sqp_native.c"
 CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-std=c11")
 #: ``SAML_MPC_NATIVE=0`` runs the numpy path
 SWITCH_ENV = "SAML_MPC_NATIVE"
+#: the base model the kernel holds in C (``Model.base``): a numpy twin declaring ``C_BASE = C_QUADROTOR`` in its
+#: class body (the quadrotor's :class:`~saml_ros.systems.quadrotor.dynamics_np.QuadrotorBaseNP`, whose scalar step
+#: the kernel's ``quad_step`` rounds as) is served by it; any other base model goes the numpy way
+C_QUADROTOR = 1
 #: the kernel's limits (``MAXW``, ``MAXL``, ``MAXZ`` in the source)
 MAX_WIDTH, MAX_LAYERS, MAX_NZ = 512, 8, 48
 
@@ -180,7 +184,6 @@ def unsupported_reason(dyn: Any, task: Any) -> str | None:
     """Why :class:`NativeSQP` cannot serve this prediction model and task (None: it can)."""
     from saml_ros.core.mpc.dynamics_np import NumpyDynamics
     from saml_ros.core.mpc.mlp_np import NumpyMLP
-    from saml_ros.systems.quadrotor.dynamics_np import QuadrotorBaseNP
 
     if task.res_idx.size < 2:
         return "a scalar stage cost (the exact l1 model runs in numpy)"
@@ -196,7 +199,7 @@ def unsupported_reason(dyn: Any, task: Any) -> str | None:
         mlp, base = dyn.mlp, dyn.base
     else:
         return f"prediction model {type(dyn).__name__}"
-    if base is not None and type(base) is not QuadrotorBaseNP:
+    if base is not None and type(base).__dict__.get("C_BASE") != C_QUADROTOR:
         return f"base model {type(base).__name__} has no C twin"
     if mlp is not None:
         if type(mlp) is not NumpyMLP:

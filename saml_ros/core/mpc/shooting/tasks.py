@@ -1,6 +1,8 @@
-"""The paper's time-stepped MPC problems as data (double integrator with friction, quadrotor landing).
+"""Time-stepped MPC problems as data: :class:`ShootingTask` (each system's own task is built in its folder,
+``saml_ros/systems/<name>/task.py``, named by its registry entry's ``mpc_task``: the paper's double integrator with
+friction and quadrotor landing).
 
-Both are single-shooting problems over the controls ``U = (u_0, ..., u_{T-1})`` of the form
+They are single-shooting problems over the controls ``U = (u_0, ..., u_{T-1})`` of the form
 
     min_U  sum_{t=1..T} || x_t[res_idx] - target ||_2
     s.t.   u_low <= u_t <= u_high                       (t = 0..T-1)

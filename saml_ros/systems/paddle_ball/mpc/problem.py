@@ -135,3 +135,16 @@ def control_from_theta(theta: np.ndarray) -> np.ndarray:
     r, p = float(theta[3]), float(theta[4])
     n = (math.cos(r) * math.sin(p), -math.sin(r), math.cos(r) * math.cos(p))
     return np.concatenate((theta[:3], n))
+
+
+def loop_bounce(system: PaddleBall, x: np.ndarray, v_post: np.ndarray,
+                goal: PaddleGoal | Mapping[str, Any] | None) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """One step of :func:`saml_ros.core.mpc.loop.closed_loop` for the paddle ball (its entry's ``loop_event``):
+    the ball leaves pre-impact state ``x`` (6,) with ``v_post`` (3,) and flies ballistically back to its impact
+    height. Returns the landing point (2,) m, the next pre-impact state (6,) there, the stage cost
+    ``||landing - target_xy||_2`` (m) and whether the ball was dropped (it did not leave the paddle upwards)."""
+    vz = float(v_post[2])
+    flight = 2.0 * max(vz, 0.0) / system.g
+    land = x[0:2] + v_post[0:2] * flight
+    x_next = np.array([land[0], land[1], x[2], v_post[0], v_post[1], -max(vz, 0.0)])
+    return land, x_next, float(np.linalg.norm(land - paddle_goal(goal).target_xy)), float(v_post[2]) <= 0.0
