@@ -110,12 +110,17 @@ def test_colcon_build_installs_every_executable(tmp_path: Path) -> None:
     for pkg in ("saml_ros", "msg_schemas", "sim_nodes"):
         if (REPO / pkg / "__init__.py").is_file():
             assert (site / pkg / "__init__.py").is_file(), f"package {pkg} not installed"
-    for xml in (REPO / "sim_nodes" / "assets").glob("*.xml"):
-        assert (site / "sim_nodes" / "assets" / xml.name).is_file(), f"MuJoCo model {xml.name} not installed"
-    # the fused training kernel's source: an installed package compiles it on first use
-    kernel = Path("saml_ros/core/training/engines/kernels/fused_step.cpp")
-    assert (REPO / kernel).is_file()
-    assert (site / kernel).is_file(), "the fused training kernel's source is not installed"
+    # the paddle ball's MuJoCo scene, in its system's folder
+    scenes = sorted((REPO / "saml_ros" / "systems" / "paddle_ball" / "assets").glob("*.xml"))
+    assert scenes
+    for xml in scenes:
+        assert (site / xml.relative_to(REPO)).is_file(), f"MuJoCo model {xml.relative_to(REPO)} not installed"
+    # the compiled kernels' sources (the fused training step, the shooting SQP): an installed package compiles
+    # them on first use
+    for kernel in (Path("saml_ros/core/training/engines/kernels/fused_step.cpp"),
+                   Path("saml_ros/core/mpc/shooting/kernels/sqp_native.c")):
+        assert (REPO / kernel).is_file()
+        assert (site / kernel).is_file(), f"the kernel source {kernel} is not installed"
     # the console scripts point at exactly the table in saml_ros/executables.py
     entry_points = configparser.ConfigParser(delimiters=("=",))
     entry_points.read(next(site.glob("saml_ros-*.egg-info")) / "entry_points.txt")

@@ -1,28 +1,30 @@
-"""docs/architecture.md's "Layout" lists the core as it is: every entry under ``saml_ros/core/`` exists, and every
-folder whose contents it lists (``saml_ros/core/`` itself, ``mpc/``, ``mpc/shooting/`` ...) lists all of its modules
-and subpackages (issue 31: one line per folder, true to the tree)."""
+"""docs/architecture.md's "Layout" lists the core and the systems as they are: every entry under ``saml_ros/core/``
+and ``saml_ros/systems/`` exists, and every folder whose contents it lists (``saml_ros/core/`` itself, ``mpc/``,
+``mpc/shooting/``, ``saml_ros/systems/paddle_ball/mpc/`` ...) lists all of its modules and subpackages (issue 31:
+one line per folder, true to the tree)."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
+import pytest
 from helpers import REPO
 
 DOC = REPO / "docs" / "architecture.md"
-TOP = "saml_ros/core/"
+TOPS = ("saml_ros/core/", "saml_ros/systems/")
 
 
-def _layout_tree(text: str) -> dict[str, list[str]]:
-    """``folder -> [listed names]`` for the ``saml_ros/core/`` part of the Layout block (names by indentation:
-    two spaces per level; a line whose name column is blank continues the one above)."""
+def _layout_tree(text: str, top: str = TOPS[0]) -> dict[str, list[str]]:
+    """``folder -> [listed names]`` for the ``top`` part of the Layout block (names by indentation: two spaces per
+    level; a line whose name column is blank continues the one above)."""
     block = text.split("## Layout", 1)[1].split("```", 2)[1]
     tree: dict[str, list[str]] = {}
     stack: list[str] = []
     inside = False
     for line in block.splitlines():
-        if line.startswith(TOP):
-            inside, stack = True, [TOP.rstrip("/")]
+        if line.startswith(top):
+            inside, stack = True, [top.rstrip("/")]
             tree[stack[0]] = []
             continue
         if not inside:
@@ -56,10 +58,13 @@ def test_the_reader_sees_the_layout() -> None:
     tree = _layout_tree(DOC.read_text())
     assert "mpc/" in tree["saml_ros/core"] and "contract.py" in tree["saml_ros/core/mpc"]
     assert "sqp.py" in tree["saml_ros/core/mpc/shooting"]
+    systems = _layout_tree(DOC.read_text(), "saml_ros/systems/")
+    assert "quadrotor/" in systems["saml_ros/systems"] and "problem.py" in systems["saml_ros/systems/paddle_ball/mpc"]
 
 
-def test_the_layout_lines_match_the_tree() -> None:
-    tree = _layout_tree(DOC.read_text())
+@pytest.mark.parametrize("top", TOPS)
+def test_the_layout_lines_match_the_tree(top: str) -> None:
+    tree = _layout_tree(DOC.read_text(), top)
     problems = []
     for folder, listed in tree.items():
         path = REPO / folder

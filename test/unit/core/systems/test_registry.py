@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -106,14 +107,17 @@ def test_the_simulator_core_is_built_from_the_sim_nodes_default_parameters(name:
 
 def test_task_parameters_default_to_the_task_functions_defaults() -> None:
     """The MPC node declares ``task.*`` with these defaults: they must be what the task itself uses."""
-    from saml_ros.core.mpc.shooting import tasks
+    from saml_ros.systems.friction.task import friction_task
+    from saml_ros.systems.quadrotor.task import quadrotor_task
 
+    #: each in its system's folder
+    task_functions: dict[str, Callable[..., object]] = {"friction": friction_task, "quadrotor": quadrotor_task}
     for name in SYSTEM_NAMES:
         entry = get_entry(name)
         if entry.mpc_task is None:
             assert entry.task_params == ()
             continue
-        fn = getattr(tasks, f"{name}_task")
+        fn = task_functions[name]
         defaults = {k: p.default for k, p in inspect.signature(fn).parameters.items() if k not in ("system", "horizon")}
         assert {p.name: p.default for p in entry.task_params} == defaults
 
