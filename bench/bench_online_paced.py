@@ -3,16 +3,15 @@
     ./dev python -m bench.bench_online_paced --system-file examples/diff_drive/system.yaml \\
         --train RUN/bag --heldout OTHER/bag --seconds 120 --niceness 10
 
-Three training loops (:func:`~saml_ros.core.online.loop.run_loop`, the training process's own loop, each in its own
+Two training loops (:func:`~saml_ros.core.online.loop.run_loop`, the training process's own loop, each in its own
 process at ``--niceness``, one torch thread) get the same recorded transitions at the recording's own pace (the
-stream replayed in real time, in batches of 0.1 s of stream time). ``paced`` runs the loop as it is (chunks of
-updates sized by their CPU time, and the held-out evaluation and the model metrics yield to the updates,
-:data:`~saml_ros.core.online.learner.EVAL_SHARE`); ``wall clock`` evaluates every ``heldout.eval_period`` and every
-telemetry period whatever the updates cost; ``as before`` does that too and sizes its chunks by the wall time per
-update (the loop before both changes). All start together and share whatever CPU the machine leaves them, so the
-load is the same for all. Printed per loop: updates, updates in the last quarter of the stream, the CPU time it got and the
-share of it spent in updates, and the published model's
-in-region error on the held-out recording (other flights) at the stop, beside f_hat's. The numbers depend on the
+stream replayed in real time, in batches of 0.1 s of stream time). ``paced`` runs the loop as it is (the held-out
+evaluation and the model metrics yield to the updates, :data:`~saml_ros.core.online.learner.EVAL_SHARE`); ``wall
+clock`` evaluates every ``heldout.eval_period`` and every telemetry period whatever the updates cost (the loop
+before). Both start together and share whatever CPU the machine leaves them, so the load is the same for both.
+Printed per loop: updates, updates in the last quarter of the stream, the CPU time it got and the share of it spent
+in updates, and the published model's in-region error on the held-out recording (other flights) at the stop,
+beside f_hat's. The numbers depend on the
 machine's load (printed).
 """
 
@@ -52,13 +51,6 @@ def _loop(mode: str, system_file: str, train: list[str], heldout: list[str], nic
             return plain(self, False)
 
         OnlineLearner.compute_model_metrics = unpaced  # type: ignore[method-assign]
-    if mode == "as before":  # and the chunks of updates sized by the wall time per update
-        import types
-
-        from saml_ros.core.online import loop as loop_module
-
-        loop_module.time = types.SimpleNamespace(  # type: ignore[assignment]
-            monotonic=time.monotonic, sleep=time.sleep, thread_time=time.monotonic)
     counts: list[tuple[float, int]] = []
 
     def send(msg: Any) -> None:  # tuples ("status", status, ...) or typed messages (Status(status, ...))
@@ -112,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         stop = ("stop",)
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
-    modes = ("paced", "wall clock", "as before")
+    modes = ("paced", "wall clock")
     pipes, procs = [], []
     for mode in modes:
         parent, child = ctx.Pipe()

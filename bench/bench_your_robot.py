@@ -154,8 +154,8 @@ def topics_of(setup: RobotSetup) -> list[str]:
 @dataclass(frozen=True)
 class Settle:
     """How long the learner keeps training on its buffer after the stream stopped (the robot parked): until it has
-    made ``epochs`` passes over its training buffer since the newest checkpoint written while the robot ran (updates
-    x batch >= epochs x buffer size, read from its checkpoints), at most ``seconds`` s; 0 s = none."""
+    made ``epochs`` passes over its training buffer (updates x batch >= epochs x buffer size, read from its
+    checkpoints, counted from the first one written after the stop), at most ``seconds`` s; 0 s = none."""
 
     seconds: float = 0.0
     epochs: float = 20.0
@@ -186,7 +186,8 @@ def settle_learner(run_dir: Path, at_stop: Path, settle: Settle, procs: list[Pro
     buffer = max(1, int(meta.get("learner", {}).get("buffer_size", 1)))
     want = settle.epochs * buffer / batch
     t0, version, updates = time.monotonic(), latest[1], u0
-    while time.monotonic() - t0 < settle.seconds and updates - u0 < want:
+    ref: int | None = None  # passes are counted from the first checkpoint written after the stop (the copy may be
+    while time.monotonic() - t0 < settle.seconds and (ref is None or updates - ref < want):  # a period old)
         dead = [p for p in procs if not p.alive()]
         if dead:
             raise RuntimeError(f"{dead[0].name} exited ({dead[0].popen.returncode}) while the learner settled")
@@ -198,8 +199,10 @@ def settle_learner(run_dir: Path, at_stop: Path, settle: Settle, procs: list[Pro
                 updates = int(_checkpoint_meta(now[0]).get("updates", updates))
             except Exception:  # noqa: BLE001 - pruned or replaced meanwhile: read the next one
                 continue
-    return {"updates_at_stop": u0, "updates_settled": updates - u0, "buffer": buffer,
-            "epochs": round((updates - u0) * batch / buffer, 1), "seconds": round(time.monotonic() - t0, 1),
+            ref = updates if ref is None else ref
+    done = updates - (u0 if ref is None else ref)
+    return {"updates_at_stop": u0, "updates_settled": done, "buffer": buffer,
+            "epochs": round(done * batch / buffer, 1), "seconds": round(time.monotonic() - t0, 1),
             "at_stop": str(at_stop)}
 
 

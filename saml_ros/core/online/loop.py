@@ -43,12 +43,10 @@ class LoopConfig:
         telemetry_rate: model metrics computed (and reported) per second, Hz.
         checkpoint_period: wall-clock seconds between checkpoints (only when there are new updates).
         chunk: most updates between two looks at the inbox and the clocks.
-        chunk_seconds: seconds of updates between two looks (the updates per chunk follow the measured CPU time
-            per update, at most ``chunk``): long enough that the per-call cost of drawing and preparing the
+        chunk_seconds: wall-clock seconds of updates between two looks (the updates per chunk follow the measured
+            time per update, at most ``chunk``): long enough that the per-call cost of drawing and preparing the
             minibatches is shared by many updates (:mod:`~saml_ros.core.online.updates`), short enough that
-            ingest, pause and stop wait little. CPU time, not wall time: on a busy CPU a niced process's wall time
-            per update grows with the load, and chunks sized by it shrank until that per-call cost took most of
-            the little CPU time it got.
+            ingest, pause and stop wait little.
     """
 
     updates_per_second: float = 0.0
@@ -161,12 +159,12 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             paced_done += n
         try:
             started = learner.trainer is not None
-            t0 = time.thread_time()
+            t0 = time.monotonic()
             done = learner.update(n)
             if done and started:
                 # the call that starts training (normalisation fit, trainer and kernel set-up) is not an update's
                 # cost: counted, it kept the chunks at one update for dozens of chunks
-                took = (time.thread_time() - t0) / done
+                took = (time.monotonic() - t0) / done
                 per_update = took if per_update == 0 else 0.8 * per_update + 0.2 * took
             if not done:  # the update budget (updates_per_transition) is spent: wait for data
                 conn.poll(0.05)
