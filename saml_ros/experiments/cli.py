@@ -147,7 +147,8 @@ def claims_from_markdown(text: str) -> list[Any]:
     while i < len(lines) and lines[i].startswith("|"):
         cells = [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", lines[i].strip())[1:-1]]
         if len(cells) == 6:
-            claims.append(Claim(*cells[:5], verdict=cells[5].strip("*")))
+            experiment, claim, paper, ours, headroom, verdict = cells
+            claims.append(Claim(experiment, claim, paper, ours, headroom, verdict.strip("*")))
         i += 1
     for line in lines[i:]:
         if line.startswith("#"):

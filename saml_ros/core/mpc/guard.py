@@ -454,7 +454,7 @@ class GuardedController:
         bound`` over the task's linear rows); ``-inf`` when the task has none."""
         task = getattr(self.learned, "task", None)
         idx = getattr(task, "cons_idx", None)
-        if idx is None or not np.size(idx):
+        if task is None or idx is None or not np.size(idx):
             return -math.inf
         return float(np.max(task.cons_sign * x[idx] - task.cons_bound))
 
