@@ -2,7 +2,7 @@
 
 From the demo's evaluation starts of that run (its ``--seed``: the standard and the aggressive ones), the base
 model and the learned model with every remedy off, each remedy alone, the run's own guard (``guard.*`` of its
-``bringup.yaml``) and it without roll back / without the constraint watch / without the infeasible-plan fallback (or with it, for runs recorded
+``bringup.yaml``) and it without roll back / with or without the constraint watch / without the infeasible-plan fallback (or with it, for runs recorded
 before it existed): per setting the mean and worst landing error, the steps planned with f_hat and the roll
 backs.
 It answers "what does each remedy cost or buy on this model" without a new live run (ROS-free, about 30 s for
@@ -40,6 +40,9 @@ def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
         if guard.monitor.constraint_strikes:
             out["run's guard without constraint watch"] = dataclasses.replace(
                 guard, monitor=dataclasses.replace(guard.monitor, constraint_strikes=0))
+        else:  # off by default: the watch as the capacity sweep flew it (2 strikes, 5 mm)
+            out["run's guard + constraint watch"] = dataclasses.replace(
+                guard, monitor=dataclasses.replace(guard.monitor, constraint_strikes=2, constraint_tol=0.005))
     if guard.infeasible:
         out["infeasible fallback only"] = dataclasses.replace(off, infeasible=True)
         out["run's guard without infeasible fallback"] = dataclasses.replace(guard, infeasible=False)

@@ -23,6 +23,10 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   never flown and never used again (:meth:`GuardedController.offer_model` returns False; counted in ``rollbacks``
   and ``refused_before_flight``).
 
+With the roll back, an optional *constraint watch* (``MonitorConfig.constraint_strikes``, off by default) also rolls
+back a model whose flown steps break a state bound of the task that its own prediction kept and f_hat's saw coming
+(:meth:`GuardedController._constraint_strike`).
+
 The unguarded MPC is the same controller with every remedy off. The roll back alone works around any controller of
 the :class:`~saml_ros.core.mpc.contract.Controller` protocol (the one-shot paddle-ball MPC too: its live transition is
 the pre-impact state, the command and the post-impact velocity): the monitor predicts with the controller's numpy
@@ -470,7 +474,9 @@ class GuardedController:
         error matters there (measured on the capacity sweep's 4-4 nets in the wind world: they over-predict the
         ground effect's lift, so the vehicle sinks 1-2.5 cm below the height bound and circles the pad for the
         rest of the episode, every plan failing where the state fixes it; f_hat under-predicts the lift, so its
-        vehicle stays above the bound; docs/demo.md, "The constraint watch")."""
+        vehicle stays above the bound). Off by default (``constraint_strikes = 0``): with 2 strikes of 5 mm it also
+        rolls back the demo's well-trained ensembles in the wind world, whose landings are then worse, and looser
+        settings lose most of what it buys on the 4-4 nets (docs/demo.md, the constraint watch)."""
         c = self.config.monitor
         if c.constraint_strikes <= 0 or y.shape != x.shape:
             return False

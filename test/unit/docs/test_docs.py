@@ -211,6 +211,23 @@ def test_the_checks_catch_what_they_look_for() -> None:
     assert _written_by_a_command(REPO / "x" / "friction_periodic_error_map_u1.png")  # an f-string in friction.py
 
 
+@pytest.mark.parametrize("page", ["README.md", "docs/experiments.md", "docs/demo.md"])
+def test_the_capacity_table_is_the_one_the_sweep_wrote(page: str) -> None:
+    """The capacity sweep's table (size, SA and UA headroom captured, solve time, verdict) is the one of
+    docs/results/experiments/capacity/results.md, row for row (`./dev experiment capacity --out
+    docs/results/experiments/capacity` writes it)."""
+    written = (REPO / "docs" / "results" / "experiments" / "capacity" / "results.md").read_text(encoding="utf-8")
+    lines = written.splitlines()
+    first = next((i for i, line in enumerate(lines) if line.startswith("|")), len(lines))
+    end = next((i for i in range(first, len(lines)) if not lines[i].startswith("|")), len(lines))
+    rows = lines[first:end]
+    text = (REPO / page).read_text(encoding="utf-8").splitlines()
+    assert len(rows) > 2, "the sweep's results.md holds no table"
+    start = text.index(rows[0]) if rows[0] in text else -1
+    assert start >= 0 and text[start:start + len(rows)] == rows, (
+        f"{page}'s capacity table differs from docs/results/experiments/capacity/results.md")
+
+
 @pytest.mark.parametrize("page", ["README.md", "docs/experiments.md"])
 def test_the_claims_tables_are_the_one_the_experiments_wrote(page: str) -> None:
     """The README's and docs/experiments.md's claims tables are `./dev experiment all`'s claims.md, row for row, so
