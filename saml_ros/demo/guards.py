@@ -2,7 +2,7 @@
 
 From the demo's evaluation starts of that run (its ``--seed``: the standard and the aggressive ones), the base
 model and the learned model with every remedy off, each remedy alone, the run's own guard (``guard.*`` of its
-``bringup.yaml``) and it without roll back / without the infeasible-plan fallback (or with it, for runs recorded
+``bringup.yaml``) and it without roll back / with or without the constraint watch / without the infeasible-plan fallback (or with it, for runs recorded
 before it existed): per setting the mean and worst landing error, the steps planned with f_hat and the roll
 backs.
 It answers "what does each remedy cost or buy on this model" without a new live run (ROS-free, about 30 s for
@@ -37,6 +37,12 @@ def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
     if guard.rollback:
         out["roll back only"] = dataclasses.replace(off, rollback=True, monitor=guard.monitor)
         out["run's guard without roll back"] = dataclasses.replace(guard, rollback=False)
+        if guard.monitor.constraint_strikes:
+            out["run's guard without constraint watch"] = dataclasses.replace(
+                guard, monitor=dataclasses.replace(guard.monitor, constraint_strikes=0))
+        else:  # off by default: the watch as the capacity sweep flew it (2 strikes, 5 mm)
+            out["run's guard + constraint watch"] = dataclasses.replace(
+                guard, monitor=dataclasses.replace(guard.monitor, constraint_strikes=2, constraint_tol=0.005))
     if guard.infeasible:
         out["infeasible fallback only"] = dataclasses.replace(off, infeasible=True)
         out["run's guard without infeasible fallback"] = dataclasses.replace(guard, infeasible=False)
@@ -78,13 +84,13 @@ def format_comparison(out: dict[str, Any]) -> str:
     for name, arms in out["sets"].items():
         base_worst = max(arms["base"]["landing_error"])
         lines.append(f"\n{name} starts ({len(arms['base']['landing_error'])}):")
-        lines.append(f"  {'setting':<32} {'mean':>8} {'worst':>8}  {'no worse':>8}  steps on f_hat  roll backs")
+        lines.append(f"  {'setting':<38} {'mean':>8} {'worst':>8}  {'no worse':>8}  steps on f_hat  roll backs")
         for a, r in arms.items():
             e = np.asarray(r["landing_error"])
             g = r["guard"]
             on_base = f"{g.get('solves_base', 0):.0f} / {g.get('solves', 0):.0f}" if a != "base" else "all"
             verdict = "" if a == "base" else ("yes" if e.max() <= base_worst else "NO")
-            lines.append(f"  {a:<32} {e.mean():>8.4f} {e.max():>8.4f}  {verdict:>8}  {on_base:>14}  "
+            lines.append(f"  {a:<38} {e.mean():>8.4f} {e.max():>8.4f}  {verdict:>8}  {on_base:>14}  "
                          f"{g.get('rollbacks', 0):>10.0f}")
     return "\n".join(lines)
 

@@ -97,6 +97,9 @@ class CapacitySettings:
     world: dict[str, float] = field(default_factory=lambda: {"wind": 3.0, "wind_length": 8.0})
     #: control steps per episode, recorded and evaluated (0: the demo's, 50 = 5 s)
     steps: int = 0
+    #: the guard's constraint watch (:class:`saml_ros.core.mpc.monitor.MonitorConfig`: strikes, tolerance in m) over
+    #: the demo's guard, where the watch is off; (2, 0.005) is what the sweep of docs/experiments.md flew with
+    constraint_watch: tuple[int, float] = (2, 0.005)
 
     @classmethod
     def quick(cls, seeds: tuple[int, ...] = (0, 1)) -> CapacitySettings:
@@ -310,6 +313,8 @@ def run(settings: CapacitySettings, out: Path, progress: bool = True) -> dict[st
     info = machine_info()
     out.mkdir(parents=True, exist_ok=True)
     task, guard, episode_s = demo_task_and_guard()
+    guard = replace(guard, monitor=replace(guard.monitor, constraint_strikes=int(s.constraint_watch[0]),
+                                           constraint_tol=float(s.constraint_watch[1])))
     if s.world:
         task = replace(task, world=tuple(sorted({**dict(task.world), **s.world}.items())))
     if s.steps:
@@ -451,7 +456,8 @@ def markdown(data: dict[str, Any], s: CapacitySettings, timer: Timer) -> str:
         "",
         f"World: {world}. Task: the demo's landing on the pad at {tuple(data['task']['pad'])} m, guarded as the demo "
         f"(disagreement {data['guard']['max_disagreement']:g} for ensembles, residual bound, roll back, infeasible-plan "
-        f"fallback). Data: per seed {s.data_time:g} s of the demo's loop on f_hat (seeds {list(s.seeds)}, "
+        f"fallback) plus the constraint watch ({s.constraint_watch[0]} strikes of {s.constraint_watch[1]:g} m; 0: off). "
+        f"Data: per seed {s.data_time:g} s of the demo's loop on f_hat (seeds {list(s.seeds)}, "
         f"{np.mean([d['transitions'] for d in data['data'].values()]):.0f} transitions, "
         f"{100 * np.mean([d['inside'] for d in data['data'].values()]):.0f} % with pz <= 1.5 m); {s.epochs} epochs, "
         f"ensembles of {s.ensemble} (single = member 0). Closed loop: the demo's {s.eval_starts} standard evaluation "

@@ -109,8 +109,9 @@ def run_experiment(name: str, settings: Any, out: Path, progress: bool = True, r
 
 
 def collect_claims(parent: Path, names: Sequence[str] = EXPERIMENT_NAMES) -> tuple[list[Any], list[str]]:
-    """The claims stored in ``parent/<name>/results.json`` of every experiment of ``names`` run there, and those
-    names."""
+    """The claims stored in ``parent/<name>/results.json`` of every experiment of ``names`` run there (or, where
+    only its ``results.md`` is kept, as under docs/results/experiments, the claims table that file holds), and
+    those names."""
     import json
 
     from saml_ros.experiments.headroom import Claim
@@ -122,7 +123,42 @@ def collect_claims(parent: Path, names: Sequence[str] = EXPERIMENT_NAMES) -> tup
         if path.exists():
             found.append(name)
             claims += [Claim(**c) for c in json.loads(path.read_text()).get("claims", [])]
+        elif (parent / name / "results.md").exists():
+            read = claims_from_markdown((parent / name / "results.md").read_text(encoding="utf-8"))
+            if read:
+                found.append(name)
+                claims += read
     return claims, found
+
+
+def claims_from_markdown(text: str) -> list[Any]:
+    """The claims of the first claims table in ``text`` (a results.md written with
+    :func:`saml_ros.experiments.headroom.claims_table`) with the notes below it."""
+    import re
+
+    from saml_ros.experiments.headroom import CLAIMS_HEADER, Claim
+
+    lines = text.splitlines()
+    head = CLAIMS_HEADER.splitlines()[0]
+    if head not in lines:
+        return []
+    i = lines.index(head) + 2
+    claims: list[Any] = []
+    while i < len(lines) and lines[i].startswith("|"):
+        cells = [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", lines[i].strip())[1:-1]]
+        if len(cells) == 6:
+            experiment, claim, paper, ours, headroom, verdict = cells
+            claims.append(Claim(experiment, claim, paper, ours, headroom, verdict.strip("*")))
+        i += 1
+    for line in lines[i:]:
+        if line.startswith("#"):
+            break
+        for c in claims:
+            prefix = f"* {c.experiment}, {c.claim}: "
+            if line.startswith(prefix) and not c.note:
+                c.note = line[len(prefix):]
+                break
+    return claims
 
 
 def write_claims(parent: Path, claims: list[Any], title: str, footer: str) -> str:

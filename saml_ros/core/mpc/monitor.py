@@ -52,11 +52,26 @@ class MonitorConfig:
     min_samples: int = 3
     ratio: float = 1.0
     margin: float = 0.01
+    #: the constraint watch (:class:`saml_ros.core.mpc.guard.GuardedController`): roll back once this many of
+    #: the last ``window`` steps the model planned (at least ``constraint_strikes``) broke a state constraint of the task by more than
+    #: ``constraint_tol`` where the model's ``constraint_steps``-step prediction (the flown commands) kept it and
+    #: f_hat's saw it coming; 0 = off (the default: measured, it rolls back the demo's good ensembles in the wind
+    #: world as well as the capacity sweep's 4-4 nets, docs/demo.md "The constraint watch")
+    constraint_strikes: int = 0
+    #: state units of the constrained fields (the quadrotor's height bound: m)
+    constraint_tol: float = 0.005
+    #: steps from a command to the constrained state (the quadrotor's height: thrust -> vz -> pz, 2)
+    constraint_steps: int = 2
 
     def __post_init__(self) -> None:
         if self.window < 1 or not 1 <= self.min_samples <= self.window:
             raise ValueError(f"monitor: need window >= 1 and 1 <= min_samples <= window, got {self.window}, "
                              f"{self.min_samples}")
+        if self.constraint_strikes < 0 or self.constraint_steps < 1 or not (
+                self.constraint_tol >= 0 and math.isfinite(self.constraint_tol)):
+            raise ValueError(f"monitor: need constraint_strikes >= 0, constraint_steps >= 1 and a finite "
+                             f"constraint_tol >= 0, got {self.constraint_strikes}, {self.constraint_steps}, "
+                             f"{self.constraint_tol}")
         if not (self.ratio > 0 and math.isfinite(self.ratio)) or not (self.margin >= 0 and math.isfinite(self.margin)):
             raise ValueError(f"monitor: ratio must be > 0 and margin >= 0 (finite), got {self.ratio}, {self.margin}")
 

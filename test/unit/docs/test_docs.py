@@ -211,16 +211,34 @@ def test_the_checks_catch_what_they_look_for() -> None:
     assert _written_by_a_command(REPO / "x" / "friction_periodic_error_map_u1.png")  # an f-string in friction.py
 
 
-def test_the_readmes_claims_table_is_the_one_the_experiments_wrote() -> None:
-    """The README's claims table is `./dev experiment all`'s claims.md, row for row, so it cannot drift from the
-    run it cites (rerun the command, then copy its table into the README)."""
+@pytest.mark.parametrize("page", ["README.md", "docs/experiments.md", "docs/demo.md"])
+def test_the_capacity_table_is_the_one_the_sweep_wrote(page: str) -> None:
+    """The capacity sweep's table (size, SA and UA headroom captured, solve time, verdict) is the one of
+    docs/results/experiments/capacity/results.md, row for row (`./dev experiment capacity --out
+    docs/results/experiments/capacity` writes it)."""
+    written = (REPO / "docs" / "results" / "experiments" / "capacity" / "results.md").read_text(encoding="utf-8")
+    lines = written.splitlines()
+    first = next((i for i, line in enumerate(lines) if line.startswith("|")), len(lines))
+    end = next((i for i in range(first, len(lines)) if not lines[i].startswith("|")), len(lines))
+    rows = lines[first:end]
+    text = (REPO / page).read_text(encoding="utf-8").splitlines()
+    assert len(rows) > 2, "the sweep's results.md holds no table"
+    start = text.index(rows[0]) if rows[0] in text else -1
+    assert start >= 0 and text[start:start + len(rows)] == rows, (
+        f"{page}'s capacity table differs from docs/results/experiments/capacity/results.md")
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/experiments.md"])
+def test_the_claims_tables_are_the_one_the_experiments_wrote(page: str) -> None:
+    """The README's and docs/experiments.md's claims tables are `./dev experiment all`'s claims.md, row for row, so
+    they cannot drift from the run they cite (rerun the command, then copy its table into them)."""
     written = (REPO / "docs" / "results" / "experiments" / "claims.md").read_text(encoding="utf-8")
     rows = [line for line in written.splitlines() if line.startswith("|")]
-    readme = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
+    text = (REPO / page).read_text(encoding="utf-8").splitlines()
     assert len(rows) > 2, "claims.md holds no table"
-    start = readme.index(rows[0]) if rows[0] in readme else -1
-    assert start >= 0 and readme[start:start + len(rows)] == rows, (
-        "README.md's claims table differs from docs/results/experiments/claims.md")
+    start = text.index(rows[0]) if rows[0] in text else -1
+    assert start >= 0 and text[start:start + len(rows)] == rows, (
+        f"{page}'s claims table differs from docs/results/experiments/claims.md")
 
 
 def test_the_colcon_recipe_is_the_same_in_the_readme_and_packaging_md() -> None:

@@ -68,7 +68,7 @@ def test_claims_command_rebuilds_the_table_from_stored_results(tmp_path: Path,
                                                               capsys: pytest.CaptureFixture[str]) -> None:
     """``experiment claims`` reads the claims of every results.json under --out into claims.md, in the order of
     EXPERIMENT_NAMES, and refuses a directory without results."""
-    from saml_ros.experiments.headroom import Claim
+    from saml_ros.experiments.headroom import Claim, claims_table
 
     rows = {"quadrotor": Claim("quadrotor (drag 0.3)", "SA lands better", "4.21 vs 4.55", "1.0 vs 2.0", "5.0 %",
                                "cannot show"),
@@ -86,6 +86,13 @@ def test_claims_command_rebuilds_the_table_from_stored_results(tmp_path: Path,
     assert lines[2].startswith("| quadrotor (drag 0.3) |") and "**cannot show**" in lines[2]
     assert "SA captures 83 %" in text and "friction, quadrotor" in text
     assert cli.main(["claims", "--out", str(tmp_path / "empty")]) == 2
+    # where only an experiment's results.md is kept (docs/results/experiments), its claims table is read back
+    (tmp_path / "friction" / "results.json").unlink()
+    (tmp_path / "friction" / "results.md").write_text(
+        f"# friction\n\n## Claims\n\n{claims_table([rows['friction']])}\n\n## More\n\n* not a note\n")
+    assert cli.claims_from_markdown((tmp_path / "friction" / "results.md").read_text()) == [rows["friction"]]
+    assert cli.main(["claims", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "claims.md").read_text() == text
 
 
 # ------------------------------------------------------------------------------------------------ convergence

@@ -38,7 +38,7 @@ from saml_ros.core.mpc.shooting import ShootingMPC
 from saml_ros.core.online import OnlineConfig, OnlineLearner
 from saml_ros.core.online import learner as online_learner
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.demo.landing import aggressive_starts, episode_metrics, plant
+from saml_ros.demo.landing import LandingTask, aggressive_starts, episode_metrics, plant
 
 DEMO_GUARD = GuardConfig(max_disagreement=0.1, bound_residual=True, rollback=True)
 
@@ -276,6 +276,38 @@ def test_a_learned_plan_that_breaks_a_constraint_f_hat_keeps_is_replaced_by_f_ha
     res = guarded.solve(low, TASK.goal)
     assert not res.success and res.unavoidable and guarded.last_source == "learned"
     assert guarded.counters["infeasible_fallbacks"] == 1
+
+
+def test_a_model_that_steers_through_a_bound_its_prediction_kept_is_rolled_back() -> None:
+    """The constraint watch: a model predicting 0.08 m/s more climb per step than there is (no ground effect here,
+    so f_hat is exact) has a one-step squared error of 0.0064, under the monitor's margin, and sinks the vehicle
+    8 mm below the height bound it planned to keep; f_hat's prediction saw that coming. Without the watch it flies
+    the whole episode below the bound; with it the guard rolls back to f_hat, which climbs back onto the bound."""
+    task = LandingTask(world=(("alpha", 0.0),), steps=30)
+    quad = task.system()
+    model = DynamicsModel(quad, n_models=1, seed=0)
+    with torch.no_grad():
+        model.net.weights[-1].zero_()
+        model.net.biases[-1].zero_()
+        model.net.biases[-1][..., 5] = 0.08  # vz: the residual the model adds, m/s per step
+    f = plant(quad, task.landing_height)
+    x0 = quad.hover_state((0.3, -0.2, 0.6))
+    ends = {}
+    for strikes in (0, 2):
+        guard = GuardConfig(rollback=True, monitor=MonitorConfig(constraint_strikes=strikes))
+        ctrl = make_guarded_controller(quad, "fast", guard, **task.mpc_options())
+        ctrl.set_model(model, 1, {})
+        run = closed_loop(quad, ctrl, x0, task.steps, goal=task.goal, true_step=f,
+                          on_step=lambda s, c=ctrl: c.observe(s.x, s.result.u, s.x_next))
+        ends[strikes] = (float(run.xs[-1, 2]), dict(ctrl.counters), ctrl.last_strike)
+    z_off, counters_off, _ = ends[0]
+    z_on, counters_on, strike = ends[2]
+    assert counters_off.get("rollbacks", 0) == 0 and z_off < task.min_height - 0.005  # the monitor alone: below
+    assert counters_on["constraint_rollbacks"] == 1 and counters_on["rollbacks"] == 1 and ctrl.tag == 0
+    assert strike is not None and strike[0] > 0.005 and strike[1] <= 0.0 < strike[2]
+    assert abs(z_on - task.min_height) < 0.005  # f_hat back on the bound
+    with pytest.raises(ValueError):
+        MonitorConfig(constraint_strikes=-1)
 
 
 def test_online_learner_trains_an_ensemble_and_records_the_residual_bound(tmp_path: Path) -> None:
