@@ -17,6 +17,7 @@ cannot forget it: ``./dev test -m "not ros"`` runs the unit tests alone (and the
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -100,7 +101,8 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The markers by folder; a test file directly in test/ or in an unknown folder is an error."""
+    """The markers by folder (a test file directly in test/ or in an unknown folder is an error); the files in
+    the order they run best in on several workers (:func:`longest_files_first`)."""
     misplaced = set()
     for item in items:
         folder = _folder(item.path)
@@ -112,6 +114,66 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if misplaced:
         raise pytest.UsageError(f"test files outside test/unit, test/ros and test/e2e (see test/conftest.py): "
                                 f"{sorted(misplaced)}")
+    items[:] = longest_files_first(items, read_durations())
+
+
+# ------------------------------------------------------------------------------------ the order files run in
+#: each test file's recorded duration (s: its tests' set-up, call and tear-down summed), written by
+#: ``./dev test --record-durations``
+DURATIONS_FILE = TEST_DIR / "durations.json"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--record-durations", action="store_true",
+                     help=f"write each test file's duration in this run into {DURATIONS_FILE.name} (files not run keep "
+                          "theirs): the order the next runs start files in")
+
+
+def read_durations(path: Path = DURATIONS_FILE) -> dict[str, float]:
+    """``{file relative to the repository: seconds}`` (empty when the file is missing or unreadable)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return {str(k): float(v) for k, v in data.items() if isinstance(v, int | float)} if isinstance(data, dict) else {}
+
+
+def longest_files_first(items: list[pytest.Item], durations: dict[str, float]) -> list[pytest.Item]:
+    """``items`` grouped by file, the files in decreasing recorded duration (the tests of a file in their own
+    order); a file without a record counts as the median file.
+
+    ``./dev test`` hands out whole files (``--dist loadfile``) in this order (``--no-loadscope-reorder``; xdist's
+    own order, most tests first, started the long one-test process files last, so one worker could run the last
+    of them while the other had nothing left): longest first, each to the first free worker, leaves only short
+    files for the end."""
+    order: dict[str, int] = {}
+    files: list[str] = []
+    for item in items:
+        f = item.nodeid.split("::", 1)[0]
+        if f not in order:
+            order[f] = len(files)
+            files.append(f)
+    known = sorted(durations[f] for f in files if f in durations)
+    default = known[len(known) // 2] if known else 0.0
+    rank = {f: (-durations.get(f, default), order[f]) for f in files}
+    return sorted(items, key=lambda item: rank[item.nodeid.split("::", 1)[0]])
+
+
+_RECORDED: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """With ``--record-durations``: each file's set-up, call and tear-down times summed (in the controller, from
+    every worker's reports)."""
+    f = report.nodeid.split("::", 1)[0]
+    _RECORDED[f] = _RECORDED.get(f, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    if not session.config.getoption("record_durations") or hasattr(session.config, "workerinput") or not _RECORDED:
+        return
+    merged = read_durations() | {f: round(s, 1) for f, s in _RECORDED.items()}
+    DURATIONS_FILE.write_text(json.dumps(dict(sorted(merged.items())), indent=1) + "\n")
 
 
 # ------------------------------------------------------------------------------------- unit tests stay in-process

@@ -18,10 +18,12 @@ arm. Gravity acts along -z.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 G = 9.81  # m/s^2
 #: the nominal parameters (SI): link lengths, masses, centres of mass, inertias about the centres, armatures
@@ -62,8 +64,11 @@ def f_hat(x: torch.Tensor, u: torch.Tensor, *, dt: float, h: float = 0.002, xp: 
     at most ``h`` s. ``params`` override :data:`NOMINAL`. ``xp``: the array namespace (torch in the learner, numpy
     and CasADi in saml_ros's MPC, which then differentiates it exactly: an *array-namespace form*, docs/your_robot.md
     "Control it"); default torch."""
+    batched_torch = xp is None
+    if xp is None:
+        import torch as xp  # here, not at the top: the arm's controller (numpy only) starts without torch
     p = _p(params)
-    lib: Any = torch if xp is None else xp
+    lib: Any = xp
     n = max(1, round(dt / h))
     step = dt / n
     q1, q2, dq1, dq2 = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
@@ -76,8 +81,8 @@ def f_hat(x: torch.Tensor, u: torch.Tensor, *, dt: float, h: float = 0.002, xp: 
         dq2 = dq2 + step * (m11 * r2 - m12 * r1) / det
         q1 = q1 + step * dq1
         q2 = q2 + step * dq2
-    if xp is None:
-        return torch.stack([q1, q2, dq1, dq2], dim=1)
+    if batched_torch:
+        return lib.stack([q1, q2, dq1, dq2], dim=1)
     return xp.stack([q1, q2, dq1, dq2])
 
 

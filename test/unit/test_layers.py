@@ -12,6 +12,7 @@ counted as an edge to ``a.b.c`` only, not to the packages ``a`` and ``a.b`` Pyth
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -40,7 +41,7 @@ def _imports(name: str, source: str | None = None) -> list[tuple[str, int]]:
     """``(imported module, line)`` for every import in module ``name`` (``from X import Y``: ``X.Y`` when that is
     a module, else ``X``); relative imports resolved. ``source``: the module's text (default: its file)."""
     path = MODULES[name]
-    tree = ast.parse(path.read_text() if source is None else source, filename=str(path))
+    tree = _tree(name) if source is None else ast.parse(source, filename=str(path))
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -57,9 +58,16 @@ def _imports(name: str, source: str | None = None) -> list[tuple[str, int]]:
     return out
 
 
+@functools.cache
+def _tree(name: str) -> ast.Module:
+    """The AST of module ``name``'s file, parsed once per test run (the checks below read every module, several
+    times: parsing is their cost)."""
+    return ast.parse(MODULES[name].read_text(), filename=str(MODULES[name]))
+
+
 def _by_name_loads(name: str) -> list[tuple[str, int]]:
     """Calls that import a module named by a value: ``importlib.import_module(...)``, ``__import__(...)``."""
-    tree = ast.parse(MODULES[name].read_text())
+    tree = _tree(name)
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Call):
@@ -154,7 +162,7 @@ def test_core_reaches_no_node_module_through_other_modules() -> None:
 
 
 def _defines(name: str, cls: str) -> bool:
-    tree = ast.parse(MODULES[name].read_text())
+    tree = _tree(name)
     return any(isinstance(n, ast.ClassDef) and n.name == cls for n in tree.body)
 
 

@@ -28,6 +28,16 @@ SYSTEMS = ("friction", "quadrotor", "paddle_ball")
 MAX_STAMP = (2**31 - 1) * 10**9 + 999_999_999
 
 
+@pytest.fixture(autouse=True)
+def _built_in_systems_only(restore_registry: None) -> None:
+    """The registry as a fresh process has it: a robot that a test of another file on this worker registered (a
+    system file loaded in-process) is out of it during each test here, and back after (``restore_registry``)."""
+    from saml_ros.core.systems import unregister_system
+
+    for name in set(system_names()) - set(SYSTEMS):
+        unregister_system(name)
+
+
 def _assert_built_by(msg: Any, factory_name: str) -> None:
     if factory_name == "rclpy":
         assert not hasattr(msg, "__msgtype__") and type(msg).__module__.split(".")[1] == "msg"
