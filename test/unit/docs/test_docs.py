@@ -80,6 +80,15 @@ def test_no_time_of_day_and_no_date_in_a_heading(page: Path) -> None:
     assert not bad, "history belongs in CHANGELOG.md, not in a reference page:\n" + "\n".join(bad)
 
 
+@pytest.mark.parametrize("page", PAGES, ids=_rel)
+def test_no_date_in_prose(page: Path) -> None:
+    """A reference page describes the present: no date in its text, also where a line break splits one."""
+    prose = _prose(page.read_text(encoding="utf-8"))
+    joined = re.sub(r"\s+", " ", prose)
+    bad = [m.group(0) for m in DATE_RE.finditer(joined)]
+    assert not bad, f"{_rel(page)}: dates {bad}: history belongs in CHANGELOG.md and the result files"
+
+
 @cache
 def _test_files() -> dict[str, list[Path]]:
     files: dict[str, list[Path]] = {}

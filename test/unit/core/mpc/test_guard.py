@@ -297,8 +297,10 @@ def test_a_model_that_steers_through_a_bound_its_prediction_kept_is_rolled_back(
         guard = GuardConfig(rollback=True, monitor=MonitorConfig(constraint_strikes=strikes))
         ctrl = make_guarded_controller(quad, "fast", guard, **task.mpc_options())
         ctrl.set_model(model, 1, {})
-        run = closed_loop(quad, ctrl, x0, task.steps, goal=task.goal, true_step=f,
-                          on_step=lambda s, c=ctrl: c.observe(s.x, s.result.u, s.x_next))
+        def observe(s: Any, c: Any = ctrl) -> None:
+            c.observe(s.x, s.result.u, s.x_next)
+
+        run = closed_loop(quad, ctrl, x0, task.steps, goal=task.goal, true_step=f, on_step=observe)
         ends[strikes] = (float(run.xs[-1, 2]), dict(ctrl.counters), ctrl.last_strike)
     z_off, counters_off, _ = ends[0]
     z_on, counters_on, strike = ends[2]
