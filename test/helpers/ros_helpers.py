@@ -256,6 +256,18 @@ class RosDomain:
         self.processes.append(proc)
         return proc
 
+    def start(self, name: str, argv: Sequence[str], cwd: Path, env: dict[str, str] | None = None) -> Process:
+        """Any command ``argv`` (a user's script, a command of the docs) in this domain, in a new process group,
+        output logged under ``name``; stopped at teardown like :meth:`launch`'s."""
+        log = self.log_dir / f"{name}-{time.monotonic_ns()}.log"
+        with open(log, "wb") as out:
+            popen = subprocess.Popen(list(argv), stdout=out, stderr=subprocess.STDOUT, cwd=cwd,
+                                     env=dict(os.environ, PYTHONUNBUFFERED="1") if env is None else env,
+                                     start_new_session=True)
+        proc = Process(name, popen, log)
+        self.processes.append(proc)
+        return proc
+
     def stop_all(self) -> None:
         for proc in self.processes:
             with contextlib.suppress(Exception):

@@ -4,10 +4,7 @@ module)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -24,14 +21,7 @@ NS = "/dd"
 
 def launch_script(dom: RosDomain, script: Path, *ros_args: str) -> Process:
     """A plain rclpy script (the user's robot, not a saml_ros executable) in the test's domain."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    log = dom.log_dir / f"{script.stem}-{time.monotonic_ns()}.log"
-    with open(log, "wb") as out:
-        popen = subprocess.Popen([sys.executable, str(script), "--ros-args", "-r", f"__ns:={NS}", *ros_args],
-                                 stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
-    proc = Process(script.stem, popen, log)
-    dom.processes.append(proc)
-    return proc
+    return dom.start(script.stem, [sys.executable, str(script), "--ros-args", "-r", f"__ns:={NS}", *ros_args], REPO)
 
 
 # a unicycle whose speeds follow the commands with a first-order lag; its constant lives in a sibling module

@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 import yaml
 from helpers.ros_helpers import Process, RosDomain, TestNode, wait_for
+from helpers.your_robot import launch_script
 
 REPO = Path(__file__).resolve().parents[3]
 EXAMPLE = REPO / "examples" / "diff_drive"
@@ -38,14 +39,7 @@ def _forget_registered_robots() -> Iterator[None]:
 
 def launch_robot(dom: RosDomain) -> Process:
     """The example robot (examples/diff_drive/robot.py, a plain rclpy node) in the test's domain."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    log = dom.log_dir / f"robot-{time.monotonic_ns()}.log"
-    with open(log, "wb") as out:
-        popen = subprocess.Popen([sys.executable, str(EXAMPLE / "robot.py"), "--ros-args", "-r", f"__ns:={NS}"],
-                                 stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO, start_new_session=True)
-    proc = Process("robot", popen, log)
-    dom.processes.append(proc)
-    return proc
+    return launch_script(dom, EXAMPLE / "robot.py")
 
 
 def diagnostics_of(received: list[Any], node_suffix: str) -> dict[str, str]:

@@ -24,7 +24,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -86,13 +85,7 @@ class Reader:
         return [*head, *argv[1:], *SHORTER.get(argv[0], [])]
 
     def start(self, cmd: Command) -> Process:
-        log = self.dom.log_dir / f"{self.name(cmd)}-{time.monotonic_ns()}.log"
-        with open(log, "wb") as out:
-            popen = subprocess.Popen(self.argv(cmd), stdout=out, stderr=subprocess.STDOUT, env=self.env,
-                                     cwd=self.cwd, start_new_session=True)
-        proc = Process(self.name(cmd), popen, log)
-        self.dom.processes.append(proc)
-        return proc
+        return self.dom.start(self.name(cmd), self.argv(cmd), self.cwd, self.env)
 
     def run(self, cmd: Command, timeout: float = 180.0) -> str:
         """Run the command to its end; its output (it must succeed)."""
