@@ -170,6 +170,12 @@ RCLPY = RclpyFactory()
 
 
 # --------------------------------------------------------------------------------------------- stamps
+def full_topic(namespace: str, name: str) -> str:
+    """The absolute name of topic ``name`` in ``namespace``: an absolute name as it is, a relative one under the
+    namespace (``full_topic("/dd", "odom") == "/dd/odom"``, ``full_topic("/dd/", "/clock") == "/clock"``)."""
+    return name if name.startswith("/") else f"{namespace.rstrip('/')}/{name}"
+
+
 def make_header(factory: MessageFactory, stamp_ns: int, frame_id: str, topic: str) -> Any:
     """A ``std_msgs/msg/Header`` for ``stamp_ns`` (int nanoseconds, >= 0, < 2^31 s)."""
     sec, nanosec = split_stamp(stamp_ns, topic)

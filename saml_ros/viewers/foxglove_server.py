@@ -74,10 +74,11 @@ class ServedTopic:
 def served_topics(system: str, namespace: str) -> list[ServedTopic]:
     """What the server forwards for ``system`` in ``namespace`` (ROS-free)."""
     from msg_schemas import get_schema
+    from msg_schemas.base import full_topic
     from msg_schemas.telemetry import GLOBAL_TOPICS, TELEMETRY_TOPICS
 
     ns = namespace.rstrip("/")
-    out = [ServedTopic(t.name if t.name.startswith("/") else f"{ns}/{t.name}", t.msg_type, t.qos)
+    out = [ServedTopic(full_topic(ns, t.name), t.msg_type, t.qos)
            for t in get_schema(system).topics]  # a system file's topic may be absolute
     out += [ServedTopic(f"{ns}/{t.name}", t.msg_type, t.qos) for t in TELEMETRY_TOPICS]
     out += [ServedTopic(t.name, t.msg_type, t.qos) for t in GLOBAL_TOPICS if t.name == "/diagnostics"]

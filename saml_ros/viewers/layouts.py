@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from msg_schemas import get_schema
-from msg_schemas.base import FieldDoc
+from msg_schemas.base import FieldDoc, full_topic
 from msg_schemas.telemetry import MODEL_ERROR_TOPIC, MPC_STATUS_NAMES, MPC_STATUS_TOPIC, model_error_names
 from saml_ros.core.systems.registry import SYSTEM_NAMES
 
@@ -65,22 +65,18 @@ class PanelSpec:
     series: tuple[Series, ...]
 
 
-def _topic(namespace: str, name: str) -> str:
-    return name if name.startswith("/") else f"{namespace.rstrip('/')}/{name}"
-
-
 def _vector_series(namespace: str, system: str, topic_name: str, fields: Sequence[str] | None = None) -> list[Series]:
     spec = get_schema(system).topic(topic_name)
     docs = {d.name: d for d in spec.field_docs()}
     names = list(fields) if fields is not None else list(docs)
-    topic = _topic(namespace, topic_name)
+    topic = full_topic(namespace, topic_name)
     return [Series(topic, n, docs[n].unit, docs[n].path, topic + docs[n].plotjuggler) for n in names]
 
 
 def _named_series(namespace: str, topic_name: str, names: Sequence[str], wanted: Sequence[str],
                   docs: Sequence[FieldDoc]) -> list[Series]:
     """Series of a JointState "named vector" topic: ``position[i]`` with i the name's index in ``names``."""
-    topic = _topic(namespace, topic_name)
+    topic = full_topic(namespace, topic_name)
     units = {d.name: d.unit for d in docs}
     out = []
     for n in wanted:
@@ -138,7 +134,7 @@ def subscribed_topics(system: str, namespace: str | None = None) -> list[str]:
     """Every topic the layout of ``system`` reads, in a stable order."""
     topics = [s.topic for p in panels(system, namespace) for s in p.series]
     ns = namespace or f"/{system}"
-    topics += [_topic(ns, t) for t in _three_d_topics(system)]
+    topics += [full_topic(ns, t) for t in _three_d_topics(system)]
     return list(dict.fromkeys(topics))
 
 
@@ -182,7 +178,7 @@ def foxglove_layout(system: str, namespace: str | None = None) -> dict[str, Any]
 
     ns = namespace or f"/{system}"
     # a message without a header (a robot's unstamped cmd_vel) is timed by its arrival
-    unstamped = {_topic(ns, t.name) for t in get_schema(system).topics if not has_header(t.msg_type)}
+    unstamped = {full_topic(ns, t.name) for t in get_schema(system).topics if not has_header(t.msg_type)}
     plots: list[dict[str, Any]] = []
     for spec in panels(system, namespace):
         paths = [{"value": s.foxglove, "enabled": True, "color": COLORS[i % len(COLORS)],
@@ -202,7 +198,7 @@ def foxglove_layout(system: str, namespace: str | None = None) -> dict[str, Any]
         three_d = {"type": "panel", "panelType": "ThreeDee", "title": f"{system}: " + ", ".join(odometry),
                    "version": 1, "config": {
                        "followTf": frame,
-                       "topics": {_topic(ns, t): {"visible": True} for t in odometry},
+                       "topics": {full_topic(ns, t): {"visible": True} for t in odometry},
                        "layers": {"grid": {"visible": True, "layerId": "foxglove.Grid", "frameId": frame,
                                            "size": 6, "divisions": 12}},
                        "cameraState": {"distance": 8.0, "perspective": True, "phi": 60.0, "thetaOffset": 45.0,
