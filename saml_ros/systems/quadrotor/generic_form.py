@@ -57,6 +57,13 @@ def quadrotor_base(system: Any) -> SymbolicBase:
     return SymbolicBase(quadrotor_f_hat, quadrotor_params(system), 13, 4, system.dt, "quadrotor Euler step (xp form)")
 
 
+#: the generic SQP's options equal to the hand-written SQP's defaults (:class:`~saml_ros.core.mpc.shooting.sqp.
+#: SQPShootingMPC`): the same stopping test, Levenberg-Marquardt start and floor, violation price schedule (10, x10 up
+#: to 1e4 while a movable constraint is violated) and feasibility tolerance, so both take the same steps
+HAND_WRITTEN_OPTIONS = {"max_iter": 20, "tol": 3e-4, "rho0": 1e-3, "lm_floor": 1e-3, "feas_tol": 1e-4,
+                        "penalty_max": 1e4, "undamped_check": False}
+
+
 def quadrotor_generic_task(system: Any, horizon: int = 10, min_height: float = 0.2, qw_tol: float = 0.05,
                            tilt_max: float = 0.2) -> Any:
     """The quadrotor demo's landing task (:func:`saml_ros.systems.quadrotor.task.quadrotor_task`) as a generic
@@ -64,8 +71,8 @@ def quadrotor_generic_task(system: Any, horizon: int = 10, min_height: float = 0
     every step (``norm_cost``, smoothed by 1e-3 as the hand-written SQP's ``eps``), ``pz >= min_height`` and
     ``|qx|, |qy| <= tilt_max`` at every step, and the final attitude bound ``|qw_T - 1| <= qw_tol`` in the form the
     hand-written planner linearises, ``||(qx, qy, qz)_T|| <= sqrt(1 - (1 - qw_tol)^2)`` (``at: terminal``); motor
-    forces in ``[0, f_max]``, hover thrust as the safe command. The penalty of a violation is fixed (1000; the
-    hand-written planner starts at 10 and raises it while a movable violation remains)."""
+    forces in ``[0, f_max]``, hover thrust as the safe command; the hand-written SQP's solver options
+    (:data:`HAND_WRITTEN_OPTIONS`, violation price 10 raised to 1e4)."""
     import math
 
     import numpy as np
@@ -86,4 +93,5 @@ def quadrotor_generic_task(system: Any, horizon: int = 10, min_height: float = 0
                    u_low=np.asarray(system.control_low, dtype=np.float64),
                    u_high=np.asarray(system.control_high, dtype=np.float64),
                    u_safe=np.asarray(system.hover_thrust(), dtype=np.float64), constraints=tuple(cons),
-                   state_names=names, control_names=tuple(system.control.names), norm_cost=True, norm_eps=1e-3)
+                   state_names=names, control_names=tuple(system.control.names), norm_cost=True, norm_eps=1e-3,
+                   penalty=10.0, solver_options=dict(HAND_WRITTEN_OPTIONS))

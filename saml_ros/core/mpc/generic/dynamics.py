@@ -24,6 +24,7 @@ import numpy as np
 from saml_ros.core.dynamics.base_forms import CASADI, NUMPY, SCALAR, Form, Row, base_form
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.model.network import DynamicsModel
+from saml_ros.core.mpc.generic.horizon import BufferedFunction, HorizonRollout, mlp_dims, mlp_numbers
 from saml_ros.core.mpc.mlp_np import NumpyMLP
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -55,7 +56,8 @@ class SymbolicBase:
         #: ``(x (n,), u (m,)) -> f_hat (n,)``, symbolic (the CasADi export and the NLP path build on it)
         self.function = ca.Function("f_hat", [xs, us], [y], ["x", "u"], ["y"])
         self._jac = ca.Function("f_hat_jac", [xs, us], [y, ca.jacobian(y, xs), ca.jacobian(y, us)])
-        self._maps: dict[int, Any] = {}
+        self._maps: dict[int, BufferedFunction] = {}
+        self._horizons: dict[tuple[Any, ...], HorizonRollout] = {}
         self.scalar = self._scalar_ok()
 
     def _scalar_ok(self) -> bool:
@@ -79,11 +81,33 @@ class SymbolicBase:
         b = x.shape[0]
         fun = self._maps.get(b)
         if fun is None:
-            fun = self._maps[b] = self._jac.map(b) if b > 1 else self._jac
-        y, jx, ju = fun(x.T, u.T)
+            fun = self._maps[b] = self._jac_buffer(b)
+        y, jx, ju = fun(x, u)
+        return y.copy(), jx.copy(), ju.copy()
+
+    def _jac_buffer(self, b: int) -> BufferedFunction:
+        """:attr:`_jac` mapped over a batch of ``b``, on numpy buffers (:class:`BufferedFunction`: no DM
+        conversions); the Jacobians come out transposed per sample, i.e. in numpy's ``(b, n, n)`` C order."""
+        import casadi as ca
+
         n, m = self.n, self.m
-        return (np.asarray(y).T.copy(), np.asarray(jx).reshape(n, b, n).transpose(1, 0, 2).copy(),
-                np.asarray(ju).reshape(n, b, m).transpose(1, 0, 2).copy())
+        xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
+        y, jx, ju = self._jac(xs, us)
+        one = ca.Function("f_hat_jac_t", [xs, us], [ca.densify(y), ca.densify(jx.T), ca.densify(ju.T)])
+        fun = one.map(b) if b > 1 else one
+        return BufferedFunction(fun, [(b, n), (b, m)], [(b, n), (b, n, n), (b, n, m)])
+
+    def horizon(self, T: int, angles: tuple[int, ...], dims: tuple[int, ...] | None, batch: int,
+                full: bool = False) -> HorizonRollout:
+        """The whole-horizon rollout (:class:`HorizonRollout`) for horizon ``T``, wrapped ``angles``, a network of
+        widths ``dims`` (or None) and line-search batch ``batch``; ``full``: phi alone (no f_hat). Built on first
+        use and kept (a hot swap of the network's numbers reuses it)."""
+        key = (int(T), tuple(angles), dims, int(batch), bool(full))
+        roll = self._horizons.get(key)
+        if roll is None:
+            roll = self._horizons[key] = HorizonRollout(None if full else self.function, self.n, self.m, T,
+                                                        angles, dims, batch)
+        return roll
 
 
 class TorchBase:
@@ -188,6 +212,12 @@ class GenericDynamics:
         self.smoothing = float(smoothing) if mlp is not None else 0.0
         self.bound = None if bound is None or self.mlp is None else np.asarray(bound, dtype=np.float64)
         self.angles = np.asarray(getattr(system, "angle_indices", ()), dtype=int)
+        # the whole-horizon rollouts in CasADi (one call per sequence, no Python per step) where f_hat has a
+        # symbolic form; the network's numbers (exact values) go in as a parameter vector
+        self._horizon_ok = isinstance(base, SymbolicBase)
+        plain = mlp.mlp if isinstance(mlp, SmoothMLP) else mlp
+        self._dims = None if plain is None else mlp_dims(plain)
+        self._theta = None if plain is None else mlp_numbers(plain)
 
     def _wrap(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         if not self.angles.size:
@@ -238,10 +268,22 @@ class GenericDynamics:
             y[:, self.angles] += turns
         return y, a, bm
 
+    def _horizon(self, T: int, batch: int) -> HorizonRollout | None:
+        if not self._horizon_ok:
+            return None
+        assert isinstance(self.base, SymbolicBase)
+        roll = self.base.horizon(T, tuple(int(i) for i in self.angles), self._dims, batch, self.kind == "full")
+        roll.set_model(self._theta, self.bound)  # the rollout may be shared with another model's dynamics
+        return roll
+
     def rollout(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
-        """Predicted states ``(T+1, n)`` from ``x0 (n,)`` under ``us (T, m)`` (on floats where f_hat's form runs
-        on floats: one numpy call per network layer and step, none for f_hat)."""
+        """Predicted states ``(T+1, n)`` from ``x0 (n,)`` under ``us (T, m)``: one CasADi call for the whole
+        horizon where f_hat has a symbolic form (:class:`HorizonRollout`), else step by step (on floats where
+        f_hat's form runs on floats)."""
         us = np.asarray(us, dtype=np.float64)
+        roll = self._horizon(us.shape[0], 1)
+        if roll is not None:
+            return roll.rollout(np.asarray(x0, dtype=np.float64), us)
         xs = np.empty((us.shape[0] + 1, x0.shape[0]))
         xs[0] = x0
         if not getattr(self.base, "scalar", False) or self.kind == "full":
@@ -276,6 +318,9 @@ class GenericDynamics:
         """Predicted states ``(K, T+1, n)`` of ``K`` control sequences ``us (K, T, m)`` from ``x0 (n,)``: one batched
         step per time step (as cheap for a few sequences as for one)."""
         k, horizon = us.shape[0], us.shape[1]
+        roll = self._horizon(horizon, k)
+        if roll is not None:
+            return roll.rollout_batch(np.asarray(x0, dtype=np.float64), np.asarray(us, dtype=np.float64))
         xs = np.empty((k, horizon + 1, x0.shape[0]))
         xs[:, 0] = x0
         for t in range(horizon):

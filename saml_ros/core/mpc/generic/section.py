@@ -63,7 +63,8 @@ _CONSTRAINT_KINDS = ("box", "norm", "keep_out")
 #: the planner paths a section may choose (``saml_ros.core.mpc.generic``) and the options each takes
 PLANNERS = ("sqp", "ipopt")
 PLANNER_OPTIONS: dict[str, frozenset[str]] = {
-    "sqp": frozenset({"max_iter", "tol", "max_time", "rho0", "lm_floor", "feas_tol", "qp_backend", "smoothing"}),
+    "sqp": frozenset({"max_iter", "tol", "max_time", "rho0", "lm_floor", "feas_tol", "qp_backend", "smoothing",
+                      "penalty_max", "undamped_check"}),
     "ipopt": frozenset({"max_iter", "tol", "max_time", "feas_tol", "linear_solver", "smoothing"}),
 }
 #: what ``rate`` accepts besides a number of Hz: answer every state

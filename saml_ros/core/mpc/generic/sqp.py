@@ -40,7 +40,8 @@ from saml_ros.core.mpc.generic.problem import GenericProblem
 from saml_ros.core.mpc.generic.section import MPCTask, mpc_task
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 
-_ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
+_ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+_NO_G, _NO_ROWS = np.zeros((0, 0)), np.zeros(0)
 
 
 def system_task(system: System) -> MPCTask:
@@ -67,6 +68,11 @@ class GenericSQP:
         rho0: initial Levenberg-Marquardt weight, relative to the mean diagonal of the Gauss-Newton Hessian (1e-4);
             lm_floor: absolute term added to it (1e-6).
         feas_tol: largest constraint value (state units) of a plan still called a success (1e-3).
+        penalty_max: the continuation of the violation price: it starts at the task's ``penalty`` and is multiplied
+            by 10, up to ``penalty_max``, whenever the SQP converges to a plan that still violates a constraint
+            some control can move (default: the task's ``penalty``, i.e. fixed).
+        undamped_check: before stopping with a damped step (Levenberg-Marquardt weight above ``rho0``), solve the
+            QP once more with ``rho0`` (True).
         qp_backend: ``daqp`` or ``ipm`` (:func:`~saml_ros.core.mpc.shooting.qp.solve_qp`).
         The solver options not given here come from the section's ``mpc.solver_options``.
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
@@ -79,7 +85,8 @@ class GenericSQP:
                  member: int = 0, *, task: MPCTask | None = None, max_iter: int | None = None,
                  tol: float | None = None, max_time: float | None = None, rho0: float | None = None,
                  lm_floor: float | None = None, feas_tol: float | None = None, qp_backend: str | None = None,
-                 smoothing: float | None = None, base: Any = None, true: Any = None,
+                 smoothing: float | None = None, penalty_max: float | None = None,
+                 undamped_check: bool | None = None, base: Any = None, true: Any = None,
                  f_hat: SymbolicBase | TorchBase | None = None) -> None:
         self.system = system
         self.task = task if task is not None else system_task(system)
@@ -88,7 +95,8 @@ class GenericSQP:
         self.member = int(member)
         self.n, self.m = system.state.size, system.control.size
         opt = _options(self.task, max_iter=max_iter, tol=tol, max_time=max_time, rho0=rho0, lm_floor=lm_floor,
-                       feas_tol=feas_tol, qp_backend=qp_backend, smoothing=smoothing)
+                       feas_tol=feas_tol, qp_backend=qp_backend, smoothing=smoothing, penalty_max=penalty_max,
+                       undamped_check=undamped_check)
         self.smoothing = float(opt.get("smoothing", 0.0))
         self.max_iter, self.tol = int(opt.get("max_iter", 15)), float(opt.get("tol", 1e-4))
         self.max_time = None if opt.get("max_time") is None else float(opt["max_time"])
@@ -98,6 +106,9 @@ class GenericSQP:
         if self.max_iter < 1 or not self.tol > 0 or not self.feas_tol > 0:
             raise ValueError(f"{system.name} MPC: max_iter must be >= 1, tol and feas_tol > 0")
         self.penalty = float(self.task.penalty)
+        self.penalty_max = max(float(opt.get("penalty_max", self.penalty)), self.penalty)
+        self.undamped_check = bool(opt.get("undamped_check", True))
+        self._fixed = np.zeros(0, dtype=bool)
         self._base: SymbolicBase | TorchBase = make_base(system) if f_hat is None else f_hat
         self._base_params: Any = _base_params(system)
         self._bound: np.ndarray | None = None
@@ -206,100 +217,148 @@ class GenericSQP:
         us[T - shift:] = self._plan_u[-1]
         return np.clip(us, lo, hi)
 
-    def _merit(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None) -> float:
+    def _merit(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
+               penalty: float | None = None) -> float:
         c = self.problem.constraints(xs)
-        return self.problem.cost(xs, us, ref, u_prev) + self.penalty * float(np.maximum(c, 0.0).sum())
+        pen = self.penalty if penalty is None else penalty
+        return self.problem.cost(xs, us, ref, u_prev) + pen * float(np.maximum(c, 0.0).sum())
+
+    def _model(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
+               hu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The Gauss-Newton model at the plan: Hessian ``(T m, T m)``, gradient ``(T m,)`` and the condensed
+        sensitivities ``(T, n, T m)``."""
+        pb = self.problem
+        T, m, k = pb.T, self.m, pb.k
+        _, a_mat, b_mat = self.dyn.step_jac(xs[:-1], us)
+        sens = _condense(a_mat, b_mat)  # (T, n, T m): d x_{t+1} / d U
+        j3 = pb.sw[:, :, None] * sens[:, pb.g_idx, :]  # (T, k, T m)
+        r2 = pb.state_residuals(xs, ref)  # (T, k)
+        ru = pb.control_residuals(us, u_prev)
+        ju = pb.ju
+        if self.task.norm_cost:
+            # sum_t sqrt(||r_t||^2 + eps^2): gradient J_t' r_t / n_t, exact Hessian through the linearisation
+            # J_t' (I - r_t r_t' / n_t^2) J_t / n_t (generalised Gauss-Newton; positive semi-definite)
+            nt = np.sqrt(np.einsum("ij,ij->i", r2, r2) + float(self.task.norm_eps) ** 2)
+            jr = np.einsum("tk,tkv->tv", r2, j3)  # r_t' J_t
+            jf = j3.reshape(T * k, T * m)
+            h_gn = (jf.T * np.repeat(1.0 / nt, k)) @ jf - (jr.T * (1.0 / nt ** 3)) @ jr
+            grad = (jr / nt[:, None]).sum(0)
+            if ju.size:
+                h_gn += 2.0 * hu
+                grad += 2.0 * (ju.T @ ru)
+        else:
+            jx = j3.reshape(T * k, T * m)
+            h_gn = 2.0 * (jx.T @ jx + hu)
+            grad = 2.0 * (jx.T @ r2.reshape(-1) + ju.T @ ru)
+        return h_gn, grad, sens
 
     def _optimize(self, x0: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
                   start: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
         """The SQP iterations (module docstring): ``(U, predicted states, iterations, converged, message)``."""
         pb, dyn = self.problem, self.dyn
-        T, m, k = pb.T, self.m, pb.k
+        T, m = pb.T, self.m
         lo, hi = pb.u_low, pb.u_high
+        lo_t, hi_t = np.tile(lo, T), np.tile(hi, T)
+        reach_range = hi_t - lo_t
+        penalty = self.penalty
         xs = dyn.rollout(x0, us)
-        merit = self._merit(xs, us, ref, u_prev)
-        ju = pb.ju
-        hu = ju.T @ ju
+        merit = self._merit(xs, us, ref, u_prev, penalty)
+        hu = pb.ju.T @ pb.ju
         eye = np.eye(T * m)
-        msg, converged, it = "max_iter", False, 0
-        undamped = False
-        norm_cost, eps2 = bool(self.task.norm_cost), float(self.task.norm_eps) ** 2
+        msg, converged, accepted, it = "max_iter", False, False, 0
+        rho = self._rho
+        self._fixed = np.zeros(pb.n_cons, dtype=bool)
         for it in range(1, self.max_iter + 1):  # noqa: B007
-            _, a_mat, b_mat = dyn.step_jac(xs[:-1], us)
-            sens = _condense(a_mat, b_mat)  # (T, n, T m): d x_{t+1} / d U
-            jx = (pb.sw[:, :, None] * sens[:, pb.g_idx, :]).reshape(T * k, T * m)
-            rx = pb.state_residuals(xs, ref).reshape(-1)
-            ru = pb.control_residuals(us, u_prev)
-            if norm_cost:
-                # sum_t sqrt(||r_t||^2 + eps^2): gradient J_t' r_t / n_t, exact Hessian through the linearisation
-                # J_t' (I - r_t r_t' / n_t^2) J_t / n_t (generalised Gauss-Newton; positive semi-definite)
-                r2 = rx.reshape(T, k)
-                nt = np.sqrt(np.einsum("ij,ij->i", r2, r2) + eps2)
-                j3 = jx.reshape(T, k, T * m)
-                jr = np.einsum("tk,tkv->tv", r2, j3)  # r_t' J_t
-                h_gn = (np.einsum("tkv,tkw->vw", j3 / nt[:, None, None], j3)
-                        - (jr / nt[:, None] ** 3).T @ jr + 2.0 * hu)
-                grad = jr.T @ (1.0 / nt) + 2.0 * (ju.T @ ru)
-            else:
-                h_gn = 2.0 * (jx.T @ jx + hu)
-                grad = 2.0 * (jx.T @ rx + ju.T @ ru)
-            lm = self._rho * float(np.mean(np.diag(h_gn))) + self.lm_floor
-            hess = h_gn + lm * eye
+            h_gn, grad, sens = self._model(xs, us, ref, u_prev, hu)
+            scale = max(float(np.trace(h_gn)) / h_gn.shape[0], 1e-6)
             u_flat = us.reshape(-1)
             cons = pb.constraints(xs).reshape(-1)
+            g_mat, c_qp = _NO_G, _NO_ROWS
             if cons.size:
                 cj = pb.constraint_jac(xs)  # (T, R, n)
-                g_mat = np.einsum("trn,tnv->trv", cj, sens).reshape(-1, T * m)
-                qp = solve_qp(hess, grad, np.tile(lo, T) - u_flat, np.tile(hi, T) - u_flat, g_mat, -cons,
-                              self.penalty, backend=self.qp_backend)
-                lin = cons + g_mat @ qp.d
-                pred = -(grad @ qp.d + 0.5 * qp.d @ h_gn @ qp.d) + self.penalty * (
-                    float(np.maximum(cons, 0.0).sum()) - float(np.maximum(lin, 0.0).sum()))
-            else:
-                qp = solve_box_qp(hess, grad, np.tile(lo, T) - u_flat, np.tile(hi, T) - u_flat)
-                pred = -(grad @ qp.d + 0.5 * qp.d @ h_gn @ qp.d)
-            if not np.all(np.isfinite(qp.d)):
-                msg = "QP failed"
-                break
-            if pred <= self.tol * (1.0 + abs(merit)):
-                if self._rho > 10.0 * self.rho0 and not undamped:
-                    # a heavily damped step predicts little even far from a minimum (the network's kinks make
-                    # the Levenberg-Marquardt weight grow): check once with the initial weight before stopping
-                    self._rho, undamped = self.rho0, True
-                    continue
-                msg, converged = "converged", True
-                break
-            d = qp.d.reshape(T, m)
-            # the full step first (usually taken); if refused, every shorter step in one batched rollout
-            ut = np.clip(us + d, lo, hi)
-            xt = dyn.rollout(x0, ut)
-            mt = self._merit(xt, ut, ref, u_prev)
-            accepted = bool(np.isfinite(mt) and mt <= merit - 1e-4 * pred)
-            if not accepted:
-                alphas = np.asarray(_ALPHAS[1:])
-                uts = np.clip(us[None] + alphas[:, None, None] * d[None], lo, hi)
-                xts = dyn.rollout_batch(x0, uts)
-                for j, alpha in enumerate(alphas):
-                    mj = self._merit(xts[j], uts[j], ref, u_prev)
-                    if np.isfinite(mj) and mj <= merit - 1e-4 * alpha * pred:
-                        ut, xt, mt, accepted = uts[j], xts[j], mj, True
-                        break
-            if not accepted:
-                self._rho = min(self._rho * 10.0, 1e6)
-                if self._rho >= 1e6:
+                g_all = np.einsum("trn,tnv->trv", cj, sens).reshape(-1, T * m)
+                # rows no control can move (a bound on x_1 fixed by the current state, the rows of a terminal
+                # constraint before T) only add a constant: left out of the QP, as the hand-written SQP does
+                self._fixed = np.abs(g_all) @ reach_range < 0.01 * self.feas_tol
+                keep = ~self._fixed
+                g_mat, c_qp = g_all[keep], cons[keep]
+            pen = np.full(c_qp.size, penalty)
+            rows0 = penalty * float(np.maximum(c_qp, 0.0).sum())
+            lo_d, hi_d = lo_t - u_flat, hi_t - u_flat
+            undamped_tried = accepted = False
+            while True:
+                hess = h_gn + (rho * scale + self.lm_floor) * eye
+                if c_qp.size:
+                    d_flat = solve_qp(hess, grad, lo_d, hi_d, g_mat, -c_qp, pen, backend=self.qp_backend).d
+                else:
+                    d_flat = solve_box_qp(hess, grad, lo_d, hi_d).d
+                if not np.all(np.isfinite(d_flat)):
+                    msg = "QP failed"
+                    break
+                pred = -(grad @ d_flat + 0.5 * d_flat @ h_gn @ d_flat) + rows0
+                if c_qp.size:
+                    pred -= penalty * float(np.maximum(c_qp + g_mat @ d_flat, 0.0).sum())
+                if pred <= self.tol * (1.0 + abs(merit)):
+                    if self.undamped_check and rho > self.rho0 and not undamped_tried:
+                        # a heavily damped step predicts little even far from a minimum (the network's kinks
+                        # make the Levenberg-Marquardt weight grow): only the undamped model may stop
+                        undamped_tried, rho = True, self.rho0
+                        continue
+                    converged = True
+                    break
+                alpha, ut, xt, mt = self._line_search(x0, us, d_flat.reshape(T, m), merit, pred, ref, u_prev, penalty)
+                if alpha > 0.0:
+                    accepted = True
+                    ratio = (merit - mt) / pred
+                    if alpha == 1.0 and ratio > 0.75:
+                        rho = max(rho / 4.0, 1e-9)
+                    elif alpha < 1.0 or ratio < 0.25:
+                        rho *= max(2.0, 1.0 / alpha)
+                    break
+                rho = max(rho, 1e-3) * 10.0
+                if rho > 1e3:
                     msg = "line search failed"
                     break
-                continue
-            ratio = (merit - mt) / pred
-            if ratio > 0.75:
-                self._rho = max(self._rho / 3.0, 1e-9)
-            elif ratio < 0.25:
-                self._rho = min(self._rho * 4.0, 1e6)
+            if converged:
+                movable = cons[~self._fixed] if cons.size else cons
+                if movable.size and float(movable.max()) > self.feas_tol and penalty < self.penalty_max:
+                    # converged to a plan that still violates a constraint some control can move: make
+                    # violations dearer and go on (the hand-written SQP's continuation)
+                    penalty = min(penalty * 10.0, self.penalty_max)
+                    merit = self._merit(xs, us, ref, u_prev, penalty)
+                    converged = False
+                    continue
+                msg = "converged"
+                break
+            if not accepted:
+                break
             us, xs, merit = ut, xt, mt
             if self.max_time is not None and time.perf_counter() - start > self.max_time:
                 msg = "time budget"
                 break
+        self._rho = rho
         return us, xs, it, converged, msg
+
+    def _line_search(self, x0: np.ndarray, us: np.ndarray, d: np.ndarray, merit: float, pred: float,
+                     ref: np.ndarray, u_prev: np.ndarray | None,
+                     penalty: float) -> tuple[float, np.ndarray, np.ndarray, float]:
+        """Backtracking on the l1 merit (Armijo on the predicted decrease): the full step first (usually taken),
+        then every shorter one of :data:`_ALPHAS` in one batched rollout. ``(alpha, U, states, merit)``; alpha 0
+        when no step length is accepted."""
+        lo, hi = self.problem.u_low, self.problem.u_high
+        ut = np.clip(us + d, lo, hi)
+        xt = self.dyn.rollout(x0, ut)
+        mt = self._merit(xt, ut, ref, u_prev, penalty)
+        if np.isfinite(mt) and mt <= merit - 1e-4 * pred:
+            return 1.0, ut, xt, mt
+        alphas = np.asarray(_ALPHAS[1:])
+        uts = np.clip(us[None] + alphas[:, None, None] * d[None], lo, hi)
+        xts = self.dyn.rollout_batch(x0, uts)
+        for j, alpha in enumerate(alphas):
+            mj = self._merit(xts[j], uts[j], ref, u_prev, penalty)
+            if np.isfinite(mj) and mj <= merit - 1e-4 * alpha * pred:
+                return float(alpha), uts[j], xts[j], mj
+        return 0.0, us, np.empty((0, 0)), math.inf
 
     def _fixed_rows(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
         """Which constraint values (flattened, t major) no control can move: rows at t = 1 whose state does not

@@ -1,0 +1,150 @@
+"""Whole-horizon CasADi functions of the generic planner, called through numpy buffers (:class:`HorizonRollout`,
+:class:`BufferedFunction`).
+
+A CasADi ``Function`` called from Python converts every argument to a ``DM`` and every result back (about 50-100 us
+a call, most of a 13-state rollout's cost); evaluated through :meth:`casadi.Function.buffer` on preallocated
+numpy arrays the same SX virtual machine runs in a few microseconds. Nothing is compiled: no C compiler is needed
+at run time, and the expression graph is built once per planner (a hot swap of the network writes new numbers
+into the weight vector ``theta``; see :mod:`saml_ros.core.mpc.generic.casadi_model` for its layout).
+
+Layout: CasADi matrices are column-major, so a numpy C-order ``(B, n)`` array is the CasADi ``(n, B)`` matrix
+with the same memory; every output is densified (a buffer receives only the structural nonzeros otherwise).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+
+class BufferedFunction:
+    """``fn`` evaluated on preallocated numpy arrays: ``ins`` / ``outs`` (C-order, each the transpose of the CasADi
+    argument's shape); :meth:`__call__` copies the given arrays in and returns the outputs (views: copy them
+    before the next call)."""
+
+    def __init__(self, fn: Any, in_shapes: Sequence[tuple[int, ...]], out_shapes: Sequence[tuple[int, ...]]) -> None:
+        self.fn = fn
+        self.ins = [np.zeros(s) for s in in_shapes]
+        self.outs = [np.zeros(s) for s in out_shapes]
+        self._buf, self._trigger = fn.buffer()
+        for i, a in enumerate(self.ins):
+            if a.size != fn.nnz_in(i):
+                raise ValueError(f"{fn.name()}: input {i} has {fn.nnz_in(i)} numbers, buffer {a.shape}")
+            self._buf.set_arg(i, memoryview(a))
+        for i, a in enumerate(self.outs):
+            if a.size != fn.nnz_out(i):
+                raise ValueError(f"{fn.name()}: output {i} has {fn.nnz_out(i)} numbers, buffer {a.shape}")
+            self._buf.set_res(i, memoryview(a))
+
+    def __call__(self, *args: np.ndarray | None) -> list[np.ndarray]:
+        for dst, src in zip(self.ins, args, strict=False):
+            if src is not None:
+                dst[...] = src
+        self._trigger()
+        return self.outs
+
+
+def prelu_mlp_casadi(z: Any, theta: Any, dims: Sequence[int]) -> Any:
+    """A PReLU network as a CasADi column of input ``z (dims[0], 1)`` with all its numbers in ``theta``: per layer
+    ``W (d_in, d_out)`` (row-major, i.e. ``W'`` column-major), ``b (d_out,)``, then the slope (hidden layers);
+    the layout of :func:`mlp_numbers`. The PReLU as ``0.5 (1 + a) h + 0.5 (1 - a) |h|`` (exact for any slope)."""
+    import casadi as ca
+
+    k, h = 0, z
+    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
+        w_t = ca.reshape(theta[k:k + a * b], b, a)  # W' (b, a): W row-major is W' column-major
+        k += a * b
+        h = ca.mtimes(w_t, h) + theta[k:k + b]
+        k += b
+        if i < len(dims) - 2:
+            s = theta[k]
+            k += 1
+            h = 0.5 * (1 + s) * h + 0.5 * (1 - s) * ca.fabs(h)
+    return h
+
+
+def mlp_numbers(mlp: Any) -> np.ndarray:
+    """The numbers of a :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP` (normalisation folded in) in
+    :func:`prelu_mlp_casadi`'s layout."""
+    parts: list[np.ndarray] = []
+    n = len(mlp.weights)
+    for i in range(n):
+        w = np.vstack([mlp.w_x, mlp.w_u]) if i == 0 else mlp.weights[i]
+        parts += [np.ascontiguousarray(w).ravel(), np.asarray(mlp.biases[i], dtype=np.float64).ravel()]
+        if i < n - 1:
+            parts.append(np.array([mlp.slopes[i]], dtype=np.float64))
+    return np.concatenate(parts)
+
+
+def mlp_dims(mlp: Any) -> tuple[int, ...]:
+    """The layer widths of a :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP`, input first."""
+    return (mlp.n_x + mlp.n_u, *(w.shape[1] for w in mlp.weights))
+
+
+class HorizonRollout:
+    """The predicted states ``(T+1, n)`` of a whole control sequence in one call, and of ``K`` sequences at once
+    (the line search's step lengths): ``x_{t+1} = f_hat(x_t, u_t) [+ clip(phi(x_t, u_t), -bound, bound)]`` with the
+    angle fields wrapped as :class:`~saml_ros.core.mpc.generic.dynamics.GenericDynamics` does (the model sees them
+    wrapped, the prediction keeps the turns).
+
+    Args:
+        f_hat: ``(x (n,), u (m,)) -> (n,)`` symbolic (SX) CasADi Function, or None (a ``full`` model: phi alone).
+        n, m, T: sizes; angles: wrapped state fields.
+        dims: the network's layer widths (:func:`mlp_dims`) or None (no network).
+        batch: K, the sequences of :meth:`rollout_batch`.
+    """
+
+    def __init__(self, f_hat: Any, n: int, m: int, T: int, angles: Sequence[int], dims: Sequence[int] | None,
+                 batch: int) -> None:
+        import casadi as ca
+
+        self.n, self.m, self.T, self.batch = n, m, T, int(batch)
+        self.dims = None if dims is None else tuple(int(d) for d in dims)
+        n_theta = 0 if self.dims is None else len(mlp_zeros(self.dims))
+        x0, us = ca.SX.sym("x0", n), ca.SX.sym("U", m, T)
+        theta, bound = ca.SX.sym("theta", n_theta), ca.SX.sym("bound", n)
+        x, xs = x0, [x0]
+        for t in range(T):
+            u = us[:, t]
+            xw = ca.vertcat(*[ca.atan2(ca.sin(x[i]), ca.cos(x[i])) if i in angles else x[i] for i in range(n)]) \
+                if angles else x
+            y = f_hat(xw, u) if f_hat is not None else 0
+            if self.dims is not None:
+                y = y + ca.fmin(ca.fmax(prelu_mlp_casadi(ca.vertcat(xw, u), theta, self.dims), -bound), bound)
+            x = y + (x - xw) if angles else y
+            xs.append(x)
+        fn = ca.Function("rollout", [x0, us, theta, bound], [ca.densify(ca.horzcat(*xs))])
+        shapes_in = [(n,), (T, m), (n_theta,), (n,)]
+        self._one = BufferedFunction(fn, shapes_in, [(T + 1, n)])
+        fk = fn.map("rollout_batch", "serial", self.batch, [0, 2, 3], [])
+        self._many = BufferedFunction(fk, [(n,), (self.batch, T, m), (n_theta,), (n,)],
+                                      [(self.batch, T + 1, n)])
+        # x0, theta and bound are shared by the K sequences (map's repeated inputs): one copy each
+        self._one.ins[3][:] = np.inf
+        self._many.ins[3][:] = np.inf
+
+    def set_model(self, theta: np.ndarray | None, bound: np.ndarray | None) -> None:
+        """New network numbers (:func:`mlp_numbers`) and residual bound (None: unclipped); nothing is rebuilt."""
+        for f in (self._one, self._many):
+            if theta is not None:
+                f.ins[2][:] = theta
+            f.ins[3][:] = np.inf if bound is None else bound
+
+    def rollout(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
+        return self._one(x0, us)[0].copy()
+
+    def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
+        """``us (k, T, m)`` with ``k <= K`` -> ``(k, T+1, n)``."""
+        k = us.shape[0]
+        buf = self._many.ins[1]
+        buf[:k] = us
+        buf[k:] = us[-1]
+        return self._many(x0)[0][:k].copy()
+
+
+def mlp_zeros(dims: Sequence[int]) -> np.ndarray:
+    """A zero vector of the size of :func:`mlp_numbers` for layer widths ``dims``."""
+    size = sum(a * b + b for a, b in zip(dims[:-1], dims[1:], strict=True)) + len(dims) - 2
+    return np.zeros(size)
