@@ -79,6 +79,36 @@ class GenericProblem:
                         self.row_names.append(f"{c.name} ({name} <= {hi:g})")
             else:
                 self.row_names.append(c.name)
+        # the rows as arrays (constraints() and constraint_jac() are called several times per SQP iteration):
+        # box rows sign * x[i] - bound, the others (norm, keep-out) computed per constraint; their columns
+        box_col, box_idx, box_sign, box_bound, other, term = [], [], [], [], [], []
+        col = 0
+        for c in self.cons:
+            first = col
+            if c.kind == "box":
+                for i, lo, hi in zip(c.idx, c.low, c.high, strict=True):
+                    for ok, sign, bound in ((math.isfinite(lo), -1.0, -lo), (math.isfinite(hi), 1.0, hi)):
+                        if ok:
+                            box_col.append(col)
+                            box_idx.append(int(i))
+                            box_sign.append(sign)
+                            box_bound.append(bound)
+                            col += 1
+            else:
+                other.append((col, c))
+                col += 1
+            if c.terminal:
+                term.extend(range(first, col))
+        self._box = (np.asarray(box_col, dtype=np.intp), np.asarray(box_idx, dtype=np.intp),
+                     np.asarray(box_sign, dtype=np.float64), np.asarray(box_bound, dtype=np.float64))
+        self._other = other
+        #: rows of terminal constraints before T read -1 (never active); their Jacobian is zero there
+        self._early = np.zeros((T, self.rows_per_step), dtype=bool)
+        self._early[:-1, term] = True
+        jac0 = np.zeros((T, self.rows_per_step, n))
+        jac0[:, self._box[0], self._box[1]] = self._box[2]
+        jac0[self._early] = 0.0
+        self._jac0 = jac0
 
     @property
     def n_cons(self) -> int:
@@ -127,58 +157,44 @@ class GenericProblem:
     def constraints(self, xs: np.ndarray) -> np.ndarray:
         """``c(x_t) (T, rows_per_step)`` for t = 1..T (> 0 = violated), ``xs`` ``(T+1, n)`` or ``(..., T+1, n)``."""
         x = xs[..., 1:, :]
-        parts: list[np.ndarray] = []
-        for c in self.cons:
-            first = len(parts)
-            if c.kind == "box":
-                for i, lo, hi in zip(c.idx, c.low, c.high, strict=True):
-                    if math.isfinite(lo):
-                        parts.append(lo - x[..., i])
-                    if math.isfinite(hi):
-                        parts.append(x[..., i] - hi)
-            elif c.kind == "norm":
-                parts.append(np.linalg.norm(x[..., list(c.idx)], axis=-1) - c.max)
+        out = np.empty((*x.shape[:-1], self.rows_per_step))
+        if not self.rows_per_step:
+            return out
+        cols, idx, sign, bound = self._box
+        if cols.size:
+            out[..., cols] = sign * x[..., idx] - bound
+        for col, c in self._other:
+            if c.kind == "norm":
+                v = x[..., list(c.idx)]
+                out[..., col] = np.sqrt(np.einsum("...i,...i->...", v, v)) - c.max
             else:
                 rad = np.asarray(c.radius)
                 z = (x[..., list(c.idx)] - np.asarray(c.center)) / rad
-                parts.append(rad.min() * (1.0 - np.linalg.norm(z, axis=-1)))
-            if c.terminal:  # x_T only: the rows before never bind
-                for j in range(first, len(parts)):
-                    parts[j] = np.where(np.arange(self.T) == self.T - 1, parts[j], -1.0)
-        if not parts:
-            return np.zeros((*x.shape[:-1], 0))
-        return np.stack(parts, axis=-1)
+                out[..., col] = rad.min() * (1.0 - np.sqrt(np.einsum("...i,...i->...", z, z)))
+        out[..., self._early] = -1.0
+        return out
 
     def constraint_jac(self, xs: np.ndarray) -> np.ndarray:
         """``d c(x_t) / d x_t``: ``(T, rows_per_step, n)`` (a norm at 0 and a keep-out centre take a fixed
         direction)."""
+        if not self._other:
+            return self._jac0.copy()
         x = xs[1:]
-        out = np.zeros((self.T, self.rows_per_step, self.n))
-        r = 0
-        for c in self.cons:
-            idx, r0 = list(c.idx), r
-            if c.kind == "box":
-                for i, lo, hi in zip(c.idx, c.low, c.high, strict=True):
-                    if math.isfinite(lo):
-                        out[:, r, i] = -1.0
-                        r += 1
-                    if math.isfinite(hi):
-                        out[:, r, i] = 1.0
-                        r += 1
-            elif c.kind == "norm":
+        out = self._jac0.copy()
+        for r, c in self._other:
+            idx = list(c.idx)
+            if c.kind == "norm":
                 v = x[:, idx]
                 nrm = np.linalg.norm(v, axis=-1, keepdims=True)
                 out[:, r, idx] = np.where(nrm > 1e-12, v / np.maximum(nrm, 1e-12), 0.0)
-                r += 1
             else:
                 rad = np.asarray(c.radius)
                 z = (x[:, idx] - np.asarray(c.center)) / rad
                 nrm = np.linalg.norm(z, axis=-1, keepdims=True)
                 unit = np.where(nrm > 1e-12, z / np.maximum(nrm, 1e-12), np.eye(len(idx))[0])
                 out[:, r, idx] = -rad.min() * unit / rad
-                r += 1
             if c.terminal:  # x_T only: constant rows before
-                out[:-1, r0:r] = 0.0
+                out[:-1, r] = 0.0
         return out
 
     def violation_names(self) -> list[str]:

@@ -218,10 +218,14 @@ class GenericSQP:
         return np.clip(us, lo, hi)
 
     def _merit(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
-               penalty: float | None = None) -> float:
-        c = self.problem.constraints(xs)
+               penalty: float | None = None) -> tuple[float, np.ndarray]:
+        """The l1 merit of a plan and its constraint values ``(T R,)`` (kept for the next linearisation)."""
+        c = self.problem.constraints(xs).reshape(-1)
         pen = self.penalty if penalty is None else penalty
-        return self.problem.cost(xs, us, ref, u_prev) + pen * float(np.maximum(c, 0.0).sum())
+        merit = self.problem.cost(xs, us, ref, u_prev)
+        if c.size:
+            merit += pen * float(np.maximum(c, 0.0).sum())
+        return merit, c
 
     def _model(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
                hu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -262,7 +266,7 @@ class GenericSQP:
         reach_range = hi_t - lo_t
         penalty = self.penalty
         xs = dyn.rollout(x0, us)
-        merit = self._merit(xs, us, ref, u_prev, penalty)
+        merit, cons = self._merit(xs, us, ref, u_prev, penalty)
         hu = pb.ju.T @ pb.ju
         eye = np.eye(T * m)
         msg, converged, accepted, it = "max_iter", False, False, 0
@@ -272,11 +276,9 @@ class GenericSQP:
             h_gn, grad, sens = self._model(xs, us, ref, u_prev, hu)
             scale = max(float(np.trace(h_gn)) / h_gn.shape[0], 1e-6)
             u_flat = us.reshape(-1)
-            cons = pb.constraints(xs).reshape(-1)
             g_mat, c_qp = _NO_G, _NO_ROWS
             if cons.size:
-                cj = pb.constraint_jac(xs)  # (T, R, n)
-                g_all = np.einsum("trn,tnv->trv", cj, sens).reshape(-1, T * m)
+                g_all = np.matmul(pb.constraint_jac(xs), sens).reshape(-1, T * m)  # (T R, T m)
                 # rows no control can move (a bound on x_1 fixed by the current state, the rows of a terminal
                 # constraint before T) only add a constant: left out of the QP, as the hand-written SQP does
                 self._fixed = np.abs(g_all) @ reach_range < 0.01 * self.feas_tol
@@ -306,7 +308,8 @@ class GenericSQP:
                         continue
                     converged = True
                     break
-                alpha, ut, xt, mt = self._line_search(x0, us, d_flat.reshape(T, m), merit, pred, ref, u_prev, penalty)
+                alpha, ut, xt, mt, ct = self._line_search(x0, us, d_flat.reshape(T, m), merit, pred, ref, u_prev,
+                                                          penalty)
                 if alpha > 0.0:
                     accepted = True
                     ratio = (merit - mt) / pred
@@ -325,14 +328,14 @@ class GenericSQP:
                     # converged to a plan that still violates a constraint some control can move: make
                     # violations dearer and go on (the hand-written SQP's continuation)
                     penalty = min(penalty * 10.0, self.penalty_max)
-                    merit = self._merit(xs, us, ref, u_prev, penalty)
+                    merit = self._merit(xs, us, ref, u_prev, penalty)[0]
                     converged = False
                     continue
                 msg = "converged"
                 break
             if not accepted:
                 break
-            us, xs, merit = ut, xt, mt
+            us, xs, merit, cons = ut, xt, mt, ct
             if self.max_time is not None and time.perf_counter() - start > self.max_time:
                 msg = "time budget"
                 break
@@ -341,24 +344,24 @@ class GenericSQP:
 
     def _line_search(self, x0: np.ndarray, us: np.ndarray, d: np.ndarray, merit: float, pred: float,
                      ref: np.ndarray, u_prev: np.ndarray | None,
-                     penalty: float) -> tuple[float, np.ndarray, np.ndarray, float]:
+                     penalty: float) -> tuple[float, np.ndarray, np.ndarray, float, np.ndarray]:
         """Backtracking on the l1 merit (Armijo on the predicted decrease): the full step first (usually taken),
-        then every shorter one of :data:`_ALPHAS` in one batched rollout. ``(alpha, U, states, merit)``; alpha 0
-        when no step length is accepted."""
+        then every shorter one of :data:`_ALPHAS` in one batched rollout. ``(alpha, U, states, merit,
+        constraints)``; alpha 0 when no step length is accepted."""
         lo, hi = self.problem.u_low, self.problem.u_high
         ut = np.clip(us + d, lo, hi)
         xt = self.dyn.rollout(x0, ut)
-        mt = self._merit(xt, ut, ref, u_prev, penalty)
+        mt, ct = self._merit(xt, ut, ref, u_prev, penalty)
         if np.isfinite(mt) and mt <= merit - 1e-4 * pred:
-            return 1.0, ut, xt, mt
+            return 1.0, ut, xt, mt, ct
         alphas = np.asarray(_ALPHAS[1:])
         uts = np.clip(us[None] + alphas[:, None, None] * d[None], lo, hi)
         xts = self.dyn.rollout_batch(x0, uts)
         for j, alpha in enumerate(alphas):
-            mj = self._merit(xts[j], uts[j], ref, u_prev, penalty)
+            mj, cj = self._merit(xts[j], uts[j], ref, u_prev, penalty)
             if np.isfinite(mj) and mj <= merit - 1e-4 * alpha * pred:
-                return float(alpha), uts[j], xts[j], mj
-        return 0.0, us, np.empty((0, 0)), math.inf
+                return float(alpha), uts[j], xts[j], mj, cj
+        return 0.0, us, _NO_G, math.inf, _NO_ROWS
 
     def _fixed_rows(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
         """Which constraint values (flattened, t major) no control can move: rows at t = 1 whose state does not
