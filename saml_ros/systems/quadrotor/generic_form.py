@@ -61,7 +61,7 @@ def quadrotor_base(system: Any) -> SymbolicBase:
 #: SQPShootingMPC`): the same stopping test, Levenberg-Marquardt start and floor, violation price schedule (10, x10 up
 #: to 1e4 while a movable constraint is violated) and feasibility tolerance, so both take the same steps
 HAND_WRITTEN_OPTIONS = {"max_iter": 20, "tol": 3e-4, "rho0": 1e-3, "lm_floor": 1e-3, "feas_tol": 1e-4,
-                        "penalty_max": 1e4, "undamped_check": False}
+                        "penalty_max": 1e4, "undamped_check": False, "compile": True}
 
 
 def quadrotor_generic_task(system: Any, horizon: int = 10, min_height: float = 0.2, qw_tol: float = 0.05,

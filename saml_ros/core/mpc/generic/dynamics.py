@@ -28,6 +28,8 @@ from saml_ros.core.mpc.generic.horizon import BufferedFunction, HorizonRollout, 
 from saml_ros.core.mpc.mlp_np import NumpyMLP
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+#: sequences per call of the whole-horizon batched rollout (the SQP's line search tries 4 shorter steps at once)
+HORIZON_BATCH = 4
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -97,16 +99,16 @@ class SymbolicBase:
         fun = one.map(b) if b > 1 else one
         return BufferedFunction(fun, [(b, n), (b, m)], [(b, n), (b, n, n), (b, n, m)])
 
-    def horizon(self, T: int, angles: tuple[int, ...], dims: tuple[int, ...] | None, batch: int,
-                full: bool = False) -> HorizonRollout:
-        """The whole-horizon rollout (:class:`HorizonRollout`) for horizon ``T``, wrapped ``angles``, a network of
-        widths ``dims`` (or None) and line-search batch ``batch``; ``full``: phi alone (no f_hat). Built on first
-        use and kept (a hot swap of the network's numbers reuses it)."""
-        key = (int(T), tuple(angles), dims, int(batch), bool(full))
+    def horizon(self, T: int, angles: tuple[int, ...], dims: tuple[int, ...] | None, full: bool = False,
+                compile: bool = False) -> HorizonRollout:
+        """The whole-horizon rollout (:class:`HorizonRollout`) for horizon ``T``, wrapped ``angles`` and a network of
+        widths ``dims`` (or None); ``full``: phi alone (no f_hat); ``compile``: see :class:`HorizonRollout`. Built
+        on first use and kept (a hot swap of the network's numbers reuses it)."""
+        key = (int(T), tuple(angles), dims, bool(full), bool(compile))
         roll = self._horizons.get(key)
         if roll is None:
             roll = self._horizons[key] = HorizonRollout(None if full else self.function, self.n, self.m, T,
-                                                        angles, dims, batch)
+                                                        angles, dims, HORIZON_BATCH, compile)
         return roll
 
 
@@ -201,8 +203,10 @@ class GenericDynamics:
     """
 
     def __init__(self, system: System, base: SymbolicBase | TorchBase, model: DynamicsModel | None = None,
-                 member: int = 0, bound: np.ndarray | None = None, smoothing: float = 0.0) -> None:
+                 member: int = 0, bound: np.ndarray | None = None, smoothing: float = 0.0,
+                 compile: bool = False) -> None:
         self.system = system
+        self.compile = bool(compile)
         self.base = base
         self.kind = "base" if model is None else model.kind
         mlp: Any = None if model is None else NumpyMLP(model, member)
@@ -218,6 +222,7 @@ class GenericDynamics:
         plain = mlp.mlp if isinstance(mlp, SmoothMLP) else mlp
         self._dims = None if plain is None else mlp_dims(plain)
         self._theta = None if plain is None else mlp_numbers(plain)
+        self._last_horizon: HorizonRollout | None = None
 
     def _wrap(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         if not self.angles.size:
@@ -268,20 +273,34 @@ class GenericDynamics:
             y[:, self.angles] += turns
         return y, a, bm
 
-    def _horizon(self, T: int, batch: int) -> HorizonRollout | None:
+    def _horizon(self, T: int) -> HorizonRollout | None:
         if not self._horizon_ok:
             return None
         assert isinstance(self.base, SymbolicBase)
-        roll = self.base.horizon(T, tuple(int(i) for i in self.angles), self._dims, batch, self.kind == "full")
+        roll = self.base.horizon(T, tuple(int(i) for i in self.angles), self._dims, self.kind == "full",
+                                 self.compile)
         roll.set_model(self._theta, self.bound)  # the rollout may be shared with another model's dynamics
+        self._last_horizon = roll
         return roll
+
+    def prepare(self, T: int) -> None:
+        """Build (and with ``compile``, compile or load) the whole-horizon functions for horizon ``T`` now, not in
+        the first solve."""
+        self._horizon(T)
+
+    def sensitivities(self, xs: np.ndarray, us: np.ndarray) -> np.ndarray | None:
+        """``S (T, n, T m)``, ``S[t] = d x_{t+1} / d U``, along a plan's states ``xs (T, n)`` (x_0 .. x_{T-1}) and
+        controls ``us (T, m)`` in one call where the horizon has that function (f_hat alone, ``compile``), else
+        None (the caller condenses :meth:`step_jac`)."""
+        roll = self._horizon(us.shape[0]) if self.kind == "base" else None
+        return None if roll is None else roll.sensitivities(xs, us)
 
     def rollout(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
         """Predicted states ``(T+1, n)`` from ``x0 (n,)`` under ``us (T, m)``: one CasADi call for the whole
         horizon where f_hat has a symbolic form (:class:`HorizonRollout`), else step by step (on floats where
         f_hat's form runs on floats)."""
         us = np.asarray(us, dtype=np.float64)
-        roll = self._horizon(us.shape[0], 1)
+        roll = self._horizon(us.shape[0])
         if roll is not None:
             return roll.rollout(np.asarray(x0, dtype=np.float64), us)
         xs = np.empty((us.shape[0] + 1, x0.shape[0]))
@@ -318,7 +337,7 @@ class GenericDynamics:
         """Predicted states ``(K, T+1, n)`` of ``K`` control sequences ``us (K, T, m)`` from ``x0 (n,)``: one batched
         step per time step (as cheap for a few sequences as for one)."""
         k, horizon = us.shape[0], us.shape[1]
-        roll = self._horizon(horizon, k)
+        roll = self._horizon(horizon)
         if roll is not None:
             return roll.rollout_batch(np.asarray(x0, dtype=np.float64), np.asarray(us, dtype=np.float64))
         xs = np.empty((k, horizon + 1, x0.shape[0]))
@@ -341,4 +360,10 @@ class GenericDynamics:
         bound = ", phi clipped to the residual bound" if self.bound is not None else ""
         if self.smoothing > 0:
             bound += f", its Jacobians with the PReLU kinks rounded by {self.smoothing:g}"
-        return f"f_hat {self.base.label} ({self.base.derivatives} derivatives); {phi}{bound}"
+        out = f"f_hat {self.base.label} ({self.base.derivatives} derivatives); {phi}{bound}"
+        roll = self._last_horizon
+        if roll is not None:
+            out += ("; whole-horizon rollouts and sensitivities compiled to C (CasADi)" if roll.compiled is None
+                    else f"; whole-horizon rollouts in CasADi's virtual machine ({'compile ' if self.compile else ''}"
+                         f"{roll.compiled})")
+        return out

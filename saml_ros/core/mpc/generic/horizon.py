@@ -94,11 +94,17 @@ class HorizonRollout:
         n, m, T: sizes; angles: wrapped state fields.
         dims: the network's layer widths (:func:`mlp_dims`) or None (no network).
         batch: K, the sequences of :meth:`rollout_batch`.
+        compile: f_hat alone (no network): also the sensitivities ``d x_{t+1} / d U`` of a plan in one call
+            (:meth:`sensitivities`), and all three functions compiled to C (:func:`~.codegen.compiled`; without a
+            compiler CasADi's virtual machine runs them and :attr:`compiled` says why). With a network nothing is
+            compiled (the network's Jacobians come from its numpy copy).
     """
 
     def __init__(self, f_hat: Any, n: int, m: int, T: int, angles: Sequence[int], dims: Sequence[int] | None,
-                 batch: int) -> None:
+                 batch: int, compile: bool = False) -> None:
         import casadi as ca
+
+        from saml_ros.core.mpc.generic.codegen import compiled
 
         self.n, self.m, self.T, self.batch = n, m, T, int(batch)
         self.dims = None if dims is None else tuple(int(d) for d in dims)
@@ -116,11 +122,20 @@ class HorizonRollout:
             x = y + (x - xw) if angles else y
             xs.append(x)
         fn = ca.Function("rollout", [x0, us, theta, bound], [ca.densify(ca.horzcat(*xs))])
-        shapes_in = [(n,), (T, m), (n_theta,), (n,)]
-        self._one = BufferedFunction(fn, shapes_in, [(T + 1, n)])
         fk = fn.map("rollout_batch", "serial", self.batch, [0, 2, 3], [])
-        self._many = BufferedFunction(fk, [(n,), (self.batch, T, m), (n_theta,), (n,)],
+        fns = [fn, fk]
+        #: None: compiled to C; else why not (for /diagnostics)
+        self.compiled: str | None = "not asked (solver option compile: false)"
+        if compile and self.dims is None and f_hat is not None:
+            fns.append(_sensitivity_function(f_hat, n, m, T, angles))
+            tag = f"generic_T{T}_n{n}_m{m}"
+            fns, self.compiled = compiled(fns, tag)
+        elif compile:
+            self.compiled = "not with a network (its Jacobians come from its numpy copy)"
+        self._one = BufferedFunction(fns[0], [(n,), (T, m), (n_theta,), (n,)], [(T + 1, n)])
+        self._many = BufferedFunction(fns[1], [(n,), (self.batch, T, m), (n_theta,), (n,)],
                                       [(self.batch, T + 1, n)])
+        self._sens = BufferedFunction(fns[2], [(T, n), (T, m)], [(T, n, T * m)]) if len(fns) > 2 else None
         # x0, theta and bound are shared by the K sequences (map's repeated inputs): one copy each
         self._one.ins[3][:] = np.inf
         self._many.ins[3][:] = np.inf
@@ -135,16 +150,49 @@ class HorizonRollout:
     def rollout(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
         return self._one(x0, us)[0].copy()
 
+    def sensitivities(self, xs: np.ndarray, us: np.ndarray) -> np.ndarray | None:
+        """``S (T, n, T m)``, ``S[t] = d x_{t+1} / d U`` along states ``xs (T, n)`` (x_0 .. x_{T-1}) and controls
+        ``us (T, m)``, or None when this rollout has no such function (see ``compile``)."""
+        if self._sens is None:
+            return None
+        return self._sens(xs, us)[0].copy()
+
     def rollout_batch(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:
-        """``us (k, T, m)`` with ``k <= K`` -> ``(k, T+1, n)``."""
-        k = us.shape[0]
+        """``us (k, T, m)`` -> ``(k, T+1, n)`` (K sequences per call)."""
+        k, kk = us.shape[0], self.batch
+        out = np.empty((k, self.T + 1, self.n))
         buf = self._many.ins[1]
-        buf[:k] = us
-        buf[k:] = us[-1]
-        return self._many(x0)[0][:k].copy()
+        for i in range(0, k, kk):
+            j = min(k, i + kk)
+            buf[: j - i] = us[i:j]
+            buf[j - i:] = us[j - 1]
+            out[i:j] = self._many(x0)[0][: j - i]
+        return out
 
 
 def mlp_zeros(dims: Sequence[int]) -> np.ndarray:
     """A zero vector of the size of :func:`mlp_numbers` for layer widths ``dims``."""
     size = sum(a * b + b for a, b in zip(dims[:-1], dims[1:], strict=True)) + len(dims) - 2
     return np.zeros(size)
+
+
+def _sensitivity_function(f_hat: Any, n: int, m: int, T: int, angles: Sequence[int]) -> Any:
+    """``(X (T, n), U (T, m)) -> S (T, n, T m)`` (numpy layouts) of f_hat alone: ``S_0 = [B_0 0 ..]``,
+    ``S_t = [A_t S_{t-1} | B_t | 0]`` with ``A_t, B_t`` f_hat's Jacobians at ``(x_t, u_t)`` (the angle fields wrapped
+    first, derivative 1)."""
+    import casadi as ca
+
+    x, u = ca.SX.sym("x", n), ca.SX.sym("u", m)
+    xw = ca.vertcat(*[ca.atan2(ca.sin(x[i]), ca.cos(x[i])) if i in angles else x[i] for i in range(n)]) \
+        if angles else x
+    y = f_hat(xw, u) + (x - xw) if angles else f_hat(x, u)
+    step = ca.Function("ab", [x, u], [ca.jacobian(y, x), ca.jacobian(y, u)])
+    xs, us = ca.SX.sym("X", n, T), ca.SX.sym("U", m, T)
+    rows, prev = [], None
+    for t in range(T):
+        a, b = step(xs[:, t], us[:, t])
+        head = [ca.mtimes(a, prev[:, : t * m])] if t else []
+        cur = ca.horzcat(*head, b, ca.SX.zeros(n, (T - t - 1) * m))
+        rows.append(cur.T)  # numpy's C-order (T, n, T m) is CasADi's column-major (T m, T n) of the S_t'
+        prev = cur
+    return ca.Function("sensitivities", [xs, us], [ca.densify(ca.horzcat(*rows))])

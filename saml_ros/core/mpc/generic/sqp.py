@@ -73,6 +73,9 @@ class GenericSQP:
             some control can move (default: the task's ``penalty``, i.e. fixed).
         undamped_check: before stopping with a damped step (Levenberg-Marquardt weight above ``rho0``), solve the
             QP once more with ``rho0`` (True).
+        compile: with f_hat alone, the whole-horizon rollouts and sensitivities compiled to C through CasADi (once
+            per machine and problem shape, cached; :mod:`~saml_ros.core.mpc.generic.codegen`; without a compiler
+            CasADi's virtual machine runs them, the same numbers, and ``describe`` says why) (False).
         qp_backend: ``daqp`` or ``ipm`` (:func:`~saml_ros.core.mpc.shooting.qp.solve_qp`).
         The solver options not given here come from the section's ``mpc.solver_options``.
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
@@ -86,7 +89,8 @@ class GenericSQP:
                  tol: float | None = None, max_time: float | None = None, rho0: float | None = None,
                  lm_floor: float | None = None, feas_tol: float | None = None, qp_backend: str | None = None,
                  smoothing: float | None = None, penalty_max: float | None = None,
-                 undamped_check: bool | None = None, base: Any = None, true: Any = None,
+                 undamped_check: bool | None = None, compile: bool | None = None, base: Any = None,
+                 true: Any = None,
                  f_hat: SymbolicBase | TorchBase | None = None) -> None:
         self.system = system
         self.task = task if task is not None else system_task(system)
@@ -96,7 +100,7 @@ class GenericSQP:
         self.n, self.m = system.state.size, system.control.size
         opt = _options(self.task, max_iter=max_iter, tol=tol, max_time=max_time, rho0=rho0, lm_floor=lm_floor,
                        feas_tol=feas_tol, qp_backend=qp_backend, smoothing=smoothing, penalty_max=penalty_max,
-                       undamped_check=undamped_check)
+                       undamped_check=undamped_check, compile=compile)
         self.smoothing = float(opt.get("smoothing", 0.0))
         self.max_iter, self.tol = int(opt.get("max_iter", 15)), float(opt.get("tol", 1e-4))
         self.max_time = None if opt.get("max_time") is None else float(opt["max_time"])
@@ -107,7 +111,8 @@ class GenericSQP:
             raise ValueError(f"{system.name} MPC: max_iter must be >= 1, tol and feas_tol > 0")
         self.penalty = float(self.task.penalty)
         self.penalty_max = max(float(opt.get("penalty_max", self.penalty)), self.penalty)
-        self.undamped_check = bool(opt.get("undamped_check", True))
+        self.undamped_check = _flag(opt.get("undamped_check", True), "undamped_check")
+        self.compile = _flag(opt.get("compile", False), "compile")
         self._fixed = np.zeros(0, dtype=bool)
         self._base: SymbolicBase | TorchBase = make_base(system) if f_hat is None else f_hat
         self._base_params: Any = _base_params(system)
@@ -131,12 +136,16 @@ class GenericSQP:
             self._base, self._base_params = make_base(model.system), _base_params(model.system)
         self.model = model
         self._bound = None
-        self.dyn = GenericDynamics(self.system, self._base, model, self.member, smoothing=self.smoothing)
+        self.dyn = GenericDynamics(self.system, self._base, model, self.member, smoothing=self.smoothing,
+                                   compile=self.compile)
+        self.dyn.prepare(self.horizon)
 
     def set_residual_bound(self, bound: np.ndarray | None) -> None:
         """Clip phi to ``+-bound`` ``(n,)`` per field (the guard's ``bound_residual``); None = unclipped."""
         self._bound = None if bound is None else np.asarray(bound, dtype=np.float64)
-        self.dyn = GenericDynamics(self.system, self._base, self.model, self.member, self._bound, self.smoothing)
+        self.dyn = GenericDynamics(self.system, self._base, self.model, self.member, self._bound, self.smoothing,
+                                   self.compile)
+        self.dyn.prepare(self.horizon)
 
     def phi_clipped(self, res: MPCResult) -> bool:
         """Whether the residual bound clipped phi anywhere on plan ``res``."""
@@ -233,8 +242,10 @@ class GenericSQP:
         sensitivities ``(T, n, T m)``."""
         pb = self.problem
         T, m, k = pb.T, self.m, pb.k
-        _, a_mat, b_mat = self.dyn.step_jac(xs[:-1], us)
-        sens = _condense(a_mat, b_mat)  # (T, n, T m): d x_{t+1} / d U
+        sens = self.dyn.sensitivities(xs[:-1], us)  # (T, n, T m): d x_{t+1} / d U
+        if sens is None:
+            _, a_mat, b_mat = self.dyn.step_jac(xs[:-1], us)
+            sens = _condense(a_mat, b_mat)
         j3 = pb.sw[:, :, None] * sens[:, pb.g_idx, :]  # (T, k, T m)
         r2 = pb.state_residuals(xs, ref)  # (T, k)
         ru = pb.control_residuals(us, u_prev)
@@ -395,6 +406,18 @@ def _options(task: MPCTask, **given: Any) -> dict[str, Any]:
     out = dict(task.solver_options)
     out.update({k: v for k, v in given.items() if v is not None})
     return out
+
+
+def _flag(value: Any, name: str) -> bool:
+    """A yes/no solver option (a bool, 0/1, or ``true``/``false`` as text); ``ValueError`` otherwise."""
+    if isinstance(value, bool | int) and value in (0, 1):
+        return bool(value)
+    text = str(value).strip().lower()
+    if text in ("true", "yes", "on", "1"):
+        return True
+    if text in ("false", "no", "off", "0"):
+        return False
+    raise ValueError(f"solver option {name} must be true or false, got {value!r}")
 
 
 def _condense(a_mat: np.ndarray, b_mat: np.ndarray) -> np.ndarray:
