@@ -47,7 +47,7 @@ def compiled(fns: list[Any], name: str) -> tuple[list[Any], str | None]:
     """``fns`` (CasADi Functions) compiled into one library, in order, and None; or ``fns`` themselves and why they
     are not compiled (no compiler, a failed build, switched off)."""
     if switched_off():
-        return fns, "compiling switched off (SAML_MPC_NATIVE=0)"
+        return fns, "switched off (SAML_MPC_NATIVE=0)"
     import casadi as ca
 
     try:
@@ -74,11 +74,11 @@ def compiled(fns: list[Any], name: str) -> tuple[list[Any], str | None]:
                     _build(cc, source, so)
         return [ca.external(f.name(), str(so)) for f in fns], None
     except Exception as exc:  # noqa: BLE001 - any build or load problem: the symbolic functions
-        why = f"not compiled ({type(exc).__name__}: {exc})"[:400]
+        why = f"{type(exc).__name__}: {exc}"[:400]
         if name not in _WARNED:
             _WARNED.add(name)
-            warnings.warn(f"saml_ros: the generic planner's {name} functions are {why}; CasADi's virtual machine "
-                          "runs them (the same numbers, slower)", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"saml_ros: the generic planner's {name} functions are not compiled ({why}); CasADi's "
+                          "virtual machine runs them (the same numbers, slower)", RuntimeWarning, stacklevel=3)
         return fns, why
 
 

@@ -364,6 +364,5 @@ class GenericDynamics:
         roll = self._last_horizon
         if roll is not None:
             out += ("; whole-horizon rollouts and sensitivities compiled to C (CasADi)" if roll.compiled is None
-                    else f"; whole-horizon rollouts in CasADi's virtual machine ({'compile ' if self.compile else ''}"
-                         f"{roll.compiled})")
+                    else f"; whole-horizon rollouts in CasADi's virtual machine ({roll.compiled})")
         return out

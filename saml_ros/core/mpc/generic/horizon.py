@@ -125,13 +125,14 @@ class HorizonRollout:
         fk = fn.map("rollout_batch", "serial", self.batch, [0, 2, 3], [])
         fns = [fn, fk]
         #: None: compiled to C; else why not (for /diagnostics)
-        self.compiled: str | None = "not asked (solver option compile: false)"
+        self.compiled: str | None = "solver option compile: false"
         if compile and self.dims is None and f_hat is not None:
             fns.append(_sensitivity_function(f_hat, n, m, T, angles))
             tag = f"generic_T{T}_n{n}_m{m}"
-            fns, self.compiled = compiled(fns, tag)
+            fns, why = compiled(fns, tag)
+            self.compiled = None if why is None else f"not compiled: {why}"
         elif compile:
-            self.compiled = "not with a network (its Jacobians come from its numpy copy)"
+            self.compiled = "not compiled with a network: its Jacobians come from its numpy copy"
         self._one = BufferedFunction(fns[0], [(n,), (T, m), (n_theta,), (n,)], [(T + 1, n)])
         self._many = BufferedFunction(fns[1], [(n,), (self.batch, T, m), (n_theta,), (n,)],
                                       [(self.batch, T + 1, n)])
