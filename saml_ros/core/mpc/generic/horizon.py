@@ -32,11 +32,11 @@ class BufferedFunction:
         for i, a in enumerate(self.ins):
             if a.size != fn.nnz_in(i):
                 raise ValueError(f"{fn.name()}: input {i} has {fn.nnz_in(i)} numbers, buffer {a.shape}")
-            self._buf.set_arg(i, memoryview(a))
+            self._buf.set_arg(i, memoryview(a))  # type: ignore[arg-type]
         for i, a in enumerate(self.outs):
             if a.size != fn.nnz_out(i):
                 raise ValueError(f"{fn.name()}: output {i} has {fn.nnz_out(i)} numbers, buffer {a.shape}")
-            self._buf.set_res(i, memoryview(a))
+            self._buf.set_res(i, memoryview(a))  # type: ignore[arg-type]
 
     def __call__(self, *args: np.ndarray | None) -> list[np.ndarray]:
         for dst, src in zip(self.ins, args, strict=False):
@@ -111,7 +111,8 @@ class HorizonRollout:
         n_theta = 0 if self.dims is None else len(mlp_zeros(self.dims))
         x0, us = ca.SX.sym("x0", n), ca.SX.sym("U", m, T)
         theta, bound = ca.SX.sym("theta", n_theta), ca.SX.sym("bound", n)
-        x, xs = x0, [x0]
+        x: Any = x0
+        xs = [x0]
         for t in range(T):
             u = us[:, t]
             xw = ca.vertcat(*[ca.atan2(ca.sin(x[i]), ca.cos(x[i])) if i in angles else x[i] for i in range(n)]) \
@@ -189,7 +190,8 @@ def _sensitivity_function(f_hat: Any, n: int, m: int, T: int, angles: Sequence[i
     y = f_hat(xw, u) + (x - xw) if angles else f_hat(x, u)
     step = ca.Function("ab", [x, u], [ca.jacobian(y, x), ca.jacobian(y, u)])
     xs, us = ca.SX.sym("X", n, T), ca.SX.sym("U", m, T)
-    rows, prev = [], None
+    rows: list[Any] = []
+    prev: Any = None
     for t in range(T):
         a, b = step(xs[:, t], us[:, t])
         head = [ca.mtimes(a, prev[:, : t * m])] if t else []

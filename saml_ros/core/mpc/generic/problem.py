@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from saml_ros.core.mpc.generic.dynamics import wrap_angle
-from saml_ros.core.mpc.generic.section import MPCTask
+from saml_ros.core.mpc.generic.section import MPCTask, StateConstraint
 
 
 class GenericProblem:
@@ -81,16 +81,21 @@ class GenericProblem:
                 self.row_names.append(c.name)
         # the rows as arrays (constraints() and constraint_jac() are called several times per SQP iteration):
         # box rows sign * x[i] - bound, the others (norm, keep-out) computed per constraint; their columns
-        box_col, box_idx, box_sign, box_bound, other, term = [], [], [], [], [], []
+        box_col: list[int] = []
+        box_idx: list[int] = []
+        box_sign: list[float] = []
+        box_bound: list[float] = []
+        other: list[tuple[int, StateConstraint]] = []
+        term: list[int] = []
         col = 0
         for c in self.cons:
             first = col
             if c.kind == "box":
-                for i, lo, hi in zip(c.idx, c.low, c.high, strict=True):
+                for fi, lo, hi in zip(c.idx, c.low, c.high, strict=True):
                     for ok, sign, bound in ((math.isfinite(lo), -1.0, -lo), (math.isfinite(hi), 1.0, hi)):
                         if ok:
                             box_col.append(col)
-                            box_idx.append(int(i))
+                            box_idx.append(int(fi))
                             box_sign.append(sign)
                             box_bound.append(bound)
                             col += 1

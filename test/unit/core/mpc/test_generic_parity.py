@@ -16,7 +16,7 @@ import torch
 from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.factory import make_controller
 from saml_ros.core.mpc.generic import GenericSQP, codegen
-from saml_ros.core.mpc.generic.dynamics import GenericDynamics, make_base
+from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, make_base
 from saml_ros.core.mpc.generic.horizon import HorizonRollout
 from saml_ros.core.mpc.generic.sqp import _condense
 from saml_ros.systems.quadrotor.generic_form import quadrotor_base, quadrotor_generic_task
@@ -74,6 +74,7 @@ def fitted_model(system: object, seed: int) -> DynamicsModel:
 def _diff_drive_horizon(compile: bool, T: int = 3) -> tuple[HorizonRollout, GenericDynamics]:
     system = load_system_file(EXAMPLE)
     base = make_base(system)
+    assert isinstance(base, SymbolicBase)
     dyn = GenericDynamics(system, base, compile=compile)
     dyn.prepare(T)
     roll = base.horizon(T, (2,), None, compile=compile)
