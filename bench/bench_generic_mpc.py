@@ -278,23 +278,75 @@ def identical(system: Any, model: Any, visited: list[Visit], n: int) -> None:
         print(f"  {name:22s} {1e3 * np.mean(cpu):8.2f} {1 / np.mean(cpu):9.0f} {np.mean(np.array(cost) / ref):18.4f}")
 
 
+class _Timed:
+    """Wraps callables to sum their CPU time per category (where a solve's time goes)."""
+
+    def __init__(self) -> None:
+        self.sec: dict[str, float] = {}
+
+    def wrap(self, fn: Any, cat: str) -> Any:
+        def timed(*a: Any, **k: Any) -> Any:
+            c0 = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                self.sec[cat] = self.sec.get(cat, 0.0) + time.process_time() - c0
+        return timed
+
+
+def _time_split(gen: Any, run: Any) -> dict[str, float]:
+    """CPU seconds of ``run()`` spent in the generic SQP's rollouts, sensitivities, QPs, cost and constraint rows,
+    and the rest (the SQP's own Python), by wrapping those calls (about 1 us each)."""
+    import saml_ros.core.mpc.generic.sqp as gsqp
+
+    timed = _Timed()
+    dyn, pb = gen.dyn, gen.problem
+    saved = [(dyn, n, getattr(dyn, n)) for n in ("rollout", "rollout_batch", "sensitivities", "step_jac")]
+    saved += [(pb, n, getattr(pb, n)) for n in ("constraints", "constraint_jac", "cost")]
+    saved += [(gsqp, n, getattr(gsqp, n)) for n in ("solve_qp", "solve_box_qp", "_condense")]
+    cats = {"rollout": "rollouts", "rollout_batch": "rollouts", "sensitivities": "sensitivities",
+            "step_jac": "sensitivities", "_condense": "sensitivities", "constraints": "cost and constraints",
+            "constraint_jac": "cost and constraints", "cost": "cost and constraints", "solve_qp": "QP (DAQP)",
+            "solve_box_qp": "QP (DAQP)"}
+    for obj, name, fn in saved:
+        setattr(obj, name, timed.wrap(fn, cats[name]))
+    try:
+        c0 = time.process_time()
+        run()
+        total = time.process_time() - c0
+    finally:
+        for obj, name, fn in saved:
+            if obj is gsqp:
+                setattr(obj, name, fn)
+            elif name in vars(obj):
+                delattr(obj, name)  # the instance's wrapper: the class's method shows again
+    out = dict(timed.sec)
+    out["the SQP's own Python (model assembly, loop)"] = total - sum(out.values())
+    out["total"] = total
+    return out
+
+
 def quadrotor_parity(quick: bool) -> None:
     from saml_ros.core.mpc.factory import make_controller
-    from saml_ros.core.mpc.generic import GenericSQP
+    from saml_ros.core.mpc.generic import GenericSQP, codegen
     from saml_ros.systems.quadrotor.generic_form import quadrotor_base, quadrotor_generic_task
     from saml_ros.systems.quadrotor.model import Quadrotor
 
     system = Quadrotor()
     task = quadrotor_generic_task(system)
     hand: Any = make_controller(system, None, "fast", horizon=10, tilt_max=0.2)
-    gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=20)
+    c0 = time.perf_counter()
+    gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system))  # the task's options: compiled
+    built = time.perf_counter() - c0
+    vm = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), compile=False)
     starts = [system.hover_state(p) for p in ((1.0, -1.0, 2.0), (-2.0, 0.5, 3.0), (0.5, 1.5, 1.0))]
     steps = 20 if quick else 50
     goal = np.array([0.0, 0.0, 0.2])
-    rows: dict[str, dict[str, list[float]]] = {k: {"cpu": [], "err": [], "its": []} for k in ("hand-written", "generic")}
+    names = ("hand-written", "generic", "generic, VM")
+    rows: dict[str, dict[str, list[float]]] = {k: {"cpu": [], "err": [], "its": []} for k in names}
     visited: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     for x0 in starts:
-        for name, ctrl in (("hand-written", hand), ("generic", gen)):
+        for name, ctrl in zip(names, (hand, gen, vm), strict=True):
             ctrl.reset()
             x = x0.copy()
             for _ in range(steps):
@@ -309,16 +361,31 @@ def quadrotor_parity(quick: bool) -> None:
             rows[name]["err"].append(float(np.linalg.norm(x[:3] - goal)))
     print(f"\n4. quadrotor parity: the demo's landing task (T = 10, tilt 0.2), f_hat, true plant; {len(starts)} starts x "
           f"{steps} steps, one core")
+    print(f"  generic planner: {gen.describe()} (built in {built:.2f} s"
+          f"{f', compiling {sum(codegen.COMPILE_SECONDS):.1f} s' if codegen.COMPILE_SECONDS else ', loaded'})")
     print(f"  {'planner':14s} {'cpu ms':>7s} {'iters':>6s} {'landing error m (per start)':>30s}")
     for name, r in rows.items():
         print(f"  {name:14s} {1e3 * np.mean(r['cpu']):7.2f} {np.mean(r['its']):6.1f}   "
               f"{np.mean(r['err']):.4f} ({', '.join(f'{e:.4f}' for e in r['err'])})")
-    t_ratio = np.mean(rows["generic"]["cpu"]) / np.mean(rows["hand-written"]["cpu"])
-    e_ratio = np.mean(rows["generic"]["err"]) / np.mean(rows["hand-written"]["err"])
-    print(f"  ratios generic / hand-written: solve time {t_ratio:.2f}x, landing error {e_ratio:.2f}x "
-          f"(goal: both within 2x: {'yes' if t_ratio <= 2 and e_ratio <= 2 else 'NO'})")
+    for name in names[1:]:
+        t_ratio = np.mean(rows[name]["cpu"]) / np.mean(rows["hand-written"]["cpu"])
+        e_ratio = np.mean(rows[name]["err"]) / np.mean(rows["hand-written"]["err"])
+        print(f"  ratios {name} / hand-written: solve time {t_ratio:.2f}x, landing error {e_ratio:.2f}x "
+              f"(goal: both within 2x: {'yes' if t_ratio <= 2 and e_ratio <= 2 else 'NO'})")
+
+    def one_start() -> None:
+        gen.reset()
+        x = starts[0].copy()
+        for _ in range(steps):
+            res = gen.solve(x, np.zeros(3))
+            x = system.base_step_np(x[None], res.u[None])[0]
+
+    split = _time_split(gen, one_start)
+    total = split.pop("total")
+    print(f"  where the generic SQP's time goes (start 1, {steps} solves on f_hat, {1e3 * total / steps:.2f} ms CPU a "
+          "solve): " + ", ".join(f"{k} {100 * v / total:.0f} %" for k, v in sorted(split.items(), key=lambda kv: -kv[1])))
     tight_hand: Any = make_controller(system, None, "fast", horizon=10, tilt_max=0.2, tol=1e-10, max_iter=200)
-    tight_gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=200, tol=1e-10)
+    tight_gen = GenericSQP(system, None, task=task, f_hat=quadrotor_base(system), max_iter=200, tol=1e-10, compile=False)
     rng = np.random.default_rng(4)
     picks = [visited[i] for i in rng.choice(len(visited), size=min(10 if quick else 30, len(visited)), replace=False)]
     diffs, first, pos, costs = [], [], [], []
