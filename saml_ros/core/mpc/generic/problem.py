@@ -184,22 +184,20 @@ class GenericProblem:
         direction)."""
         if not self._other:
             return self._jac0.copy()
-        x = xs[1:]
         out = self._jac0.copy()
         for r, c in self._other:
             idx = list(c.idx)
+            x = xs[-1:] if c.terminal else xs[1:]  # a terminal row's Jacobian before T is zero
             if c.kind == "norm":
                 v = x[:, idx]
                 nrm = np.linalg.norm(v, axis=-1, keepdims=True)
-                out[:, r, idx] = np.where(nrm > 1e-12, v / np.maximum(nrm, 1e-12), 0.0)
+                out[-x.shape[0]:, r, idx] = np.where(nrm > 1e-12, v / np.maximum(nrm, 1e-12), 0.0)
             else:
                 rad = np.asarray(c.radius)
                 z = (x[:, idx] - np.asarray(c.center)) / rad
                 nrm = np.linalg.norm(z, axis=-1, keepdims=True)
                 unit = np.where(nrm > 1e-12, z / np.maximum(nrm, 1e-12), np.eye(len(idx))[0])
-                out[:, r, idx] = -rad.min() * unit / rad
-            if c.terminal:  # x_T only: constant rows before
-                out[:-1, r] = 0.0
+                out[-x.shape[0]:, r, idx] = -rad.min() * unit / rad
         return out
 
     def violation_names(self) -> list[str]:

@@ -255,8 +255,9 @@ class GenericSQP:
             # J_t' (I - r_t r_t' / n_t^2) J_t / n_t (generalised Gauss-Newton; positive semi-definite)
             nt = np.sqrt(np.einsum("ij,ij->i", r2, r2) + float(self.task.norm_eps) ** 2)
             jr = np.einsum("tk,tkv->tv", r2, j3)  # r_t' J_t
-            jf = j3.reshape(T * k, T * m)
-            h_gn = (jf.T * np.repeat(1.0 / nt, k)) @ jf - (jr.T * (1.0 / nt ** 3)) @ jr
+            jw = (j3 * (1.0 / np.sqrt(nt))[:, None, None]).reshape(T * k, T * m)
+            jrw = jr * (nt ** -1.5)[:, None]
+            h_gn = jw.T @ jw - jrw.T @ jrw
             grad = (jr / nt[:, None]).sum(0)
             if ju.size:
                 h_gn += 2.0 * hu
