@@ -281,73 +281,71 @@ class GenericSQP:
         merit, cons = self._merit(xs, us, ref, u_prev, penalty)
         hu = pb.ju.T @ pb.ju
         eye = np.eye(T * m)
-        msg, converged, accepted, it = "max_iter", False, False, 0
+        msg, converged, it = "max_iter", False, 0
         rho = self._rho
         self._fixed = np.zeros(pb.n_cons, dtype=bool)
+        relinearise, undamped_tried = True, False
         for it in range(1, self.max_iter + 1):  # noqa: B007
-            h_gn, grad, sens = self._model(xs, us, ref, u_prev, hu)
-            scale = max(float(np.trace(h_gn)) / h_gn.shape[0], 1e-6)
-            u_flat = us.reshape(-1)
-            g_mat, c_qp = _NO_G, _NO_ROWS
-            if cons.size:
-                g_all = np.matmul(pb.constraint_jac(xs), sens).reshape(-1, T * m)  # (T R, T m)
-                # rows no control can move (a bound on x_1 fixed by the current state, the rows of a terminal
-                # constraint before T) only add a constant: left out of the QP, as the hand-written SQP does
-                self._fixed = np.abs(g_all) @ reach_range < 0.01 * self.feas_tol
-                keep = ~self._fixed
-                g_mat, c_qp = g_all[keep], cons[keep]
-            pen = np.full(c_qp.size, penalty)
-            rows0 = penalty * float(np.maximum(c_qp, 0.0).sum())
-            lo_d, hi_d = lo_t - u_flat, hi_t - u_flat
-            undamped_tried = accepted = False
-            while True:
-                hess = h_gn + (rho * scale + self.lm_floor) * eye
-                if c_qp.size:
-                    d_flat = solve_qp(hess, grad, lo_d, hi_d, g_mat, -c_qp, pen, backend=self.qp_backend).d
-                else:
-                    d_flat = solve_box_qp(hess, grad, lo_d, hi_d).d
-                if not np.all(np.isfinite(d_flat)):
-                    msg = "QP failed"
-                    break
-                pred = -(grad @ d_flat + 0.5 * d_flat @ h_gn @ d_flat) + rows0
-                if c_qp.size:
-                    pred -= penalty * float(np.maximum(c_qp + g_mat @ d_flat, 0.0).sum())
-                if pred <= self.tol * (1.0 + abs(merit)):
-                    if self.undamped_check and rho > self.rho0 and not undamped_tried:
-                        # a heavily damped step predicts little even far from a minimum (the network's kinks
-                        # make the Levenberg-Marquardt weight grow): only the undamped model may stop
-                        undamped_tried, rho = True, self.rho0
-                        continue
-                    converged = True
-                    break
-                alpha, ut, xt, mt, ct = self._line_search(x0, us, d_flat.reshape(T, m), merit, pred, ref, u_prev,
-                                                          penalty)
-                if alpha > 0.0:
-                    accepted = True
-                    ratio = (merit - mt) / pred
-                    if alpha == 1.0 and ratio > 0.75:
-                        rho = max(rho / 4.0, 1e-9)
-                    elif alpha < 1.0 or ratio < 0.25:
-                        rho *= max(2.0, 1.0 / alpha)
-                    break
-                rho = max(rho, 1e-3) * 10.0
-                if rho > 1e3:
-                    msg = "line search failed"
-                    break
-            if converged:
+            # each QP is one iteration (a real-time iteration, max_iter 1, solves exactly one); the model is
+            # rebuilt only when the plan or the violation price changed
+            if relinearise:
+                h_gn, grad, sens = self._model(xs, us, ref, u_prev, hu)
+                scale = max(float(np.trace(h_gn)) / h_gn.shape[0], 1e-6)
+                u_flat = us.reshape(-1)
+                g_mat, c_qp = _NO_G, _NO_ROWS
+                if cons.size:
+                    g_all = np.matmul(pb.constraint_jac(xs), sens).reshape(-1, T * m)  # (T R, T m)
+                    # rows no control can move (a bound on x_1 fixed by the current state, the rows of a terminal
+                    # constraint before T) only add a constant: left out of the QP, as the hand-written SQP does
+                    self._fixed = np.abs(g_all) @ reach_range < 0.01 * self.feas_tol
+                    keep = ~self._fixed
+                    g_mat, c_qp = g_all[keep], cons[keep]
+                pen = np.full(c_qp.size, penalty)
+                rows0 = penalty * float(np.maximum(c_qp, 0.0).sum())
+                lo_d, hi_d = lo_t - u_flat, hi_t - u_flat
+                relinearise, undamped_tried = False, False
+            hess = h_gn + (rho * scale + self.lm_floor) * eye
+            if c_qp.size:
+                d_flat = solve_qp(hess, grad, lo_d, hi_d, g_mat, -c_qp, pen, backend=self.qp_backend).d
+            else:
+                d_flat = solve_box_qp(hess, grad, lo_d, hi_d).d
+            if not np.all(np.isfinite(d_flat)):
+                msg = "QP failed"
+                break
+            pred = -(grad @ d_flat + 0.5 * d_flat @ h_gn @ d_flat) + rows0
+            if c_qp.size:
+                pred -= penalty * float(np.maximum(c_qp + g_mat @ d_flat, 0.0).sum())
+            if pred <= self.tol * (1.0 + abs(merit)):
+                if self.undamped_check and rho > self.rho0 and not undamped_tried:
+                    # a heavily damped step predicts little even far from a minimum (the network's kinks make
+                    # the Levenberg-Marquardt weight grow): only the undamped model may stop
+                    undamped_tried, rho = True, self.rho0
+                    continue
                 movable = cons[~self._fixed] if cons.size else cons
                 if movable.size and float(movable.max()) > self.feas_tol and penalty < self.penalty_max:
                     # converged to a plan that still violates a constraint some control can move: make
                     # violations dearer and go on (the hand-written SQP's continuation)
                     penalty = min(penalty * 10.0, self.penalty_max)
                     merit = self._merit(xs, us, ref, u_prev, penalty)[0]
-                    converged = False
+                    relinearise = True
                     continue
-                msg = "converged"
+                msg, converged = "converged", True
                 break
-            if not accepted:
-                break
+            alpha, ut, xt, mt, ct = self._line_search(x0, us, d_flat.reshape(T, m), merit, pred, ref, u_prev,
+                                                      penalty)
+            if alpha == 0.0:  # no step accepted: damp more and solve the same model again
+                rho = max(rho, 1e-3) * 10.0
+                if rho > 1e3:
+                    msg = "line search failed"
+                    break
+                continue
+            ratio = (merit - mt) / pred
+            if alpha == 1.0 and ratio > 0.75:
+                rho = max(rho / 4.0, 1e-9)
+            elif alpha < 1.0 or ratio < 0.25:
+                rho *= max(2.0, 1.0 / alpha)
             us, xs, merit, cons = ut, xt, mt, ct
+            relinearise = True
             if self.max_time is not None and time.perf_counter() - start > self.max_time:
                 msg = "time budget"
                 break
