@@ -114,6 +114,9 @@ class GenericSQP:
         self.undamped_check = _flag(opt.get("undamped_check", True), "undamped_check")
         self.compile = _flag(opt.get("compile", False), "compile")
         self._fixed = np.zeros(0, dtype=bool)
+        pb = self.problem
+        #: the bounds of U, the control residuals' Gauss-Newton Hessian and the identity, ``(T m,)``/``(T m, T m)``
+        self._consts = (np.tile(pb.u_low, pb.T), np.tile(pb.u_high, pb.T), pb.ju.T @ pb.ju, np.eye(pb.T * self.m))
         self._base: SymbolicBase | TorchBase = make_base(system) if f_hat is None else f_hat
         self._base_params: Any = _base_params(system)
         self._bound: np.ndarray | None = None
@@ -189,12 +192,11 @@ class GenericSQP:
         try:
             u_prev = self._u_last
             us = self._warm_start(x0)
-            us, xs, iters, converged, msg = self._optimize(x0, us, ref, u_prev, start)
+            us, xs, iters, converged, msg, cons = self._optimize(x0, us, ref, u_prev, start)
             if not (np.all(np.isfinite(xs)) and np.all(np.isfinite(us))):
                 return self._fallback(start, f"non-finite plan ({msg})", iters)
         except Exception as exc:  # noqa: BLE001 - any numerical breakdown: keep flying on the last good plan
             return self._fallback(start, f"solver failure: {type(exc).__name__}: {exc}")
-        cons = self.problem.constraints(xs).reshape(-1)
         worst = float(max(0.0, cons.max())) if cons.size else 0.0
         ok = worst <= self.feas_tol
         unavoidable = False
@@ -269,18 +271,16 @@ class GenericSQP:
         return h_gn, grad, sens
 
     def _optimize(self, x0: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
-                  start: float) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-        """The SQP iterations (module docstring): ``(U, predicted states, iterations, converged, message)``."""
+                  start: float) -> tuple[np.ndarray, np.ndarray, int, bool, str, np.ndarray]:
+        """The SQP iterations (module docstring): ``(U, predicted states, iterations, converged, message, the
+        plan's constraint values (T R,))``."""
         pb, dyn = self.problem, self.dyn
         T, m = pb.T, self.m
-        lo, hi = pb.u_low, pb.u_high
-        lo_t, hi_t = np.tile(lo, T), np.tile(hi, T)
+        lo_t, hi_t, hu, eye = self._consts
         reach_range = hi_t - lo_t
         penalty = self.penalty
         xs = dyn.rollout(x0, us)
         merit, cons = self._merit(xs, us, ref, u_prev, penalty)
-        hu = pb.ju.T @ pb.ju
-        eye = np.eye(T * m)
         msg, converged, it = "max_iter", False, 0
         rho = self._rho
         self._fixed = np.zeros(pb.n_cons, dtype=bool)
@@ -350,7 +350,7 @@ class GenericSQP:
                 msg = "time budget"
                 break
         self._rho = rho
-        return us, xs, it, converged, msg
+        return us, xs, it, converged, msg, cons
 
     def _line_search(self, x0: np.ndarray, us: np.ndarray, d: np.ndarray, merit: float, pred: float,
                      ref: np.ndarray, u_prev: np.ndarray | None,
