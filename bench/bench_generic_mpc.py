@@ -9,7 +9,7 @@ ensemble of 32-32 residual networks trained here on transitions of the robot's o
 1. **derivatives** (why the planner takes them as it does): CPU time per call, for the 20 steps of a plan, of f_hat's
    Jacobians from its CasADi form against torch autograd of the same f_hat; of phi's Jacobians from the network's
    own reverse pass (numpy) against CasADi (the network written symbolically, weights a parameter) and torch
-   autograd; and of a rollout on floats against numpy arrays;
+   autograd; and of a rollout by one CasADi call for the horizon (the planner's) against numpy arrays step by step;
 2. **closed loop** on the robot's simulator from the same starts: the guarded planner (ensemble disagreement, bounded
    residual, live monitor with roll back; each step's time includes the guard's checks and the monitor's scoring)
    with the file's solver options (up to 15 SQP iterations per step), with 2, and as a real-time iteration (one
@@ -161,7 +161,7 @@ def derivatives(system: Any, model: Any, quick: bool) -> None:
         ("f_hat + phi Jacobians, torch autograd", cpu_per_call(torch_jac, max(20, reps // 10))),
     ]
     dyn = GenericDynamics(system, sym, model, 0)
-    rows += [("rollout T=20, floats (the planner's)", cpu_per_call(lambda: dyn.rollout(x[0], u), reps)),
+    rows += [("rollout T=20, one CasADi call (the planner's)", cpu_per_call(lambda: dyn.rollout(x[0], u), reps)),
              ("rollout T=20, numpy arrays", cpu_per_call(lambda: _numpy_rollout(dyn, x[0], u), reps))]
     print("\n1. derivatives and rollouts for one plan (T = 20, batch of 20 steps), CPU time per call, one core")
     for name, sec in rows:
