@@ -290,9 +290,11 @@ class GenericDynamics:
 
     def sensitivities(self, xs: np.ndarray, us: np.ndarray) -> np.ndarray | None:
         """``S (T, n, T m)``, ``S[t] = d x_{t+1} / d U``, along a plan's states ``xs (T, n)`` (x_0 .. x_{T-1}) and
-        controls ``us (T, m)`` in one call where the horizon has that function (f_hat alone, ``compile``), else
-        None (the caller condenses :meth:`step_jac`)."""
-        roll = self._horizon(us.shape[0]) if self.kind == "base" else None
+        controls ``us (T, m)`` in one call where the horizon has that function (``compile``), else
+        None (the caller condenses :meth:`step_jac`; always with ``smoothing``)."""
+        if self.smoothing > 0:  # the planner rounds the network's Jacobians: its numpy copy does that
+            return None
+        roll = self._horizon(us.shape[0])
         return None if roll is None else roll.sensitivities(xs, us)
 
     def rollout(self, x0: np.ndarray, us: np.ndarray) -> np.ndarray:

@@ -94,10 +94,13 @@ class HorizonRollout:
         n, m, T: sizes; angles: wrapped state fields.
         dims: the network's layer widths (:func:`mlp_dims`) or None (no network).
         batch: K, the sequences of :meth:`rollout_batch`.
-        compile: f_hat alone (no network): also the sensitivities ``d x_{t+1} / d U`` of a plan in one call
-            (:meth:`sensitivities`), and all three functions compiled to C (:func:`~.codegen.compiled`; without a
-            compiler CasADi's virtual machine runs them and :attr:`compiled` says why). With a network nothing is
-            compiled (the network's Jacobians come from its numpy copy).
+        compile: also the sensitivities ``d x_{t+1} / d U`` of a plan in one call (:meth:`sensitivities`), and all
+            three functions compiled to C (:func:`~.codegen.compiled`; without a compiler CasADi's virtual machine
+            runs them and :attr:`compiled` says why). f_hat alone is written in scalar expressions (SX); with a
+            network the functions are written with CasADi's matrix expressions (MX: the generated C loops over the
+            weight matrices, so it stays small and compiles in seconds; scalar expressions through a network
+            generate megabytes). The network's Jacobians are the exact ones (a planner rounding them,
+            ``smoothing``, does not use these sensitivities).
     """
 
     def __init__(self, f_hat: Any, n: int, m: int, T: int, angles: Sequence[int], dims: Sequence[int] | None,
@@ -127,24 +130,33 @@ class HorizonRollout:
         fns = [fn, fk]
         #: None: compiled to C; else why not (for /diagnostics)
         self.compiled: str | None = "solver option compile: false"
-        if compile and self.dims is None and f_hat is not None:
-            fns.append(_sensitivity_function(f_hat, n, m, T, angles))
-            tag = f"generic_T{T}_n{n}_m{m}"
+        if compile:
+            if self.dims is None:
+                fns.append(_sensitivity_function(f_hat, n, m, T, angles))
+                tag = f"generic_T{T}_n{n}_m{m}"
+            else:
+                fns = _network_functions(f_hat, n, m, T, angles, self.dims, self.batch)
+                tag = f"generic_T{T}_n{n}_m{m}_net{'x'.join(map(str, self.dims))}"
             fns, why = compiled(fns, tag)
             self.compiled = None if why is None else f"not compiled: {why}"
-        elif compile:
-            self.compiled = "not compiled with a network: its Jacobians come from its numpy copy"
+            if why is not None and self.dims is not None:
+                # uncompiled, the sensitivities through the network are slower than numpy's: the planner condenses
+                fns = fns[:2]
         self._one = BufferedFunction(fns[0], [(n,), (T, m), (n_theta,), (n,)], [(T + 1, n)])
         self._many = BufferedFunction(fns[1], [(n,), (self.batch, T, m), (n_theta,), (n,)],
                                       [(self.batch, T + 1, n)])
-        self._sens = BufferedFunction(fns[2], [(T, n), (T, m)], [(T, n, T * m)]) if len(fns) > 2 else None
-        # x0, theta and bound are shared by the K sequences (map's repeated inputs): one copy each
-        self._one.ins[3][:] = np.inf
-        self._many.ins[3][:] = np.inf
+        self._sens = BufferedFunction(fns[2], [(T, n), (T, m), (n_theta,), (n,)], [(T, n, T * m)]) \
+            if len(fns) > 2 else None
+        # theta and bound are shared by the K sequences (map's repeated inputs): one copy each
+        for f in self._buffers():
+            f.ins[3][:] = np.inf
+
+    def _buffers(self) -> list[BufferedFunction]:
+        return [f for f in (self._one, self._many, self._sens) if f is not None]
 
     def set_model(self, theta: np.ndarray | None, bound: np.ndarray | None) -> None:
         """New network numbers (:func:`mlp_numbers`) and residual bound (None: unclipped); nothing is rebuilt."""
-        for f in (self._one, self._many):
+        for f in self._buffers():
             if theta is not None:
                 f.ins[2][:] = theta
             f.ins[3][:] = np.inf if bound is None else bound
@@ -178,6 +190,45 @@ def mlp_zeros(dims: Sequence[int]) -> np.ndarray:
     return np.zeros(size)
 
 
+def _network_functions(f_hat: Any, n: int, m: int, T: int, angles: Sequence[int], dims: Sequence[int],
+                       batch: int) -> list[Any]:
+    """The rollout, its batch of ``batch`` and the sensitivities of f_hat (or none: ``f_hat`` None, a full model) +
+    the clipped network, in CasADi's matrix expressions (MX), with :class:`HorizonRollout`'s inputs and
+    outputs."""
+    import casadi as ca
+
+    n_theta = len(mlp_zeros(dims))
+    x, u = ca.MX.sym("x", n), ca.MX.sym("u", m)
+    theta, bound = ca.MX.sym("theta", n_theta), ca.MX.sym("bound", n)
+    xw = ca.vertcat(*[ca.atan2(ca.sin(x[i]), ca.cos(x[i])) if i in angles else x[i] for i in range(n)]) \
+        if angles else x
+    y = ca.fmin(ca.fmax(prelu_mlp_casadi(ca.vertcat(xw, u), theta, dims), -bound), bound)
+    if f_hat is not None:
+        y = y + f_hat(xw, u)
+    if angles:
+        y = y + (x - xw)
+    step = ca.Function("step", [x, u, theta, bound], [y])
+    ab = ca.Function("ab", [x, u, theta, bound], [ca.jacobian(y, x), ca.jacobian(y, u)])
+    x0, us = ca.MX.sym("x0", n), ca.MX.sym("U", m, T)
+    cur, states = x0, [x0]
+    for t in range(T):
+        cur = step(cur, us[:, t], theta, bound)
+        states.append(cur)
+    roll = ca.Function("rollout", [x0, us, theta, bound], [ca.densify(ca.horzcat(*states))])
+    many = roll.map("rollout_batch", "serial", batch, [0, 2, 3], [])
+    xs = ca.MX.sym("X", n, T)
+    rows: list[Any] = []
+    prev: Any = None
+    for t in range(T):
+        a, b = ab(xs[:, t], us[:, t], theta, bound)
+        head = [ca.mtimes(a, prev[:, : t * m])] if t else []
+        cur = ca.horzcat(*head, b, ca.MX.zeros(n, (T - t - 1) * m))
+        rows.append(cur.T)
+        prev = cur
+    sens = ca.Function("sensitivities", [xs, us, theta, bound], [ca.densify(ca.horzcat(*rows))])
+    return [roll, many, sens]
+
+
 def _sensitivity_function(f_hat: Any, n: int, m: int, T: int, angles: Sequence[int]) -> Any:
     """``(X (T, n), U (T, m)) -> S (T, n, T m)`` (numpy layouts) of f_hat alone: ``S_0 = [B_0 0 ..]``,
     ``S_t = [A_t S_{t-1} | B_t | 0]`` with ``A_t, B_t`` f_hat's Jacobians at ``(x_t, u_t)`` (the angle fields wrapped
@@ -198,4 +249,5 @@ def _sensitivity_function(f_hat: Any, n: int, m: int, T: int, angles: Sequence[i
         cur = ca.horzcat(*head, b, ca.SX.zeros(n, (T - t - 1) * m))
         rows.append(cur.T)  # numpy's C-order (T, n, T m) is CasADi's column-major (T m, T n) of the S_t'
         prev = cur
-    return ca.Function("sensitivities", [xs, us], [ca.densify(ca.horzcat(*rows))])
+    unused = (ca.SX.sym("theta", 0), ca.SX.sym("bound", n))  # the network's inputs (none here)
+    return ca.Function("sensitivities", [xs, us, *unused], [ca.densify(ca.horzcat(*rows))])

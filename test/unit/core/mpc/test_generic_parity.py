@@ -113,6 +113,40 @@ def test_compiled_horizon_equals_the_virtual_machine(tmp_path: Path, monkeypatch
     assert len(codegen.COMPILE_SECONDS) == built + 1  # loaded from the cache
 
 
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_compiled_network_horizon_equals_numpy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a residual network (and its bound): the compiled rollouts and sensitivities (CasADi matrix expressions)
+    equal stepping the numpy network and condensing its exact Jacobians; a hot swap and a new bound are numbers."""
+    monkeypatch.setenv("SAML_KERNEL_CACHE", str(tmp_path))
+    monkeypatch.delenv("SAML_MPC_NATIVE", raising=False)
+    system = load_system_file(EXAMPLE)
+    # exact Jacobians (the example file rounds the network's kinks, smoothing 0.2: then numpy takes them)
+    ctrl = GenericSQP(system, fitted_model(system, seed=1), horizon=3, compile=True, smoothing=0.0)
+    plain = GenericSQP(system, fitted_model(system, seed=1), horizon=3, smoothing=0.0)
+    assert GenericSQP(system, fitted_model(system, seed=1), horizon=3, compile=True).dyn.sensitivities(
+        np.zeros((3, 5)), np.zeros((3, 2))) is None
+    assert "compiled to C" in ctrl.describe() and "virtual machine" in plain.describe()
+    rng = np.random.default_rng(2)
+    x0 = np.array([0.3, -0.2, 3.12, 0.4, 1.8])
+    us = rng.uniform(-1.0, 1.0, size=(3, 2))
+    built = len(codegen.COMPILE_SECONDS)
+    for seed, bound in ((1, None), (2, None), (3, np.full(5, 0.004))):
+        for c in (ctrl, plain):
+            c.set_model(fitted_model(system, seed=seed))
+            c.set_residual_bound(bound)
+        xs = ctrl.dyn.rollout(x0, us)
+        np.testing.assert_allclose(xs, plain.dyn.rollout(x0, us), rtol=0, atol=1e-12)
+        batch = us[None] * np.linspace(0.2, 1.0, 5)[:, None, None]
+        np.testing.assert_allclose(ctrl.dyn.rollout_batch(x0, batch), plain.dyn.rollout_batch(x0, batch), rtol=0,
+                                   atol=1e-12)
+        sens = ctrl.dyn.sensitivities(xs[:-1], us)
+        _, a, b = plain.dyn.step_jac(xs[:-1], us)
+        assert sens is not None and plain.dyn.sensitivities(xs[:-1], us) is None
+        np.testing.assert_allclose(sens, _condense(a, b), rtol=0, atol=1e-10)
+        np.testing.assert_allclose(ctrl.solve(x0).plan_u, plain.solve(x0).plan_u, rtol=0, atol=1e-8)
+    assert len(codegen.COMPILE_SECONDS) == built  # nothing compiled after the first planner's construction
+
+
 def test_without_a_compiler_the_planner_says_so_and_plans_the_same(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("SAML_KERNEL_CACHE", str(tmp_path))
