@@ -4,17 +4,21 @@ Per iteration, from the controls ``U (T, m)`` and their predicted states:
 
 1. the exact Jacobians ``A_t, B_t`` of ``f_hat + phi`` along the plan, one batched call
    (:class:`~saml_ros.core.mpc.generic.dynamics.GenericDynamics`: CasADi for f_hat, the network's own for phi);
-2. condensed sensitivities ``S_t = dx_t/dU`` (``S_{t+1} = A_t S_t + [0 .. B_t .. 0]``);
+2. condensed sensitivities ``S_t = dx_t/dU`` (``S_{t+1} = A_t S_t + [0 .. B_t .. 0]``) (with ``compile``, steps 1-2
+   in one compiled call for the whole horizon, :mod:`~saml_ros.core.mpc.generic.horizon`);
 3. the Gauss-Newton model of the least-squares cost (:class:`~saml_ros.core.mpc.generic.problem.GenericProblem`)
    plus a Levenberg-Marquardt term, and the linearised state constraints;
 4. one QP in the step (box on the controls, the state rows in elastic mode: always feasible), solved by DAQP
    (:func:`saml_ros.core.mpc.shooting.qp.solve_qp`, the same QP code as the built-in systems' fast solver);
 5. a backtracking line search on the exact l1 merit ``cost + penalty * sum max(c, 0)`` (the full step, then all
-   shorter ones in one batched rollout); the Levenberg-Marquardt
-   weight follows the ratio of actual to predicted decrease (kept between solves).
+   shorter ones in one batched rollout; every rollout one CasADi call for the whole horizon); the
+   Levenberg-Marquardt weight follows the ratio of actual to predicted decrease by the hand-written quadrotor SQP's
+   rule (kept between solves). Each QP is one iteration.
 
 It stops when the QP predicts a merit decrease below ``tol * (1 + merit)`` (with a heavily damped step, only after
-the same check with the initial weight), at ``max_iter`` or ``max_time``. Each
+the same check with the initial weight: ``undamped_check``), at ``max_iter`` or ``max_time``; stopped on a plan that
+violates a constraint some control can move, it raises the violation's price tenfold up to ``penalty_max`` and goes
+on. Each
 solve warm-starts from the previous plan (shifted one step when the state moved on), else from the last command
 held. A hot swap of the network (:meth:`GenericSQP.set_model`) copies its weights into the prediction model;
 nothing is rebuilt or recompiled.
@@ -73,9 +77,10 @@ class GenericSQP:
             some control can move (default: the task's ``penalty``, i.e. fixed).
         undamped_check: before stopping with a damped step (Levenberg-Marquardt weight above ``rho0``), solve the
             QP once more with ``rho0`` (True).
-        compile: with f_hat alone, the whole-horizon rollouts and sensitivities compiled to C through CasADi (once
-            per machine and problem shape, cached; :mod:`~saml_ros.core.mpc.generic.codegen`; without a compiler
-            CasADi's virtual machine runs them, the same numbers, and ``describe`` says why) (False).
+        compile: the whole-horizon rollouts and the plan's sensitivities (through the network too, with exact
+            Jacobians: not with ``smoothing``) compiled to C through CasADi (once per machine and problem shape,
+            cached; :mod:`~saml_ros.core.mpc.generic.codegen`; without a compiler CasADi's virtual machine or numpy
+            computes the same numbers, and ``describe`` says why) (False).
         qp_backend: ``daqp`` or ``ipm`` (:func:`~saml_ros.core.mpc.shooting.qp.solve_qp`).
         The solver options not given here come from the section's ``mpc.solver_options``.
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
