@@ -23,12 +23,16 @@ ensemble of 32-32 residual networks trained here on transitions of the robot's o
 
 4. **quadrotor parity**: the quadrotor demo's landing task (horizon 10, unsquared distance cost, height and tilt
    bounds, final attitude bound) planned with f_hat by the hand-written SQP with its C kernel and by the generic
-   SQP (the task as a generic ``MPCTask``: ``cost.norm``, the attitude bound ``at: terminal``; f_hat's
-   array-namespace form, :mod:`saml_ros.systems.quadrotor.generic_form`), each flying the true dynamics (ground
-   effect) from the same three starts for 50 steps: CPU time per solve and the landing error (distance from
-   (0, 0, min_height) at the end), their ratios (goal: within 2x); then identical problems (states the hand-written
-   loop visited, each from the warm start it had there) solved by both to a tight tolerance: the largest plan
-   difference (N; goal 1e-3) and the cost ratio.
+   SQP (the task as a generic ``MPCTask``: ``cost.norm``, the attitude bound ``at: terminal``, the hand-written
+   SQP's solver options; f_hat's array-namespace form, :mod:`saml_ros.systems.quadrotor.generic_form`), the generic
+   one with its whole-horizon functions compiled (the task's ``compile: true``) and in CasADi's virtual machine (what
+   runs without a compiler), then both with f_hat + the same learned 16-8 residual (trained as ``bench_mpc`` trains
+   it); each flying the true dynamics (ground effect) from the same three starts for 50 steps: CPU time per solve,
+   SQP iterations and the landing error (distance from (0, 0, min_height) at the end), their ratios (goal: within
+   2x); where the generic SQP's time goes (rollouts, sensitivities, QP, cost and constraint rows, the rest); then
+   identical problems (states the hand-written loop visited, each from the warm start it had there) solved by both
+   to a tight tolerance: the largest differences of the whole plan, the first control and the predicted positions
+   (goal 1e-3) and the exact cost ratio.
 
 CPU time (``time.process_time``) is reported beside wall time: on a shared machine wall time also counts the other
 processes' turns. The load average is printed.
