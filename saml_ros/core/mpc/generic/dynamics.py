@@ -223,6 +223,7 @@ class GenericDynamics:
         self._dims = None if plain is None else mlp_dims(plain)
         self._theta = None if plain is None else mlp_numbers(plain)
         self._last_horizon: HorizonRollout | None = None
+        self._angle_key = tuple(int(i) for i in self.angles)
 
     def _wrap(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         if not self.angles.size:
@@ -277,9 +278,10 @@ class GenericDynamics:
         if not self._horizon_ok:
             return None
         assert isinstance(self.base, SymbolicBase)
-        roll = self.base.horizon(T, tuple(int(i) for i in self.angles), self._dims, self.kind == "full",
-                                 self.compile)
-        roll.set_model(self._theta, self.bound)  # the rollout may be shared with another model's dynamics
+        roll = self.base.horizon(T, self._angle_key, self._dims, self.kind == "full", self.compile)
+        if roll.owner is not self:  # the rollout is shared with the dynamics of other models: write ours in
+            roll.set_model(self._theta, self.bound)
+            roll.owner = self
         self._last_horizon = roll
         return roll
 

@@ -150,6 +150,8 @@ class HorizonRollout:
         # theta and bound are shared by the K sequences (map's repeated inputs): one copy each
         for f in self._buffers():
             f.ins[3][:] = np.inf
+        #: the prediction model whose numbers the buffers hold (set by its user after :meth:`set_model`)
+        self.owner: Any = None
 
     def _buffers(self) -> list[BufferedFunction]:
         return [f for f in (self._one, self._many, self._sens) if f is not None]
