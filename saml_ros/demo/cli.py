@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC
+from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC, WORLDS
 
 #: simulated seconds of the live loop (36 landing episodes of 5 s; the in-region error is within 20 % of its
 #: 300 s value after 150 s)
@@ -49,6 +49,8 @@ DEMO_AGGRESSIVE_STARTS = 10
 #: against 6358 with the numpy SQP at 3x); at 5x they made 7938 (docs/demo.md, "Time and speed").
 #: ``--set sim.max_speed=0`` lifts it.
 DEMO_MAX_SPEED = 5.0
+#: the demo's default world (``--world``; :data:`~saml_ros.demo.landing.WORLDS`)
+DEMO_WORLD = "paper"
 #: starts drawn in the trajectory picture
 PICTURE_STARTS = 4
 
@@ -169,25 +171,29 @@ def write_figures(ev: dict[str, Any] | None, res: Any, out_dir: Path) -> list[Pa
     return figs
 
 
-def demo_config(seed: int, sim_time: float) -> dict[str, Any]:
-    """The quadrotor's bringup defaults with the UA learner, the simulator seed, the simulated time and the live
-    loop's speed limit (:data:`DEMO_MAX_SPEED`)."""
+def demo_config(seed: int, sim_time: float, world: str = DEMO_WORLD) -> dict[str, Any]:
+    """The quadrotor's bringup defaults with the UA learner, the simulator seed, the simulated time, the live
+    loop's speed limit (:data:`DEMO_MAX_SPEED`) and the world (:data:`~saml_ros.demo.landing.WORLDS`: the
+    simulator's ``system.*`` parameters, which the evaluation reads too)."""
     from saml_ros import bringup
 
+    if world not in WORLDS:
+        raise ValueError(f"unknown demo world {world!r}; valid: {sorted(WORLDS)}")
     config = bringup.default_config("quadrotor")
     config["sim_time"] = sim_time
     config["sim"]["seed"] = seed
+    config["sim"].update({f"system.{k}": v for k, v in WORLDS[world].items()})
     config["sim"].setdefault("max_speed", DEMO_MAX_SPEED)
     config.setdefault("learner_ua", {})
     return config
 
 
-def live_config(seed: int, sim_time: float, sets: list[str]) -> dict[str, Any]:
+def live_config(seed: int, sim_time: float, sets: list[str], world: str = DEMO_WORLD) -> dict[str, Any]:
     """:func:`demo_config` with ``--set`` overrides applied (the UA learner takes the learner's parameters,
     :func:`saml_ros.bringup.config.node_params`, unless one is set for it)."""
     from saml_ros import bringup
 
-    config = demo_config(seed, sim_time)
+    config = demo_config(seed, sim_time, world)
     return bringup.apply_sets(config, sets) if sets else config
 
 
@@ -209,6 +215,9 @@ def closed_loop_main(argv: list[str]) -> int:
     p.add_argument("--aggressive-starts", type=int, default=DEMO_AGGRESSIVE_STARTS,
                    help="far and fast starts of the paired evaluation (0 = none)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed; also added to the evaluation seeds")
+    p.add_argument("--world", choices=sorted(WORLDS), default=DEMO_WORLD,
+                   help="paper: the ground effect alone; wind: plus a wind field above the pad's shelter (the "
+                        "simulator, the oracle and the evaluation alike; docs/demo.md)")
     p.add_argument("--workers", type=int, help="evaluation processes (default: 2)")
     p.add_argument("--run-dir", type=Path, help="run directory (default: a new runs/bringup-quadrotor-...)")
     p.add_argument("--figures", type=Path, help="also copy the PNGs into this directory")
@@ -221,12 +230,13 @@ def closed_loop_main(argv: list[str]) -> int:
                    help="wall seconds the nodes may take to come up (a loaded machine: over 90 s was measured)")
     args = p.parse_args(argv)
     t0 = time.monotonic()
-    config = live_config(args.seed, args.sim_time, args.sets)
+    config = live_config(args.seed, args.sim_time, args.sets, args.world)
     steps = int(config["sim"]["episode_steps"])
     pad = config["mpc"].get("goal.position")
     limit = float(config["sim"].get("max_speed", 0.0) or 0.0)
     pace = f" at most {limit:g}x real time" if limit > 0 else ""
-    print(f"demo: quadrotor landing on a pad at {pad} m inside the ground effect, closed loop over ROS 2 (simulator "
+    wind = " and a wind field above the pad's shelter (--world wind)" if WORLDS[args.world] else ""
+    print(f"demo: quadrotor landing on a pad at {pad} m inside the ground effect{wind}, closed loop over ROS 2 (simulator "
           f"in lockstep{pace} + SA and UA learners + guarded MPC, separate processes), {args.sim_time:g} s of simulated time "
           f"= {args.sim_time / (steps * 0.1):.0f} landing episodes of {steps * 0.1:g} s; the MPC starts on the base "
           f"model and follows the SA learner's checkpoints", flush=True)

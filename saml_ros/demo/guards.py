@@ -2,9 +2,9 @@
 
 From the demo's evaluation starts of that run (its ``--seed``: the standard and the aggressive ones), the base
 model and the learned model with every remedy off, each remedy alone, the run's own guard (``guard.*`` of its
-``bringup.yaml``) and it without roll back / with or without the constraint watch / without the infeasible-plan fallback (or with it, for runs recorded
-before it existed): per setting the mean and worst landing error, the steps planned with f_hat and the roll
-backs.
+``bringup.yaml``) and it without roll back / with or without the constraint watch / with or without the task check
+/ without the infeasible-plan fallback (or with it, for runs recorded before it existed): per setting the mean and
+worst landing error, the steps planned with f_hat and the roll backs.
 It answers "what does each remedy cost or buy on this model" without a new live run (ROS-free, about 30 s for
 the 10 aggressive starts here). Printed as a table; ``--json`` writes it too.
 """
@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from saml_ros.core.mpc.guard import GuardConfig
+from saml_ros.core.mpc.task_check import TaskCheckConfig
 from saml_ros.demo.landing import TASK_METRIC
 
 
@@ -43,6 +44,10 @@ def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
         else:  # off by default: the watch as the capacity sweep flew it (2 strikes, 5 mm)
             out["run's guard + constraint watch"] = dataclasses.replace(
                 guard, monitor=dataclasses.replace(guard.monitor, constraint_strikes=2, constraint_tol=0.005))
+    if guard.task.enabled:
+        out["run's guard without task check"] = dataclasses.replace(guard, task=TaskCheckConfig())
+    else:  # the task check as the demo flies it in the wind world (docs/demo.md, "The task check")
+        out["run's guard + task check"] = dataclasses.replace(guard, task=TaskCheckConfig(enabled=True))
     if guard.infeasible:
         out["infeasible fallback only"] = dataclasses.replace(off, infeasible=True)
         out["run's guard without infeasible fallback"] = dataclasses.replace(guard, infeasible=False)

@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.demo.landing import WORLDS
 from saml_ros.experiments.common import (
     Timer,
     fmt,
@@ -94,7 +95,7 @@ class CapacitySettings:
     workers: int = 2
     #: world parameters over the demo's (``Quadrotor`` constructor overrides): a wind field of 3 m/s^2, wavelength
     #: 8 m, above the pad's shelter, beside the demo's ground effect (``{"wind": 0.0}``: the demo's world itself)
-    world: dict[str, float] = field(default_factory=lambda: {"wind": 3.0, "wind_length": 8.0})
+    world: dict[str, float] = field(default_factory=lambda: dict(WORLDS["wind"]))
     #: control steps per episode, recorded and evaluated (0: the demo's, 50 = 5 s)
     steps: int = 0
     #: the guard's constraint watch (:class:`saml_ros.core.mpc.monitor.MonitorConfig`: strikes, tolerance in m) over
