@@ -141,7 +141,7 @@ def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: P
     text = capsys.readouterr().out
     got = json.loads(out.read_text())
     settings = ["base", "unguarded", "disagreement 0.1 only", "bound only", "roll back only",
-                "run's guard without roll back", "run's guard + constraint watch", "run's guard + task check",
+                "run's guard without roll back", "run's guard + constraint watch", "run's guard without task check",
                 "infeasible fallback only", "run's guard without infeasible fallback",
                 "run's guard"]
     assert list(got["sets"]) == ["aggressive"] and list(got["sets"]["aggressive"]) == settings
