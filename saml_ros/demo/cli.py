@@ -126,7 +126,8 @@ def format_evaluation(ev: dict[str, Any]) -> str:
         for a, g in s["guard"].items():
             lines.append(f"  guard ({a}): {g.get('solves_base', 0):.0f} of {g.get('solves', 0):.0f} steps on f_hat, "
                          f"{g.get('fallbacks', 0):.0f} ensemble fallbacks, {g.get('infeasible_fallbacks', 0):.0f} "
-                         f"infeasible-plan fallbacks, {g.get('rollbacks', 0):.0f} roll backs, "
+                         f"infeasible-plan fallbacks, {g.get('task_fallbacks', 0):.0f} task-check fallbacks, "
+                         f"{g.get('rollbacks', 0):.0f} roll backs ({g.get('task_rollbacks', 0):.0f} by the task check), "
                          f"{g.get('bounded', 0):.0f} steps with the residual bounded")
     lines.append("\n" + "\n".join(checks(ev)))
     return "\n".join(lines)
