@@ -19,7 +19,8 @@ each learned model's gain with its 95 % CI and the fraction of the headroom it c
 cases; writes PNGs and ``demo_summary.json`` into the run directory (``--figures`` also copies the PNGs there).
 
 ``demo --offline [...]`` is the offline Sufficiently vs Uniformly Accurate comparison on the double integrator;
-``demo --aggregate RUN_DIR ...`` pools several demo runs (:mod:`saml_ros.demo.aggregate`).
+``demo --aggregate RUN_DIR ...`` pools several demo runs (:mod:`saml_ros.demo.aggregate`); ``demo --guards RUN_DIR``
+and ``demo --spread RUN_DIR --start SET:I`` re-fly a run's checkpoint (:mod:`saml_ros.demo.guards`).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ DEMO_AGGRESSIVE_STARTS = 10
 #: ``--set sim.max_speed=0`` lifts it.
 DEMO_MAX_SPEED = 5.0
 #: the demo's default world (``--world``; :data:`~saml_ros.demo.landing.WORLDS`)
-DEMO_WORLD = "paper"
+DEMO_WORLD = "wind"
 #: starts drawn in the trajectory picture
 PICTURE_STARTS = 4
 
@@ -310,6 +311,11 @@ def main(argv: list[str] | None = None) -> int:
 
         args.remove("--guards")
         return guards_main(args)
+    if "--spread" in args:
+        from saml_ros.demo.guards import spread_main
+
+        args.remove("--spread")
+        return spread_main(args)
     if "--aggregate" in args:
         from saml_ros.demo.aggregate import aggregate_main
 

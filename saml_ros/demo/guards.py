@@ -100,6 +100,60 @@ def format_comparison(out: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def spread(run_dir: Path, seed: int, start: str, copies: int, sigma: float = 1e-3,
+           workers: int | None = None) -> dict[str, Any]:
+    """The base model and the run's SA checkpoint under the run's guard, flown from one of the run's evaluation
+    starts (``start`` = ``"aggressive:4"``: set and index) and ``copies - 1`` copies of it with the position moved by
+    N(0, ``sigma``) m per axis: the landing errors (m) per arm, the start's own first. How much of a worst case is
+    the start, how much the draw."""
+    from saml_ros.bringup.config import CHECKPOINTS
+    from saml_ros.demo.evaluation import Arm, evaluate_arms, evaluation_starts, newest_checkpoint, run_task_and_guard
+
+    config = yaml.safe_load((run_dir / "bringup.yaml").read_text())
+    sa = newest_checkpoint(run_dir / CHECKPOINTS)
+    if sa is None:
+        raise FileNotFoundError(f"no valid checkpoint in {run_dir / CHECKPOINTS}")
+    task, guard = run_task_and_guard(config)
+    name, _, index = start.partition(":")
+    sets = evaluation_starts(task.system(), 30, 10, seed)
+    if name not in sets or not index.isdigit() or int(index) >= len(sets[name]):
+        raise ValueError(f"start {start!r}: want standard:I (I < 30) or aggressive:I (I < 10)")
+    x0 = sets[name][int(index)]
+    rng = np.random.default_rng(seed)
+    starts = np.repeat(x0[None], copies, axis=0)
+    starts[1:, 0:3] += rng.normal(0.0, sigma, (copies - 1, 3))
+    arms = [Arm("base", "base"), Arm("SA, run's guard", str(sa[0]), guard)]
+    res = evaluate_arms(arms, task, starts, str(config["mpc"].get("solver", "fast")), workers)
+    return {"run_dir": str(run_dir), "seed": seed, "start": start, "sigma": sigma,
+            "landing_error": {a: r.metrics[TASK_METRIC].tolist() for a, r in res.items()}}
+
+
+def spread_main(argv: list[str]) -> int:
+    """``demo --spread RUN_DIR --start SET:I [--seed S] [--copies N]``."""
+    p = argparse.ArgumentParser(prog="demo --spread", description=(spread.__doc__ or "").split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("run_dir", type=Path, help="a demo run directory (bringup.yaml, checkpoints/)")
+    p.add_argument("--start", required=True, help="which evaluation start: standard:I or aggressive:I")
+    p.add_argument("--seed", type=int, default=0, help="the run's --seed (picks its evaluation starts)")
+    p.add_argument("--copies", type=int, default=12, help="flights per arm: the start and copies-1 moved ones")
+    p.add_argument("--sigma", type=float, default=1e-3, help="SD of the position moves (m)")
+    p.add_argument("--workers", type=int, help="evaluation processes (default: 2)")
+    args = p.parse_args(argv)
+    if not (args.run_dir / "bringup.yaml").is_file() or args.copies < 1:
+        print(f"demo --spread: {args.run_dir} is not a demo run directory (no bringup.yaml), or --copies < 1")
+        return 2
+    try:
+        out = spread(args.run_dir, args.seed, args.start, args.copies, args.sigma, args.workers)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"demo --spread: {exc}")
+        return 2
+    print(f"landing error (m) from {args.start} of seed {args.seed} (first) and {args.copies - 1} copies moved by "
+          f"N(0, {args.sigma:g} m) per axis:")
+    for arm, e in out["landing_error"].items():
+        print(f"  {arm:<18} " + " ".join(f"{v:.3f}" for v in e) + f"   (max {max(e):.3f})")
+    return 0
+
+
 def guards_main(argv: list[str]) -> int:
     """``demo --guards RUN_DIR [--seed S]``."""
     p = argparse.ArgumentParser(prog="demo --guards", description=(__doc__ or "").split("\n\n")[0],

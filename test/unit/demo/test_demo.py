@@ -122,7 +122,8 @@ def test_demo_set_overrides_reach_both_learners_and_the_evaluation(tmp_path: Pat
 def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: Path,
                                                                    capsys: Any) -> None:
     """``demo --guards RUN_DIR``: the base model and the run's newest checkpoint under every guard setting, from
-    the run's evaluation starts; a directory that is no run is refused with exit code 2."""
+    the run's evaluation starts; a directory that is no run is refused with exit code 2. ``demo --spread``: the same
+    checkpoint and the base model from one start and moved copies of it."""
     import shutil
 
     import yaml
@@ -154,6 +155,14 @@ def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: P
     assert got["sets"]["aggressive"]["run's guard"]["guard"]["solves"] == 2 * 50
     assert main(["--guards", str(tmp_path)]) == 2
     assert "not a demo run directory" in capsys.readouterr().out
+    # demo --spread: the base model and the run's guarded checkpoint from one start and moved copies of it
+    from saml_ros.demo.guards import spread
+
+    got = spread(run, 0, "aggressive:1", 2, workers=1)
+    assert list(got["landing_error"]) == ["base", "SA, run's guard"]
+    assert all(len(e) == 2 and all(math.isfinite(v) for v in e) for e in got["landing_error"].values())
+    assert main(["--spread", str(run), "--start", "aggressive:10"]) == 2  # 10 aggressive starts: 0..9
+    assert "aggressive:I (I < 10)" in capsys.readouterr().out
 
 
 def test_a_second_effect_is_in_the_simulator_the_oracle_and_the_evaluation(tmp_path: Path) -> None:
