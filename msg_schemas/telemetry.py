@@ -390,7 +390,9 @@ GLOBAL_TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, TELEMETRY_QOS, "every node", "rqt_runtime_monitor, Foxglove",
               "One DiagnosticStatus per node (name = node's full name) with its counters, e.g. "
               "rejected/<reason>, as key/value strings. The MPC's guard adds guard_fallbacks, guard_base_solves, "
-              "guard_rollbacks, guard_bounded_solves, guard_clipped_solves, guard_rolled_back_versions "
+              "guard_rollbacks, guard_bounded_solves, guard_clipped_solves, guard_task_fallbacks, "
+              "guard_task_rollbacks (the task check: steps flown with f_hat's own plan, roll backs), "
+              "guard_rolled_back_versions "
               "(comma-separated), "
               "monitor_error_model and monitor_error_base (level WARN after a roll back).",
               fields=tuple(FieldDoc(n, u, "status[i].values[j].value (string)", f"/<node name>/{n}", d)

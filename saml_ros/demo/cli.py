@@ -19,7 +19,8 @@ each learned model's gain with its 95 % CI and the fraction of the headroom it c
 cases; writes PNGs and ``demo_summary.json`` into the run directory (``--figures`` also copies the PNGs there).
 
 ``demo --offline [...]`` is the offline Sufficiently vs Uniformly Accurate comparison on the double integrator;
-``demo --aggregate RUN_DIR ...`` pools several demo runs (:mod:`saml_ros.demo.aggregate`).
+``demo --aggregate RUN_DIR ...`` pools several demo runs (:mod:`saml_ros.demo.aggregate`); ``demo --guards RUN_DIR``
+and ``demo --spread RUN_DIR --start SET:I`` re-fly a run's checkpoint (:mod:`saml_ros.demo.guards`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC
+from saml_ros.demo.landing import FAR, METRICS, TASK_METRIC, WORLDS
 
 #: simulated seconds of the live loop (36 landing episodes of 5 s; the in-region error is within 20 % of its
 #: 300 s value after 150 s)
@@ -49,6 +50,8 @@ DEMO_AGGRESSIVE_STARTS = 10
 #: against 6358 with the numpy SQP at 3x); at 5x they made 7938 (docs/demo.md, "Time and speed").
 #: ``--set sim.max_speed=0`` lifts it.
 DEMO_MAX_SPEED = 5.0
+#: the demo's default world (``--world``; :data:`~saml_ros.demo.landing.WORLDS`)
+DEMO_WORLD = "wind"
 #: starts drawn in the trajectory picture
 PICTURE_STARTS = 4
 
@@ -124,7 +127,8 @@ def format_evaluation(ev: dict[str, Any]) -> str:
         for a, g in s["guard"].items():
             lines.append(f"  guard ({a}): {g.get('solves_base', 0):.0f} of {g.get('solves', 0):.0f} steps on f_hat, "
                          f"{g.get('fallbacks', 0):.0f} ensemble fallbacks, {g.get('infeasible_fallbacks', 0):.0f} "
-                         f"infeasible-plan fallbacks, {g.get('rollbacks', 0):.0f} roll backs, "
+                         f"infeasible-plan fallbacks, {g.get('task_fallbacks', 0):.0f} task-check fallbacks, "
+                         f"{g.get('rollbacks', 0):.0f} roll backs ({g.get('task_rollbacks', 0):.0f} by the task check), "
                          f"{g.get('bounded', 0):.0f} steps with the residual bounded")
     lines.append("\n" + "\n".join(checks(ev)))
     return "\n".join(lines)
@@ -169,25 +173,29 @@ def write_figures(ev: dict[str, Any] | None, res: Any, out_dir: Path) -> list[Pa
     return figs
 
 
-def demo_config(seed: int, sim_time: float) -> dict[str, Any]:
-    """The quadrotor's bringup defaults with the UA learner, the simulator seed, the simulated time and the live
-    loop's speed limit (:data:`DEMO_MAX_SPEED`)."""
+def demo_config(seed: int, sim_time: float, world: str = DEMO_WORLD) -> dict[str, Any]:
+    """The quadrotor's bringup defaults with the UA learner, the simulator seed, the simulated time, the live
+    loop's speed limit (:data:`DEMO_MAX_SPEED`) and the world (:data:`~saml_ros.demo.landing.WORLDS`: the
+    simulator's ``system.*`` parameters, which the evaluation reads too)."""
     from saml_ros import bringup
 
+    if world not in WORLDS:
+        raise ValueError(f"unknown demo world {world!r}; valid: {sorted(WORLDS)}")
     config = bringup.default_config("quadrotor")
     config["sim_time"] = sim_time
     config["sim"]["seed"] = seed
+    config["sim"].update({f"system.{k}": v for k, v in WORLDS[world].items()})
     config["sim"].setdefault("max_speed", DEMO_MAX_SPEED)
     config.setdefault("learner_ua", {})
     return config
 
 
-def live_config(seed: int, sim_time: float, sets: list[str]) -> dict[str, Any]:
+def live_config(seed: int, sim_time: float, sets: list[str], world: str = DEMO_WORLD) -> dict[str, Any]:
     """:func:`demo_config` with ``--set`` overrides applied (the UA learner takes the learner's parameters,
     :func:`saml_ros.bringup.config.node_params`, unless one is set for it)."""
     from saml_ros import bringup
 
-    config = demo_config(seed, sim_time)
+    config = demo_config(seed, sim_time, world)
     return bringup.apply_sets(config, sets) if sets else config
 
 
@@ -209,6 +217,9 @@ def closed_loop_main(argv: list[str]) -> int:
     p.add_argument("--aggressive-starts", type=int, default=DEMO_AGGRESSIVE_STARTS,
                    help="far and fast starts of the paired evaluation (0 = none)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed; also added to the evaluation seeds")
+    p.add_argument("--world", choices=sorted(WORLDS), default=DEMO_WORLD,
+                   help="paper: the ground effect alone; wind: plus a wind field above the pad's shelter (the "
+                        "simulator, the oracle and the evaluation alike; docs/demo.md)")
     p.add_argument("--workers", type=int, help="evaluation processes (default: 2)")
     p.add_argument("--run-dir", type=Path, help="run directory (default: a new runs/bringup-quadrotor-...)")
     p.add_argument("--figures", type=Path, help="also copy the PNGs into this directory")
@@ -221,12 +232,13 @@ def closed_loop_main(argv: list[str]) -> int:
                    help="wall seconds the nodes may take to come up (a loaded machine: over 90 s was measured)")
     args = p.parse_args(argv)
     t0 = time.monotonic()
-    config = live_config(args.seed, args.sim_time, args.sets)
+    config = live_config(args.seed, args.sim_time, args.sets, args.world)
     steps = int(config["sim"]["episode_steps"])
     pad = config["mpc"].get("goal.position")
     limit = float(config["sim"].get("max_speed", 0.0) or 0.0)
     pace = f" at most {limit:g}x real time" if limit > 0 else ""
-    print(f"demo: quadrotor landing on a pad at {pad} m inside the ground effect, closed loop over ROS 2 (simulator "
+    wind = " and a wind field above the pad's shelter (--world wind)" if WORLDS[args.world] else ""
+    print(f"demo: quadrotor landing on a pad at {pad} m inside the ground effect{wind}, closed loop over ROS 2 (simulator "
           f"in lockstep{pace} + SA and UA learners + guarded MPC, separate processes), {args.sim_time:g} s of simulated time "
           f"= {args.sim_time / (steps * 0.1):.0f} landing episodes of {steps * 0.1:g} s; the MPC starts on the base "
           f"model and follows the SA learner's checkpoints", flush=True)
@@ -299,6 +311,11 @@ def main(argv: list[str] | None = None) -> int:
 
         args.remove("--guards")
         return guards_main(args)
+    if "--spread" in args:
+        from saml_ros.demo.guards import spread_main
+
+        args.remove("--spread")
+        return spread_main(args)
     if "--aggregate" in args:
         from saml_ros.demo.aggregate import aggregate_main
 

@@ -2,9 +2,9 @@
 
 From the demo's evaluation starts of that run (its ``--seed``: the standard and the aggressive ones), the base
 model and the learned model with every remedy off, each remedy alone, the run's own guard (``guard.*`` of its
-``bringup.yaml``) and it without roll back / with or without the constraint watch / without the infeasible-plan fallback (or with it, for runs recorded
-before it existed): per setting the mean and worst landing error, the steps planned with f_hat and the roll
-backs.
+``bringup.yaml``) and it without roll back / with or without the constraint watch / with or without the task check
+/ without the infeasible-plan fallback (or with it, for runs recorded before it existed): per setting the mean and
+worst landing error, the steps planned with f_hat and the roll backs.
 It answers "what does each remedy cost or buy on this model" without a new live run (ROS-free, about 30 s for
 the 10 aggressive starts here). Printed as a table; ``--json`` writes it too.
 """
@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from saml_ros.core.mpc.guard import GuardConfig
+from saml_ros.core.mpc.task_check import TaskCheckConfig
 from saml_ros.demo.landing import TASK_METRIC
 
 
@@ -43,6 +44,10 @@ def guard_settings(guard: GuardConfig) -> dict[str, GuardConfig | None]:
         else:  # off by default: the watch as the capacity sweep flew it (2 strikes, 5 mm)
             out["run's guard + constraint watch"] = dataclasses.replace(
                 guard, monitor=dataclasses.replace(guard.monitor, constraint_strikes=2, constraint_tol=0.005))
+    if guard.task.enabled:
+        out["run's guard without task check"] = dataclasses.replace(guard, task=TaskCheckConfig())
+    else:  # the task check as the demo flies it in the wind world (docs/demo.md, "The task check")
+        out["run's guard + task check"] = dataclasses.replace(guard, task=TaskCheckConfig(enabled=True))
     if guard.infeasible:
         out["infeasible fallback only"] = dataclasses.replace(off, infeasible=True)
         out["run's guard without infeasible fallback"] = dataclasses.replace(guard, infeasible=False)
@@ -93,6 +98,60 @@ def format_comparison(out: dict[str, Any]) -> str:
             lines.append(f"  {a:<38} {e.mean():>8.4f} {e.max():>8.4f}  {verdict:>8}  {on_base:>14}  "
                          f"{g.get('rollbacks', 0):>10.0f}")
     return "\n".join(lines)
+
+
+def spread(run_dir: Path, seed: int, start: str, copies: int, sigma: float = 1e-3,
+           workers: int | None = None) -> dict[str, Any]:
+    """The base model and the run's SA checkpoint under the run's guard, flown from one of the run's evaluation
+    starts (``start`` = ``"aggressive:4"``: set and index) and ``copies - 1`` copies of it with the position moved by
+    N(0, ``sigma``) m per axis: the landing errors (m) per arm, the start's own first. How much of a worst case is
+    the start, how much the draw."""
+    from saml_ros.bringup.config import CHECKPOINTS
+    from saml_ros.demo.evaluation import Arm, evaluate_arms, evaluation_starts, newest_checkpoint, run_task_and_guard
+
+    config = yaml.safe_load((run_dir / "bringup.yaml").read_text())
+    sa = newest_checkpoint(run_dir / CHECKPOINTS)
+    if sa is None:
+        raise FileNotFoundError(f"no valid checkpoint in {run_dir / CHECKPOINTS}")
+    task, guard = run_task_and_guard(config)
+    name, _, index = start.partition(":")
+    sets = evaluation_starts(task.system(), 30, 10, seed)
+    if name not in sets or not index.isdigit() or int(index) >= len(sets[name]):
+        raise ValueError(f"start {start!r}: want standard:I (I < 30) or aggressive:I (I < 10)")
+    x0 = sets[name][int(index)]
+    rng = np.random.default_rng(seed)
+    starts = np.repeat(x0[None], copies, axis=0)
+    starts[1:, 0:3] += rng.normal(0.0, sigma, (copies - 1, 3))
+    arms = [Arm("base", "base"), Arm("SA, run's guard", str(sa[0]), guard)]
+    res = evaluate_arms(arms, task, starts, str(config["mpc"].get("solver", "fast")), workers)
+    return {"run_dir": str(run_dir), "seed": seed, "start": start, "sigma": sigma,
+            "landing_error": {a: r.metrics[TASK_METRIC].tolist() for a, r in res.items()}}
+
+
+def spread_main(argv: list[str]) -> int:
+    """``demo --spread RUN_DIR --start SET:I [--seed S] [--copies N]``."""
+    p = argparse.ArgumentParser(prog="demo --spread", description=(spread.__doc__ or "").split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("run_dir", type=Path, help="a demo run directory (bringup.yaml, checkpoints/)")
+    p.add_argument("--start", required=True, help="which evaluation start: standard:I or aggressive:I")
+    p.add_argument("--seed", type=int, default=0, help="the run's --seed (picks its evaluation starts)")
+    p.add_argument("--copies", type=int, default=12, help="flights per arm: the start and copies-1 moved ones")
+    p.add_argument("--sigma", type=float, default=1e-3, help="SD of the position moves (m)")
+    p.add_argument("--workers", type=int, help="evaluation processes (default: 2)")
+    args = p.parse_args(argv)
+    if not (args.run_dir / "bringup.yaml").is_file() or args.copies < 1:
+        print(f"demo --spread: {args.run_dir} is not a demo run directory (no bringup.yaml), or --copies < 1")
+        return 2
+    try:
+        out = spread(args.run_dir, args.seed, args.start, args.copies, args.sigma, args.workers)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"demo --spread: {exc}")
+        return 2
+    print(f"landing error (m) from {args.start} of seed {args.seed} (first) and {args.copies - 1} copies moved by "
+          f"N(0, {args.sigma:g} m) per axis:")
+    for arm, e in out["landing_error"].items():
+        print(f"  {arm:<18} " + " ".join(f"{v:.3f}" for v in e) + f"   (max {max(e):.3f})")
+    return 0
 
 
 def guards_main(argv: list[str]) -> int:

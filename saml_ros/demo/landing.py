@@ -52,6 +52,12 @@ METRICS: dict[str, tuple[str, str]] = {
 TASK_METRIC = "landing_error"
 #: an episode ending farther than this from the pad (m) "flew away"
 FAR = 1.0
+#: the demo's worlds (``demo --world``): ``Quadrotor`` constructor overrides, handed to the simulator as its
+#: ``system.*`` parameters and to the evaluation (base, oracle, learned arms) as :attr:`LandingTask.world`. ``paper``:
+#: the ground effect alone (the paper's); ``wind``: plus a wind field of 3 m/s^2, wavelength 8 m, above the pad's
+#: shelter (1.5 m; docs/systems.md), so a model must share its capacity between the pad and the approach (the
+#: capacity sweep's world, :attr:`saml_ros.experiments.capacity.CapacitySettings.world`)
+WORLDS: dict[str, dict[str, float]] = {"paper": {}, "wind": {"wind": 3.0, "wind_length": 8.0}}
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.demo.landing import WORLDS
 from saml_ros.experiments.common import (
     Timer,
     fmt,
@@ -94,12 +95,15 @@ class CapacitySettings:
     workers: int = 2
     #: world parameters over the demo's (``Quadrotor`` constructor overrides): a wind field of 3 m/s^2, wavelength
     #: 8 m, above the pad's shelter, beside the demo's ground effect (``{"wind": 0.0}``: the demo's world itself)
-    world: dict[str, float] = field(default_factory=lambda: {"wind": 3.0, "wind_length": 8.0})
+    world: dict[str, float] = field(default_factory=lambda: dict(WORLDS["wind"]))
     #: control steps per episode, recorded and evaluated (0: the demo's, 50 = 5 s)
     steps: int = 0
     #: the guard's constraint watch (:class:`saml_ros.core.mpc.monitor.MonitorConfig`: strikes, tolerance in m) over
     #: the demo's guard, where the watch is off; (2, 0.005) is what the sweep of docs/experiments.md flew with
     constraint_watch: tuple[int, float] = (2, 0.005)
+    #: the guard's task check (:mod:`saml_ros.core.mpc.task_check`), on in the demo's guard: off here, as the sweep
+    #: of docs/experiments.md flew (it predates the check)
+    task_check: bool = False
 
     @classmethod
     def quick(cls, seeds: tuple[int, ...] = (0, 1)) -> CapacitySettings:
@@ -314,7 +318,8 @@ def run(settings: CapacitySettings, out: Path, progress: bool = True) -> dict[st
     out.mkdir(parents=True, exist_ok=True)
     task, guard, episode_s = demo_task_and_guard()
     guard = replace(guard, monitor=replace(guard.monitor, constraint_strikes=int(s.constraint_watch[0]),
-                                           constraint_tol=float(s.constraint_watch[1])))
+                                           constraint_tol=float(s.constraint_watch[1])),
+                    task=replace(guard.task, enabled=bool(s.task_check)))
     if s.world:
         task = replace(task, world=tuple(sorted({**dict(task.world), **s.world}.items())))
     if s.steps:

@@ -18,6 +18,7 @@ from saml_ros.core.data.plausibility import parse_overrides
 from saml_ros.core.mpc.factory import SOLVERS
 from saml_ros.core.mpc.guard import GuardConfig
 from saml_ros.core.mpc.monitor import MonitorConfig
+from saml_ros.core.mpc.task_check import TaskCheckConfig
 from saml_ros.core.params import LIVE, START, Param, ParamErrors, Problems, memory_problems, read_params
 from saml_ros.core.systems.registry import get_entry
 
@@ -78,6 +79,14 @@ PARAMS: tuple[Param, ...] = (
     Param("guard.infeasible", False, "plan a step with f_hat too when the learned model's plan violates a "
                                      "constraint some control could keep, and fly f_hat's plan if it keeps the "
                                      "constraints or violates them less"),
+    Param("guard.task_check", False, "task check: when the plan flown with a learned model in use breaks a task "
+                                     "constraint some control could keep, plan the step with f_hat from a cold "
+                                     "start and fly f_hat's plan if it keeps every constraint (a strike); "
+                                     "guard.task_strikes strikes within guard.task_window steps roll the model "
+                                     "back (docs/mpc.md, the task check)"),
+    Param("guard.task_window", 10, "steps planned with the model in use the task check counts strikes over"),
+    Param("guard.task_strikes", 3, "strikes within guard.task_window steps that roll the model back (0 = never: "
+                                   "a strike only flies f_hat's plan for that step)"),
     Param("guard.window", 5, "live transitions the monitor averages the one-step squared errors over (steps the "
                              "learned model planned)"),
     Param("guard.min_samples", 3, "transitions in the window before the monitor may roll back"),
@@ -223,7 +232,9 @@ class MPCConfig:
                 max_disagreement=p["guard.max_disagreement"], bound_residual=p["guard.bound_residual"],
                 rollback=p["guard.rollback"], infeasible=p["guard.infeasible"],
                 monitor=MonitorConfig(window=p["guard.window"], min_samples=p["guard.min_samples"],
-                                      ratio=p["guard.ratio"], margin=p["guard.margin"]))
+                                      ratio=p["guard.ratio"], margin=p["guard.margin"]),
+                task=TaskCheckConfig(enabled=p["guard.task_check"], window=p["guard.task_window"],
+                                     strikes=p["guard.task_strikes"]))
         check(not guard.needs_shooting or entry.mpc_horizon, "guard.*",
               "off for a one-shot MPC (paddle_ball), except guard.rollback", "on")
         check(p["accept.residual_factor"] >= 0, "accept.residual_factor", ">= 0", p["accept.residual_factor"])

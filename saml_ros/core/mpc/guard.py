@@ -23,6 +23,11 @@ A learned residual phi is only trustworthy where it has data. Three remedies, ea
   never flown and never used again (:meth:`GuardedController.offer_model` returns False; counted in ``rollbacks``
   and ``refused_before_flight``).
 
+The *task check* (:mod:`~saml_ros.core.mpc.task_check`, ``GuardConfig.task``): a plan flown while a learned model
+is in use that breaks a constraint some control could keep is re-planned by f_hat from a cold start; when f_hat's
+own plan keeps the constraints it is flown instead (a strike), and ``task.strikes`` strikes within the last
+``task.window`` such steps roll the model back (:meth:`GuardedController._task_step`).
+
 With the roll back, an optional *constraint watch* (``MonitorConfig.constraint_strikes``, off by default) also rolls
 back a model whose flown steps break a state bound of the task that its own prediction kept and f_hat's saw coming
 (:meth:`GuardedController._constraint_strike`).
@@ -50,6 +55,7 @@ from saml_ros.core.mpc.dynamics_np import Jac3, NumpyDynamics
 from saml_ros.core.mpc.mlp_np import NumpyMLP
 from saml_ros.core.mpc.monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
+from saml_ros.core.mpc.task_check import TaskCheck, TaskCheckConfig
 
 #: the ``meta["learner"]`` key of a checkpoint's per-field residual bound (list of n_y floats)
 RESIDUAL_BOUND_KEY = "residual_bound"
@@ -68,6 +74,8 @@ class GuardConfig:
         infeasible: when the learned model's plan violates a constraint some control could keep (not only rows
             the current state fixes), plan this step with f_hat too and fly f_hat's plan if it satisfies the
             constraints or violates them less.
+        task: the task check (:mod:`~saml_ros.core.mpc.task_check`): fly f_hat's own plan where the learned
+            model's breaks a constraint f_hat's keeps, and roll the model back after ``task.strikes`` such steps.
     """
 
     max_disagreement: float = math.inf
@@ -75,6 +83,7 @@ class GuardConfig:
     rollback: bool = False
     monitor: MonitorConfig = MonitorConfig()
     infeasible: bool = False
+    task: TaskCheckConfig = TaskCheckConfig()
 
     def __post_init__(self) -> None:
         if not self.max_disagreement > 0:
@@ -82,12 +91,13 @@ class GuardConfig:
 
     @property
     def enabled(self) -> bool:
-        return math.isfinite(self.max_disagreement) or self.bound_residual or self.rollback or self.infeasible
+        return (math.isfinite(self.max_disagreement) or self.bound_residual or self.rollback or self.infeasible
+                or self.task.enabled)
 
     @property
     def needs_shooting(self) -> bool:
         """Whether a remedy other than the roll back is on (those need the shooting MPC's plans and warm starts)."""
-        return math.isfinite(self.max_disagreement) or self.bound_residual or self.infeasible
+        return math.isfinite(self.max_disagreement) or self.bound_residual or self.infeasible or self.task.enabled
 
 
 class EnsembleNP:
@@ -227,6 +237,7 @@ class GuardedController:
         self.system: System = learned.system
         self.horizon = learned.horizon
         self.monitor = LiveErrorMonitor(config.monitor)
+        self.task_check = TaskCheck(config.task)
         self.counters: Counter[str] = Counter()
         self._active = _Active(None, 0, None, None)
         self._previous: _Active | None = None
@@ -322,6 +333,7 @@ class GuardedController:
             else:
                 self.learned.dyn = BoundedDynamics(self.learned.dyn, act.bound)  # type: ignore[assignment]
         self.monitor.reset()
+        self.task_check.reset()
 
     def reset(self) -> None:
         """Drop both warm starts (the model in use and the roll-back state are kept)."""
@@ -348,6 +360,37 @@ class GuardedController:
         return sigma > self.config.max_disagreement
 
     def solve(self, x0: np.ndarray, goal: Any | None = None) -> MPCResult:
+        res = self._solve(x0, goal)
+        if self.config.task.enabled and self._active.model is not None:
+            res = self._task_step(x0, goal, res)
+        return res
+
+    def _task_step(self, x0: np.ndarray, goal: Any | None, res: MPCResult) -> MPCResult:
+        """The task check on one step planned with a learned model in use (``res``, the plan chosen so far): when
+        it breaks a constraint some control could keep, f_hat plans from ``x0`` from a cold start, and its plan is
+        flown if it keeps every constraint (a strike, counted ``task_fallbacks``); ``task.strikes`` strikes in the
+        window roll the model back (``task_rollbacks``). See :mod:`~saml_ros.core.mpc.task_check`."""
+        strike = False
+        if not res.success and not res.unavoidable:
+            self.counters["task_checks"] += 1
+            self.base.reset()  # f_hat's own plan: not warm-started from the learned model's
+            own = self.base.solve(x0, goal)
+            if own.success:
+                strike = True
+                self.counters["task_fallbacks"] += 1
+                if self.last_source == "learned":
+                    self.counters["solves_base"] += 1
+                self.last_source = "base"
+                if self.shooting and np.all(np.isfinite(own.plan_x)):
+                    self.learned.set_warm_start(own.plan_u, own.plan_x)
+                res = own
+        if self.task_check.add(strike):
+            self.counters["rollbacks"] += 1
+            self.counters["task_rollbacks"] += 1
+            self.retire()
+        return res
+
+    def _solve(self, x0: np.ndarray, goal: Any | None = None) -> MPCResult:
         self.counters["solves"] += 1
         if self._active.bound is not None:
             self.counters["bounded"] += 1

@@ -344,13 +344,17 @@ class MPCService:
             self.warn_throttled("monitor", f"live monitor raised {type(exc).__name__}: {exc}")
             return
         if rolled:
-            self.counters["rollbacks"] += 1
-            self.model_version = self.guarded.tag
-            self.model_path = self._paths.get(self.model_version, "")
-            self.watcher.set_in_use(self._models.get(self.model_version), self.model_version)
-            self.logger.warning(
-                f"rolled back from model version {old} to {self.model_version or 'the base model f_hat'}: "
-                f"{self.guarded.monitor.describe_verdict()}; version {old} is not used again")
+            self._rolled_back(old, self.guarded.monitor.describe_verdict())
+
+    def _rolled_back(self, old: int, why: str) -> None:
+        """The guard rolled the model version ``old`` back (``why``, in words): follow it to the model it now uses."""
+        assert self.guarded is not None
+        self.counters["rollbacks"] += 1
+        self.model_version = self.guarded.tag
+        self.model_path = self._paths.get(self.model_version, "")
+        self.watcher.set_in_use(self._models.get(self.model_version), self.model_version)
+        self.logger.warning(f"rolled back from model version {old} to {self.model_version or 'the base model f_hat'}: "
+                            f"{why}; version {old} is not used again")
 
     def _retire(self, retired: Retired) -> None:
         """The model in use failed the watcher's re-check on the states flown: plan without it from now on (the
@@ -388,6 +392,8 @@ class MPCService:
         try:
             goal = self.goal(x, stamp, self.controller.horizon, now_ns) if callable(self.goal) else self.goal
             res = self.controller.solve(x, goal)
+            if self.guarded is not None and self.guarded.tag != self.model_version:  # the task check rolled back
+                self._rolled_back(self.model_version, self.guarded.task_check.describe_verdict())
         except Exception as exc:  # noqa: BLE001 - never leave the simulator without an answer
             self.counters["solver_errors"] += 1
             return self._safe("solver_error", f"solver raised {type(exc).__name__}: {exc}")
@@ -502,6 +508,8 @@ class MPCService:
             values["guard_refused_before_flight"] = g.counters["refused_before_flight"]
             values["guard_bounded_solves"] = g.counters["bounded"]
             values["guard_clipped_solves"] = g.counters["clipped"]
+            values["guard_task_fallbacks"] = g.counters["task_fallbacks"]
+            values["guard_task_rollbacks"] = g.counters["task_rollbacks"]
             values["guard_rolled_back_versions"] = ",".join(str(v) for v in sorted(g.banned))
             values["monitor_error_model"] = g.monitor.mean_model
             values["monitor_error_base"] = g.monitor.mean_base

@@ -96,15 +96,15 @@ QUADROTOR = SystemEntry(
     bringup={
         "system": "quadrotor",
         "sim_time": 300.0,
-        # the world: the paper's ground effect. The capacity sweep adds a wind field above the pad's shelter
-        # (CapacitySettings.world); the demo in that world failed its worst-case check in 2 of 4 runs (docs/demo.md)
+        # the world: the paper's ground effect. The capacity sweep and the demo (demo --world wind, its default)
+        # add a wind field above the pad's shelter (saml_ros/demo/landing.py WORLDS; docs/demo.md)
         "sim": {"mode": "lockstep", "episode_steps": 50, "seed": 0, "lockstep_timeout": 5.0},
         "learner": {"min_transitions": 200, "checkpoint_period": 5.0, "updates_per_second": 0.0,
                     "training_niceness": 0, "train.batch_size": 128, "model.ensemble": 5},
         "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5, "gate.max_constraint": 0.002,
                 "goal.position": [0.0, 0.0, 0.2], "task.tilt_max": 0.2,
                 "guard.max_disagreement": 0.1, "guard.bound_residual": True, "guard.rollback": True,
-                "guard.infeasible": True},
+                "guard.infeasible": True, "guard.task_check": True},
     },
     experiment="quadrotor",
     spec_file="specs/quadrotor.yaml",

@@ -122,7 +122,8 @@ def test_demo_set_overrides_reach_both_learners_and_the_evaluation(tmp_path: Pat
 def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: Path,
                                                                    capsys: Any) -> None:
     """``demo --guards RUN_DIR``: the base model and the run's newest checkpoint under every guard setting, from
-    the run's evaluation starts; a directory that is no run is refused with exit code 2."""
+    the run's evaluation starts; a directory that is no run is refused with exit code 2. ``demo --spread``: the same
+    checkpoint and the base model from one start and moved copies of it."""
     import shutil
 
     import yaml
@@ -141,7 +142,8 @@ def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: P
     text = capsys.readouterr().out
     got = json.loads(out.read_text())
     settings = ["base", "unguarded", "disagreement 0.1 only", "bound only", "roll back only",
-                "run's guard without roll back", "run's guard + constraint watch", "infeasible fallback only", "run's guard without infeasible fallback",
+                "run's guard without roll back", "run's guard + constraint watch", "run's guard without task check",
+                "infeasible fallback only", "run's guard without infeasible fallback",
                 "run's guard"]
     assert list(got["sets"]) == ["aggressive"] and list(got["sets"]["aggressive"]) == settings
     for name in settings:
@@ -153,28 +155,36 @@ def test_demo_guards_flies_a_runs_checkpoint_with_each_guard_setting(tmp_path: P
     assert got["sets"]["aggressive"]["run's guard"]["guard"]["solves"] == 2 * 50
     assert main(["--guards", str(tmp_path)]) == 2
     assert "not a demo run directory" in capsys.readouterr().out
+    # demo --spread: the base model and the run's guarded checkpoint from one start and moved copies of it
+    from saml_ros.demo.guards import spread
+
+    got = spread(run, 0, "aggressive:1", 2, workers=1)
+    assert list(got["landing_error"]) == ["base", "SA, run's guard"]
+    assert all(len(e) == 2 and all(math.isfinite(v) for v in e) for e in got["landing_error"].values())
+    assert main(["--spread", str(run), "--start", "aggressive:10"]) == 2  # 10 aggressive starts: 0..9
+    assert "aggressive:I (I < 10)" in capsys.readouterr().out
 
 
 def test_a_second_effect_is_in_the_simulator_the_oracle_and_the_evaluation(tmp_path: Path) -> None:
-    """The capacity sweep's second effect (the wind above the pad's shelter, ``--set sim.system.wind=...`` for the
-    demo) is in all three: the simulator node's system (built from the demo configuration's ``sim`` parameters as
-    the node builds it), the oracle arm's model (zero one-step error on the evaluation's plant, wind included) and
-    the evaluation's plant; a world without it has model error there (so the check can fail). The demo's own world
-    is the paper's (no wind)."""
+    """The demo's wind world (``demo --world wind``: the capacity sweep's second effect, the wind above the pad's
+    shelter) is in all three: the simulator node's system (built from the demo configuration's ``sim`` parameters
+    as the node builds it), the oracle arm's model (zero one-step error on the evaluation's plant, wind included)
+    and the evaluation's plant; a world without it has model error there (so the check can fail). The paper's
+    world has no wind."""
     from saml_ros.bringup.config import node_params
     from saml_ros.core.mpc.dynamics_np import NumpyDynamics
     from saml_ros.core.systems.registry import get_entry
     from saml_ros.core.worlds.sim_core import SimConfig, SteppedSim
-    from saml_ros.demo.cli import demo_config
+    from saml_ros.demo.cli import demo_config, live_config
     from saml_ros.demo.evaluation import run_task_and_guard
-    from saml_ros.demo.landing import plant
+    from saml_ros.demo.landing import WORLDS, plant
     from saml_ros.experiments.capacity import CapacitySettings
     from sim_nodes.binding import read_sim_params
     from sim_nodes.quadrotor_sim import BINDING
 
-    config = demo_config(0, 60.0)
-    assert dict(run_task_and_guard(config)[0].world).get("wind", 0.0) == 0.0  # the demo's world: the paper's
-    config["sim"].update({f"system.{k}": v for k, v in CapacitySettings().world.items()})
+    assert dict(run_task_and_guard(demo_config(0, 60.0, "paper"))[0].world).get("wind", 0.0) == 0.0
+    config = live_config(0, 60.0, [], world="wind")  # demo --world wind: the capacity sweep's world
+    assert WORLDS["wind"] == CapacitySettings().world
     task, _ = run_task_and_guard(config)
     world = dict(task.world)
     assert world.get("wind", 0.0) > 0.0, "the sweep's world has the wind field"
