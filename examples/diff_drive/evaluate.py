@@ -74,14 +74,14 @@ def _paired(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def docking_runs(system: object, model: object, runs: int, steps: int, seed: int,
-                 explore: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 explore: float = 0.1, max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
     evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
     ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
     from saml_ros.core.mpc.generic import GenericSQP
 
     rng = np.random.default_rng(seed)
-    ctrl = GenericSQP(system, model)  # type: ignore[arg-type]
+    ctrl = GenericSQP(system, model, max_iter=max_iter)  # type: ignore[arg-type]
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
     ys: list[np.ndarray] = []
@@ -126,7 +126,8 @@ def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Na
     model = None
     for r in range(args.rounds):
         if args.dock_runs:
-            parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r))
+            parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r,
+                                      max_iter=args.max_iter))
         x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
         model = train(system, spec, x, u, y, seed, args.epochs)
         log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
