@@ -187,11 +187,15 @@ def main() -> int:
     p.add_argument("--dock-steps", type=int, default=300, help="steps per docking run")
     p.add_argument("--rounds", type=int, default=2, help="training rounds (2: retrain with runs under the model)")
     p.add_argument("--epochs", type=int, default=200)
+    p.add_argument("--max-iter", type=int, default=None,
+                   help="SQP iterations per control step of every planner (docking runs and evaluation); 1 = the "
+                        "real-time iteration; default: the file's solver_options")
     p.add_argument("--unguarded", action="store_true", help="fly the bare planner (no guard, no acceptance)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
+    from saml_ros.core.model.evidence import DataEvidence
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.experiments.robot_eval import acceptance, evaluate_nested, node_guard
     from saml_ros.user_code import load_system_file
@@ -199,6 +203,7 @@ def main() -> int:
     t0 = time.perf_counter()
     system = load_system_file(HERE / "system.yaml")
     spec = ProblemSpec.for_system(system.paper_spec(), system)
+    planner = {} if args.max_iter is None else {"max_iter": args.max_iter}
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)
@@ -206,7 +211,7 @@ def main() -> int:
         (args.out / "diagnose.txt").write_text(text + "\n")
         print(text)
         return 0
-    models = {}
+    models, metas = {}, {}
     for seed in range(args.seeds):
         model, (x, u, y) = dataset_and_model(system, spec, seed, args)
         refused = None if args.unguarded else acceptance(system, model, spec, x, u, y)
@@ -214,11 +219,14 @@ def main() -> int:
             print(f"seed {seed}: the MPC node would refuse this model ({refused[0]}: {refused[1]}); it flies f_hat")
             model = None
         models[f"seed{seed}"] = model
+        # the checkpoint's evidence the learner would write: the guard's monitor scales its margin by it
+        evidence = DataEvidence.from_data(system, x, u, y)
+        metas[f"seed{seed}"] = {} if evidence is None else {"evidence": evidence.to_payload(tuple(system.target.names))[1]}
         print(f"trained seed {seed} ({time.perf_counter() - t0:.0f} s)", flush=True)
     ev = evaluate_nested(system, dynamics.make_robot_on_ramp, models,
                          dynamics.sample_approach_starts, args.starts, args.steps, seed=3000,
                          oracle=dynamics.true_step_on_ramp, guard=None if args.unguarded else node_guard(),
-                         progress=lambda s: print(s, flush=True))
+                         metas=metas, progress=lambda s: print(s, flush=True), **planner)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
     (args.out / "results.md").write_text(ev.report() + "\n")
     print(ev.report())

@@ -91,8 +91,8 @@ def test_the_guard_scales_its_monitor_by_the_checkpoint_evidence_and_rolls_back_
     by the default guard with its checkpoint's evidence; the old absolute margin let it fly."""
     sys.path.insert(0, str(EXAMPLE))
     try:
-        import dynamics as dd
-        import evaluate as dd_eval
+        import dynamics as dd  # type: ignore[import-not-found]
+        import evaluate as dd_eval  # type: ignore[import-not-found]
     finally:
         sys.path.remove(str(EXAMPLE))
     s = load_system_file(EXAMPLE / "system.yaml")
