@@ -188,11 +188,41 @@ def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, 
         h = (0.5 * (1 + a) * h + 0.5 * (1 - a) * np.sqrt(h * h + eps2)) @ mlp.weights[i] + mlp.biases[i]
     e = base + h - ys
     lines.append(f"  learned, values rounded by 0.2 too: mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
+    lines.append(horizon_errors(system, model))
     x, u, _ = data
     near = (np.abs(x[:, 0] - 1.5) < 0.1) & (np.abs(x[:, 1]) < 0.1) & (np.abs(x[:, 3]) < 0.05)
     lines.append(f"training transitions within 0.1 m of the dock at rest (|v| < 0.05 m/s): {int(near.sum())} of "
                  f"{len(x)}")
     return "\n".join(lines)
+
+
+def horizon_errors(system: object, model: object, steps: int = 20) -> str:
+    """The planner's view: the error (mm) of f_hat's and the learned model's ``steps``-step prediction (the MPC's
+    horizon, open loop from the same state) of where the base ends, driving through the wet patch straight at full
+    speed or weaving (full speed, yaw rate +-1.5 rad/s for half the horizon each): a model that over-predicts the
+    progress of one manoeuvre more than another's is one the planner exploits (docs/your_robot.md, "Control it")."""
+    rng = np.random.default_rng(6)
+    x0s = np.column_stack([rng.uniform(0.6, 1.2, 100), rng.normal(0, 0.02, 100), rng.normal(0, 0.05, 100),
+                           rng.uniform(0.1, 0.3, 100), np.zeros(100)])
+    out = [f"{steps}-step prediction error of the final x, y (mm; model - true; mean over 100 states in the patch):"]
+    half = steps // 2
+    plans = {"straight": [np.array([0.5, 0.0])] * steps,
+             "weave": [np.array([0.5, 1.5])] * half + [np.array([0.5, -1.5])] * (steps - half)}
+    for name, us in plans.items():
+        err = {"f_hat": [], "learned": []}
+        for x0 in x0s:
+            sim = dynamics.make_robot_on_ramp(x0)
+            for u in us:
+                sim.step(u, 0.02)
+            true = sim.state()
+            for label, step in (("f_hat", system.base_step_np), ("learned", model.predict_np)):  # type: ignore[attr-defined]
+                x = x0[None].copy()
+                for u in us:
+                    x = step(x, u[None])
+                err[label].append(x[0, :2] - true[:2])
+        out.append(f"  {name:8s}: " + ", ".join(f"{k} x {1e3 * np.mean(v, 0)[0]:+.2f}, y {1e3 * np.mean(v, 0)[1]:+.2f}"
+                                                  for k, v in err.items()))
+    return "\n".join(out)
 
 
 def main() -> int:

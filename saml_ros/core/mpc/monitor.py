@@ -213,3 +213,35 @@ class LiveErrorMonitor:
             self.verdict = (self.mean_model, self.mean_base, self.samples)
             self._verdict_margin = margin
         return worse
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m saml_ros.core.mpc.monitor CHECKPOINT_OR_RUN_DIR ...``: the margin the live monitor's default
+    (``guard.margin_relative``, ``guard.margin``) gives each checkpoint (a run directory: its ``latest``)."""
+    import argparse
+    from pathlib import Path
+
+    from saml_ros.core.model.checkpoint import CheckpointStore, read_checkpoint
+
+    p = argparse.ArgumentParser(prog="python -m saml_ros.core.mpc.monitor", description=main.__doc__)
+    p.add_argument("paths", nargs="+", type=Path)
+    args = p.parse_args(argv)
+    config = MonitorConfig()
+    for path in args.paths:
+        if path.is_dir():
+            found = CheckpointStore(path / "checkpoints" if (path / "checkpoints").is_dir() else path).latest()
+            if found is None:
+                print(f"{path}: no checkpoint")
+                continue
+            path = found[0]
+        _, meta = read_checkpoint(path)
+        scale = data_scale(meta)
+        margin = config.margin + config.margin_relative * (scale if math.isfinite(scale) else 0.0)
+        print(f"{path}: f_hat's mean squared one-step error over the model's data {scale:.4g}; default margin "
+              f"{margin:.4g} (guard.margin_relative {config.margin_relative:g} x that + guard.margin {config.margin:g})"
+              + ("" if math.isfinite(scale) else "; no evidence: the live transitions set the scale"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
