@@ -226,8 +226,11 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m saml_ros.core.mpc.monitor", description=main.__doc__)
     p.add_argument("paths", nargs="+", type=Path)
+    p.add_argument("--margin-relative", type=float, default=MonitorConfig.margin_relative,
+                   help="guard.margin_relative (the quadrotor's bringup: 0.08)")
+    p.add_argument("--margin", type=float, default=MonitorConfig.margin, help="guard.margin")
     args = p.parse_args(argv)
-    config = MonitorConfig()
+    config = MonitorConfig(margin=args.margin, margin_relative=args.margin_relative)
     for path in args.paths:
         if path.is_dir():
             found = CheckpointStore(path / "checkpoints" if (path / "checkpoints").is_dir() else path).latest()
@@ -238,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         _, meta = read_checkpoint(path)
         scale = data_scale(meta)
         margin = config.margin + config.margin_relative * (scale if math.isfinite(scale) else 0.0)
-        print(f"{path}: f_hat's mean squared one-step error over the model's data {scale:.4g}; default margin "
+        print(f"{path}: f_hat's mean squared one-step error over the model's data {scale:.4g}; margin "
               f"{margin:.4g} (guard.margin_relative {config.margin_relative:g} x that + guard.margin {config.margin:g})"
               + ("" if math.isfinite(scale) else "; no evidence: the live transitions set the scale"))
     return 0
