@@ -1,7 +1,8 @@
 """Does the learned model dock the example robot better than its base model? A closed-loop evaluation under the
 generic MPC of ``system.yaml``'s ``mpc:`` section (docs/your_robot.md, "Evaluate it").
 
-    ./dev python examples/diff_drive/evaluate.py --seeds 3 --starts 10 --steps 500 -o runs/dd_eval
+    ./dev python examples/diff_drive/evaluate.py --seeds 3 --starts 30 --steps 600 --dock-steps 900 \
+        --pose-eps 0.0005 --max-iter 1 -o runs/dd_eval
 
 The task (headroom first: on the flat floor and from anywhere in the arena the oracle does not dock better than
 f_hat, see docs/your_robot.md): the last stretch of the docking, from rest 0.7-1.1 m in front of the dock, straight
@@ -13,12 +14,15 @@ Trains ``--seeds`` residual models (the file's 32-32 network and spec, one train
 what the learner would collect (:func:`dataset`): transitions of this robot's simulator while ``wander.py`` drives
 (random starts, half of them in the dock approach, random commands held 0.1-1 s, a fifth of them stops), docking
 runs under the MPC with f_hat, and (``--rounds 2``, the default) docking runs under the MPC with the first model,
-then retrains on all of it: the online learner's loop, where the robot spends its time at the dock. Each model must
+then retrains on all of it: the online learner's loop, where the robot spends its time at the dock (``--dock-steps``
+per run: 900 steps of 20 ms are about 6 s of approach and 12 s at rest at the dock). ``--pose-eps`` adds a
+constraint on the pose fields in the dock approach to the file's spec (:func:`with_pose_constraint`). Each model must
 pass the MPC node's checkpoint acceptance, then flies inside the guard the node runs by default (live monitor with
-roll back: ``robot_eval.node_guard``) from its own ``--starts`` starts (nested in the seed, other starts than the
+roll back: ``robot_eval.node_guard``, its margin scaled by the model's data as a checkpoint's evidence would) from its own ``--starts`` starts (nested in the seed, other starts than the
 training runs') beside the base model f_hat and the oracle (the same planner on the true dynamics,
 ``dynamics.true_step_on_ramp``) for ``--steps`` steps of 20 ms, with the planner options of the file's ``mpc:``
-section; the statistics use the seed as the unit; results.md and results.json go to ``-o``.
+section (``--max-iter 1``: every planner, docking runs included, takes one SQP step per control step, the real-time
+iteration); the statistics use the seed as the unit; results.md and results.json go to ``-o``.
 
 ``--diagnose``: instead, the measurements behind this set-up for one seed: the one-step error of f_hat and of the
 learned model at the dock (held at rest against the slide) beside the slide's own step, its mean (bias) per field,
@@ -28,6 +32,7 @@ and how many training transitions are near the dock at rest.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import sys
@@ -74,14 +79,14 @@ def _paired(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def docking_runs(system: object, model: object, runs: int, steps: int, seed: int,
-                 explore: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 explore: float = 0.1, max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
     evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
     ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
     from saml_ros.core.mpc.generic import GenericSQP
 
     rng = np.random.default_rng(seed)
-    ctrl = GenericSQP(system, model)  # type: ignore[arg-type]
+    ctrl = GenericSQP(system, model, max_iter=max_iter)  # type: ignore[arg-type]
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
     ys: list[np.ndarray] = []
@@ -102,6 +107,19 @@ def docking_runs(system: object, model: object, runs: int, steps: int, seed: int
             us.append(u)
             ys.append(_paired(x, sim.state()))
     return np.array(xs), np.array(us), np.array(ys)
+
+
+def with_pose_constraint(spec: dict, eps: float) -> dict:
+    """The file's spec plus, for ``eps > 0``, a constraint on the pose fields in the dock approach (the file's
+    ``dock_approach`` box): mean ``||(x, y, yaw) error||`` <= ``eps`` (m, rad per step), what the planner's
+    progress along the approach turns on."""
+    if eps <= 0:
+        return spec
+    spec = copy.deepcopy(spec)
+    spec["constraints"].append({"name": "approach_pose", "loss": "l2", "fields": ["x", "y", "yaw"],
+                                "region": {"box": {"x.x": [0.7, 1.9], "x.y": [-0.5, 0.5]}}, "eps": eps,
+                                "mean": "conditional"})
+    return spec
 
 
 def train(system: object, spec: object, x: np.ndarray, u: np.ndarray, y: np.ndarray, seed: int,
@@ -126,7 +144,8 @@ def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Na
     model = None
     for r in range(args.rounds):
         if args.dock_runs:
-            parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r))
+            parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r,
+                                      max_iter=args.max_iter))
         x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
         model = train(system, spec, x, u, y, seed, args.epochs)
         log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
@@ -169,11 +188,41 @@ def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, 
         h = (0.5 * (1 + a) * h + 0.5 * (1 - a) * np.sqrt(h * h + eps2)) @ mlp.weights[i] + mlp.biases[i]
     e = base + h - ys
     lines.append(f"  learned, values rounded by 0.2 too: mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
+    lines.append(horizon_errors(system, model))
     x, u, _ = data
     near = (np.abs(x[:, 0] - 1.5) < 0.1) & (np.abs(x[:, 1]) < 0.1) & (np.abs(x[:, 3]) < 0.05)
     lines.append(f"training transitions within 0.1 m of the dock at rest (|v| < 0.05 m/s): {int(near.sum())} of "
                  f"{len(x)}")
     return "\n".join(lines)
+
+
+def horizon_errors(system: object, model: object, steps: int = 20) -> str:
+    """The planner's view: the error (mm) of f_hat's and the learned model's ``steps``-step prediction (the MPC's
+    horizon, open loop from the same state) of where the base ends, driving through the wet patch straight at full
+    speed or weaving (full speed, yaw rate +-1.5 rad/s for half the horizon each): a model that over-predicts the
+    progress of one manoeuvre more than another's is one the planner exploits (docs/your_robot.md, "Control it")."""
+    rng = np.random.default_rng(6)
+    x0s = np.column_stack([rng.uniform(0.6, 1.2, 100), rng.normal(0, 0.02, 100), rng.normal(0, 0.05, 100),
+                           rng.uniform(0.1, 0.3, 100), np.zeros(100)])
+    out = [f"{steps}-step prediction error of the final x, y (mm; model - true; mean over 100 states in the patch):"]
+    half = steps // 2
+    plans = {"straight": [np.array([0.5, 0.0])] * steps,
+             "weave": [np.array([0.5, 1.5])] * half + [np.array([0.5, -1.5])] * (steps - half)}
+    for name, us in plans.items():
+        err = {"f_hat": [], "learned": []}
+        for x0 in x0s:
+            sim = dynamics.make_robot_on_ramp(x0)
+            for u in us:
+                sim.step(u, 0.02)
+            true = sim.state()
+            for label, step in (("f_hat", system.base_step_np), ("learned", model.predict_np)):  # type: ignore[attr-defined]
+                x = x0[None].copy()
+                for u in us:
+                    x = step(x, u[None])
+                err[label].append(x[0, :2] - true[:2])
+        out.append(f"  {name:8s}: " + ", ".join(f"{k} x {1e3 * np.mean(v, 0)[0]:+.2f}, y {1e3 * np.mean(v, 0)[1]:+.2f}"
+                                                  for k, v in err.items()))
+    return "\n".join(out)
 
 
 def main() -> int:
@@ -186,18 +235,25 @@ def main() -> int:
     p.add_argument("--dock-steps", type=int, default=300, help="steps per docking run")
     p.add_argument("--rounds", type=int, default=2, help="training rounds (2: retrain with runs under the model)")
     p.add_argument("--epochs", type=int, default=200)
+    p.add_argument("--pose-eps", type=float, default=0.0,
+                   help="add a constraint on the pose fields in the dock approach (m per step; 0: the file's spec)")
+    p.add_argument("--max-iter", type=int, default=None,
+                   help="SQP iterations per control step of every planner (docking runs and evaluation); 1 = the "
+                        "real-time iteration; default: the file's solver_options")
     p.add_argument("--unguarded", action="store_true", help="fly the bare planner (no guard, no acceptance)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
+    from saml_ros.core.model.evidence import DataEvidence
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.experiments.robot_eval import acceptance, evaluate_nested, node_guard
     from saml_ros.user_code import load_system_file
 
     t0 = time.perf_counter()
     system = load_system_file(HERE / "system.yaml")
-    spec = ProblemSpec.for_system(system.paper_spec(), system)
+    spec = ProblemSpec.for_system(with_pose_constraint(system.paper_spec(), args.pose_eps), system)
+    planner = {} if args.max_iter is None else {"max_iter": args.max_iter}
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)
@@ -205,7 +261,7 @@ def main() -> int:
         (args.out / "diagnose.txt").write_text(text + "\n")
         print(text)
         return 0
-    models = {}
+    models, metas = {}, {}
     for seed in range(args.seeds):
         model, (x, u, y) = dataset_and_model(system, spec, seed, args)
         refused = None if args.unguarded else acceptance(system, model, spec, x, u, y)
@@ -213,11 +269,14 @@ def main() -> int:
             print(f"seed {seed}: the MPC node would refuse this model ({refused[0]}: {refused[1]}); it flies f_hat")
             model = None
         models[f"seed{seed}"] = model
+        # the checkpoint's evidence the learner would write: the guard's monitor scales its margin by it
+        evidence = DataEvidence.from_data(system, x, u, y)
+        metas[f"seed{seed}"] = {} if evidence is None else {"evidence": evidence.to_payload(tuple(system.target.names))[1]}
         print(f"trained seed {seed} ({time.perf_counter() - t0:.0f} s)", flush=True)
     ev = evaluate_nested(system, dynamics.make_robot_on_ramp, models,
                          dynamics.sample_approach_starts, args.starts, args.steps, seed=3000,
                          oracle=dynamics.true_step_on_ramp, guard=None if args.unguarded else node_guard(),
-                         progress=lambda s: print(s, flush=True))
+                         metas=metas, progress=lambda s: print(s, flush=True), **planner)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
     (args.out / "results.md").write_text(ev.report() + "\n")
     print(ev.report())

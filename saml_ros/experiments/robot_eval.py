@@ -223,7 +223,7 @@ def evaluate_nested(system: Any, simulator: Callable[[np.ndarray], Any], models:
                     **options: Any) -> NestedEvaluation:
     """:func:`evaluate_robot` once per learned model (label -> model, e.g. one per training seed), each from its own
     ``n_starts`` starts (``sample_starts(n, rng)``, ``rng`` seeded ``seed + i`` for the i-th model); ``options`` as
-    there (``oracle``, ``task``, ...)."""
+    there (``oracle``, ``task``, ``metas``, ...)."""
     runs: dict[str, RobotEvaluation] = {}
     for i, (label, model) in enumerate(models.items()):
         starts = np.asarray(sample_starts(n_starts, np.random.default_rng(seed + i)), dtype=np.float64)
@@ -286,14 +286,17 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
                    starts: np.ndarray, steps: int, *, goal: np.ndarray | None = None,
                    oracle: Callable[..., Any] | None = None, error: Callable[[np.ndarray, np.ndarray], float] | None = None,
                    member: int = 0, progress: Callable[[str], None] | None = None, task: Any = None,
-                   guard: Any = None, **planner_options: Any) -> RobotEvaluation:
+                   guard: Any = None, metas: Mapping[str, Mapping[str, Any]] | None = None,
+                   **planner_options: Any) -> RobotEvaluation:
     """See the module docstring. ``models``: label -> a :class:`~saml_ros.core.model.network.DynamicsModel` of ``system``
     (ensemble member ``member`` plans); the base model f_hat (label ``base``) and, with ``oracle``, the true dynamics
     (label ``oracle``) fly the same starts. ``task``: an :class:`~saml_ros.core.mpc.generic.section.MPCTask` to plan
     and score instead of the file's (e.g. :func:`task_from_file`). ``guard``: a
     :class:`~saml_ros.core.mpc.guard.GuardConfig` (e.g. :func:`node_guard`): each learned model flies inside the
     guarded controller as the MPC node runs it (its live monitor given every transition; counters in
-    :attr:`RobotEvaluation.guard`); None = the bare planner."""
+    :attr:`RobotEvaluation.guard`); None = the bare planner. ``metas``: label -> the model's checkpoint meta, as the
+    node gives it to the guard (its ``evidence`` sets the live monitor's margin; without one the monitor scales it
+    by the live transitions)."""
     from saml_ros.core.dynamics.base_forms import is_form
     from saml_ros.core.mpc.generic import GenericSQP, system_task
     from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase
@@ -326,7 +329,7 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
         learned: Any = GenericSQP(system, None, member=member, **planner_options)  # the guard's planner protocol
         fallback: Any = GenericSQP(system, None, member=member, **planner_options)
         wrapped = GuardedController(learned, fallback, guard)
-        wrapped.set_model(model, 1, {})
+        wrapped.set_model(model, 1, dict((metas or {}).get(label, {})))
         controllers[label] = guarded[label] = wrapped
     angles = np.asarray(getattr(system, "angle_indices", ()), dtype=int)
     starts = np.asarray(starts, dtype=np.float64)
@@ -419,14 +422,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     system = load_system_file(args.system_file)
     task = task_from_file(system, args.task) if args.task else None
-    models = {Path(r).name: load_model(r).loaded.model.double() for r in args.runs}
+    loaded = {Path(r).name: load_model(r).loaded for r in args.runs}
+    models = {k: v.model.double() for k, v in loaded.items()}
+    metas = {k: v.meta for k, v in loaded.items()}
     if args.nested:
         if not args.starts or not models:
             p.error("--nested needs --starts and --runs")
         nested = evaluate_nested(system, _load(args.simulator), models, _load(args.starts), args.n_starts,
                                  args.steps, seed=args.seed, oracle=_load(args.oracle) if args.oracle else None,
                                  member=args.member, task=task, guard=node_guard() if args.guard else None,
-                                 progress=lambda s: print(s, flush=True))
+                                 metas=metas, progress=lambda s: print(s, flush=True))
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "results.json").write_text(json.dumps(nested.to_json(), indent=1))
         (args.out / "results.md").write_text(nested.report() + "\n")
@@ -439,7 +444,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         starts = rng.uniform(system.state_low, system.state_high, (args.n_starts, system.state.size))
     ev = evaluate_robot(system, _load(args.simulator), models, starts, args.steps,
                         oracle=_load(args.oracle) if args.oracle else None, member=args.member, task=task,
-                        guard=node_guard() if args.guard else None, progress=lambda s: print(s, flush=True))
+                        guard=node_guard() if args.guard else None, metas=metas,
+                        progress=lambda s: print(s, flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
     (args.out / "results.md").write_text(ev.report() + "\n")

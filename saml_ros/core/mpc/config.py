@@ -90,8 +90,12 @@ PARAMS: tuple[Param, ...] = (
     Param("guard.window", 5, "live transitions the monitor averages the one-step squared errors over (steps the "
                              "learned model planned)"),
     Param("guard.min_samples", 3, "transitions in the window before the monitor may roll back"),
-    Param("guard.ratio", 1.0, "roll back when mean error(model) > ratio * mean error(f_hat) + margin"),
-    Param("guard.margin", 0.01, "see guard.ratio (squared state units, summed over the target fields)"),
+    Param("guard.ratio", 1.0, "roll back when mean error(model) > ratio * mean error(f_hat) + margin + "
+                              "margin_relative * (f_hat's mean squared one-step error over the model's data)"),
+    Param("guard.margin", 0.0, "see guard.ratio (absolute, squared state units summed over the target fields)"),
+    Param("guard.margin_relative", 0.02, "see guard.ratio: the margin relative to how wrong f_hat is on the data the "
+                                         "model was trained on (its checkpoint's evidence; without one, on the live "
+                                         "transitions seen so far); 0 = only the absolute guard.margin"),
     Param("plausible_bounds", "", "overrides of the system's plausible ranges as a YAML mapping, e.g. "
                                   "'{x.pz: [-1.0, 2000.0]}' (fields x.<state>, u.<control>, next.<target>; .inf = "
                                   "open); a state outside is answered with the safe command (rejected/bounds)"),
@@ -232,7 +236,8 @@ class MPCConfig:
                 max_disagreement=p["guard.max_disagreement"], bound_residual=p["guard.bound_residual"],
                 rollback=p["guard.rollback"], infeasible=p["guard.infeasible"],
                 monitor=MonitorConfig(window=p["guard.window"], min_samples=p["guard.min_samples"],
-                                      ratio=p["guard.ratio"], margin=p["guard.margin"]),
+                                      ratio=p["guard.ratio"], margin=p["guard.margin"],
+                                      margin_relative=p["guard.margin_relative"]),
                 task=TaskCheckConfig(enabled=p["guard.task_check"], window=p["guard.task_window"],
                                      strikes=p["guard.task_strikes"]))
         check(not guard.needs_shooting or entry.mpc_horizon, "guard.*",

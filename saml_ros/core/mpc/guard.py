@@ -53,7 +53,7 @@ from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import Jac3, NumpyDynamics
 from saml_ros.core.mpc.mlp_np import NumpyMLP
-from saml_ros.core.mpc.monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig
+from saml_ros.core.mpc.monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig, data_scale
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
 from saml_ros.core.mpc.task_check import TaskCheck, TaskCheckConfig
 
@@ -205,6 +205,7 @@ class _Active:
     tag: int
     bound: np.ndarray | None
     ensemble: EnsembleNP | None
+    scale: float = math.nan  #: f_hat's mean squared one-step error over its data (the monitor's margin)
 
 
 class GuardedController:
@@ -286,7 +287,7 @@ class GuardedController:
         roll back on, a model that predicts the newest live transitions worse than f_hat is refused instead
         (False; :attr:`last_refusal` says by how much, the tag is never used again)."""
         if model is not None and self.config.rollback:
-            worse = self._worse_on_recent(model)
+            worse = self._worse_on_recent(model, meta)
             if worse is not None:
                 self.last_refusal = worse
                 self._banned.add(tag)
@@ -298,7 +299,7 @@ class GuardedController:
         self._activate(self._make_active(model, tag, meta or {}))
         return True
 
-    def _worse_on_recent(self, model: DynamicsModel) -> tuple[float, float, int] | None:
+    def _worse_on_recent(self, model: DynamicsModel, meta: dict[str, Any] | None) -> tuple[float, float, int] | None:
         """The monitor's verdict on ``model`` over the newest live transitions of each stream: ``(its mean squared
         one-step error, f_hat's, transitions)`` of a stream where it says roll back, else None."""
         rows = [(stream, x, u, y) for stream, window in self._recent.items() for x, u, y in window]
@@ -306,7 +307,7 @@ class GuardedController:
             return None
         xs, us = np.stack([r[1] for r in rows]), np.stack([r[2] for r in rows])
         pred = np.asarray(model.predict_np(xs, us, int(getattr(self.learned, "member", 0))), dtype=np.float64)
-        monitor = LiveErrorMonitor(self.config.monitor)
+        monitor = self.monitor.sibling(data_scale(meta))
         for (stream, x, u, y), p in zip(rows, pred, strict=True):
             e_model, e_base = y - p, y - self._one_step(self.base, None, x, u)
             if monitor.add(float(e_model @ e_model), float(e_base @ e_base), stream):
@@ -320,7 +321,7 @@ class GuardedController:
         if model.kind != "residual":
             bound = None
         ens = EnsembleNP(model) if model.n_models > 1 and math.isfinite(self.config.max_disagreement) else None
-        return _Active(model, tag, bound, ens)
+        return _Active(model, tag, bound, ens, data_scale(meta))
 
     def _activate(self, act: _Active) -> None:
         self._active = act
@@ -334,6 +335,7 @@ class GuardedController:
                 self.learned.dyn = BoundedDynamics(self.learned.dyn, act.bound)  # type: ignore[assignment]
         self.monitor.reset()
         self.task_check.reset()
+        self.monitor.data_scale = act.scale
 
     def reset(self) -> None:
         """Drop both warm starts (the model in use and the roll-back state are kept)."""
@@ -472,6 +474,7 @@ class GuardedController:
                 self._recent.popitem(last=False)
         e_base = y - self._one_step(self.base, None, x, u)
         self.live_error_base = float(e_base @ e_base)
+        self.monitor.note_base(self.live_error_base)
         if self._active.model is None:
             self.live_error_model = self.live_error_base
             return False
@@ -575,6 +578,7 @@ class GuardedController:
             "guard_disagreement": float(self.last_disagreement),
             "monitor_error_model": float(self.monitor.mean_model),
             "monitor_error_base": float(self.monitor.mean_base),
+            "monitor_margin": float(self.monitor.margin),
             "live_error_model": self.live_error_model,
             "live_error_base": self.live_error_base,
         }

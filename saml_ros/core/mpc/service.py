@@ -513,6 +513,7 @@ class MPCService:
             values["guard_rolled_back_versions"] = ",".join(str(v) for v in sorted(g.banned))
             values["monitor_error_model"] = g.monitor.mean_model
             values["monitor_error_base"] = g.monitor.mean_base
+            values["monitor_margin"] = g.monitor.margin
         return values
 
 

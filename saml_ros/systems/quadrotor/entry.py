@@ -104,7 +104,7 @@ QUADROTOR = SystemEntry(
         "mpc": {"solver": "fast", "horizon": 10, "poll_period": 0.5, "gate.max_constraint": 0.002,
                 "goal.position": [0.0, 0.0, 0.2], "task.tilt_max": 0.2,
                 "guard.max_disagreement": 0.1, "guard.bound_residual": True, "guard.rollback": True,
-                "guard.infeasible": True, "guard.task_check": True},
+                "guard.margin_relative": 0.08, "guard.infeasible": True, "guard.task_check": True},
     },
     experiment="quadrotor",
     spec_file="specs/quadrotor.yaml",

@@ -233,11 +233,12 @@ def test_the_tutorial_as_its_reader_runs_it(ros_env: RosDomain, ros_node: TestNo
         goal = publish_as_ros2_topic_pub(ros_node, goal_cmd)
         target = (goal.pose.position.x, goal.pose.position.y)
         try:
-            # towards the goal: a quarter of the way's length at most left (how close the learned model brings it
-            # is the MPC's evaluation, examples/diff_drive/evaluate.py; docs/your_robot.md "Evaluate it")
-            start = math.dist((odom[-1].pose.pose.position.x, odom[-1].pose.pose.position.y), target)
+            # at the goal: within 5 cm (measured: 2.5 cm, the monitor rolling back a model worse than f_hat on the
+            # steps it planned; with the absolute margin it had, 0.01, the model flew on and the robot stopped 0.17 m
+            # from the goal). How close a learned model brings it is the MPC's evaluation,
+            # examples/diff_drive/evaluate.py; docs/your_robot.md "Evaluate it"
             wait_for(lambda: math.dist((odom[-1].pose.pose.position.x, odom[-1].pose.pose.position.y), target)
-                     < max(0.15, 0.25 * start), timeout=90, what=f"the robot near the published goal {target}")
+                     < 0.05, timeout=90, what=f"the robot near the published goal {target}")
         except TimeoutError as exc:
             p = odom[-1].pose.pose.position
             raise AssertionError(f"{exc}: at ({p.x:.3f}, {p.y:.3f}); MPC:\n{mpc.output()[-3000:]}\n"

@@ -280,7 +280,7 @@ def test_a_learned_plan_that_breaks_a_constraint_f_hat_keeps_is_replaced_by_f_ha
 
 def test_a_model_that_steers_through_a_bound_its_prediction_kept_is_rolled_back() -> None:
     """The constraint watch: a model predicting 0.08 m/s more climb per step than there is (no ground effect here,
-    so f_hat is exact) has a one-step squared error of 0.0064, under the monitor's margin, and sinks the vehicle
+    so f_hat is exact) has a one-step squared error of 0.0064, under the monitor's margin (0.01 here), and sinks the vehicle
     8 mm below the height bound it planned to keep; f_hat's prediction saw that coming. Without the watch it flies
     the whole episode below the bound; with it the guard rolls back to f_hat, which climbs back onto the bound."""
     task = LandingTask(world=(("alpha", 0.0),), steps=30)
@@ -294,7 +294,8 @@ def test_a_model_that_steers_through_a_bound_its_prediction_kept_is_rolled_back(
     x0 = quad.hover_state((0.3, -0.2, 0.6))
     ends = {}
     for strikes in (0, 2):
-        guard = GuardConfig(rollback=True, monitor=MonitorConfig(constraint_strikes=strikes))
+        guard = GuardConfig(rollback=True, monitor=MonitorConfig(constraint_strikes=strikes, margin=0.01,
+                                                                 margin_relative=0.0))
         ctrl = make_guarded_controller(quad, "fast", guard, **task.mpc_options())
         ctrl.set_model(model, 1, {})
         def observe(s: Any, c: Any = ctrl) -> None:
