@@ -11,10 +11,12 @@ than accepted and then ignored.
 from __future__ import annotations
 
 import re
-
-import torch
+from typing import TYPE_CHECKING
 
 from saml_ros.core.errors import SamlError
+
+if TYPE_CHECKING:
+    import torch
 
 DEVICES = ("cpu", "cuda", "cuda:<index>")
 _CUDA = re.compile(r"^cuda(:(\d+))?$")
@@ -26,6 +28,8 @@ class DeviceError(SamlError, ValueError):
 
 def cuda_summary() -> str:
     """What torch reports about CUDA here, for error messages."""
+    import torch
+
     if not torch.backends.cuda.is_built():
         return f"this torch {torch.__version__} is built without CUDA"
     n = torch.cuda.device_count() if torch.cuda.is_available() else 0
@@ -34,12 +38,23 @@ def cuda_summary() -> str:
 
 def resolve_device(name: str) -> torch.device:
     """The :class:`torch.device` for ``name``; :class:`DeviceError` when it cannot be trained on here."""
+    check_device(name)
+    import torch
+
+    return torch.device("cpu")
+
+
+def check_device(name: str) -> None:
+    """:class:`DeviceError` when ``name`` cannot be trained on here (:func:`resolve_device` without its result);
+    imports torch only to look for a GPU, so a configuration naming ``cpu`` is checked without it."""
     text = str(name).strip().lower()
     if text == "cpu":
-        return torch.device("cpu")
+        return
     match = _CUDA.match(text)
     if match is None:
         raise DeviceError(f"device {name!r}: unknown; valid: {', '.join(DEVICES)}")
+    import torch
+
     if not torch.cuda.is_available():
         raise DeviceError(f"device {name!r} asked for, but CUDA is not available: {cuda_summary()}; use device cpu")
     index = int(match.group(2) or 0)
