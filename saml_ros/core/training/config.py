@@ -225,3 +225,19 @@ class HealthConfig:
         if min(self.snapshot_every, self.check_every, self.error_after, self.rebase_after) < 1:
             raise ValueError(f"health: snapshot_every, check_every, error_after and rebase_after must be >= 1, "
                              f"got {self}")
+
+
+def parse_margin(margin: str | float | None) -> str | float | None:
+    """The ``margin`` option of offline training (:func:`saml_ros.offline.pipelines.train_models`, which
+    re-exports this): ``"auto"``, a fraction of eps in [0, 0.5], or None (``"none"``, 0: no margin); ``ValueError`` otherwise."""
+    if margin is None or (isinstance(margin, str) and margin.strip().lower() in ("none", "off", "0")):
+        return None
+    if isinstance(margin, str) and margin.strip().lower() == "auto":
+        return "auto"
+    try:
+        f = float(margin)
+    except (TypeError, ValueError):
+        raise ValueError(f"margin must be 'auto', 'none' or a fraction of eps in [0, 0.5], got {margin!r}") from None
+    if not 0.0 <= f <= 0.5:
+        raise ValueError(f"margin must be 'auto', 'none' or a fraction of eps in [0, 0.5], got {margin!r}")
+    return None if f == 0.0 else f
