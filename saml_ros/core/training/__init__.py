@@ -10,7 +10,6 @@ model alone is :mod:`saml_ros.core.model.io`, which does not import this package
 dual method to use when.
 """
 
-from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -25,34 +24,50 @@ if TYPE_CHECKING:
     from saml_ros.core.training.trainer import PrimalDualTrainer
     from saml_ros.core.training.trainer_io import checkpoint_payload, resume_trainer, save_checkpoint
 
-#: the package's names -> the module defining each: imported on first use (PEP 562), so a module that needs only
-#: the configuration (the learner node's parameter table reads ``TrainConfig``) does not import torch with the rest
-_WHERE = {
-    "TrainConfig": "config",
-    "Transitions": "dataset",
-    "FeasibilityDiagnosis": "diagnosis",
-    "diagnose": "diagnosis",
-    "DualVariables": "dual",
-    "make_dual": "dual",
-    "evaluate_spec": "evaluate",
-    "FeasibilityReport": "history",
-    "History": "history",
-    "TrainingLog": "history",
-    "LRSchedule": "schedule",
-    "Selection": "selection",
-    "select_members": "selection",
-    "take_trainer": "selection",
-    "PrimalDualTrainer": "trainer",
-    "checkpoint_payload": "trainer_io",
-    "resume_trainer": "trainer_io",
-    "save_checkpoint": "trainer_io",
-}
-
 
 def __getattr__(name: str) -> Any:
-    """The name from its module (:data:`_WHERE`), imported when first asked for."""
-    if name in _WHERE:
-        return getattr(import_module(f"{__name__}.{_WHERE[name]}"), name)
+    """The package's names, each imported on first use (PEP 562): a module that needs only the configuration (the
+    learner node's parameter table reads ``TrainConfig``) does not import torch with the rest."""
+    if name in ("TrainConfig",):
+        from saml_ros.core.training import config
+
+        return getattr(config, name)
+    if name in ("Transitions",):
+        from saml_ros.core.training import dataset
+
+        return getattr(dataset, name)
+    if name in ("FeasibilityDiagnosis", "diagnose"):
+        from saml_ros.core.training import diagnosis
+
+        return getattr(diagnosis, name)
+    if name in ("DualVariables", "make_dual"):
+        from saml_ros.core.training import dual
+
+        return getattr(dual, name)
+    if name in ("evaluate_spec",):
+        from saml_ros.core.training import evaluate
+
+        return getattr(evaluate, name)
+    if name in ("FeasibilityReport", "History", "TrainingLog"):
+        from saml_ros.core.training import history
+
+        return getattr(history, name)
+    if name in ("LRSchedule",):
+        from saml_ros.core.training import schedule
+
+        return getattr(schedule, name)
+    if name in ("Selection", "select_members", "take_trainer"):
+        from saml_ros.core.training import selection
+
+        return getattr(selection, name)
+    if name in ("PrimalDualTrainer",):
+        from saml_ros.core.training import trainer
+
+        return getattr(trainer, name)
+    if name in ("checkpoint_payload", "resume_trainer", "save_checkpoint"):
+        from saml_ros.core.training import trainer_io
+
+        return getattr(trainer_io, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
