@@ -22,7 +22,7 @@ import yaml
 
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.model.evidence import DataEvidence
-from saml_ros.core.runtime.device import DeviceError, resolve_device
+from saml_ros.core.runtime.device import DeviceError, check_device
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import get_entry, get_system, system_names
 from saml_ros.core.training.config import DUAL_METHODS, TrainConfig, parse_margin
@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
 def _train(args: argparse.Namespace) -> int:
     system = _load_system(args)
     try:
-        resolve_device(args.device)
+        check_device(args.device)
         spec = load_spec(system, args.spec, args.uniform)
         noise = _parse_noise(args.noise)
         for name in noise:

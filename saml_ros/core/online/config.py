@@ -566,7 +566,8 @@ class LearnerConfig:
 
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
                        channels: list[tuple[int, str, str]], decoder: DecoderFactory) -> LearnerSetup:
-        """The :class:`~saml_ros.core.online.LearnerSetup` of the training process (imports torch).
+        """The :class:`~saml_ros.core.online.LearnerSetup` of the training process (without torch: the training
+        process imports it).
 
         Args:
             system, spec: from :meth:`make_system` and :meth:`load_spec`.

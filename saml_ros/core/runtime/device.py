@@ -1,7 +1,8 @@
 """The training device option (``device``: ``cpu`` | ``cuda`` | ``cuda:N``), checked when a run starts.
 
-:func:`resolve_device` is called where a configuration is read (``TrainConfig``, so the ``train`` and ``sweep``
-command lines and the learner's ``train.device`` parameter): a device that cannot be used is a
+:func:`check_device` (or :func:`resolve_device`, which also returns the :class:`torch.device`) is called where a
+configuration is read (``TrainConfig``, so the ``train`` and ``sweep`` command lines and the learner's
+``train.device`` parameter; ``cpu`` is checked without importing torch): a device that cannot be used is a
 :class:`DeviceError` naming the problem before any data is generated or any node starts, never a traceback in the
 middle of training. The training engines (the fast engine, the plain loop and the online learner's buffer) keep
 their tensors on the CPU, so ``cuda`` is refused even where torch sees a GPU, with a message saying so, rather

@@ -78,7 +78,7 @@ class TrainConfig:
         lr_gamma: factor of each step-schedule drop, in (0, 1].
         lr_drops: number of step-schedule drops (at T k / (drops + 1), k = 1..drops), >= 1.
         lr_floor: the cosine schedule's final learning rate as a fraction of the starting one, in [0, 1].
-        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.runtime.device.resolve_device`),
+        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.runtime.device.check_device`),
             so a device that cannot be used fails when the configuration is made, not mid-run.
     """
 
