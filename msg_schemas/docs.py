@@ -10,7 +10,16 @@ import re
 import sys
 
 from msg_schemas import get_schema
-from msg_schemas.base import CHECKPOINT_QOS, CLOCK_QOS, DATA_QOS, TELEMETRY_QOS, QosSpec, SystemSchema, TopicSpec
+from msg_schemas.base import (
+    CHECKPOINT_QOS,
+    CLOCK_QOS,
+    DATA_QOS,
+    TELEMETRY_QOS,
+    QosSpec,
+    SystemSchema,
+    TopicSpec,
+    full_topic,
+)
 from msg_schemas.telemetry import GLOBAL_TOPICS, REJECT_REASONS, TELEMETRY_TOPICS
 
 _PLAIN_PATH = re.compile(r"^[a-z_][a-z0-9_.]*(\[(\d+|i)\])?(\.[a-z_][a-z0-9_.]*)?$")
@@ -60,12 +69,8 @@ def _qos_rows() -> list[str]:
     return rows
 
 
-def _full_name(ns: str, topic: str) -> str:
-    return topic if topic.startswith("/") else f"{ns}/{topic}"
-
-
 def _topic_section(ns: str, spec: TopicSpec, value_header: str) -> list[str]:
-    full = _full_name(ns, spec.name)
+    full = full_topic(ns, spec.name)
     optional = " (optional)" if not spec.required else ""
     out = [
         f"### `{full}` — `{spec.msg_type}`{optional}",

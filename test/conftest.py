@@ -23,20 +23,19 @@ import re
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
-import torch
 from helpers.bag_test_helpers import bad_bags, friction_bag  # noqa: F401  (fixtures for every test, by name)
 from helpers.ros_helpers import ros_env, ros_node  # noqa: F401
 
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
 
-# One intra-op thread, as the nodes and scripts use: on this shared 2-core machine torch's default of one thread
-# per core made a small network's training step 25x slower under load (150 ms instead of 6 ms, measured).
-torch.set_num_threads(1)
+if TYPE_CHECKING:
+    import torch
+
 
 # No test renders MuJoCo: without an OpenGL backend, importing mujoco does not load glfw, whose import starts a
 # version-probe process (which the unit tests' no-process rule below refuses) and costs 0.2 s in every process.
@@ -47,6 +46,18 @@ TEST_DIR = Path(__file__).resolve().parent
 FOLDER_MARKERS = {"unit": (), "ros": ("ros",), "e2e": ("ros", "e2e")}
 #: processes a unit test may start: the compilers and build tools that build the native kernels on first use
 BUILD_TOOLS = re.compile(r"^(c\+\+|g\+\+|gcc|cc|clang\+\+|clang|ninja|ld|ldconfig)(-[0-9.]+)?$")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """One intra-op torch thread in every process that runs tests, as the nodes and scripts use: on this shared
+    2-core machine torch's default of one thread per core made a small network's training step 25x slower under
+    load (150 ms instead of 6 ms, measured). The xdist controller runs no test and does not import torch (2 s of
+    CPU before the workers start)."""
+    if getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput"):
+        return
+    import torch
+
+    torch.set_num_threads(1)
 
 
 def _folder(path: Path) -> str | None:
@@ -247,6 +258,8 @@ class ToySystem(System):
         return x
 
     def base_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        import torch
+
         return torch.zeros_like(x)
 
     def sample_inputs(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

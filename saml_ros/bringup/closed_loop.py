@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from msg_schemas.base import full_topic
 from saml_ros.bringup.config import node_params, ros_params_file
 from saml_ros.bringup.results import BringupResult, goal_position
 from saml_ros.bringup.supervisor import Child, ProcessGroup, child_env, node_argv
@@ -111,8 +112,7 @@ class _Loop:
                 rec_args = ["--system", self.system, "-o", str(Path(record).resolve())]
                 if self.robot:  # a robot's own topics (the recorder does not read system files)
                     schema = self.entry.schema()
-                    rec_args = ["--topics", *(f"{ns}/{t}" if not t.startswith("/") else t
-                                              for t in (schema.state_topic, schema.cmd_topic)),
+                    rec_args = ["--topics", *(full_topic(ns, t) for t in (schema.state_topic, schema.cmd_topic)),
                                 "-o", str(Path(record).resolve())]
                 if self.lockstep:
                     rec_args.append("--use-sim-time")

@@ -15,12 +15,13 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from saml_ros.core.errors import SamlError
 from saml_ros.core.layout import VectorLayout
+
+if TYPE_CHECKING:
+    import torch
 
 LOSS_TYPES = ("l2", "squared_l2", "l1", "huber", "normalized")
 MEAN_TYPES = ("conditional", "unconditional")
@@ -54,6 +55,8 @@ class _Box(Region):
         self.bounds = bounds
 
     def mask(self, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        import torch
+
         m = torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
         for ref, lo, hi in self.bounds:
             v = ref.take(x, u, y)
@@ -66,6 +69,8 @@ class _Norm(Region):
         self.refs, self.ord, self.lo, self.hi = refs, ord_, lo, hi
 
     def mask(self, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        import torch
+
         v = torch.stack([r.take(x, u, y) for r in self.refs], dim=-1)
         n = torch.linalg.vector_norm(v, ord=self.ord, dim=-1)
         return (n >= self.lo) & (n <= self.hi)
@@ -100,6 +105,8 @@ class _AnyOf(_AllOf):
 
 class _Everything(Region):
     def mask(self, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        import torch
+
         return torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
 
 
@@ -128,6 +135,8 @@ class Term:
 
     def per_sample(self, pred: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Per-transition loss ``(..., B)`` of predictions ``pred`` against observed targets ``y``."""
+        import torch
+
         idx = list(self.fields)
         e = pred[..., idx] - y[..., idx]
         if self.loss == "l2":
@@ -149,6 +158,8 @@ class Term:
 
     def estimate(self, loss: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         """Minibatch estimate ``(...)`` of E[l I] (unconditional) or E[l | I] (conditional), minus eps."""
+        import torch
+
         if mask is None:
             return loss.mean(-1) - self.eps
         m = mask.to(loss.dtype)
@@ -278,6 +289,8 @@ class ProblemSpec:
     def evaluate_with_masks(
         self, y: torch.Tensor, pred: torch.Tensor, masks: Sequence[torch.Tensor | None]
     ) -> SpecValues:
+        import torch
+
         obj = self.objective.estimate(self.objective.per_sample(pred, y), masks[0])
         lead = obj.shape
         if not self.constraints:
@@ -298,6 +311,8 @@ class ProblemSpec:
         Returns ``{constraint name: {"in": (...), "out": (...), "all": (...), "n_in": (...), "n_out": (...)}}``
         where ``...`` is the leading (ensemble) shape of ``pred``; a mean over no samples is NaN.
         """
+        import torch
+
         out: dict[str, dict[str, torch.Tensor]] = {}
         for t, m in zip(self.constraints, self.masks(x, u, y)[1:]):
             loss = t.per_sample(pred, y).double()

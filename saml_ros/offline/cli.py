@@ -15,30 +15,21 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 import yaml
 
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.model.evidence import DataEvidence
-from saml_ros.core.runtime.device import DeviceError, resolve_device
+from saml_ros.core.runtime.device import DeviceError, check_device
 from saml_ros.core.spec import ProblemSpec, SpecError
 from saml_ros.core.systems import get_entry, get_system, system_names
-from saml_ros.core.training import TrainConfig, Transitions, save_checkpoint
-from saml_ros.core.training.config import DUAL_METHODS
-from saml_ros.core.training.verdict import Verdicts, read_verdicts, spec_estimates
-from saml_ros.offline.pipelines import (
-    TrainedModels,
-    evaluate_models,
-    generate_datasets,
-    mean_std,
-    parse_margin,
-    stretch_split,
-    train_models,
-)
-from saml_ros.offline.plots import plot_training_curves
+from saml_ros.core.training.config import DUAL_METHODS, TrainConfig, parse_margin
+
+if TYPE_CHECKING:  # torch, the trainer and matplotlib are imported once the data is read (a refused run needs none)
+    from saml_ros.core.training.verdict import Verdicts
+    from saml_ros.offline.pipelines import TrainedModels
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -192,6 +183,8 @@ def _training_data(args: argparse.Namespace, system: Any, seeds: list[int], n_tr
         n_test = args.test_samples if args.test_samples is not None else max(10_000, 10 * n_train)
         if n_test < 1:
             raise _Refused(f"--test-samples must be >= 1, got {n_test}")
+        from saml_ros.offline.pipelines import generate_datasets
+
         x, u, y = generate_datasets(system, n_train, seeds, noise)
         test = system.make_dataset(n_test, np.random.default_rng(10_000 + args.seed), noise)
         select = (system.make_dataset(n_test, np.random.default_rng(20_000 + args.seed), noise)
@@ -205,6 +198,8 @@ def _training_data(args: argparse.Namespace, system: Any, seeds: list[int], n_tr
         bt = extract_transitions(args.bag, system)
     except Exception as exc:  # bag errors carry a message naming the bag and the problem
         raise _Refused(str(exc)) from None
+    from saml_ros.offline.pipelines import stretch_split
+
     everything = (bt.x, bt.u, bt.y)
     source = f"{len(bt)} transitions from {len(args.bag)} bag(s)"
     if not 0 < args.holdout < 1:
@@ -228,6 +223,8 @@ def _training_data(args: argparse.Namespace, system: Any, seeds: list[int], n_tr
 
 def _test_metrics(result: Any, spec: ProblemSpec, test: Arrays) -> tuple[dict[str, Any], Any]:
     """The held-out metrics of ``metrics.json`` and the evaluation they come from."""
+    from saml_ros.offline.pipelines import evaluate_models
+
     xt, ut, yt = test
     ev = evaluate_models(result.model, spec, xt, ut, yt)
     return {
@@ -244,6 +241,9 @@ def heldout_verdicts(result: TrainedModels, spec: ProblemSpec, test: Arrays, str
                      description: str) -> Verdicts:
     """The verdict on every constraint of ``result``'s members, read on ``test`` (:mod:`saml_ros.core.training.
     verdict`), with the training values, the aim and the training's convergence diagnosis beside it."""
+    from saml_ros.core.training import Transitions
+    from saml_ros.core.training.verdict import read_verdicts, spec_estimates
+
     held = None
     if len(test[0]):
         _, held = spec_estimates(result.model, spec, Transitions(result.model, spec, *test), stream)
@@ -253,6 +253,8 @@ def heldout_verdicts(result: TrainedModels, spec: ProblemSpec, test: Arrays, str
 
 def _print_summary(result: Any, metrics: dict[str, Any], ev: Any, verdicts: Verdicts) -> None:
     """The run's closing lines: time, held-out errors per region, lambda, selection, the verdict per constraint."""
+    from saml_ros.offline.pipelines import mean_std
+
     print(f"train: done in {result.train_seconds:.1f} s ({result.trainer.steps} updates)")
     if result.aim is not None:
         print(f"train: {result.aim.describe()}")
@@ -288,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
 def _train(args: argparse.Namespace) -> int:
     system = _load_system(args)
     try:
-        resolve_device(args.device)
+        check_device(args.device)
         spec = load_spec(system, args.spec, args.uniform)
         noise = _parse_noise(args.noise)
         for name in noise:
@@ -307,6 +309,12 @@ def _train(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise _Refused(str(exc)) from None
     data = _training_data(args, system, seeds, n_train, noise)
+    import torch
+
+    from saml_ros.core.training import save_checkpoint
+    from saml_ros.offline.pipelines import train_models
+    from saml_ros.offline.plots import plot_training_curves
+
     (x, u, y), test, source = data.train, data.test, data.source
     held_in = [len(test[0]) if m is None else int(m.sum())  # samples in each constraint's region, held out
                for m in spec.masks(*(torch.as_tensor(a, dtype=torch.float64) for a in test))[1:]]

@@ -20,6 +20,7 @@ from saml_ros.core.dynamics.system import System
 from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training import History, PrimalDualTrainer, TrainConfig, Transitions
+from saml_ros.core.training.config import parse_margin
 from saml_ros.core.training.heldout import MIN_N
 from saml_ros.core.training.selection import Selection, select_members, take_trainer
 from saml_ros.core.training.verdict import AimReport, aim_bounds, aimed_spec, spec_estimates
@@ -67,21 +68,6 @@ class TrainedModels:
 #: the fraction of the epochs after which an automatic margin is measured (the cosine schedule is then at half
 #: its rates and the model near its final optimum; the rest of the run trains at the aim)
 AIM_AT = 0.5
-
-
-def parse_margin(margin: str | float | None) -> str | float | None:
-    """``"auto"``, a fraction of eps in [0, 0.5], or None (``"none"``, 0: no margin); ``ValueError`` otherwise."""
-    if margin is None or (isinstance(margin, str) and margin.strip().lower() in ("none", "off", "0")):
-        return None
-    if isinstance(margin, str) and margin.strip().lower() == "auto":
-        return "auto"
-    try:
-        f = float(margin)
-    except (TypeError, ValueError):
-        raise ValueError(f"margin must be 'auto', 'none' or a fraction of eps in [0, 0.5], got {margin!r}") from None
-    if not 0.0 <= f <= 0.5:
-        raise ValueError(f"margin must be 'auto', 'none' or a fraction of eps in [0, 0.5], got {margin!r}")
-    return None if f == 0.0 else f
 
 
 def _measure_aim(trainer: PrimalDualTrainer, spec: ProblemSpec, data: Transitions, stream: bool,

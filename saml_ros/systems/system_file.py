@@ -26,10 +26,9 @@ import math
 import re
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 import yaml
 
 from saml_ros.core.data.resampling import COMMAND_RULES, MIXED_POLICIES, STATE_RULES, ResampleConfig
@@ -44,6 +43,9 @@ from saml_ros.core.dynamics.base_models import (
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.errors import SamlError
 from saml_ros.core.layout import Field, VectorLayout
+
+if TYPE_CHECKING:
+    import torch
 
 #: format version of system files (``version:`` key, optional)
 FORMAT_VERSION = 1

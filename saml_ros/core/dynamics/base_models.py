@@ -35,12 +35,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.errors import SamlError
+
+if TYPE_CHECKING:
+    import torch
 
 #: entry point group of installed base models (``base_model: {entry_point: NAME}``; see saml_ros.user_code)
 ENTRY_POINT_GROUP = "saml_ros.systems"
@@ -231,6 +233,8 @@ class _Unicycle(BaseModel):
         return dict(self._params)
 
     def __call__(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        import torch
+
         dt = self.dt
         v, w = u[:, self.iv], u[:, self.iw]
         yaw = x[:, self.iyaw]
@@ -250,6 +254,8 @@ class _Linear(BaseModel):
     kind = "linear"
 
     def __init__(self, lay: Layouts, params: Mapping[str, Any]) -> None:
+        import torch
+
         _check_keys("linear", params, {"A", "B", "c", "ridge"}, set())
         n, m = len(lay.state), len(lay.control)
         self.n, self.m = n, m
@@ -274,6 +280,8 @@ class _Linear(BaseModel):
 
     def fit(self, x: np.ndarray, u: np.ndarray, y: np.ndarray) -> None:
         """Least squares (ridge ``ridge``) of ``y - x`` on ``[x, u, 1]``; once (later calls keep the fit)."""
+        import torch
+
         if self.coef is not None:
             return
         z = np.concatenate([x, u, np.ones((len(x), 1))], axis=1)
@@ -289,6 +297,8 @@ class _Linear(BaseModel):
                 "ridge": self.ridge}
 
     def __call__(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        import torch
+
         if self._t is None:
             return x.clone()
         z = torch.cat([x, u, x.new_ones((x.shape[0], 1))], dim=1)
@@ -316,6 +326,8 @@ class _UserFunction(BaseModel):
         return dict(self.kw)
 
     def __call__(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        import torch
+
         if self.is_form:
             from saml_ros.core.dynamics.base_forms import TORCH
 
@@ -416,6 +428,8 @@ def build_base_model(spec: BaseModelSpec, lay: Layouts, *, probe: bool = True,
 
 def probe_base_model(model: BaseModel, lay: Layouts, batch: int = 5) -> None:
     """Call ``model`` on a probe batch inside the bounds and check the result (see the module docstring)."""
+    import torch
+
     rng = np.random.default_rng(0)
     lo_x, hi_x = (np.array([getattr(f, a) for f in lay.state]) for a in ("low", "high"))
     lo_u, hi_u = (np.array([getattr(f, a) for f in lay.control]) for a in ("low", "high"))

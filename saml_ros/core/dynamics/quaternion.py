@@ -7,12 +7,18 @@ values. A unit quaternion ``q`` maps body-frame vectors to the world frame: ``v_
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product ``a ⊗ b``; ``(..., 4), (..., 4) -> (..., 4)``."""
+    import torch
+
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
     return torch.stack(
@@ -33,11 +39,15 @@ def quat_conj(q: torch.Tensor) -> torch.Tensor:
 
 def quat_normalize(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """``q / ||q||`` with the norm clamped below at ``eps``; ``(..., 4) -> (..., 4)``."""
+    import torch
+
     return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True).clamp_min(eps)
 
 
 def pure(v: torch.Tensor) -> torch.Tensor:
     """Vector as a pure quaternion ``[0, v]``; ``(..., 3) -> (..., 4)``."""
+    import torch
+
     return torch.cat((torch.zeros_like(v[..., :1]), v), dim=-1)
 
 
@@ -46,6 +56,8 @@ def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
     Uses ``v + 2 w (r × v) + 2 r × (r × v)`` with ``q = [w, r]``, exact for unit ``q``.
     """
+    import torch
+
     w = q[..., :1]
     r = q[..., 1:]
     t = 2.0 * torch.linalg.cross(r, v, dim=-1)
@@ -54,6 +66,8 @@ def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     """Rotation matrix of the unit quaternion ``q``; ``(..., 4) -> (..., 3, 3)`` with ``v_w = R @ v_b``."""
+    import torch
+
     w, x, y, z = q.unbind(-1)
     r = torch.stack(
         (
@@ -68,6 +82,8 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
 
 def quat_from_axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     """Quaternion of a rotation by ``angle`` (rad) about the unit ``axis``; ``(..., 3), (...) -> (..., 4)``."""
+    import torch
+
     half = 0.5 * angle
     return torch.cat((torch.cos(half)[..., None], torch.sin(half)[..., None] * axis), dim=-1)
 
@@ -82,6 +98,8 @@ def quat_derivative_body(q: torch.Tensor, omega_body: torch.Tensor) -> torch.Ten
 
 def safe_sqrt(s: torch.Tensor) -> torch.Tensor:
     """``sqrt(max(s, 0))`` whose gradient is 0 (not NaN/inf) at ``s = 0``."""
+    import torch
+
     pos = s > 0
     return torch.where(pos, torch.sqrt(torch.where(pos, s, torch.ones_like(s))), torch.zeros_like(s))
 
@@ -93,6 +111,8 @@ def tilt_angle(q: torch.Tensor) -> torch.Tensor:
     with :func:`safe_sqrt` so the gradient is finite (zero) at the level attitude, where the angle has a
     cone-shaped kink.
     """
+    import torch
+
     w, x, y, z = q.unbind(-1)
     return 2.0 * torch.atan2(safe_sqrt(x * x + y * y), safe_sqrt(w * w + z * z))
 

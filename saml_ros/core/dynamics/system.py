@@ -15,12 +15,14 @@ under ``torch.func.vmap`` / ``jacrev``.
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.layout import VectorLayout, schema_hash
+
+if TYPE_CHECKING:
+    import torch
 
 #: a command further outside the control box than this fraction of the box's width is implausible (the
 #: simulators' default ``cmd_reject_margin`` is the same fraction: between the box and this margin they clip)
@@ -123,6 +125,8 @@ class System(abc.ABC):
 
 
 def _np_call(fn: Any, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    import torch
+
     single = np.ndim(x) == 1
     xt = torch.as_tensor(np.atleast_2d(np.asarray(x, dtype=np.float64)))
     ut = torch.as_tensor(np.atleast_2d(np.asarray(u, dtype=np.float64)))

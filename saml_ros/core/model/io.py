@@ -11,12 +11,12 @@ trainer by :mod:`saml_ros.core.training.trainer_io`. See ``docs/checkpoints.md``
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.errors import SamlError
@@ -26,9 +26,14 @@ from saml_ros.core.model.checkpoint import (
     read_checkpoint,
     torch_state_to_arrays,
 )
-from saml_ros.core.model.network import DynamicsModel, input_names
+from saml_ros.core.model.inputs import input_names
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.systems import get_system
+
+if TYPE_CHECKING:  # torch and the network are imported where a model is built or written
+    import torch
+
+    from saml_ros.core.model.network import DynamicsModel
 
 MODEL_KIND = "saml_ros.model"
 
@@ -51,6 +56,8 @@ def model_payload(model: DynamicsModel, spec: ProblemSpec) -> tuple[dict[str, np
     system, its parameters, schema hash, layouts, architecture, spec) and the model state's skeleton (for
     ``meta["skeletons"]["model"]``). Raises :class:`UnhealthyModel` if a weight or normalisation value is NaN or
     infinite (no checkpoint with non-finite weights is ever written)."""
+    import torch
+
     system = model.system
     state = model.state_dict()
     bad = [k for k, v in state.items() if not bool(torch.isfinite(v).all())]
@@ -95,6 +102,10 @@ def model_from_payload(
 ) -> LoadedModel:
     """Rebuild a model from checkpoint contents; raises :class:`IncompatibleCheckpoint` with the reason when
     it is not a model checkpoint, names an unknown system, or its layouts differ from ``expect``'s."""
+    import torch
+
+    from saml_ros.core.model.network import DynamicsModel
+
     where = f"{path}: " if path else ""
     if meta.get("kind") != MODEL_KIND:
         raise IncompatibleCheckpoint(f"{where}not a saml_ros model checkpoint (kind={meta.get('kind')!r})")
@@ -154,6 +165,7 @@ def jsonable(obj: Any) -> Any:
         return obj.tolist()
     if isinstance(obj, (np.floating, np.integer)):
         return obj.item()
-    if isinstance(obj, torch.Tensor):
+    torch = sys.modules.get("torch")  # a tensor exists only where torch was imported
+    if torch is not None and isinstance(obj, torch.Tensor):
         return obj.tolist()
     return obj

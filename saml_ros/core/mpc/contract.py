@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from saml_ros.core.dynamics.system import System
-from saml_ros.core.model.network import DynamicsModel
+
+if TYPE_CHECKING:
+    from saml_ros.core.model.network import DynamicsModel
 
 
 @dataclass

@@ -20,14 +20,17 @@ Shapes: ``x`` ``(B, n_x)``, ``u`` ``(B, n_u)`` -> ``y`` ``(B, n_y)``, ``A = dy/d
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Literal, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol, Union
 
 import numpy as np
-import torch
 
 from saml_ros.core.dynamics.system import System
-from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.mlp_np import NumpyMLP
+
+if TYPE_CHECKING:  # torch only where a model or the autograd fallback is used
+    import torch
+
+    from saml_ros.core.model.network import DynamicsModel
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
 #: :meth:`NumpyDynamics.fused_jacobians` tabulates the Jacobians of every activation pattern of up to this many
@@ -43,7 +46,7 @@ _FusedPlan = tuple[np.ndarray, list[tuple[list[_FusedLayer], np.ndarray, np.ndar
 #: the model name that makes the MPC predict with the TRUE dynamics (see the module docstring)
 ORACLE: Literal["oracle"] = "oracle"
 #: what an MPC predicts with: a learned model (residual or full), the oracle, or None (f_hat alone)
-PredictionModel = DynamicsModel | Literal["oracle"] | None
+PredictionModel = Union["DynamicsModel", Literal["oracle"], None]  # noqa: UP007 (a string: no torch here)
 
 
 class BaseModelNP(Protocol):
@@ -59,6 +62,8 @@ class TorchBaseNP:
         self.system = system
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        import torch
+
         with torch.no_grad():
             return self.system.base_step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
 
@@ -66,6 +71,8 @@ class TorchBaseNP:
         return self.step(x[None], u[None])[0]
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        import torch
+
         def one(xi: torch.Tensor, ui: torch.Tensor) -> torch.Tensor:
             return self.system.base_step(xi[None], ui[None])[0]
 
@@ -78,10 +85,14 @@ class TorchTrueNP(TorchBaseNP):
     """Any system's ``true_step`` through torch autograd (the oracle's fallback for systems without a twin)."""
 
     def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        import torch
+
         with torch.no_grad():
             return self.system.true_step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
 
     def step_jac(self, x: np.ndarray, u: np.ndarray) -> Jac3:
+        import torch
+
         def one(xi: torch.Tensor, ui: torch.Tensor) -> torch.Tensor:
             return self.system.true_step(xi[None], ui[None])[0]
 

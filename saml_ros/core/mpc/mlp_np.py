@@ -8,10 +8,12 @@ piecewise-linear PReLU network (the derivative at a kink is taken from the ``h >
 
 from __future__ import annotations
 
-import numpy as np
-import torch
+from typing import TYPE_CHECKING
 
-from saml_ros.core.model.network import DynamicsModel, dense_input_layer
+import numpy as np
+
+if TYPE_CHECKING:  # a model exists (and torch is imported) where one is copied
+    from saml_ros.core.model.network import DynamicsModel
 
 
 class NumpyMLP:
@@ -27,6 +29,10 @@ class NumpyMLP:
     def __init__(self, model: DynamicsModel, member: int = 0) -> None:
         if not 0 <= member < model.n_models:
             raise ValueError(f"member {member} out of range for an ensemble of {model.n_models}")
+        import torch
+
+        from saml_ros.core.model.network import dense_input_layer
+
         net = model.net
         n_x = model.system.state.size
         with torch.no_grad():

@@ -14,8 +14,9 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from saml_ros.core.online.heldout import HeldoutConfig, HeldoutReport
     from saml_ros.core.online.ingest import RawIngest
-    from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
+    from saml_ros.core.online.learner import OnlineLearner
     from saml_ros.core.online.loop import LoopConfig, run_loop
+    from saml_ros.core.online.options import OnlineConfig
     from saml_ros.core.online.process import LearnerSetup, ReadyInfo, StartCancelled, TrainingProcess
     from saml_ros.core.online.resume import ResumeError, ResumeInfo
     from saml_ros.core.online.telemetry import assemble_telemetry
@@ -31,10 +32,14 @@ def __getattr__(name: str) -> Any:
         from saml_ros.core.online import ingest
 
         return getattr(ingest, name)
-    if name in ("OnlineConfig", "OnlineLearner"):
+    if name == "OnlineConfig":
+        from saml_ros.core.online import options
+
+        return options.OnlineConfig
+    if name == "OnlineLearner":
         from saml_ros.core.online import learner
 
-        return getattr(learner, name)
+        return learner.OnlineLearner
     if name in ("LoopConfig", "run_loop"):
         from saml_ros.core.online import loop
 

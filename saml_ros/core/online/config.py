@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from saml_ros.core.online.process import DecoderFactory
     from saml_ros.core.spec import ProblemSpec
     from saml_ros.core.training import TrainConfig
-    from saml_ros.core.training.health import HealthConfig
+    from saml_ros.core.training.config import HealthConfig
 
 class TrainingStartError(SamlError, ValueError):
     """The learner's training process could not be set up or started as configured
@@ -372,7 +372,7 @@ class LearnerConfig:
     def _read(cls, values: Mapping[str, Any], node_namespace: str, problems: Problems) -> LearnerConfig:
         """:meth:`from_params`, its problems recorded in ``problems`` (a bad value is replaced by its default)."""
         from saml_ros.core.data.buffer import Policy
-        from saml_ros.core.model.network import MODEL_KINDS
+        from saml_ros.core.model.inputs import MODEL_KINDS
         from saml_ros.core.systems.registry import get_entry
 
         check = problems.check
@@ -451,7 +451,7 @@ class LearnerConfig:
 
     def health_config(self) -> HealthConfig:
         """The :class:`~saml_ros.core.training.health.HealthConfig` of ``health.*``; ``ValueError`` naming them."""
-        from saml_ros.core.training.health import HealthConfig
+        from saml_ros.core.training.config import HealthConfig
 
         problems = Problems()
         check = problems.check
@@ -566,7 +566,8 @@ class LearnerConfig:
 
     def training_setup(self, system: System, spec: ProblemSpec, target_pairing: str, run_dir: str,
                        channels: list[tuple[int, str, str]], decoder: DecoderFactory) -> LearnerSetup:
-        """The :class:`~saml_ros.core.online.LearnerSetup` of the training process (imports torch).
+        """The :class:`~saml_ros.core.online.LearnerSetup` of the training process (without torch: the training
+        process imports it).
 
         Args:
             system, spec: from :meth:`make_system` and :meth:`load_spec`.

@@ -10,10 +10,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from saml_ros.core.online.ingest import RawIngest
-from saml_ros.core.online.learner import OnlineLearner
 from saml_ros.core.online.messages import (
     Batch,
     Checkpointed,
@@ -29,6 +28,9 @@ from saml_ros.core.online.messages import (
     Stopped,
     ToTrainer,
 )
+
+if TYPE_CHECKING:
+    from saml_ros.core.online.learner import OnlineLearner
 
 #: ``send(message)``: one message to the parent (see :func:`run_loop` for the messages)
 Send = Callable[[FromTrainer], None]

@@ -29,7 +29,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,7 +38,6 @@ from saml_ros.core.data.resampling import ResampleConfig
 from saml_ros.core.errors import SamlError
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.online.ingest import Decode
-from saml_ros.core.online.learner import OnlineConfig, OnlineLearner
 from saml_ros.core.online.loop import LoopConfig
 from saml_ros.core.online.messages import (
     Batch,
@@ -57,9 +56,13 @@ from saml_ros.core.online.messages import (
     Stopped,
     ToTrainer,
 )
+from saml_ros.core.online.options import OnlineConfig
 from saml_ros.core.online.resume import ResumeError
 from saml_ros.core.runtime.child_launch import LaunchedChild, launch_child
 from saml_ros.core.spec import ProblemSpec
+
+if TYPE_CHECKING:
+    from saml_ros.core.online.learner import OnlineLearner
 
 log = logging.getLogger("saml_ros.online")
 
@@ -132,6 +135,7 @@ class LearnerSetup:
 
     def build(self) -> OnlineLearner:
         """The learner (resumed from ``run_dir`` when ``resume``), with its sources registered."""
+        from saml_ros.core.online.learner import OnlineLearner
         from saml_ros.core.systems import get_system
 
         system = get_system(self.system, **self.system_params)

@@ -8,18 +8,19 @@ import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.errors import SamlError
 from saml_ros.core.model.checkpoint import CheckpointError, CheckpointStore, read_checkpoint
 from saml_ros.core.model.evidence import DataEvidence
-from saml_ros.core.model.io import MODEL_KIND, LoadedModel, model_from_payload
 from saml_ros.core.spec import ProblemSpec
-from saml_ros.core.training import PrimalDualTrainer, TrainConfig, resume_trainer
+
+if TYPE_CHECKING:  # the learner node imports this module for ResumeError; the training process does the rest
+    from saml_ros.core.model.io import LoadedModel
+    from saml_ros.core.training import PrimalDualTrainer, TrainConfig
 
 log = logging.getLogger("saml_ros.online")
 
@@ -108,6 +109,10 @@ def resume_newest(
 
 def _check_and_rebuild(arrays: dict[str, np.ndarray], meta: dict[str, Any], path: Path, system: System,
                        spec: ProblemSpec, want: dict[str, Any]) -> LoadedModel:
+    import torch
+
+    from saml_ros.core.model.io import MODEL_KIND, model_from_payload
+
     sysname = meta.get("system")
     if meta.get("kind") == MODEL_KIND and (sysname != system.name or meta.get("schema_hash") != system.schema_hash()):
         raise ResumeError(
@@ -135,6 +140,8 @@ def _check_and_rebuild(arrays: dict[str, np.ndarray], meta: dict[str, Any], path
 
 
 def _make_trainer(loaded: LoadedModel, spec: ProblemSpec, cfg: TrainConfig) -> PrimalDualTrainer:
+    from saml_ros.core.training import resume_trainer
+
     trainer = resume_trainer(dataclasses.replace(loaded, spec=spec), cfg)
     # torch optimizers restore the learning rate saved with their state: the configured one wins
     for group in trainer.primal_opt.param_groups:

@@ -7,16 +7,20 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from msg_schemas.telemetry import model_error_names
-from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec, SpecValues
-from saml_ros.core.training import PrimalDualTrainer
 from saml_ros.core.training.diagnosis import MIN_ROWS, VERDICT_CODES
 from saml_ros.core.training.heldout import MET, MET_ON_TRAINING_ONLY, NO_HELDOUT, NOT_MET, UNCONFIRMED
+
+if TYPE_CHECKING:  # the learner node assembles telemetry without torch; the training process computes it
+    import torch
+
+    from saml_ros.core.model.network import DynamicsModel
+    from saml_ros.core.training import PrimalDualTrainer
 
 #: the number of each held-out verdict in telemetry (``heldout_verdict/<k>``; the words are
 #: :mod:`saml_ros.core.training.heldout`'s)
@@ -149,6 +153,8 @@ def model_metrics(
     ``lambda/<k>`` (``lam`` ``(K,)``), the ``updates`` and ``model_version`` they belong to and, on the recent ``window`` ``(x, u, y)``, the one-step errors of the current model inside /
     outside each constraint region (``error_in/<k>``, ``error_out/<k>``, ``n_in/<k>``, NaN / 0 when empty), over
     the whole window (``error_all``) and the window size."""
+    import torch
+
     x, u, y = window
     obj, con = averages
     errs: dict[str, dict[str, torch.Tensor]] = {}

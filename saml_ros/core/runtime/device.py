@@ -1,7 +1,8 @@
 """The training device option (``device``: ``cpu`` | ``cuda`` | ``cuda:N``), checked when a run starts.
 
-:func:`resolve_device` is called where a configuration is read (``TrainConfig``, so the ``train`` and ``sweep``
-command lines and the learner's ``train.device`` parameter): a device that cannot be used is a
+:func:`check_device` (or :func:`resolve_device`, which also returns the :class:`torch.device`) is called where a
+configuration is read (``TrainConfig``, so the ``train`` and ``sweep`` command lines and the learner's
+``train.device`` parameter; ``cpu`` is checked without importing torch): a device that cannot be used is a
 :class:`DeviceError` naming the problem before any data is generated or any node starts, never a traceback in the
 middle of training. The training engines (the fast engine, the plain loop and the online learner's buffer) keep
 their tensors on the CPU, so ``cuda`` is refused even where torch sees a GPU, with a message saying so, rather
@@ -11,10 +12,12 @@ than accepted and then ignored.
 from __future__ import annotations
 
 import re
-
-import torch
+from typing import TYPE_CHECKING
 
 from saml_ros.core.errors import SamlError
+
+if TYPE_CHECKING:
+    import torch
 
 DEVICES = ("cpu", "cuda", "cuda:<index>")
 _CUDA = re.compile(r"^cuda(:(\d+))?$")
@@ -26,6 +29,8 @@ class DeviceError(SamlError, ValueError):
 
 def cuda_summary() -> str:
     """What torch reports about CUDA here, for error messages."""
+    import torch
+
     if not torch.backends.cuda.is_built():
         return f"this torch {torch.__version__} is built without CUDA"
     n = torch.cuda.device_count() if torch.cuda.is_available() else 0
@@ -34,12 +39,23 @@ def cuda_summary() -> str:
 
 def resolve_device(name: str) -> torch.device:
     """The :class:`torch.device` for ``name``; :class:`DeviceError` when it cannot be trained on here."""
+    check_device(name)
+    import torch
+
+    return torch.device("cpu")
+
+
+def check_device(name: str) -> None:
+    """:class:`DeviceError` when ``name`` cannot be trained on here (:func:`resolve_device` without its result);
+    imports torch only to look for a GPU, so a configuration naming ``cpu`` is checked without it."""
     text = str(name).strip().lower()
     if text == "cpu":
-        return torch.device("cpu")
+        return
     match = _CUDA.match(text)
     if match is None:
         raise DeviceError(f"device {name!r}: unknown; valid: {', '.join(DEVICES)}")
+    import torch
+
     if not torch.cuda.is_available():
         raise DeviceError(f"device {name!r} asked for, but CUDA is not available: {cuda_summary()}; use device cpu")
     index = int(match.group(2) or 0)

@@ -8,11 +8,12 @@ dual step (:mod:`saml_ros.core.training.schedule`). docs/training.md says which 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+from saml_ros.core.runtime.device import check_device
 
-from saml_ros.core.runtime.device import resolve_device
+if TYPE_CHECKING:
+    import torch
 
 #: optimizer names of :attr:`TrainConfig.primal_optimizer` / :attr:`TrainConfig.dual_optimizer`
 OPTIMIZERS = ("adam", "sgd")
@@ -77,7 +78,7 @@ class TrainConfig:
         lr_gamma: factor of each step-schedule drop, in (0, 1].
         lr_drops: number of step-schedule drops (at T k / (drops + 1), k = 1..drops), >= 1.
         lr_floor: the cosine schedule's final learning rate as a fraction of the starting one, in [0, 1].
-        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.runtime.device.resolve_device`),
+        device: ``"cpu"`` (default) or ``"cuda[:N]"``; checked here (:func:`saml_ros.core.runtime.device.check_device`),
             so a device that cannot be used fails when the configuration is made, not mid-run.
     """
 
@@ -133,10 +134,12 @@ class TrainConfig:
         for ok, msg in checks:
             if not ok:
                 raise ValueError(msg)
-        resolve_device(self.device)
+        check_device(self.device)
 
     @property
     def torch_dtype(self) -> torch.dtype:
+        import torch
+
         return torch.float32 if self.dtype == "float32" else torch.float64
 
     @property
@@ -181,8 +184,60 @@ class TrainConfig:
 
 def make_optimizer(kind: str, params: list[torch.nn.Parameter], lr: float, maximize: bool) -> torch.optim.Optimizer:
     """The torch optimizer named ``kind`` (one of :data:`OPTIMIZERS`) over ``params``; ``maximize`` for ascent."""
+    import torch
+
     if kind == "adam":
         return torch.optim.Adam(params, lr=lr, maximize=maximize, foreach=True)
     if kind == "sgd":
         return torch.optim.SGD(params, lr=lr, maximize=maximize, foreach=True)
     raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {kind!r}")
+
+
+@dataclass(frozen=True)
+class HealthConfig:
+    """Limits of :class:`~saml_ros.core.training.health.TrainingHealth` (imported from here by that module).
+
+    Attributes:
+        explode_ratio: a minibatch objective or gradient norm this many times its running mean is exploding (> 1).
+        max_weight: a network weight or multiplier larger than this in magnitude is exploding.
+        warmup: healthy steps before the ratio tests apply (their values start the running means).
+        smoothing: weight of the newest healthy step in the running means, in (0, 1].
+        snapshot_every: healthy steps between two snapshots of the healthy state (the plain step).
+        check_every: steps per health check of the fast engine.
+        error_after: consecutive skipped steps from which the learner reports ERROR.
+        rebase_after: consecutive skipped steps after which the running means start again (a new scale).
+    """
+
+    explode_ratio: float = 1e4
+    max_weight: float = 1e6
+    warmup: int = 20
+    smoothing: float = 0.05
+    snapshot_every: int = 10
+    check_every: int = 10
+    error_after: int = 100
+    rebase_after: int = 50
+
+    def __post_init__(self) -> None:
+        if not (self.explode_ratio > 1 and self.max_weight > 0):
+            raise ValueError(f"health: explode_ratio must be > 1 and max_weight > 0, got {self}")
+        if not 0 < self.smoothing <= 1 or min(self.warmup, 0) < 0:
+            raise ValueError(f"health: smoothing must be in (0, 1] and warmup >= 0, got {self}")
+        if min(self.snapshot_every, self.check_every, self.error_after, self.rebase_after) < 1:
+            raise ValueError(f"health: snapshot_every, check_every, error_after and rebase_after must be >= 1, "
+                             f"got {self}")
+
+
+def parse_margin(margin: str | float | None) -> str | float | None:
+    """The ``margin`` option of offline training (:func:`saml_ros.offline.pipelines.train_models`, which
+    re-exports this): ``"auto"``, a fraction of eps in [0, 0.5], or None (``"none"``, 0: no margin); ``ValueError`` otherwise."""
+    if margin is None or (isinstance(margin, str) and margin.strip().lower() in ("none", "off", "0")):
+        return None
+    if isinstance(margin, str) and margin.strip().lower() == "auto":
+        return "auto"
+    try:
+        f = float(margin)
+    except (TypeError, ValueError):
+        raise ValueError(f"margin must be 'auto', 'none' or a fraction of eps in [0, 0.5], got {margin!r}") from None
+    if not 0.0 <= f <= 0.5:
+        raise ValueError(f"margin must be 'auto', 'none' or a fraction of eps in [0, 0.5], got {margin!r}")
+    return None if f == 0.0 else f

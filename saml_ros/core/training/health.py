@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass
 from typing import Any, Protocol
 
 import torch
 
 from msg_schemas.telemetry import TRAINING_SKIP_REASONS
 from saml_ros.core.model.network import DynamicsModel
+from saml_ros.core.training.config import HealthConfig
 from saml_ros.core.training.dual import DualVariables
 
 
@@ -52,40 +52,6 @@ class CheckedRun(Protocol):
 
 #: reasons a step is skipped, in the order the counters are reported
 SKIP_REASONS: tuple[str, ...] = TRAINING_SKIP_REASONS
-
-
-@dataclass(frozen=True)
-class HealthConfig:
-    """Limits of :class:`TrainingHealth`.
-
-    Attributes:
-        explode_ratio: a minibatch objective or gradient norm this many times its running mean is exploding (> 1).
-        max_weight: a network weight or multiplier larger than this in magnitude is exploding.
-        warmup: healthy steps before the ratio tests apply (their values start the running means).
-        smoothing: weight of the newest healthy step in the running means, in (0, 1].
-        snapshot_every: healthy steps between two snapshots of the healthy state (the plain step).
-        check_every: steps per health check of the fast engine.
-        error_after: consecutive skipped steps from which the learner reports ERROR.
-        rebase_after: consecutive skipped steps after which the running means start again (a new scale).
-    """
-
-    explode_ratio: float = 1e4
-    max_weight: float = 1e6
-    warmup: int = 20
-    smoothing: float = 0.05
-    snapshot_every: int = 10
-    check_every: int = 10
-    error_after: int = 100
-    rebase_after: int = 50
-
-    def __post_init__(self) -> None:
-        if not (self.explode_ratio > 1 and self.max_weight > 0):
-            raise ValueError(f"health: explode_ratio must be > 1 and max_weight > 0, got {self}")
-        if not 0 < self.smoothing <= 1 or min(self.warmup, 0) < 0:
-            raise ValueError(f"health: smoothing must be in (0, 1] and warmup >= 0, got {self}")
-        if min(self.snapshot_every, self.check_every, self.error_after, self.rebase_after) < 1:
-            raise ValueError(f"health: snapshot_every, check_every, error_after and rebase_after must be >= 1, "
-                             f"got {self}")
 
 
 def max_abs(tensors: list[torch.Tensor]) -> float:

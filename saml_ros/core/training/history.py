@@ -7,12 +7,14 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.spec import SpecValues
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass
@@ -84,6 +86,8 @@ class TrainingLog:
 
     def point(self, step: int, epoch: float, lam: torch.Tensor) -> None:
         """Append the mean of the values added since the last row (nothing when there are none)."""
+        import torch
+
         if not self._pending:
             return
         obj = torch.stack([v.objective for v in self._pending]).mean(0)

@@ -19,14 +19,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.dynamics import checks as _checks
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
+
+if TYPE_CHECKING:
+    import torch
 
 #: default friction bumps (amplitude m/s^2, centre m, width m): a sticky patch just right of the origin
 #: (inside the |p| <= 0.5 accuracy region) and a broad one at p = -1.2
@@ -134,6 +136,8 @@ class FrictionDoubleIntegrator(System):
 
     def friction_decel(self, p: torch.Tensor) -> torch.Tensor:
         """mu(p): friction deceleration magnitude (m/s^2) at positions ``p`` (any shape, m), > 0."""
+        import torch
+
         mu = torch.full_like(p, self.mu_base)
         for a, c, w in self.bumps:
             mu = mu + a * torch.exp(-(((p - c) / w) ** 2))
@@ -168,10 +172,14 @@ class FrictionDoubleIntegrator(System):
         return self.dt * self.friction_decel(p)
 
     def base_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        import torch
+
         p, v = x[:, 0], x[:, 1]
         return torch.stack((p + self.dt * v, v + self.dt * u[:, 0]), dim=-1)
 
     def true_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        import torch
+
         p, v = x[:, 0], x[:, 1]
         w = v + self.dt * u[:, 0]
         # Soft-thresholding: 0 when |w| <= b(p), else w - b(p) sign(w).

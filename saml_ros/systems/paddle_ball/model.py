@@ -19,14 +19,16 @@ and ``n`` as commanded.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.dynamics import checks as _checks
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
+
+if TYPE_CHECKING:
+    import torch
 
 _STATE = [
     ("px", "m", "ball position x before impact"), ("py", "m", "ball position y before impact"),
@@ -49,6 +51,8 @@ def impact(v_ball: torch.Tensor, v_paddle: torch.Tensor, normal: torch.Tensor, r
 
     ``normal`` is normalised here (commanded normals may be slightly off unit length).
     """
+    import torch
+
     n = normal / torch.linalg.vector_norm(normal, dim=-1, keepdim=True).clamp_min(1e-12)
     v_rel = v_ball - v_paddle
     mirrored = v_rel - 2.0 * n * (n * v_rel).sum(-1, keepdim=True)
@@ -57,6 +61,8 @@ def impact(v_ball: torch.Tensor, v_paddle: torch.Tensor, normal: torch.Tensor, r
 
 def rotate_y(v: torch.Tensor, angle: float) -> torch.Tensor:
     """Rotate vectors ``(..., 3)`` by ``angle`` (rad) about the world y axis."""
+    import torch
+
     c, s = math.cos(angle), math.sin(angle)
     x, y, z = v.unbind(-1)
     return torch.stack((c * x + s * z, y, -s * x + c * z), dim=-1)
@@ -68,12 +74,16 @@ def normal_from_roll_pitch(roll: torch.Tensor, pitch: torch.Tensor) -> torch.Ten
     Roll and pitch (rad) as in ROS RPY with zero yaw. A rotation about y adds to the pitch, so the true
     model's normal bias is ``pitch + normal_bias_y``.
     """
+    import torch
+
     cr = torch.cos(roll)
     return torch.stack((cr * torch.sin(pitch), -torch.sin(roll), cr * torch.cos(pitch)), dim=-1)
 
 
 def roll_pitch_from_normal(n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Inverse of :func:`normal_from_roll_pitch` for ``nz > 0`` (any length); ``(..., 3) -> (...), (...)``."""
+    import torch
+
     nx, ny, nz = n.unbind(-1)
     roll = torch.atan2(-ny, torch.sqrt(nx * nx + nz * nz))
     pitch = torch.atan2(nx, nz)
@@ -86,6 +96,8 @@ def landing_point(p: torch.Tensor, v_post: torch.Tensor, g: float = 9.81) -> tor
 
     Differentiable (the flight time's gradient is 0 for ``vz <= 0``).
     """
+    import torch
+
     t = 2.0 * torch.clamp(v_post[..., 2:3], min=0.0) / g
     return p[..., 0:2] + v_post[..., 0:2] * t
 

@@ -29,10 +29,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.dynamics import checks as _checks
 from saml_ros.core.dynamics.quaternion import (
@@ -44,6 +43,9 @@ from saml_ros.core.dynamics.quaternion import (
 )
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.layout import make_layout
+
+if TYPE_CHECKING:
+    import torch
 
 _STATE = [
     ("px", "m", "position x (world)"), ("py", "m", "position y (world)"), ("pz", "m", "height above ground"),
@@ -73,6 +75,8 @@ def ground_effect_factor(
         h_max: height (m) above which there is no ground effect.
         alpha: maximum added fraction (level, at the ground).
     """
+    import torch
+
     height = torch.clamp(1.0 - h_prop / h_max, 0.0, 1.0)
     tilt = torch.clamp(math.pi / 2 - theta, min=0.0)
     return height * (4.0 / math.pi**2) * tilt**2 * alpha
@@ -182,6 +186,8 @@ class Quadrotor(System):
     # ------------------------------------------------------------------------------------ dynamics
     def euler_step(self, x: torch.Tensor, forces: torch.Tensor) -> torch.Tensor:
         """f_hat with the motor forces actually produced ``forces`` (N, ``(B, 4)``) -> next state ``(B, 13)``."""
+        import torch
+
         p, v, q, w = x[:, 0:3], x[:, 3:6], quat_normalize(x[:, 6:10]), x[:, 10:13]
         f1, f2, f3, f4 = forces.unbind(-1)
         zero = torch.zeros_like(f1)
@@ -198,6 +204,8 @@ class Quadrotor(System):
         return self.euler_step(x, u)
 
     def true_step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        import torch
+
         y = self.euler_step(x, u * (1.0 + self.ground_effect_gain(x)))
         if self.drag == 0.0 and self.wind == 0.0:
             return y
@@ -210,6 +218,8 @@ class Quadrotor(System):
 
     def wind_acceleration(self, x: torch.Tensor) -> torch.Tensor:
         """The wind's acceleration ``a_w(p)`` (m/s^2, world frame; zero vertical part); ``(B, 13) -> (B, 3)``."""
+        import torch
+
         k = 2.0 * math.pi / self.wind_length
         ramp = torch.clamp((x[:, 2] - self.wind_floor) / self.wind_ramp, 0.0, 1.0) * self.wind
         return torch.stack((ramp * torch.sin(k * x[:, 1]), ramp * torch.sin(k * x[:, 0]), torch.zeros_like(ramp)),
@@ -217,6 +227,8 @@ class Quadrotor(System):
 
     def motor_heights(self, x: torch.Tensor) -> torch.Tensor:
         """Height (m) of each propeller above the ground: ``pz + (R(q) r_i)_z``; ``(B, 13) -> (B, 4)``."""
+        import torch
+
         q = quat_normalize(x[:, 6:10])
         qw, qx, qy, qz = q.unbind(-1)
         # Third row of R(q): (R r)_z for r = L * (+-1, 0, 0) or L * (0, +-1, 0).

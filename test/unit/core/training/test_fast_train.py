@@ -4,10 +4,15 @@ Every comparison runs both engines from the same initial weights, data and gener
 same minibatches in the same order. In float64 the two differ only by summation order (about 1e-16 relative;
 Adam can amplify a near-cancelling gradient component, hence the 1e-8 bounds, still far below any algorithmic
 difference, which shows up at 1e-3 or more). In float32, the default, see the tolerances stated per test.
+
+"fast" runs the fused C++ kernel where it is built (test_fused_kernel.py); there the tests below marked so also run the
+fast engine's torch path (``fast_torch``) and check that the kernel equals it: one plain run serves both comparisons,
+which test_fused_kernel.py then does not repeat.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 from typing import Any
 
@@ -20,7 +25,20 @@ from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.spec import ProblemSpec
 from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 from saml_ros.core.training.engines import fast as fast_engine
+from saml_ros.core.training.engines import fused
 from saml_ros.offline.pipelines import evaluate_models
+
+
+def _trainer(
+    spec_dict: dict[str, Any], cfg: TrainConfig, engine: str, n: int = 240, hidden: tuple[int, ...] = (4, 2),
+    e: int = 1, per_member: bool = False, kind: str = "residual",
+) -> tuple[PrimalDualTrainer, Transitions]:
+    """A trainer with ``engine`` and its dataset; the same initial weights, data and seed for every engine."""
+    spec = ProblemSpec.for_system(spec_dict, FRICTION)
+    x, u, y = friction_data(n, list(range(e)) if per_member else None)
+    model = DynamicsModel(FRICTION, hidden, kind, n_models=e, seed=7)
+    model.fit_normalization(x, u, y)
+    return PrimalDualTrainer(model, spec, replace(cfg, engine=engine)), Transitions(model, spec, x, u, y)
 
 
 def _pair(
@@ -28,21 +46,31 @@ def _pair(
     e: int = 1, per_member: bool = False, kind: str = "residual",
 ) -> tuple[PrimalDualTrainer, PrimalDualTrainer, Transitions, Transitions]:
     """Two identical trainers (engine "plain" and "fast") and their datasets."""
-    spec = ProblemSpec.for_system(spec_dict, FRICTION)
-    x, u, y = friction_data(n, list(range(e)) if per_member else None)
-    out = []
-    for engine in ("plain", "fast"):
-        model = DynamicsModel(FRICTION, hidden, kind, n_models=e, seed=7)
-        model.fit_normalization(x, u, y)
-        c = replace(cfg, engine=engine)
-        tr = PrimalDualTrainer(model, spec, c)
-        out.append((tr, Transitions(model, spec, x, u, y)))
-    return out[0][0], out[1][0], out[0][1], out[1][1]
+    (plain, dp), (fast, df) = (_trainer(spec_dict, cfg, engine, n, hidden, e, per_member, kind)
+                               for engine in ("plain", "fast"))
+    return plain, fast, dp, df
+
+
+def _check_torch_path(spec_dict: dict[str, Any], cfg: TrainConfig, plain: PrimalDualTrainer, fast: PrimalDualTrainer,
+                      rtol: float, atol: float, **kw: Any) -> PrimalDualTrainer | None:
+    """Where the fused kernel is built ("fast" ran it): the fast engine's torch path (``fast_torch``) on the same
+    setting, and the kernel equals it too (test_fused_kernel.py's check, made on this file's plain run); ``None``
+    where there is no kernel (then "fast" was the torch path, compared with the plain engine already)."""
+    if fused.load_kernel() is None:
+        return None
+    torch_path, data = _trainer(spec_dict, cfg, "fast_torch", **kw)
+    torch_path.fit(data)
+    assert fast.kernel_used and not torch_path.kernel_used and not plain.kernel_used
+    assert torch_path.engine_used == "fast"
+    torch_path.engine_used = "plain"  # assert_same_run checks the engine names of its pair
+    assert_same_run(torch_path, fast, rtol=rtol, atol=atol)
+    return torch_path
 
 
 @pytest.mark.parametrize("name", sorted(SPECS))
 def test_fast_equals_plain_for_every_loss_and_mean(name: Any) -> None:
-    """~250 steps of Adam (the paper's optimizer) in float64: same weights, lambdas, optimizer state, history."""
+    """~250 steps of Adam (the paper's optimizer) in float64: same weights, lambdas, optimizer state, history (and
+    the kernel's equal to the torch path's, :func:`_check_torch_path`)."""
     cfg = TrainConfig.paper(epochs=8, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
                             log_every=7)
     plain, fast, dp, df = _pair(SPECS[name], cfg)
@@ -53,6 +81,7 @@ def test_fast_equals_plain_for_every_loss_and_mean(name: Any) -> None:
     if name != "uniform":
         assert plain.history.as_arrays()["lambdas"].max() > 0, "the test should exercise an active multiplier"
     assert_same_run(plain, fast, rtol=1e-7, atol=1e-8)
+    _check_torch_path(SPECS[name], cfg, plain, fast, rtol=1e-7, atol=1e-8)
 
 
 @pytest.mark.parametrize(
@@ -101,6 +130,7 @@ def test_float32_paper_setting_matches_to_rounding() -> None:
     fast.fit(df)
     assert plain.steps == 300
     assert_same_run(plain, fast, rtol=1e-4, atol=1e-5)
+    _check_torch_path(SPECS["paper"], cfg, plain, fast, rtol=1e-4, atol=1e-5, n=3000)
 
 
 def test_heldout_metrics_match_after_a_full_short_training() -> None:
@@ -186,12 +216,26 @@ def test_engines_can_be_mixed_and_resumed() -> None:
         assert torch.equal(a, b)
 
 
+@functools.cache
+def _paper_method_lambda(spec_name: str) -> torch.Tensor:
+    """lambda after the plain engine's run of :func:`test_fast_equals_plain_for_every_dual_method`'s setting with
+    the paper's method (Adam on lambda, lr 5e-2): the reference every method is compared with. The paper's method
+    reads none of the other methods' parameters (penalty, nupi_*, relax_cost), so one run per spec serves all."""
+    cfg = TrainConfig.paper(epochs=6, batch_size=8, primal_lr=3e-3, dual_lr=5e-2, dtype="float64", seed=5,
+                            log_every=7)
+    ref, data = _trainer(SPECS[spec_name], cfg, "plain")
+    ref.fit(data)
+    return ref.lam.clone()
+
+
 @pytest.mark.parametrize("method", sorted(METHODS))
 @pytest.mark.parametrize("spec_name", ["paper", "mixed"])
 def test_fast_equals_plain_for_every_dual_method(method: Any, spec_name: Any) -> None:
     """Every dual method in flat form: ~180 steps in float64 with the same bounds as the paper's method (lambda, the
     dual optimizer's state, the history); the methods do move lambda differently from the paper's, but for the
-    Lagrangian, which is the paper's arithmetic under another name."""
+    Lagrangian, which is the paper's arithmetic under another name.
+
+    Where the fused kernel is built, the kernel also equals the torch path (:func:`_check_torch_path`)."""
     cfg = TrainConfig.paper(**{"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
                                "seed": 5, "log_every": 7, **METHODS[method]})
     plain, fast, dp, df = _pair(SPECS[spec_name], cfg)
@@ -200,34 +244,38 @@ def test_fast_equals_plain_for_every_dual_method(method: Any, spec_name: Any) ->
     fast.fit(df)
     assert plain.history.as_arrays()["lambdas"].max() > 0
     assert_same_run(plain, fast, rtol=1e-7, atol=1e-8)
-    ref, _, dr, _ = _pair(SPECS[spec_name], replace(cfg, dual_method="paper", dual_optimizer="adam", dual_lr=5e-2))
-    ref.fit(dr)
+    _check_torch_path(SPECS[spec_name], cfg, plain, fast, rtol=1e-7, atol=1e-8)
+    ref_lam = _paper_method_lambda(spec_name)
     if method == "lagrangian":
-        assert torch.equal(ref.lam, plain.lam)
+        assert torch.equal(ref_lam, plain.lam)
     else:
-        assert float((ref.lam - plain.lam).abs().max()) > 1e-3  # the method changed the run
+        assert float((ref_lam - plain.lam).abs().max()) > 1e-3  # the method changed the run
 
 
 @pytest.mark.parametrize("schedules", [("cosine", "cosine"), ("step", "step"), ("cosine", "constant"),
                                        ("constant", "step")])
-@pytest.mark.parametrize("method", ["paper", "lagrangian", "nupi", "augmented"])
+@pytest.mark.parametrize("method", ["paper", "lagrangian", "nupi", "augmented", "resilient"])
 def test_fast_equals_plain_under_learning_rate_schedules(schedules: Any, method: Any) -> None:
     """Schedules in both engines: the same rates per update (equal schedules keep the dual Adam merged into the
     primal flat tensor, different ones do not; the augmented Lagrangian's SGD step is the penalty times the dual
     schedule's factor), a horizon of the run's own length, and the optimizers' final learning rates are the last
-    update's."""
+    update's.
+
+    Where the fused kernel is built, the kernel also equals the torch path (:func:`_check_torch_path`)."""
     primal, dual = schedules
     cfg = TrainConfig.paper(**{"epochs": 6, "batch_size": 8, "primal_lr": 3e-3, "dual_lr": 5e-2, "dtype": "float64",
-                               "seed": 5, "primal_schedule": primal, "dual_schedule": dual, "lr_floor": 0.1,
-                               "lr_drops": 3, **({} if method == "paper" else METHODS[method])})
+                               "seed": 5, "log_every": 7, "primal_schedule": primal, "dual_schedule": dual,
+                               "lr_floor": 0.1, "lr_drops": 3, **({} if method == "paper" else METHODS[method])})
     plain, fast, dp, df = _pair(SPECS["paper"], cfg)
     plain.fit(dp)
     fast.fit(df)
     run = fast_engine.FastRun(fast, df)
-    assert (run.k_dual is not None) == (method in ("paper", "lagrangian") and primal == dual)
+    # the methods whose lambda an Adam moves (nuPI has its controller, the augmented Lagrangian its SGD step)
+    assert (run.k_dual is not None) == (method in ("paper", "lagrangian", "resilient") and primal == dual)
     assert_same_run(plain, fast, rtol=1e-7, atol=1e-8)
     steps = plain.steps
-    for tr in (plain, fast):
+    torch_path = _check_torch_path(SPECS["paper"], cfg, plain, fast, rtol=1e-7, atol=1e-8)
+    for tr in (plain, fast) if torch_path is None else (plain, fast, torch_path):
         assert tr.schedules is not None
         ps, ds = tr.schedules
         assert ps.horizon == steps  # epochs x minibatches per epoch
