@@ -391,8 +391,9 @@ class MPCService:
             return self._safe("bounds", f"implausible state ({why})")
         try:
             goal = self.goal(x, stamp, self.controller.horizon, now_ns) if callable(self.goal) else self.goal
+            task_rollbacks = self.guarded.counters["task_rollbacks"] if self.guarded is not None else 0
             res = self.controller.solve(x, goal)
-            if self.guarded is not None and self.guarded.tag != self.model_version:  # the task check rolled back
+            if self.guarded is not None and self.guarded.counters["task_rollbacks"] > task_rollbacks:
                 self._rolled_back(self.model_version, self.guarded.task_check.describe_verdict())
         except Exception as exc:  # noqa: BLE001 - never leave the simulator without an answer
             self.counters["solver_errors"] += 1
