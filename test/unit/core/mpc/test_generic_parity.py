@@ -25,6 +25,7 @@ from saml_ros.user_code import load_system_file
 
 REPO = Path(__file__).resolve().parents[4]
 EXAMPLE = REPO / "examples" / "diff_drive" / "system.yaml"
+pytestmark = pytest.mark.usefixtures("restore_registry")  # the robots these tests load are registered by name
 
 
 def _starts(system: Quadrotor) -> list[np.ndarray]:
