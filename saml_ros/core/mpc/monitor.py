@@ -239,8 +239,9 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             path = found[0]
         _, meta = read_checkpoint(path)
-        scale = data_scale(meta)
-        margin = config.margin + config.margin_relative * (scale if math.isfinite(scale) else 0.0)
+        monitor = LiveErrorMonitor(config)
+        monitor.data_scale = scale = data_scale(meta)
+        margin = monitor.margin
         print(f"{path}: f_hat's mean squared one-step error over the model's data {scale:.4g}; margin "
               f"{margin:.4g} (guard.margin_relative {config.margin_relative:g} x that + guard.margin {config.margin:g})"
               + ("" if math.isfinite(scale) else "; no evidence: the live transitions set the scale"))
