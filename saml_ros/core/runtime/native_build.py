@@ -9,8 +9,13 @@ between machines never loads a build made for another CPU.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import platform
+import subprocess
+import tempfile
+import time
+from collections.abc import Sequence
 from pathlib import Path
 
 
@@ -32,3 +37,32 @@ def cache_root() -> Path:
         return Path(env)
     xdg = os.environ.get("XDG_CACHE_HOME")
     return (Path(xdg) if xdg else Path.home() / ".cache") / "saml_ros" / "fused_kernel"
+
+
+def build_locked(cc: str, source: Path, so: Path, lock_name: str, cflags: Sequence[str],
+                 timeout: float) -> float | None:
+    """Compile the C file ``source`` with ``cc`` into the shared library ``so`` unless it exists, under an exclusive
+    lock ``so.parent / lock_name`` (several processes may start at once; the lock file is writable by every user of
+    a shared cache), written to a temporary file and moved into place (a reader never loads half a library).
+    Returns the build's seconds, None when ``so`` already existed. Raises RuntimeError when the compiler fails."""
+    with open(so.parent / lock_name, "a") as lock:
+        try:
+            os.fchmod(lock.fileno(), 0o666)  # a cache shared between users: all of them may build
+        except OSError:
+            pass
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if so.is_file():
+            return None
+        t0 = time.perf_counter()
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=so.parent)
+        os.close(fd)
+        try:
+            run = subprocess.run([cc, *cflags, "-o", tmp, str(source), "-lm"], capture_output=True, text=True,
+                                 timeout=timeout)
+            if run.returncode != 0:
+                raise RuntimeError(f"{cc} failed: {run.stderr.strip()[:500]}")
+            os.chmod(tmp, 0o755)  # mkstemp's 0600 would keep other users of a shared cache out
+            os.replace(tmp, so)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+        return time.perf_counter() - t0

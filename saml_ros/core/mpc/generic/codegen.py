@@ -14,18 +14,15 @@ function (CasADi's virtual machine: the same numbers, slower) and the reason, wh
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import os
-import subprocess
 import tempfile
-import time
 import warnings
 from pathlib import Path
 from typing import Any
 
 from saml_ros.core.mpc.shooting.native import _compiler, switched_off
-from saml_ros.core.runtime.native_build import cache_root, cpu_id
+from saml_ros.core.runtime.native_build import build_locked, cache_root, cpu_id
 
 #: the flags of the generated code (no ``-march=native``: plain arithmetic, and a smaller hash surface)
 CFLAGS = ("-O2", "-fPIC", "-shared")
@@ -56,22 +53,17 @@ def compiled(fns: list[Any], name: str) -> tuple[list[Any], str | None]:
             for f in fns:
                 gen.add(f)
             gen.generate(tmp + os.sep)
-            source = Path(tmp, f"{name}.c").read_text()
-        root = cache_root()
-        root.mkdir(parents=True, exist_ok=True)
-        so = root / build_name(source, name)
-        if not so.is_file():
-            cc = _compiler()
-            if cc is None:
-                raise RuntimeError("no C compiler (cc, or $CC) on PATH")
-            with open(root / "casadi_codegen.lock", "a") as lock:
-                try:
-                    os.fchmod(lock.fileno(), 0o666)
-                except OSError:
-                    pass
-                fcntl.flock(lock, fcntl.LOCK_EX)
-                if not so.is_file():
-                    _build(cc, source, so)
+            src = Path(tmp, f"{name}.c")
+            root = cache_root()
+            root.mkdir(parents=True, exist_ok=True)
+            so = root / build_name(src.read_text(), name)
+            if not so.is_file():
+                cc = _compiler()
+                if cc is None:
+                    raise RuntimeError("no C compiler (cc, or $CC) on PATH")
+                seconds = build_locked(cc, src, so, "casadi_codegen.lock", CFLAGS, timeout=600)
+                if seconds is not None:
+                    COMPILE_SECONDS.append(seconds)
         return [ca.external(f.name(), str(so)) for f in fns], None
     except Exception as exc:  # noqa: BLE001 - any build or load problem: the symbolic functions
         why = f"{type(exc).__name__}: {exc}"[:400]
@@ -82,15 +74,3 @@ def compiled(fns: list[Any], name: str) -> tuple[list[Any], str | None]:
         return fns, why
 
 
-def _build(cc: str, source: str, so: Path) -> None:
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
-        src, out = Path(tmp, "gen.c"), Path(tmp, "gen.so")
-        src.write_text(source)
-        run = subprocess.run([cc, *CFLAGS, "-o", str(out), str(src), "-lm"], capture_output=True, text=True,
-                             timeout=600)
-        if run.returncode != 0:
-            raise RuntimeError(f"{cc} failed: {run.stderr.strip()[:500]}")
-        os.chmod(out, 0o755)  # a cache shared between users
-        os.replace(out, so)
-    COMPILE_SECONDS.append(time.perf_counter() - t0)

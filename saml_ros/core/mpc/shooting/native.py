@@ -25,20 +25,16 @@ under a file lock), and loads it with ctypes. No compiler, or ``SAML_MPC_NATIVE=
 from __future__ import annotations
 
 import ctypes
-import fcntl
 import hashlib
 import os
 import shutil
-import subprocess
-import tempfile
-import time
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from saml_ros.core.runtime.native_build import cache_root, cpu_id
+from saml_ros.core.runtime.native_build import build_locked, cache_root, cpu_id
 
 #: the kernel's source (package data)
 SOURCE = Path(__file__).resolve().parent / "kernels" / "sqp_native.c"
@@ -136,26 +132,9 @@ def load_library() -> ctypes.CDLL | None:
             cc = _compiler()
             if cc is None:
                 raise RuntimeError("no C compiler (cc, or $CC) on PATH")
-            with open(root / "sqp_native.lock", "a") as lock:
-                try:
-                    os.fchmod(lock.fileno(), 0o666)  # a cache shared between users: all of them may build
-                except OSError:
-                    pass
-                fcntl.flock(lock, fcntl.LOCK_EX)
-                if not so.is_file():
-                    t0 = time.perf_counter()
-                    fd, tmp = tempfile.mkstemp(suffix=".so", dir=root)
-                    os.close(fd)
-                    try:
-                        run = subprocess.run([cc, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"], capture_output=True,
-                                             text=True, timeout=120)
-                        if run.returncode != 0:
-                            raise RuntimeError(f"{cc} failed: {run.stderr.strip()[:500]}")
-                        os.chmod(tmp, 0o755)  # mkstemp's 0600 would keep other users of a shared cache out
-                        os.replace(tmp, so)
-                        _STATE.seconds = time.perf_counter() - t0
-                    finally:
-                        Path(tmp).unlink(missing_ok=True)
+            seconds = build_locked(cc, SOURCE, so, "sqp_native.lock", CFLAGS, timeout=120)
+            if seconds is not None:
+                _STATE.seconds = seconds
         _STATE.lib = _declare(ctypes.CDLL(str(so)))
         _STATE.reason = None
     except Exception as exc:  # noqa: BLE001 - any build or load problem means: the numpy path
