@@ -383,8 +383,8 @@ class GuardedController:
                 if self.last_source == "learned":
                     self.counters["solves_base"] += 1
                 self.last_source = "base"
-                if self.shooting and np.all(np.isfinite(own.plan_x)):
-                    self.learned.set_warm_start(own.plan_u, own.plan_x)
+                if self.shooting:
+                    _hand_over(own, self.learned)
                 res = own
         if self.task_check.add(strike):
             self.counters["rollbacks"] += 1
@@ -406,21 +406,20 @@ class GuardedController:
             res = self.learned.solve(x0, goal)
             if self._active.ensemble is not None and self._too_uncertain(res.plan_x, res.plan_u):
                 self.counters["fallbacks"] += 1
-                if np.all(np.isfinite(res.plan_x)):
-                    self.base.set_warm_start(res.plan_u, res.plan_x)
+                _hand_over(res, self.base)
                 use_learned = False
             elif self.config.infeasible and not res.success and not res.unavoidable:
                 base = self._infeasible_fallback(x0, goal, res)
                 if base is not None:
                     self.last_source = "base"
                     return base
-            elif self.shooting and np.all(np.isfinite(res.plan_x)):
-                self.base.set_warm_start(res.plan_u, res.plan_x)
+            elif self.shooting:
+                _hand_over(res, self.base)
         if not use_learned:
             self.counters["solves_base"] += 1
             res = self.base.solve(x0, goal)
-            if self.shooting and np.all(np.isfinite(res.plan_x)):
-                self.learned.set_warm_start(res.plan_u, res.plan_x)
+            if self.shooting:
+                _hand_over(res, self.learned)
         elif self._active.bound is not None and self._clipped(res):
             self.counters["clipped"] += 1
         self.last_source = "learned" if use_learned else "base"
@@ -430,13 +429,11 @@ class GuardedController:
         """The learned plan ``learned`` violates a constraint a control could keep: f_hat's plan from ``x0``
         (warm-started from the learned plan) when it keeps the constraints or violates them less (counted
         ``infeasible_fallbacks``), else None (fly the learned plan)."""
-        if np.all(np.isfinite(learned.plan_x)):
-            self.base.set_warm_start(learned.plan_u, learned.plan_x)
+        _hand_over(learned, self.base)
         base = self.base.solve(x0, goal)
         if not (base.success or base.constraint_violation < learned.constraint_violation):
             return None
-        if np.all(np.isfinite(base.plan_x)):
-            self.learned.set_warm_start(base.plan_u, base.plan_x)
+        _hand_over(base, self.learned)
         self.counters["infeasible_fallbacks"] += 1
         self.counters["solves_base"] += 1
         return base
@@ -582,6 +579,13 @@ class GuardedController:
             "live_error_model": self.live_error_model,
             "live_error_base": self.live_error_base,
         }
+
+
+def _hand_over(res: MPCResult, to: Any) -> None:
+    """Warm-start the planner ``to`` from the plan ``res`` (when its states are finite): the guard's two planners
+    start each solve from the plan last flown, whichever of them made it."""
+    if np.all(np.isfinite(res.plan_x)):
+        to.set_warm_start(res.plan_u, res.plan_x)
 
 
 def make_guarded_controller(system: System, solver: str = "fast", config: GuardConfig | None = None,
