@@ -79,14 +79,15 @@ def _paired(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def docking_runs(system: object, model: object, runs: int, steps: int, seed: int,
-                 explore: float = 0.1, max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 explore: float = 0.1, max_iter: int | None = None,
+                 ensemble: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
     evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
     ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
     from saml_ros.core.mpc.generic import GenericSQP
 
     rng = np.random.default_rng(seed)
-    ctrl = GenericSQP(system, model, max_iter=max_iter)  # type: ignore[arg-type]
+    ctrl = GenericSQP(system, model, max_iter=max_iter, ensemble=ensemble)  # type: ignore[arg-type]
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
     ys: list[np.ndarray] = []
@@ -123,12 +124,14 @@ def with_pose_constraint(spec: dict, eps: float) -> dict:
 
 
 def train(system: object, spec: object, x: np.ndarray, u: np.ndarray, y: np.ndarray, seed: int,
-          epochs: int) -> object:
-    """A residual model of the file's network on ``(x, u, y)`` with the file's spec (float64 for planning)."""
+          epochs: int, members: int = 1) -> object:
+    """A residual model of the file's network on ``(x, u, y)`` with the file's spec (float64 for planning); an
+    ensemble of ``members`` networks (independent initialisations, one pass) for ``members > 1``."""
     from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
-    model = DynamicsModel(system, tuple(system.paper_hidden), "residual", seed=seed)  # type: ignore[attr-defined]
+    model = DynamicsModel(system, tuple(system.paper_hidden), "residual", n_models=members,  # type: ignore[attr-defined]
+                          seed=seed)
     model.fit_normalization(x, u, y)
     trainer = PrimalDualTrainer(model, spec, TrainConfig.paper(epochs=epochs, batch_size=256, primal_lr=3e-3,
                                                                seed=seed))
@@ -145,11 +148,26 @@ def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Na
     for r in range(args.rounds):
         if args.dock_runs:
             parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r,
-                                      max_iter=args.max_iter))
+                                      max_iter=args.max_iter, ensemble=_ensemble_option(args)))
         x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
-        model = train(system, spec, x, u, y, seed, args.epochs)
+        model = train(system, spec, x, u, y, seed, args.epochs, getattr(args, "ensemble", 1))
         log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
     return model, (x, u, y)
+
+
+def _ensemble_option(args: argparse.Namespace) -> str | None:
+    """The planner's ``ensemble`` solver option for ``--ensemble``: the members' mean for an ensemble."""
+    return "mean" if getattr(args, "ensemble", 1) > 1 else None
+
+
+def _predict(model: object) -> object:
+    """``(x, u) -> next x`` of ``model`` as the planner predicts: an ensemble by the mean of its members."""
+    n = int(getattr(model, "n_models", 1))
+
+    def predict(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.mean([model.predict_np(x, u, i) for i in range(n)], axis=0)  # type: ignore[attr-defined]
+
+    return predict
 
 
 def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, np.ndarray]) -> str:
@@ -167,7 +185,7 @@ def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, 
         rows.append((x, u, _paired(x, sim.state())))
     xs, us, ys = (np.array([r[i] for r in rows]) for i in range(3))
     base = system.base_step_np(xs, us)  # type: ignore[attr-defined]
-    learned = model.predict_np(xs, us)  # type: ignore[attr-defined]
+    learned = _predict(model)(xs, us)  # type: ignore[operator]
     slide = np.mean([dynamics.slide_speed(float(a[0]), float(a[1]), dynamics.RAMP_SLIDE) for a in xs]) * 0.02
     lines = ["one-step error at the dock, held at rest against the slide (200 states; fields x, y (mm), yaw (mrad), "
              "v (mm/s), w (mrad/s)):",
@@ -215,7 +233,7 @@ def horizon_errors(system: object, model: object, steps: int = 20) -> str:
             for u in us:
                 sim.step(u, 0.02)
             true = sim.state()
-            for label, step in (("f_hat", system.base_step_np), ("learned", model.predict_np)):  # type: ignore[attr-defined]
+            for label, step in (("f_hat", system.base_step_np), ("learned", _predict(model))):  # type: ignore[attr-defined]
                 x = x0[None].copy()
                 for u in us:
                     x = step(x, u[None])
@@ -241,6 +259,9 @@ def main() -> int:
                    help="SQP iterations per control step of every planner (docking runs and evaluation); 1 = the "
                         "real-time iteration; default: the file's solver_options")
     p.add_argument("--unguarded", action="store_true", help="fly the bare planner (no guard, no acceptance)")
+    p.add_argument("--ensemble", type=int, default=1,
+                   help="members of each learned model (one training pass); > 1: every planner with a learned model "
+                        "plans the members' mean (solver option ensemble: mean)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
@@ -253,7 +274,9 @@ def main() -> int:
     t0 = time.perf_counter()
     system = load_system_file(HERE / "system.yaml")
     spec = ProblemSpec.for_system(with_pose_constraint(system.paper_spec(), args.pose_eps), system)
-    planner = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    planner: dict[str, object] = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    if _ensemble_option(args):
+        planner["ensemble"] = _ensemble_option(args)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)

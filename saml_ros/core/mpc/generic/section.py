@@ -64,7 +64,7 @@ _CONSTRAINT_KINDS = ("box", "norm", "keep_out")
 PLANNERS = ("sqp", "ipopt")
 PLANNER_OPTIONS: dict[str, frozenset[str]] = {
     "sqp": frozenset({"max_iter", "tol", "max_time", "rho0", "lm_floor", "feas_tol", "qp_backend", "smoothing",
-                      "penalty_max", "undamped_check", "compile"}),
+                      "penalty_max", "undamped_check", "compile", "ensemble"}),
     "ipopt": frozenset({"max_iter", "tol", "max_time", "feas_tol", "linear_solver", "smoothing"}),
 }
 #: what ``rate`` accepts besides a number of Hz: answer every state

@@ -45,6 +45,8 @@ from saml_ros.core.mpc.generic.section import MPCTask, mpc_task
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 
 _ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+#: values of the solver option ``ensemble``: which network of an ensemble the planner predicts with
+ENSEMBLE_MODES = ("member", "mean")
 _NO_G, _NO_ROWS = np.zeros((0, 0)), np.zeros(0)
 
 
@@ -82,6 +84,9 @@ class GenericSQP:
             cached; :mod:`~saml_ros.core.mpc.generic.codegen`; without a compiler CasADi's virtual machine or numpy
             computes the same numbers, and ``describe`` says why) (False).
         qp_backend: ``daqp`` or ``ipm`` (:func:`~saml_ros.core.mpc.shooting.qp.solve_qp`).
+        ensemble: ``member`` (plan with ensemble member ``member``, the default) or ``mean`` (plan with the mean of
+            all the members, :class:`~saml_ros.core.mpc.generic.dynamics.EnsembleMeanMLP`; a one-member model is
+            planned as itself).
         The solver options not given here come from the section's ``mpc.solver_options``.
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
             controller; not used (this planner builds f_hat from the system file, :func:`make_base`).
@@ -94,7 +99,8 @@ class GenericSQP:
                  tol: float | None = None, max_time: float | None = None, rho0: float | None = None,
                  lm_floor: float | None = None, feas_tol: float | None = None, qp_backend: str | None = None,
                  smoothing: float | None = None, penalty_max: float | None = None,
-                 undamped_check: bool | None = None, compile: bool | None = None, base: Any = None,
+                 undamped_check: bool | None = None, compile: bool | None = None, ensemble: str | None = None,
+                 base: Any = None,
                  true: Any = None,
                  f_hat: SymbolicBase | TorchBase | None = None) -> None:
         self.system = system
@@ -105,7 +111,7 @@ class GenericSQP:
         self.n, self.m = system.state.size, system.control.size
         opt = _options(self.task, max_iter=max_iter, tol=tol, max_time=max_time, rho0=rho0, lm_floor=lm_floor,
                        feas_tol=feas_tol, qp_backend=qp_backend, smoothing=smoothing, penalty_max=penalty_max,
-                       undamped_check=undamped_check, compile=compile)
+                       undamped_check=undamped_check, compile=compile, ensemble=ensemble)
         self.smoothing = float(opt.get("smoothing", 0.0))
         self.max_iter, self.tol = int(opt.get("max_iter", 15)), float(opt.get("tol", 1e-4))
         self.max_time = None if opt.get("max_time") is None else float(opt["max_time"])
@@ -118,6 +124,12 @@ class GenericSQP:
         self.penalty_max = max(float(opt.get("penalty_max", self.penalty)), self.penalty)
         self.undamped_check = _flag(opt.get("undamped_check", True), "undamped_check")
         self.compile = _flag(opt.get("compile", False), "compile")
+        mode = str(opt.get("ensemble", "member")).strip().lower()
+        if mode not in ENSEMBLE_MODES:
+            raise ValueError(f"{system.name} MPC: solver option ensemble must be one of {list(ENSEMBLE_MODES)}, "
+                             f"got {opt.get('ensemble')!r}")
+        #: plan with the mean of the ensemble's members (solver option ``ensemble: mean``)
+        self.plans_mean = mode == "mean"
         self._fixed = np.zeros(0, dtype=bool)
         pb = self.problem
         #: the bounds of U, the control residuals' Gauss-Newton Hessian and the identity, ``(T m,)``/``(T m, T m)``
@@ -145,14 +157,14 @@ class GenericSQP:
         self.model = model
         self._bound = None
         self.dyn = GenericDynamics(self.system, self._base, model, self.member, smoothing=self.smoothing,
-                                   compile=self.compile)
+                                   compile=self.compile, ensemble_mean=self.plans_mean)
         self.dyn.prepare(self.horizon)
 
     def set_residual_bound(self, bound: np.ndarray | None) -> None:
         """Clip phi to ``+-bound`` ``(n,)`` per field (the guard's ``bound_residual``); None = unclipped."""
         self._bound = None if bound is None else np.asarray(bound, dtype=np.float64)
         self.dyn = GenericDynamics(self.system, self._base, self.model, self.member, self._bound, self.smoothing,
-                                   self.compile)
+                                   self.compile, self.plans_mean)
         self.dyn.prepare(self.horizon)
 
     def phi_clipped(self, res: MPCResult) -> bool:
