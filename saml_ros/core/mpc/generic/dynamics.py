@@ -265,20 +265,24 @@ class GenericDynamics:
             stay exact; 0 = the exact Jacobians).
         ensemble_mean: plan with the mean of all the ensemble's members (:class:`EnsembleMeanMLP`; ``member`` is
             then unused); a model of one member is planned as itself.
+        with_members: keep the members of an ensemble at hand for :meth:`deviations` (the planner's disagreement
+            cost) also when one member is planned.
     """
 
     def __init__(self, system: System, base: SymbolicBase | TorchBase, model: DynamicsModel | None = None,
                  member: int = 0, bound: np.ndarray | None = None, smoothing: float = 0.0,
-                 compile: bool = False, ensemble_mean: bool = False) -> None:
+                 compile: bool = False, ensemble_mean: bool = False, with_members: bool = False) -> None:
         self.system = system
         self.compile = bool(compile)
         self.base = base
         self.kind = "base" if model is None else model.kind
         mlp: Any = None
-        #: the members' mean (None: one member planned)
+        #: the ensemble's members (None: a model of one member, or neither planned by their mean nor asked for)
         self.ensemble: EnsembleMeanMLP | None = None
-        if model is not None and ensemble_mean and model.n_models > 1:
-            mlp = self.ensemble = EnsembleMeanMLP(model, smoothing)
+        if model is not None and model.n_models > 1 and (ensemble_mean or with_members):
+            self.ensemble = EnsembleMeanMLP(model, smoothing)
+        if self.ensemble is not None and ensemble_mean:
+            mlp = self.ensemble
         elif model is not None:
             mlp = NumpyMLP(model, member)
             if smoothing > 0:
@@ -423,6 +427,24 @@ class GenericDynamics:
             xs[:, t + 1] = self.step(xs[:, t], us[:, t])
         return xs
 
+    def deviations(self, xs: np.ndarray, us: np.ndarray) -> np.ndarray | None:
+        """Each member's phi minus the members' mean at states ``xs (B, n)`` and controls ``us (B, m)`` (angle
+        fields wrapped as the model sees them, unclipped): ``(E, B, n)``; None without :attr:`ensemble`."""
+        if self.ensemble is None:
+            return None
+        xw, _ = self._wrap(np.asarray(xs, dtype=np.float64))
+        phi = self.ensemble.members_forward(xw, np.asarray(us, dtype=np.float64))
+        return phi - phi.mean(0, keepdims=True)
+
+    def deviations_jac(self, xs: np.ndarray, us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`deviations` and their Jacobians ``(E, B, n)``, ``(E, B, n, n)``, ``(E, B, n, m)`` (with
+        ``smoothing``, the members' kinks rounded as the planner's model's are); None without :attr:`ensemble`."""
+        if self.ensemble is None:
+            return None
+        xw, _ = self._wrap(np.asarray(xs, dtype=np.float64))
+        phi, jx, ju = self.ensemble.members_jac(xw, np.asarray(us, dtype=np.float64))
+        return (phi - phi.mean(0, keepdims=True), jx - jx.mean(0, keepdims=True), ju - ju.mean(0, keepdims=True))
+
     def clipped(self, xs: np.ndarray, us: np.ndarray) -> bool:
         """Whether the residual bound clips phi anywhere along states ``xs (T, n)`` and controls ``us (T, m)``."""
         if self.bound is None or self.mlp is None:
@@ -434,8 +456,8 @@ class GenericDynamics:
         """Which f_hat and phi this is and how they are differentiated (for /diagnostics)."""
         phi = {"base": "no phi (f_hat alone)", "residual": "phi: numpy PReLU network (exact Jacobians)",
                "full": "phi alone (full model), numpy PReLU network"}[self.kind]
-        if self.ensemble is not None:
-            phi += f", the mean of the ensemble's {self.ensemble.n_models} members"
+        if isinstance(self.mlp, EnsembleMeanMLP):
+            phi += f", the mean of the ensemble's {self.mlp.n_models} members"
         bound = ", phi clipped to the residual bound" if self.bound is not None else ""
         if self.smoothing > 0:
             bound += f", its Jacobians with the PReLU kinks rounded by {self.smoothing:g}"
