@@ -24,9 +24,14 @@ training runs') beside the base model f_hat and the oracle (the same planner on 
 section (``--max-iter 1``: every planner, docking runs included, takes one SQP step per control step, the real-time
 iteration); the statistics use the seed as the unit; results.md and results.json go to ``-o``.
 
+``--ensemble N``: each learned model is an ensemble of N networks (one training pass, different initialisations),
+and every planner with a learned model (docking runs and evaluation) plans the members' mean (the generic planner's
+solver option ``ensemble: mean``, docs/mpc.md).
+
 ``--diagnose``: instead, the measurements behind this set-up for one seed: the one-step error of f_hat and of the
 learned model at the dock (held at rest against the slide) beside the slide's own step, its mean (bias) per field,
-and how many training transitions are near the dock at rest.
+the 20-step (horizon) errors driving straight and weaving (:func:`horizon_errors`) and on held-out docking runs
+under the planner with the model (:func:`kstep_errors`), and how many training transitions are near the dock at rest.
 """
 
 from __future__ import annotations
@@ -170,7 +175,8 @@ def _predict(model: object) -> object:
     return predict
 
 
-def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, np.ndarray]) -> str:
+def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, np.ndarray],
+             **planner: object) -> str:
     """The measurements behind the set-up (module docstring, ``--diagnose``) as text."""
     rng = np.random.default_rng(5)
     rows = []
@@ -207,10 +213,62 @@ def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, 
     e = base + h - ys
     lines.append(f"  learned, values rounded by 0.2 too: mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
     lines.append(horizon_errors(system, model))
+    lines.append(kstep_errors(system, model, **planner))
     x, u, _ = data
     near = (np.abs(x[:, 0] - 1.5) < 0.1) & (np.abs(x[:, 1]) < 0.1) & (np.abs(x[:, 3]) < 0.05)
     lines.append(f"training transitions within 0.1 m of the dock at rest (|v| < 0.05 m/s): {int(near.sum())} of "
                  f"{len(x)}")
+    return "\n".join(lines)
+
+
+def kstep_errors(system: object, model: object, steps: int = 20, runs: int = 4, run_steps: int = 300,
+                 seed: int = 7, **planner: object) -> str:
+    """The ``steps``-step prediction error (the MPC's horizon, open loop under the commands the robot was really
+    given) on held-out stretches: ``runs`` docking runs under the planner with ``model`` (new starts, no training
+    run's), every window of ``steps`` steps of each; the error of the final position along the dock's axis (x:
+    over-predicted progress is what the planner exploits) and across it, for f_hat, the model as planned (an
+    ensemble by its mean) and each member, split by how much the window's commands turn (mean |w_cmd| below or
+    above 0.5 rad/s: straight or weaving)."""
+    from saml_ros.core.mpc.generic import GenericSQP
+
+    ctrl = GenericSQP(system, model, **planner)  # type: ignore[arg-type]
+    n_members = int(getattr(model, "n_models", 1))
+    labels = ["f_hat", "model"] + ([f"member {i}" for i in range(n_members)] if n_members > 1 else [])
+    preds = {"f_hat": system.base_step_np, "model": _predict(model)}  # type: ignore[attr-defined]
+    for i in range(n_members if n_members > 1 else 0):
+        preds[f"member {i}"] = (lambda i: lambda x, u: model.predict_np(x, u, i))(i)  # type: ignore[attr-defined]
+    errs: dict[str, dict[str, list[np.ndarray]]] = {k: {"straight": [], "weaving": []} for k in labels}
+    for x0 in dynamics.sample_approach_starts(runs, np.random.default_rng(seed)):
+        ctrl.reset()
+        sim = dynamics.make_robot_on_ramp(x0)
+        xs, us = [sim.state()], []
+        for _ in range(run_steps):
+            u = ctrl.solve(xs[-1]).u
+            sim.step(u, 0.02)
+            us.append(u)
+            xs.append(sim.state())
+        xa, ua = np.array(xs), np.array(us)
+        starts = np.arange(0, run_steps - steps + 1)
+        kind = np.where(np.array([np.abs(ua[i:i + steps, 1]).mean() for i in starts]) > 0.5, "weaving", "straight")
+        for label in labels:
+            x = xa[starts].copy()
+            for t in range(steps):
+                x = preds[label](x, ua[starts + t])  # type: ignore[operator]
+            e = x[:, :2] - xa[starts + steps, :2]
+            for k in ("straight", "weaving"):
+                errs[label][k].append(e[kind == k])
+    lines = [f"{steps}-step prediction error on held-out docking runs under the planner with this model ({runs} runs x "
+             f"{run_steps} steps, every window; final x (along the dock's axis) and y, mm, model - true: mean "
+             "(RMS)):"]
+    for k in ("straight", "weaving"):
+        n = sum(len(a) for a in errs["f_hat"][k])
+        parts = []
+        for label in labels:
+            e = np.concatenate(errs[label][k]) if n else np.zeros((0, 2))
+            if len(e):
+                m, r = 1e3 * e.mean(0), 1e3 * np.sqrt((e ** 2).mean(0))
+                parts.append(f"{label} x {m[0]:+.2f} ({r[0]:.2f}), y {m[1]:+.2f} ({r[1]:.2f})")
+        lines.append(f"  {k} ({n} windows): " + ("; ".join(parts) if parts else "none"))
     return "\n".join(lines)
 
 
@@ -280,7 +338,7 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)
-        text = diagnose(system, model, data)
+        text = diagnose(system, model, data, **planner)
         (args.out / "diagnose.txt").write_text(text + "\n")
         print(text)
         return 0
