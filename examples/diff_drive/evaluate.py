@@ -321,6 +321,8 @@ def main() -> int:
                    help="members of each learned model (one training pass); > 1: every planner with a learned model "
                         "plans the members' mean (solver option ensemble: mean)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
+    p.add_argument("--save-models", action="store_true",
+                   help="also write each trained model's weights to -o (seed<i>.pt, a torch state dict)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -350,6 +352,8 @@ def main() -> int:
             print(f"seed {seed}: the MPC node would refuse this model ({refused[0]}: {refused[1]}); it flies f_hat")
             model = None
         models[f"seed{seed}"] = model
+        if args.save_models and model is not None:
+            torch.save(model.state_dict(), args.out / f"seed{seed}.pt")  # type: ignore[attr-defined]
         # the checkpoint's evidence the learner would write: the guard's monitor scales its margin by it
         evidence = DataEvidence.from_data(system, x, u, y)
         metas[f"seed{seed}"] = {} if evidence is None else {"evidence": evidence.to_payload(tuple(system.target.names))[1]}
