@@ -84,15 +84,15 @@ def _paired(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def docking_runs(system: object, model: object, runs: int, steps: int, seed: int,
-                 explore: float = 0.1, max_iter: int | None = None,
-                 ensemble: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 explore: float = 0.1, max_iter: int | None = None, ensemble: str | None = None,
+                 task: object = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
     evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
     ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
     from saml_ros.core.mpc.generic import GenericSQP
 
     rng = np.random.default_rng(seed)
-    ctrl = GenericSQP(system, model, max_iter=max_iter, ensemble=ensemble)  # type: ignore[arg-type]
+    ctrl = GenericSQP(system, model, max_iter=max_iter, ensemble=ensemble, task=task)  # type: ignore[arg-type]
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
     ys: list[np.ndarray] = []
@@ -153,7 +153,8 @@ def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Na
     for r in range(args.rounds):
         if args.dock_runs:
             parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r,
-                                      max_iter=args.max_iter, ensemble=_ensemble_option(args)))
+                                      max_iter=args.max_iter, ensemble=_ensemble_option(args),
+                                      task=getattr(args, "task", None)))
         x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
         model = train(system, spec, x, u, y, seed, args.epochs, getattr(args, "ensemble", 1))
         log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
@@ -236,7 +237,7 @@ def kstep_errors(system: object, model: object, steps: int = 20, runs: int = 4, 
     labels = ["f_hat", "model"] + ([f"member {i}" for i in range(n_members)] if n_members > 1 else [])
     preds = {"f_hat": system.base_step_np, "model": _predict(model)}  # type: ignore[attr-defined]
     for i in range(n_members if n_members > 1 else 0):
-        preds[f"member {i}"] = (lambda i: lambda x, u: model.predict_np(x, u, i))(i)  # type: ignore[attr-defined]
+        preds[f"member {i}"] = lambda x, u, i=i: model.predict_np(x, u, i)  # type: ignore[attr-defined]
     errs: dict[str, dict[str, list[np.ndarray]]] = {k: {"straight": [], "weaving": []} for k in labels}
     for x0 in dynamics.sample_approach_starts(runs, np.random.default_rng(seed)):
         ctrl.reset()
@@ -320,6 +321,10 @@ def main() -> int:
     p.add_argument("--ensemble", type=int, default=1,
                    help="members of each learned model (one training pass); > 1: every planner with a learned model "
                         "plans the members' mean (solver option ensemble: mean)")
+    p.add_argument("--disagreement", type=float, default=0.0,
+                   help="add cost.disagreement {x: W, y: W} (the ensemble members' variance of the one-step "
+                        "prediction along the plan, docs/mpc.md) to the file's mpc: section for every planner "
+                        "(0: the file's)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("--save-models", action="store_true",
                    help="also write each trained model's weights to -o (seed<i>.pt, a torch state dict)")
@@ -337,6 +342,14 @@ def main() -> int:
     planner: dict[str, object] = {} if args.max_iter is None else {"max_iter": args.max_iter}
     if _ensemble_option(args):
         planner["ensemble"] = _ensemble_option(args)
+    args.task = None
+    if args.disagreement > 0:
+        from saml_ros.core.mpc.generic.section import mpc_task, parse_mpc_section
+
+        definition = copy.deepcopy(system.definition)
+        definition["mpc"]["cost"]["disagreement"] = {"x": args.disagreement, "y": args.disagreement}
+        definition["mpc"] = parse_mpc_section(definition["mpc"], definition)
+        planner["task"] = args.task = mpc_task(definition)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)

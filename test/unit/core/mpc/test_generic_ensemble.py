@@ -78,8 +78,9 @@ def test_ensemble_planned_by_the_mean_of_its_members() -> None:
     np.testing.assert_allclose(y, want, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(mean.step(x, u), want, rtol=1e-10, atol=1e-12)
     for i in range(len(x)):  # the mean's exact Jacobians
-        np.testing.assert_allclose(a[i], _fd(lambda z: mean.step(z[None], u[i:i + 1])[0], x[i]), atol=2e-6)
-        np.testing.assert_allclose(b[i], _fd(lambda z: mean.step(x[i:i + 1], z[None])[0], u[i]), atol=2e-6)
+        xi, ui = x[i:i + 1], u[i:i + 1]
+        np.testing.assert_allclose(a[i], _fd(lambda z, ui=ui: mean.step(z[None], ui)[0], x[i]), atol=2e-6)
+        np.testing.assert_allclose(b[i], _fd(lambda z, xi=xi: mean.step(xi, z[None])[0], u[i]), atol=2e-6)
     # the whole-horizon rollouts (one CasADi call: every member's numbers in its weight vector) predict the mean
     us = rng.uniform(s.control_low, s.control_high, (20, 2))
     steps = [x[1]]
@@ -127,7 +128,8 @@ def test_bad_disagreement_cost_names_the_key(value: Any, message: str) -> None:
 
 def test_disagreement_cost_exact_gradient_and_a_plan_where_the_members_agree() -> None:
     s = build(example())
-    assert mpc_task(s.definition).w_disagreement.size == 0  # off by default
+    default = mpc_task(s.definition)
+    assert default is not None and default.w_disagreement.size == 0  # off by default
     weights = {"x": 3e4, "y": 3e4, "yaw": 30.0}
     sd = build(example(disagreement=weights))
     task = mpc_task(sd.definition)
