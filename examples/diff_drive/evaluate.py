@@ -31,7 +31,8 @@ solver option ``ensemble: mean``, docs/mpc.md).
 ``--diagnose``: instead, the measurements behind this set-up for one seed: the one-step error of f_hat and of the
 learned model at the dock (held at rest against the slide) beside the slide's own step, its mean (bias) per field,
 the 20-step (horizon) errors driving straight and weaving (:func:`horizon_errors`) and on held-out docking runs
-under the planner with the model (:func:`kstep_errors`), and how many training transitions are near the dock at rest.
+under the planner with the model (:func:`kstep_errors`), how many training transitions are near the dock at rest,
+and for an ensemble its mean against each member planned alone in closed loop (:func:`members_alone`, ``--starts``).
 """
 
 from __future__ import annotations
@@ -273,6 +274,27 @@ def kstep_errors(system: object, model: object, steps: int = 20, runs: int = 4, 
     return "\n".join(lines)
 
 
+def members_alone(system: object, model: object, n_starts: int, steps: int, **planner: object) -> str:
+    """An ensemble planned by its mean against each of its members planned alone, in closed loop inside the node's
+    guard from the first seed's evaluation starts (``n_starts`` of them, ``steps`` steps): mean and worst final
+    error and the episodes worse than f_hat's worst."""
+    from saml_ros.experiments.robot_eval import evaluate_robot, node_guard
+
+    n = int(getattr(model, "n_models", 1))
+    models = {"mean": model} | {f"member {i}": model.member(i).double() for i in range(n)}  # type: ignore[attr-defined]
+    starts = dynamics.sample_approach_starts(n_starts, np.random.default_rng(3000))
+    ev = evaluate_robot(system, dynamics.make_robot_on_ramp, models, starts, steps, guard=node_guard(),
+                        **{"ensemble": "mean", **planner})  # a member (an ensemble of one) is planned as itself
+    b = ev.errors["base"]
+    lines = [f"the ensemble's mean and each member planned alone, guarded, {n_starts} starts x {steps} steps (final "
+             f"error, m): f_hat mean {b.mean():.4f} worst {b.max():.4f}"]
+    for label in models:
+        e = ev.errors[label]
+        lines.append(f"  {label:9s} mean {e.mean():.4f} worst {e.max():.4f}, worse than f_hat's worst: "
+                     f"{int((e > b.max()).sum())} of {len(e)}")
+    return "\n".join(lines)
+
+
 def horizon_errors(system: object, model: object, steps: int = 20) -> str:
     """The planner's view: the error (mm) of f_hat's and the learned model's ``steps``-step prediction (the MPC's
     horizon, open loop from the same state) of where the base ends, driving through the wet patch straight at full
@@ -354,6 +376,8 @@ def main() -> int:
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)
         text = diagnose(system, model, data, **planner)
+        if int(getattr(model, "n_models", 1)) > 1:
+            text += "\n" + members_alone(system, model, args.starts, args.steps, **planner)
         (args.out / "diagnose.txt").write_text(text + "\n")
         print(text)
         return 0
