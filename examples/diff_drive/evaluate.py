@@ -155,7 +155,7 @@ def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Na
         if args.dock_runs:
             parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r,
                                       max_iter=args.max_iter, ensemble=_ensemble_option(args),
-                                      task=getattr(args, "task", None)))
+                                      task=getattr(args, "task_obj", None)))
         x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
         model = train(system, spec, x, u, y, seed, args.epochs, getattr(args, "ensemble", 1))
         log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
@@ -364,14 +364,15 @@ def main() -> int:
     planner: dict[str, object] = {} if args.max_iter is None else {"max_iter": args.max_iter}
     if _ensemble_option(args):
         planner["ensemble"] = _ensemble_option(args)
-    args.task = None
-    if args.disagreement > 0:
-        from saml_ros.core.mpc.generic.section import mpc_task, parse_mpc_section
+    if args.disagreement > 0:  # on top of the planners' task (the file's mpc: section unless another is given)
+        import dataclasses
 
-        definition = copy.deepcopy(system.definition)
-        definition["mpc"]["cost"]["disagreement"] = {"x": args.disagreement, "y": args.disagreement}
-        definition["mpc"] = parse_mpc_section(definition["mpc"], definition)
-        planner["task"] = args.task = mpc_task(definition)
+        from saml_ros.core.mpc.generic import system_task
+
+        task = getattr(args, "task_obj", None) or system_task(system)
+        weights = np.zeros(system.state.size)
+        weights[[list(system.state.names).index(f) for f in ("x", "y")]] = args.disagreement
+        planner["task"] = args.task_obj = dataclasses.replace(task, w_disagreement=weights)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)
