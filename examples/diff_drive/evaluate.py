@@ -24,9 +24,15 @@ training runs') beside the base model f_hat and the oracle (the same planner on 
 section (``--max-iter 1``: every planner, docking runs included, takes one SQP step per control step, the real-time
 iteration); the statistics use the seed as the unit; results.md and results.json go to ``-o``.
 
+``--ensemble N``: each learned model is an ensemble of N networks (one training pass, different initialisations),
+and every planner with a learned model (docking runs and evaluation) plans the members' mean (the generic planner's
+solver option ``ensemble: mean``, docs/mpc.md).
+
 ``--diagnose``: instead, the measurements behind this set-up for one seed: the one-step error of f_hat and of the
 learned model at the dock (held at rest against the slide) beside the slide's own step, its mean (bias) per field,
-and how many training transitions are near the dock at rest.
+the 20-step (horizon) errors driving straight and weaving (:func:`horizon_errors`) and on held-out docking runs
+under the planner with the model (:func:`kstep_errors`), how many training transitions are near the dock at rest,
+and for an ensemble its mean against each member planned alone in closed loop (:func:`members_alone`, ``--starts``).
 """
 
 from __future__ import annotations
@@ -79,14 +85,15 @@ def _paired(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def docking_runs(system: object, model: object, runs: int, steps: int, seed: int,
-                 explore: float = 0.1, max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 explore: float = 0.1, max_iter: int | None = None, ensemble: str | None = None,
+                 task: object = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
     evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
     ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
     from saml_ros.core.mpc.generic import GenericSQP
 
     rng = np.random.default_rng(seed)
-    ctrl = GenericSQP(system, model, max_iter=max_iter)  # type: ignore[arg-type]
+    ctrl = GenericSQP(system, model, max_iter=max_iter, ensemble=ensemble, task=task)  # type: ignore[arg-type]
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
     ys: list[np.ndarray] = []
@@ -123,12 +130,14 @@ def with_pose_constraint(spec: dict, eps: float) -> dict:
 
 
 def train(system: object, spec: object, x: np.ndarray, u: np.ndarray, y: np.ndarray, seed: int,
-          epochs: int) -> object:
-    """A residual model of the file's network on ``(x, u, y)`` with the file's spec (float64 for planning)."""
+          epochs: int, members: int = 1) -> object:
+    """A residual model of the file's network on ``(x, u, y)`` with the file's spec (float64 for planning); an
+    ensemble of ``members`` networks (independent initialisations, one pass) for ``members > 1``."""
     from saml_ros.core.model.network import DynamicsModel
     from saml_ros.core.training import PrimalDualTrainer, TrainConfig, Transitions
 
-    model = DynamicsModel(system, tuple(system.paper_hidden), "residual", seed=seed)  # type: ignore[attr-defined]
+    model = DynamicsModel(system, tuple(system.paper_hidden), "residual", n_models=members,  # type: ignore[attr-defined]
+                          seed=seed)
     model.fit_normalization(x, u, y)
     trainer = PrimalDualTrainer(model, spec, TrainConfig.paper(epochs=epochs, batch_size=256, primal_lr=3e-3,
                                                                seed=seed))
@@ -145,14 +154,31 @@ def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Na
     for r in range(args.rounds):
         if args.dock_runs:
             parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r,
-                                      max_iter=args.max_iter))
+                                      max_iter=args.max_iter, ensemble=_ensemble_option(args),
+                                      task=getattr(args, "task_obj", None)))
         x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
-        model = train(system, spec, x, u, y, seed, args.epochs)
+        model = train(system, spec, x, u, y, seed, args.epochs, getattr(args, "ensemble", 1))
         log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
     return model, (x, u, y)
 
 
-def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, np.ndarray]) -> str:
+def _ensemble_option(args: argparse.Namespace) -> str | None:
+    """The planner's ``ensemble`` solver option for ``--ensemble``: the members' mean for an ensemble."""
+    return "mean" if getattr(args, "ensemble", 1) > 1 else None
+
+
+def _predict(model: object) -> object:
+    """``(x, u) -> next x`` of ``model`` as the planner predicts: an ensemble by the mean of its members."""
+    n = int(getattr(model, "n_models", 1))
+
+    def predict(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.mean([model.predict_np(x, u, i) for i in range(n)], axis=0)  # type: ignore[attr-defined]
+
+    return predict
+
+
+def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, np.ndarray],
+             **planner: object) -> str:
     """The measurements behind the set-up (module docstring, ``--diagnose``) as text."""
     rng = np.random.default_rng(5)
     rows = []
@@ -167,7 +193,7 @@ def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, 
         rows.append((x, u, _paired(x, sim.state())))
     xs, us, ys = (np.array([r[i] for r in rows]) for i in range(3))
     base = system.base_step_np(xs, us)  # type: ignore[attr-defined]
-    learned = model.predict_np(xs, us)  # type: ignore[attr-defined]
+    learned = _predict(model)(xs, us)  # type: ignore[operator]
     slide = np.mean([dynamics.slide_speed(float(a[0]), float(a[1]), dynamics.RAMP_SLIDE) for a in xs]) * 0.02
     lines = ["one-step error at the dock, held at rest against the slide (200 states; fields x, y (mm), yaw (mrad), "
              "v (mm/s), w (mrad/s)):",
@@ -189,10 +215,83 @@ def diagnose(system: object, model: object, data: tuple[np.ndarray, np.ndarray, 
     e = base + h - ys
     lines.append(f"  learned, values rounded by 0.2 too: mean error (bias) {np.round(1e3 * e.mean(0), 4).tolist()}")
     lines.append(horizon_errors(system, model))
+    lines.append(kstep_errors(system, model, **planner))
     x, u, _ = data
     near = (np.abs(x[:, 0] - 1.5) < 0.1) & (np.abs(x[:, 1]) < 0.1) & (np.abs(x[:, 3]) < 0.05)
     lines.append(f"training transitions within 0.1 m of the dock at rest (|v| < 0.05 m/s): {int(near.sum())} of "
                  f"{len(x)}")
+    return "\n".join(lines)
+
+
+def kstep_errors(system: object, model: object, steps: int = 20, runs: int = 4, run_steps: int = 300,
+                 seed: int = 7, **planner: object) -> str:
+    """The ``steps``-step prediction error (the MPC's horizon, open loop under the commands the robot was really
+    given) on held-out stretches: ``runs`` docking runs under the planner with ``model`` (new starts, no training
+    run's), every window of ``steps`` steps of each; the error of the final position along the dock's axis (x:
+    over-predicted progress is what the planner exploits) and across it, for f_hat, the model as planned (an
+    ensemble by its mean) and each member, split by how much the window's commands turn (mean |w_cmd| below or
+    above 0.5 rad/s: straight or weaving)."""
+    from saml_ros.core.mpc.generic import GenericSQP
+
+    ctrl = GenericSQP(system, model, **planner)  # type: ignore[arg-type]
+    n_members = int(getattr(model, "n_models", 1))
+    labels = ["f_hat", "model"] + ([f"member {i}" for i in range(n_members)] if n_members > 1 else [])
+    preds = {"f_hat": system.base_step_np, "model": _predict(model)}  # type: ignore[attr-defined]
+    for i in range(n_members if n_members > 1 else 0):
+        preds[f"member {i}"] = lambda x, u, i=i: model.predict_np(x, u, i)  # type: ignore[attr-defined]
+    errs: dict[str, dict[str, list[np.ndarray]]] = {k: {"straight": [], "weaving": []} for k in labels}
+    for x0 in dynamics.sample_approach_starts(runs, np.random.default_rng(seed)):
+        ctrl.reset()
+        sim = dynamics.make_robot_on_ramp(x0)
+        xs, us = [sim.state()], []
+        for _ in range(run_steps):
+            u = ctrl.solve(xs[-1]).u
+            sim.step(u, 0.02)
+            us.append(u)
+            xs.append(sim.state())
+        xa, ua = np.array(xs), np.array(us)
+        starts = np.arange(0, run_steps - steps + 1)
+        kind = np.where(np.array([np.abs(ua[i:i + steps, 1]).mean() for i in starts]) > 0.5, "weaving", "straight")
+        for label in labels:
+            x = xa[starts].copy()
+            for t in range(steps):
+                x = preds[label](x, ua[starts + t])  # type: ignore[operator]
+            e = x[:, :2] - xa[starts + steps, :2]
+            for k in ("straight", "weaving"):
+                errs[label][k].append(e[kind == k])
+    lines = [f"{steps}-step prediction error on held-out docking runs under the planner with this model ({runs} runs x "
+             f"{run_steps} steps, every window; final x (along the dock's axis) and y, mm, model - true: mean "
+             "(RMS)):"]
+    for k in ("straight", "weaving"):
+        n = sum(len(a) for a in errs["f_hat"][k])
+        parts = []
+        for label in labels:
+            e = np.concatenate(errs[label][k]) if n else np.zeros((0, 2))
+            if len(e):
+                m, r = 1e3 * e.mean(0), 1e3 * np.sqrt((e ** 2).mean(0))
+                parts.append(f"{label} x {m[0]:+.2f} ({r[0]:.2f}), y {m[1]:+.2f} ({r[1]:.2f})")
+        lines.append(f"  {k} ({n} windows): " + ("; ".join(parts) if parts else "none"))
+    return "\n".join(lines)
+
+
+def members_alone(system: object, model: object, n_starts: int, steps: int, **planner: object) -> str:
+    """An ensemble planned by its mean against each of its members planned alone, in closed loop inside the node's
+    guard from the first seed's evaluation starts (``n_starts`` of them, ``steps`` steps): mean and worst final
+    error and the episodes worse than f_hat's worst."""
+    from saml_ros.experiments.robot_eval import evaluate_robot, node_guard
+
+    n = int(getattr(model, "n_models", 1))
+    models = {"mean": model} | {f"member {i}": model.member(i).double() for i in range(n)}  # type: ignore[attr-defined]
+    starts = dynamics.sample_approach_starts(n_starts, np.random.default_rng(3000))
+    ev = evaluate_robot(system, dynamics.make_robot_on_ramp, models, starts, steps, guard=node_guard(),
+                        **{"ensemble": "mean", **planner})  # a member (an ensemble of one) is planned as itself
+    b = ev.errors["base"]
+    lines = [f"the ensemble's mean and each member planned alone, guarded, {n_starts} starts x {steps} steps (final "
+             f"error, m): f_hat mean {b.mean():.4f} worst {b.max():.4f}"]
+    for label in models:
+        e = ev.errors[label]
+        lines.append(f"  {label:9s} mean {e.mean():.4f} worst {e.max():.4f}, worse than f_hat's worst: "
+                     f"{int((e > b.max()).sum())} of {len(e)}")
     return "\n".join(lines)
 
 
@@ -215,7 +314,7 @@ def horizon_errors(system: object, model: object, steps: int = 20) -> str:
             for u in us:
                 sim.step(u, 0.02)
             true = sim.state()
-            for label, step in (("f_hat", system.base_step_np), ("learned", model.predict_np)):  # type: ignore[attr-defined]
+            for label, step in (("f_hat", system.base_step_np), ("learned", _predict(model))):  # type: ignore[attr-defined]
                 x = x0[None].copy()
                 for u in us:
                     x = step(x, u[None])
@@ -241,7 +340,16 @@ def main() -> int:
                    help="SQP iterations per control step of every planner (docking runs and evaluation); 1 = the "
                         "real-time iteration; default: the file's solver_options")
     p.add_argument("--unguarded", action="store_true", help="fly the bare planner (no guard, no acceptance)")
+    p.add_argument("--ensemble", type=int, default=1,
+                   help="members of each learned model (one training pass); > 1: every planner with a learned model "
+                        "plans the members' mean (solver option ensemble: mean)")
+    p.add_argument("--disagreement", type=float, default=0.0,
+                   help="add cost.disagreement {x: W, y: W} (the ensemble members' variance of the one-step "
+                        "prediction along the plan, docs/mpc.md) to the file's mpc: section for every planner "
+                        "(0: the file's)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
+    p.add_argument("--save-models", action="store_true",
+                   help="also write each trained model's weights to -o (seed<i>.pt, a torch state dict)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -253,11 +361,24 @@ def main() -> int:
     t0 = time.perf_counter()
     system = load_system_file(HERE / "system.yaml")
     spec = ProblemSpec.for_system(with_pose_constraint(system.paper_spec(), args.pose_eps), system)
-    planner = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    planner: dict[str, object] = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    if _ensemble_option(args):
+        planner["ensemble"] = _ensemble_option(args)
+    if args.disagreement > 0:  # on top of the planners' task (the file's mpc: section unless another is given)
+        import dataclasses
+
+        from saml_ros.core.mpc.generic import system_task
+
+        task = getattr(args, "task_obj", None) or system_task(system)
+        weights = np.zeros(system.state.size)
+        weights[[list(system.state.names).index(f) for f in ("x", "y")]] = args.disagreement
+        planner["task"] = args.task_obj = dataclasses.replace(task, w_disagreement=weights)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)
-        text = diagnose(system, model, data)
+        text = diagnose(system, model, data, **planner)
+        if int(getattr(model, "n_models", 1)) > 1:
+            text += "\n" + members_alone(system, model, args.starts, args.steps, **planner)
         (args.out / "diagnose.txt").write_text(text + "\n")
         print(text)
         return 0
@@ -269,6 +390,8 @@ def main() -> int:
             print(f"seed {seed}: the MPC node would refuse this model ({refused[0]}: {refused[1]}); it flies f_hat")
             model = None
         models[f"seed{seed}"] = model
+        if args.save_models and model is not None:
+            torch.save(model.state_dict(), args.out / f"seed{seed}.pt")  # type: ignore[attr-defined]
         # the checkpoint's evidence the learner would write: the guard's monitor scales its margin by it
         evidence = DataEvidence.from_data(system, x, u, y)
         metas[f"seed{seed}"] = {} if evidence is None else {"evidence": evidence.to_payload(tuple(system.target.names))[1]}

@@ -289,7 +289,8 @@ def evaluate_robot(system: Any, simulator: Callable[[np.ndarray], Any], models: 
                    guard: Any = None, metas: Mapping[str, Mapping[str, Any]] | None = None,
                    **planner_options: Any) -> RobotEvaluation:
     """See the module docstring. ``models``: label -> a :class:`~saml_ros.core.model.network.DynamicsModel` of ``system``
-    (ensemble member ``member`` plans); the base model f_hat (label ``base``) and, with ``oracle``, the true dynamics
+    (ensemble member ``member`` plans, or with the planner option ``ensemble="mean"`` the members' mean); the base
+    model f_hat (label ``base``) and, with ``oracle``, the true dynamics
     (label ``oracle``) fly the same starts. ``task``: an :class:`~saml_ros.core.mpc.generic.section.MPCTask` to plan
     and score instead of the file's (e.g. :func:`task_from_file`). ``guard``: a
     :class:`~saml_ros.core.mpc.guard.GuardConfig` (e.g. :func:`node_guard`): each learned model flies inside the
@@ -405,6 +406,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--runs", nargs="*", default=[], help="run directories or checkpoints of learned models")
     p.add_argument("--oracle", help="module:function, the true dynamics (x, u, *, dt) -> next x (torch or xp form)")
     p.add_argument("--member", type=int, default=0)
+    p.add_argument("--ensemble", choices=("member", "mean"), default=None,
+                   help="plan an ensemble with its member --member or the mean of its members (default: the file's "
+                        "mpc.solver_options, else member)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--nested", action="store_true", help="each learned model (e.g. one per training seed) flies its "
                    "own --n-starts starts (seeded --seed + i); statistics with the seed as the unit")
@@ -425,13 +429,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     loaded = {Path(r).name: load_model(r).loaded for r in args.runs}
     models = {k: v.model.double() for k, v in loaded.items()}
     metas = {k: v.meta for k, v in loaded.items()}
+    planner: dict[str, Any] = {} if args.ensemble is None else {"ensemble": args.ensemble}
     if args.nested:
         if not args.starts or not models:
             p.error("--nested needs --starts and --runs")
         nested = evaluate_nested(system, _load(args.simulator), models, _load(args.starts), args.n_starts,
                                  args.steps, seed=args.seed, oracle=_load(args.oracle) if args.oracle else None,
                                  member=args.member, task=task, guard=node_guard() if args.guard else None,
-                                 metas=metas, progress=lambda s: print(s, flush=True))
+                                 metas=metas, progress=lambda s: print(s, flush=True), **planner)
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "results.json").write_text(json.dumps(nested.to_json(), indent=1))
         (args.out / "results.md").write_text(nested.report() + "\n")
@@ -445,7 +450,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ev = evaluate_robot(system, _load(args.simulator), models, starts, args.steps,
                         oracle=_load(args.oracle) if args.oracle else None, member=args.member, task=task,
                         guard=node_guard() if args.guard else None, metas=metas,
-                        progress=lambda s: print(s, flush=True))
+                        progress=lambda s: print(s, flush=True), **planner)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
     (args.out / "results.md").write_text(ev.report() + "\n")

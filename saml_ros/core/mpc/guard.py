@@ -306,7 +306,10 @@ class GuardedController:
         if not rows:
             return None
         xs, us = np.stack([r[1] for r in rows]), np.stack([r[2] for r in rows])
-        pred = np.asarray(model.predict_np(xs, us, int(getattr(self.learned, "member", 0))), dtype=np.float64)
+        if getattr(self.learned, "plans_mean", False):  # a planner of the members' mean: judge what it flies
+            pred = np.mean([model.predict_np(xs, us, i) for i in range(model.n_models)], axis=0)
+        else:
+            pred = np.asarray(model.predict_np(xs, us, int(getattr(self.learned, "member", 0))), dtype=np.float64)
         monitor = self.monitor.sibling(data_scale(meta))
         for (stream, x, u, y), p in zip(rows, pred, strict=True):
             e_model, e_base = y - p, y - self._one_step(self.base, None, x, u)

@@ -100,15 +100,16 @@ class SymbolicBase:
         return BufferedFunction(fun, [(b, n), (b, m)], [(b, n), (b, n, n), (b, n, m)])
 
     def horizon(self, T: int, angles: tuple[int, ...], dims: tuple[int, ...] | None, full: bool = False,
-                compile: bool = False) -> HorizonRollout:
+                compile: bool = False, members: int = 1) -> HorizonRollout:
         """The whole-horizon rollout (:class:`HorizonRollout`) for horizon ``T``, wrapped ``angles`` and a network of
-        widths ``dims`` (or None); ``full``: phi alone (no f_hat); ``compile``: see :class:`HorizonRollout`. Built
-        on first use and kept (a hot swap of the network's numbers reuses it)."""
-        key = (int(T), tuple(angles), dims, bool(full), bool(compile))
+        widths ``dims`` (or None; the mean of ``members`` such networks); ``full``: phi alone (no f_hat);
+        ``compile``: see :class:`HorizonRollout`. Built on first use and kept (a hot swap of the network's numbers
+        reuses it)."""
+        key = (int(T), tuple(angles), dims, bool(full), bool(compile), int(members))
         roll = self._horizons.get(key)
         if roll is None:
             roll = self._horizons[key] = HorizonRollout(None if full else self.function, self.n, self.m, T,
-                                                        angles, dims, HORIZON_BATCH, compile)
+                                                        angles, dims, HORIZON_BATCH, compile, members)
         return roll
 
 
@@ -188,6 +189,68 @@ class SmoothMLP:
         return h, np.dot(g, self._wxt), np.dot(g, self._wut)
 
 
+class EnsembleMeanMLP:
+    """The **mean of an ensemble's members** as one network: ``phi(x, u) = (1/E) sum_e phi_e(x, u)`` and its
+    Jacobians (the mean of the members'), the members evaluated together in stacked matrix products. Planning the
+    mean averages out the members' idiosyncratic errors (each member's own bias, which a planner would exploit
+    over its horizon). ``smoothing`` (``eps``, > 0): each member's Jacobians with its PReLU kinks rounded as
+    :class:`SmoothMLP` does (values exact). :meth:`members_jac` gives every member's phi and Jacobians (the
+    planner's disagreement cost). Same interface as :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP` for the planner.
+
+    Shapes: ``x (B, n_x)``, ``u (B, n_u)`` -> ``(B, n_y)``; members ``(E, B, n_y)``, ``(E, B, n_y, n_x)``, ...
+    """
+
+    def __init__(self, model: DynamicsModel, smoothing: float = 0.0) -> None:
+        self.members = [NumpyMLP(model, i) for i in range(model.n_models)]
+        first = self.members[0]
+        self.n_models = len(self.members)
+        self.n_x, self.n_u, self.n_y = first.n_x, first.n_u, first.n_y
+        self.eps2 = float(smoothing) ** 2
+        ms = self.members
+        self.w_x = np.stack([m.w_x for m in ms])  # (E, n_x, d)
+        self.w_u = np.stack([m.w_u for m in ms])
+        self.weights = [np.stack([m.weights[i] for m in ms]) for i in range(len(first.weights))]  # [0]: unused
+        self.biases = [np.stack([m.biases[i] for m in ms])[:, None, :] for i in range(len(first.biases))]
+        self.slopes = np.array([m.slopes for m in ms], dtype=np.float64).reshape(self.n_models, -1)  # (E, L-1)
+        self._wt = [np.ascontiguousarray(np.swapaxes(w, 1, 2))[:, None] for w in self.weights]  # (E, 1, d', d)
+        self._wxt = np.ascontiguousarray(np.swapaxes(self.w_x, 1, 2))[:, None]  # (E, 1, d, n_x)
+        self._wut = np.ascontiguousarray(np.swapaxes(self.w_u, 1, 2))[:, None]
+
+    def members_forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Every member's phi ``(E, B, n_y)`` (or ``(E, n_y)`` for one sample)."""
+        single = np.ndim(x) == 1
+        h = np.matmul(np.atleast_2d(x), self.w_x) + np.matmul(np.atleast_2d(u), self.w_u) + self.biases[0]
+        for i in range(1, len(self.weights)):
+            a = self.slopes[:, i - 1][:, None, None]
+            h = np.matmul(np.where(h >= 0.0, h, a * h), self.weights[i]) + self.biases[i]
+        return h[:, 0] if single else h
+
+    def forward(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The members' mean phi: ``(B, n_y)``, or ``(n_y,)`` for one sample."""
+        return self.members_forward(x, u).mean(0)
+
+    def members_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every member's phi and Jacobians: ``(E, B, n_y)``, ``(E, B, n_y, n_x)``, ``(E, B, n_y, n_u)``."""
+        h = np.matmul(x, self.w_x) + np.matmul(u, self.w_u) + self.biases[0]  # (E, B, d)
+        grads = []
+        for i in range(1, len(self.weights)):
+            a = self.slopes[:, i - 1][:, None, None]
+            if self.eps2 > 0:
+                grads.append(0.5 * (1 + a) + 0.5 * (1 - a) * h / np.sqrt(h * h + self.eps2))
+            else:
+                grads.append(np.where(h >= 0.0, 1.0, a))
+            h = np.matmul(np.where(h >= 0.0, h, a * h), self.weights[i]) + self.biases[i]
+        g = self._wt[-1] * grads[-1][:, :, None, :]  # (E, B, n_y, d_{L-1})
+        for i in range(len(self.weights) - 2, 0, -1):
+            g = np.matmul(g, self._wt[i]) * grads[i - 1][:, :, None, :]
+        return h, np.matmul(g, self._wxt), np.matmul(g, self._wut)
+
+    def forward_jac(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The mean phi and its Jacobians ``(B, n_y)``, ``(B, n_y, n_x)``, ``(B, n_y, n_u)``."""
+        h, jx, ju = self.members_jac(x, u)
+        return h.mean(0), jx.mean(0), ju.mean(0)
+
+
 class GenericDynamics:
     """``f_hat + phi`` (``kind`` ``"residual"``), ``phi`` alone (``"full"``) or ``f_hat`` alone (``"base"``, no model);
     see the module docstring.
@@ -200,18 +263,30 @@ class GenericDynamics:
         bound: per-field residual bound ``(n,)`` (phi clipped to +-bound), or None.
         smoothing: the network's Jacobians with its PReLU kinks rounded by this (:class:`SmoothMLP`: its values
             stay exact; 0 = the exact Jacobians).
+        ensemble_mean: plan with the mean of all the ensemble's members (:class:`EnsembleMeanMLP`; ``member`` is
+            then unused); a model of one member is planned as itself.
+        with_members: keep the members of an ensemble at hand for :meth:`deviations` (the planner's disagreement
+            cost) also when one member is planned.
     """
 
     def __init__(self, system: System, base: SymbolicBase | TorchBase, model: DynamicsModel | None = None,
                  member: int = 0, bound: np.ndarray | None = None, smoothing: float = 0.0,
-                 compile: bool = False) -> None:
+                 compile: bool = False, ensemble_mean: bool = False, with_members: bool = False) -> None:
         self.system = system
         self.compile = bool(compile)
         self.base = base
         self.kind = "base" if model is None else model.kind
-        mlp: Any = None if model is None else NumpyMLP(model, member)
-        if mlp is not None and smoothing > 0:
-            mlp = SmoothMLP(mlp, smoothing)
+        mlp: Any = None
+        #: the ensemble's members (None: a model of one member, or neither planned by their mean nor asked for)
+        self.ensemble: EnsembleMeanMLP | None = None
+        if model is not None and model.n_models > 1 and (ensemble_mean or with_members):
+            self.ensemble = EnsembleMeanMLP(model, smoothing)
+        if self.ensemble is not None and ensemble_mean:
+            mlp = self.ensemble
+        elif model is not None:
+            mlp = NumpyMLP(model, member)
+            if smoothing > 0:
+                mlp = SmoothMLP(mlp, smoothing)
         self.mlp = mlp
         self.smoothing = float(smoothing) if mlp is not None else 0.0
         self.bound = None if bound is None or self.mlp is None else np.asarray(bound, dtype=np.float64)
@@ -220,8 +295,10 @@ class GenericDynamics:
         # symbolic form; the network's numbers (exact values) go in as a parameter vector
         self._horizon_ok = isinstance(base, SymbolicBase)
         plain = mlp.mlp if isinstance(mlp, SmoothMLP) else mlp
-        self._dims = None if plain is None else mlp_dims(plain)
-        self._theta = None if plain is None else mlp_numbers(plain)
+        nets = plain.members if isinstance(plain, EnsembleMeanMLP) else [] if plain is None else [plain]
+        self._members = max(len(nets), 1)
+        self._dims = None if not nets else mlp_dims(nets[0])
+        self._theta = None if not nets else np.concatenate([mlp_numbers(net) for net in nets])
         self._last_horizon: HorizonRollout | None = None
         self._angle_key = tuple(int(i) for i in self.angles)
 
@@ -278,7 +355,7 @@ class GenericDynamics:
         if not self._horizon_ok:
             return None
         assert isinstance(self.base, SymbolicBase)
-        roll = self.base.horizon(T, self._angle_key, self._dims, self.kind == "full", self.compile)
+        roll = self.base.horizon(T, self._angle_key, self._dims, self.kind == "full", self.compile, self._members)
         if roll.owner is not self:  # the rollout is shared with the dynamics of other models: write ours in
             roll.set_model(self._theta, self.bound)
             roll.owner = self
@@ -350,6 +427,24 @@ class GenericDynamics:
             xs[:, t + 1] = self.step(xs[:, t], us[:, t])
         return xs
 
+    def deviations(self, xs: np.ndarray, us: np.ndarray) -> np.ndarray | None:
+        """Each member's phi minus the members' mean at states ``xs (B, n)`` and controls ``us (B, m)`` (angle
+        fields wrapped as the model sees them, unclipped): ``(E, B, n)``; None without :attr:`ensemble`."""
+        if self.ensemble is None:
+            return None
+        xw, _ = self._wrap(np.asarray(xs, dtype=np.float64))
+        phi = self.ensemble.members_forward(xw, np.asarray(us, dtype=np.float64))
+        return phi - phi.mean(0, keepdims=True)
+
+    def deviations_jac(self, xs: np.ndarray, us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`deviations` and their Jacobians ``(E, B, n)``, ``(E, B, n, n)``, ``(E, B, n, m)`` (with
+        ``smoothing``, the members' kinks rounded as the planner's model's are); None without :attr:`ensemble`."""
+        if self.ensemble is None:
+            return None
+        xw, _ = self._wrap(np.asarray(xs, dtype=np.float64))
+        phi, jx, ju = self.ensemble.members_jac(xw, np.asarray(us, dtype=np.float64))
+        return (phi - phi.mean(0, keepdims=True), jx - jx.mean(0, keepdims=True), ju - ju.mean(0, keepdims=True))
+
     def clipped(self, xs: np.ndarray, us: np.ndarray) -> bool:
         """Whether the residual bound clips phi anywhere along states ``xs (T, n)`` and controls ``us (T, m)``."""
         if self.bound is None or self.mlp is None:
@@ -361,6 +456,8 @@ class GenericDynamics:
         """Which f_hat and phi this is and how they are differentiated (for /diagnostics)."""
         phi = {"base": "no phi (f_hat alone)", "residual": "phi: numpy PReLU network (exact Jacobians)",
                "full": "phi alone (full model), numpy PReLU network"}[self.kind]
+        if isinstance(self.mlp, EnsembleMeanMLP):
+            phi += f", the mean of the ensemble's {self.mlp.n_models} members"
         bound = ", phi clipped to the residual bound" if self.bound is not None else ""
         if self.smoothing > 0:
             bound += f", its Jacobians with the PReLU kinks rounded by {self.smoothing:g}"

@@ -65,6 +65,18 @@ def prelu_mlp_casadi(z: Any, theta: Any, dims: Sequence[int]) -> Any:
     return h
 
 
+def mean_mlp_casadi(z: Any, theta: Any, dims: Sequence[int], members: int = 1) -> Any:
+    """The mean of ``members`` networks of widths ``dims`` (:func:`prelu_mlp_casadi`), their numbers one after the
+    other in ``theta`` (each :func:`mlp_numbers`' layout)."""
+    if members == 1:
+        return prelu_mlp_casadi(z, theta, dims)
+    size = len(mlp_zeros(dims))
+    total = prelu_mlp_casadi(z, theta[0:size], dims)
+    for e in range(1, members):
+        total = total + prelu_mlp_casadi(z, theta[e * size:(e + 1) * size], dims)
+    return total / members
+
+
 def mlp_numbers(mlp: Any) -> np.ndarray:
     """The numbers of a :class:`~saml_ros.core.mpc.mlp_np.NumpyMLP` (normalisation folded in) in
     :func:`prelu_mlp_casadi`'s layout."""
@@ -94,6 +106,8 @@ class HorizonRollout:
         n, m, T: sizes; angles: wrapped state fields.
         dims: the network's layer widths (:func:`mlp_dims`) or None (no network).
         batch: K, the sequences of :meth:`rollout_batch`.
+        members: phi is the mean of this many networks of widths ``dims`` (an ensemble planned by its mean; their
+            numbers one after the other in ``theta``).
         compile: also the sensitivities ``d x_{t+1} / d U`` of a plan in one call (:meth:`sensitivities`), and all
             three functions compiled to C (:func:`~.codegen.compiled`; without a compiler CasADi's virtual machine
             runs them and :attr:`compiled` says why). f_hat alone is written in scalar expressions (SX); with a
@@ -104,14 +118,15 @@ class HorizonRollout:
     """
 
     def __init__(self, f_hat: Any, n: int, m: int, T: int, angles: Sequence[int], dims: Sequence[int] | None,
-                 batch: int, compile: bool = False) -> None:
+                 batch: int, compile: bool = False, members: int = 1) -> None:
         import casadi as ca
 
         from saml_ros.core.mpc.generic.codegen import compiled
 
         self.n, self.m, self.T, self.batch = n, m, T, int(batch)
         self.dims = None if dims is None else tuple(int(d) for d in dims)
-        n_theta = 0 if self.dims is None else len(mlp_zeros(self.dims))
+        self.members = int(members)
+        n_theta = 0 if self.dims is None else self.members * len(mlp_zeros(self.dims))
         x0, us = ca.SX.sym("x0", n), ca.SX.sym("U", m, T)
         theta, bound = ca.SX.sym("theta", n_theta), ca.SX.sym("bound", n)
         x: Any = x0
@@ -122,7 +137,8 @@ class HorizonRollout:
                 if angles else x
             y = f_hat(xw, u) if f_hat is not None else 0
             if self.dims is not None:
-                y = y + ca.fmin(ca.fmax(prelu_mlp_casadi(ca.vertcat(xw, u), theta, self.dims), -bound), bound)
+                phi = mean_mlp_casadi(ca.vertcat(xw, u), theta, self.dims, self.members)
+                y = y + ca.fmin(ca.fmax(phi, -bound), bound)
             x = y + (x - xw) if angles else y
             xs.append(x)
         fn = ca.Function("rollout", [x0, us, theta, bound], [ca.densify(ca.horzcat(*xs))])
@@ -135,8 +151,10 @@ class HorizonRollout:
                 fns.append(_sensitivity_function(f_hat, n, m, T, angles))
                 tag = f"generic_T{T}_n{n}_m{m}"
             else:
-                fns = _network_functions(f_hat, n, m, T, angles, self.dims, self.batch)
+                fns = _network_functions(f_hat, n, m, T, angles, self.dims, self.batch, self.members)
                 tag = f"generic_T{T}_n{n}_m{m}_net{'x'.join(map(str, self.dims))}"
+                if self.members > 1:
+                    tag += f"_mean{self.members}"
             fns, why = compiled(fns, tag)
             self.compiled = None if why is None else f"not compiled: {why}"
             if why is not None and self.dims is not None:
@@ -193,18 +211,18 @@ def mlp_zeros(dims: Sequence[int]) -> np.ndarray:
 
 
 def _network_functions(f_hat: Any, n: int, m: int, T: int, angles: Sequence[int], dims: Sequence[int],
-                       batch: int) -> list[Any]:
+                       batch: int, members: int = 1) -> list[Any]:
     """The rollout, its batch of ``batch`` and the sensitivities of f_hat (or none: ``f_hat`` None, a full model) +
-    the clipped network, in CasADi's matrix expressions (MX), with :class:`HorizonRollout`'s inputs and
-    outputs."""
+    the clipped network (the mean of ``members`` networks), in CasADi's matrix expressions (MX), with
+    :class:`HorizonRollout`'s inputs and outputs."""
     import casadi as ca
 
-    n_theta = len(mlp_zeros(dims))
+    n_theta = members * len(mlp_zeros(dims))
     x, u = ca.MX.sym("x", n), ca.MX.sym("u", m)
     theta, bound = ca.MX.sym("theta", n_theta), ca.MX.sym("bound", n)
     xw = ca.vertcat(*[ca.atan2(ca.sin(x[i]), ca.cos(x[i])) if i in angles else x[i] for i in range(n)]) \
         if angles else x
-    y = ca.fmin(ca.fmax(prelu_mlp_casadi(ca.vertcat(xw, u), theta, dims), -bound), bound)
+    y = ca.fmin(ca.fmax(mean_mlp_casadi(ca.vertcat(xw, u), theta, dims, members), -bound), bound)
     if f_hat is not None:
         y = y + f_hat(xw, u)
     if angles:

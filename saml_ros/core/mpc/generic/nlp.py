@@ -45,9 +45,9 @@ class CasadiNLP:
                  true: Any = None) -> None:
         self.system = system
         self.task = task if task is not None else system_task(system)
-        if self.task.norm_cost or any(c.terminal for c in self.task.constraints):
-            raise ValueError(f"{system.name} MPC: the IPOPT path does not take cost.norm or a constraint 'at: "
-                             "terminal' yet; use solver: sqp")
+        if self.task.norm_cost or any(c.terminal for c in self.task.constraints) or self.task.w_disagreement.size:
+            raise ValueError(f"{system.name} MPC: the IPOPT path does not take cost.norm, cost.disagreement or a "
+                             "constraint 'at: terminal' yet; use solver: sqp")
         self.problem = GenericProblem(self.task, system.state.size, system.control.size, horizon)
         self.horizon = self.problem.T
         self.member = int(member)

@@ -23,6 +23,8 @@
         rate: {v_cmd: 1.0, w_cmd: 1.0}          # weight of (u_t - u_{t-1})^2 (u_{-1}: the last command sent)
         norm: false                   # true: each step's goal term is the weighted distance, not its square
         norm_eps: 0.001               #   (smoothed: sqrt(d^2 + norm_eps^2); the paper's quadrotor cost)
+        disagreement: {x: 1.0e6, y: 1.0e6}  # optional, per state field: weight of the ensemble members' variance
+                                      #   of the one-step prediction along the plan (an epistemic penalty; off: {})
       constraints:                    # on the predicted states x_1 .. x_T (soft: exact l1 penalty)
         - {name: speed, box: {v: [-0.4, 0.4]}}
         - {name: slow_turns, norm: {fields: [v, w], max: 1.2}}
@@ -58,13 +60,13 @@ MPC_KEYS = frozenset({"horizon", "rate", "state_timeout", "goal", "reference", "
                       "solver", "solver_options", "description"})
 _GOAL_KEYS = frozenset({"fields", "default", "bounds", "topic", "type", "paths"})
 _REF_KEYS = frozenset({"topic", "type", "paths", "timeout"})
-_COST_KEYS = frozenset({"stage", "terminal", "effort", "rate", "norm", "norm_eps"})
+_COST_KEYS = frozenset({"stage", "terminal", "effort", "rate", "norm", "norm_eps", "disagreement"})
 _CONSTRAINT_KINDS = ("box", "norm", "keep_out")
 #: the planner paths a section may choose (``saml_ros.core.mpc.generic``) and the options each takes
 PLANNERS = ("sqp", "ipopt")
 PLANNER_OPTIONS: dict[str, frozenset[str]] = {
     "sqp": frozenset({"max_iter", "tol", "max_time", "rho0", "lm_floor", "feas_tol", "qp_backend", "smoothing",
-                      "penalty_max", "undamped_check", "compile"}),
+                      "penalty_max", "undamped_check", "compile", "ensemble"}),
     "ipopt": frozenset({"max_iter", "tol", "max_time", "feas_tol", "linear_solver", "smoothing"}),
 }
 #: what ``rate`` accepts besides a number of Hz: answer every state
@@ -154,6 +156,9 @@ class MPCTask:
     #: its square (the paper's quadrotor cost)
     norm_cost: bool = False
     norm_eps: float = 1e-3
+    #: ``(n,)`` per state field: weight of the ensemble members' variance of the one-step prediction along the plan
+    #: (``cost.disagreement``; empty: off)
+    w_disagreement: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def goal_fields(self) -> tuple[str, ...]:
@@ -373,6 +378,8 @@ def parse_mpc_section(raw: Any, definition: Mapping[str, Any], key: str = "mpc")
         out["cost"]["norm"] = c["norm"]
     if "norm_eps" in c:
         out["cost"]["norm_eps"] = _number(c["norm_eps"], f"{key}.cost.norm_eps", positive=True)
+    if "disagreement" in c:
+        out["cost"]["disagreement"] = _weights(c["disagreement"], f"{key}.cost.disagreement", names, "state")
 
     # constraints
     cons = d.get("constraints") or []
@@ -539,4 +546,6 @@ def mpc_task(definition: Mapping[str, Any]) -> MPCTask | None:
         control_names=cnames,
         norm_cost=bool(cost.get("norm", False)),
         norm_eps=float(cost.get("norm_eps", 1e-3)),
+        w_disagreement=np.array([cost.get("disagreement", {}).get(n, 0.0) for n in names], dtype=np.float64)
+        if any(cost.get("disagreement", {}).values()) else np.zeros(0),
     )

@@ -45,6 +45,8 @@ from saml_ros.core.mpc.generic.section import MPCTask, mpc_task
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
 
 _ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+#: values of the solver option ``ensemble``: which network of an ensemble the planner predicts with
+ENSEMBLE_MODES = ("member", "mean")
 _NO_G, _NO_ROWS = np.zeros((0, 0)), np.zeros(0)
 
 
@@ -82,6 +84,9 @@ class GenericSQP:
             cached; :mod:`~saml_ros.core.mpc.generic.codegen`; without a compiler CasADi's virtual machine or numpy
             computes the same numbers, and ``describe`` says why) (False).
         qp_backend: ``daqp`` or ``ipm`` (:func:`~saml_ros.core.mpc.shooting.qp.solve_qp`).
+        ensemble: ``member`` (plan with ensemble member ``member``, the default) or ``mean`` (plan with the mean of
+            all the members, :class:`~saml_ros.core.mpc.generic.dynamics.EnsembleMeanMLP`; a one-member model is
+            planned as itself).
         The solver options not given here come from the section's ``mpc.solver_options``.
         base, true: the registry's numpy twins :func:`~saml_ros.core.mpc.factory.make_controller` hands every
             controller; not used (this planner builds f_hat from the system file, :func:`make_base`).
@@ -94,7 +99,8 @@ class GenericSQP:
                  tol: float | None = None, max_time: float | None = None, rho0: float | None = None,
                  lm_floor: float | None = None, feas_tol: float | None = None, qp_backend: str | None = None,
                  smoothing: float | None = None, penalty_max: float | None = None,
-                 undamped_check: bool | None = None, compile: bool | None = None, base: Any = None,
+                 undamped_check: bool | None = None, compile: bool | None = None, ensemble: str | None = None,
+                 base: Any = None,
                  true: Any = None,
                  f_hat: SymbolicBase | TorchBase | None = None) -> None:
         self.system = system
@@ -105,7 +111,7 @@ class GenericSQP:
         self.n, self.m = system.state.size, system.control.size
         opt = _options(self.task, max_iter=max_iter, tol=tol, max_time=max_time, rho0=rho0, lm_floor=lm_floor,
                        feas_tol=feas_tol, qp_backend=qp_backend, smoothing=smoothing, penalty_max=penalty_max,
-                       undamped_check=undamped_check, compile=compile)
+                       undamped_check=undamped_check, compile=compile, ensemble=ensemble)
         self.smoothing = float(opt.get("smoothing", 0.0))
         self.max_iter, self.tol = int(opt.get("max_iter", 15)), float(opt.get("tol", 1e-4))
         self.max_time = None if opt.get("max_time") is None else float(opt["max_time"])
@@ -118,6 +124,16 @@ class GenericSQP:
         self.penalty_max = max(float(opt.get("penalty_max", self.penalty)), self.penalty)
         self.undamped_check = _flag(opt.get("undamped_check", True), "undamped_check")
         self.compile = _flag(opt.get("compile", False), "compile")
+        mode = str(opt.get("ensemble", "member")).strip().lower()
+        if mode not in ENSEMBLE_MODES:
+            raise ValueError(f"{system.name} MPC: solver option ensemble must be one of {list(ENSEMBLE_MODES)}, "
+                             f"got {opt.get('ensemble')!r}")
+        #: plan with the mean of the ensemble's members (solver option ``ensemble: mean``)
+        self.plans_mean = mode == "mean"
+        # the disagreement cost (cost.disagreement): the fields it weighs and the square roots of their weights
+        wd = np.asarray(self.task.w_disagreement, dtype=np.float64)
+        self._dis_idx = np.flatnonzero(wd) if wd.size == self.n else np.zeros(0, dtype=int)
+        self._dis_sw = np.sqrt(wd[self._dis_idx]) if self._dis_idx.size else np.zeros(0)
         self._fixed = np.zeros(0, dtype=bool)
         pb = self.problem
         #: the bounds of U, the control residuals' Gauss-Newton Hessian and the identity, ``(T m,)``/``(T m, T m)``
@@ -145,14 +161,15 @@ class GenericSQP:
         self.model = model
         self._bound = None
         self.dyn = GenericDynamics(self.system, self._base, model, self.member, smoothing=self.smoothing,
-                                   compile=self.compile)
+                                   compile=self.compile, ensemble_mean=self.plans_mean,
+                                   with_members=bool(self._dis_idx.size))
         self.dyn.prepare(self.horizon)
 
     def set_residual_bound(self, bound: np.ndarray | None) -> None:
         """Clip phi to ``+-bound`` ``(n,)`` per field (the guard's ``bound_residual``); None = unclipped."""
         self._bound = None if bound is None else np.asarray(bound, dtype=np.float64)
         self.dyn = GenericDynamics(self.system, self._base, self.model, self.member, self._bound, self.smoothing,
-                                   self.compile)
+                                   self.compile, self.plans_mean, bool(self._dis_idx.size))
         self.dyn.prepare(self.horizon)
 
     def phi_clipped(self, res: MPCResult) -> bool:
@@ -180,7 +197,13 @@ class GenericSQP:
 
     def describe(self) -> str:
         """The planner path, the solver and the model (for /diagnostics)."""
-        return (f"generic Gauss-Newton SQP (QP {self.qp_backend}), T={self.horizon}; {self.dyn.describe()}")
+        out = f"generic Gauss-Newton SQP (QP {self.qp_backend}), T={self.horizon}; {self.dyn.describe()}"
+        if self._dis_idx.size:
+            names = self.task.state_names or tuple(str(i) for i in range(self.n))
+            fields = ", ".join(names[i] for i in self._dis_idx)
+            out += (f"; disagreement cost on {fields}" if self.dyn.ensemble is not None else
+                    "; disagreement cost off (the model is not an ensemble)")
+        return out
 
     # ------------------------------------------------------------------------------------------ solve
     def solve(self, x0: np.ndarray, goal: Any | None = None) -> MPCResult:
@@ -215,7 +238,8 @@ class GenericSQP:
                 msg += " (unavoidable: fixed by the current state)"
         self._plan_u, self._plan_x = us, xs
         self._u_last = us[0].copy()
-        return MPCResult(u=us[0].copy(), plan_u=us, plan_x=xs, cost=self.problem.cost(xs, us, ref, u_prev),
+        cost = self.problem.cost(xs, us, ref, u_prev) + self._disagreement_cost(xs, us)
+        return MPCResult(u=us[0].copy(), plan_u=us, plan_x=xs, cost=cost,
                          solve_time=time.perf_counter() - start, iterations=iters, success=ok, message=msg,
                          constraint_violation=worst, converged=converged, unavoidable=unavoidable)
 
@@ -238,10 +262,42 @@ class GenericSQP:
         """The l1 merit of a plan and its constraint values ``(T R,)`` (kept for the next linearisation)."""
         c = self.problem.constraints(xs).reshape(-1)
         pen = self.penalty if penalty is None else penalty
-        merit = self.problem.cost(xs, us, ref, u_prev)
+        merit = self.problem.cost(xs, us, ref, u_prev) + self._disagreement_cost(xs, us)
         if c.size:
             merit += pen * float(np.maximum(c, 0.0).sum())
         return merit, c
+
+    def _disagreement_cost(self, xs: np.ndarray, us: np.ndarray) -> float:
+        """``sum_t sum_j w_j Var_e[phi_e(x_t, u_t)_j]`` over the plan's steps t = 0..T-1 (``cost.disagreement``;
+        0 without it or without an ensemble)."""
+        if not self._dis_idx.size:
+            return 0.0
+        d = self.dyn.deviations(xs[:-1], us)
+        if d is None:
+            return 0.0
+        r = d[:, :, self._dis_idx] * self._dis_sw
+        return float(np.einsum("etj,etj->", r, r)) / d.shape[0]
+
+    def _disagreement_model(self, xs: np.ndarray, us: np.ndarray,
+                            sens: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The disagreement cost's residuals ``sqrt(w_j / E) (phi_e(x_t, u_t) - mean_e phi_e)_j`` ``(E T k,)`` and
+        their exact Jacobian in ``U`` ``(E T k, T m)`` (``x_t`` through the plan's sensitivities ``sens``, ``u_t``
+        directly): the Gauss-Newton model's part of this sum of squares; None when off."""
+        if not self._dis_idx.size:
+            return None
+        dj = self.dyn.deviations_jac(xs[:-1], us)
+        if dj is None:
+            return None
+        d, dx, du = dj
+        e_n, T, m = d.shape[0], self.horizon, self.m
+        idx, sw = self._dis_idx, self._dis_sw / math.sqrt(e_n)
+        sx = np.zeros_like(sens)  # d x_t / d U for t = 0..T-1 (x_0 is given)
+        sx[1:] = sens[:-1]
+        jac = np.matmul(dx[:, :, idx, :], sx)  # (E, T, k, T m)
+        for t in range(T):
+            jac[:, t, :, t * m:(t + 1) * m] += du[:, t][:, idx, :]
+        jac *= sw[None, None, :, None]
+        return (d[:, :, idx] * sw).reshape(-1), jac.reshape(-1, T * m)
 
     def _model(self, xs: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
                hu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -273,6 +329,11 @@ class GenericSQP:
             jx = j3.reshape(T * k, T * m)
             h_gn = 2.0 * (jx.T @ jx + hu)
             grad = 2.0 * (jx.T @ r2.reshape(-1) + ju.T @ ru)
+        dis = self._disagreement_model(xs, us, sens)
+        if dis is not None:
+            rd, jd = dis
+            h_gn = h_gn + 2.0 * (jd.T @ jd)
+            grad = grad + 2.0 * (jd.T @ rd)
         return h_gn, grad, sens
 
     def _optimize(self, x0: np.ndarray, us: np.ndarray, ref: np.ndarray, u_prev: np.ndarray | None,
