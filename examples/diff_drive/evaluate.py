@@ -79,14 +79,15 @@ def _paired(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def docking_runs(system: object, model: object, runs: int, steps: int, seed: int,
-                 explore: float = 0.1, max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 explore: float = 0.1, max_iter: int | None = None,
+                 task: object = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
-    evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
-    ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
+    evaluation's) under the file's MPC (or ``task``'s) planning with ``model`` (None: f_hat), ``steps`` steps each;
+    with probability ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
     from saml_ros.core.mpc.generic import GenericSQP
 
     rng = np.random.default_rng(seed)
-    ctrl = GenericSQP(system, model, max_iter=max_iter)  # type: ignore[arg-type]
+    ctrl = GenericSQP(system, model, max_iter=max_iter, task=task)  # type: ignore[arg-type]
     xs: list[np.ndarray] = []
     us: list[np.ndarray] = []
     ys: list[np.ndarray] = []
@@ -145,7 +146,7 @@ def dataset_and_model(system: object, spec: object, seed: int, args: argparse.Na
     for r in range(args.rounds):
         if args.dock_runs:
             parts.append(docking_runs(system, model, args.dock_runs, args.dock_steps, 500 + 10 * seed + r,
-                                      max_iter=args.max_iter))
+                                      max_iter=args.max_iter, task=getattr(args, "task_obj", None)))
         x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
         model = train(system, spec, x, u, y, seed, args.epochs)
         log(f"seed {seed} round {r + 1}: {len(x)} transitions")  # type: ignore[operator]
@@ -225,6 +226,103 @@ def horizon_errors(system: object, model: object, steps: int = 20) -> str:
     return "\n".join(out)
 
 
+class Recorder:
+    """The evaluation's simulator (``dynamics.make_robot_on_ramp``) recording every episode: ``episodes`` holds, in
+    the order the evaluation flies them, ``(steps + 1, 7)`` arrays of each state and the command applied at it
+    (NaN on the last state)."""
+
+    def __init__(self) -> None:
+        self.episodes: list[list[np.ndarray]] = []
+
+    def __call__(self, x0: np.ndarray) -> object:
+        sim = dynamics.make_robot_on_ramp(x0)
+        rows = [np.r_[sim.state(), np.nan, np.nan]]
+        self.episodes.append(rows)
+
+        class Recording:
+            def state(self) -> np.ndarray:
+                return sim.state()
+
+            def step(self, u: np.ndarray, dt: float) -> None:
+                rows[-1][5:] = u
+                sim.step(u, dt)
+                rows.append(np.r_[sim.state(), np.nan, np.nan])
+
+        return Recording()
+
+    def by_controller(self, ev: object) -> dict[str, list[np.ndarray]]:
+        """controller (``base``, ``oracle``, ``learned``: each seed's model) -> its episodes over all seeds, in the
+        order ``evaluate_nested`` flies them (each seed's starts in turn, each start with every controller)."""
+        out: dict[str, list[np.ndarray]] = {}
+        it = iter(self.episodes)
+        for label, run in ev.runs.items():  # type: ignore[attr-defined]
+            labels = [k for k in run.errors if k != "pooled"]
+            for i in range(len(run.starts)):
+                for k in labels:
+                    episode = np.array(next(it))
+                    if not np.allclose(episode[-1, :5], run.finals[k][i]):
+                        raise RuntimeError("the recorded episodes are not in the evaluation's order")
+                    out.setdefault("learned" if k == label else k, []).append(episode)
+        return out
+
+
+def final_fields(ev: object, goal: np.ndarray) -> str:
+    """What the final error consists of: per controller, the mean |last state - dock| per field (markdown)."""
+    lines = ["| controller | x (mm) | y (mm) | yaw (mrad) | v (mm/s) | w (mrad/s) |", "|---|---|---|---|---|---|"]
+    finals: dict[str, list[np.ndarray]] = {}
+    for label, run in ev.runs.items():  # type: ignore[attr-defined]
+        for k, f in run.finals.items():
+            finals.setdefault("learned" if k == label else k, []).append(f)
+    for k, fs in finals.items():
+        e = 1e3 * np.abs(np.concatenate(fs) - goal).mean(0)
+        lines.append(f"| {k} | " + " | ".join(f"{v:.2f}" for v in e) + " |")
+    return "\n".join(lines)
+
+
+def trajectory_figure(episodes: dict[str, list[np.ndarray]], path: Path, dt: float = 0.02) -> None:
+    """``path`` (PNG): every episode's path (y against x), heading, yaw-rate command and distance from the dock
+    over ``x, y, v, w`` against time, per controller."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 2, figsize=(13, 8))
+    colours = {"base": "C0", "oracle": "C2", "learned": "C3"}
+    for label, eps in episodes.items():
+        for j, e in enumerate(eps):
+            t = dt * np.arange(len(e))
+            ax[0, 0].plot(e[:, 0], 1e3 * e[:, 1], colours.get(label, "C1"), lw=0.7, label=label if j == 0 else None)
+            ax[0, 1].plot(t, e[:, 2], colours.get(label, "C1"), lw=0.5)
+            ax[1, 0].plot(t, e[:, 6], colours.get(label, "C1"), lw=0.4)
+            ax[1, 1].plot(t, np.linalg.norm(e[:, [0, 1, 3, 4]] - [1.5, 0.0, 0.0, 0.0], axis=1), colours.get(label, "C1"),
+                          lw=0.5)
+    ax[0, 0].plot([1.5], [0.0], "k*", ms=10)
+    ax[0, 0].set(xlabel="x (m)", ylabel="y (mm)", title="paths (dock: star)")
+    ax[0, 0].legend()
+    ax[0, 1].set(xlabel="t (s)", ylabel="yaw (rad)")
+    ax[1, 0].set(xlabel="t (s)", ylabel="w_cmd (rad/s)")
+    ax[1, 1].set(xlabel="t (s)", ylabel="distance from the dock (x, y, v, w)", yscale="log")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def task_file(system: object, path: Path) -> object:
+    """The :class:`~saml_ros.core.mpc.generic.section.MPCTask` of a YAML file's ``mpc:`` mapping (``path``, or
+    relative to this folder), checked and completed (goal bounds, ...) against the system file as its own section."""
+    import yaml
+
+    from saml_ros.core.mpc.generic.section import mpc_task, parse_mpc_section
+
+    path = path if path.exists() else HERE / path
+    raw = yaml.safe_load(path.read_text())
+    definition = copy.deepcopy(system.definition)  # type: ignore[attr-defined]
+    definition["mpc"] = parse_mpc_section(raw.get("mpc", raw) if isinstance(raw, dict) else raw, definition,
+                                          f"{path.name}: mpc")
+    return mpc_task(definition)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=3)
@@ -242,6 +340,10 @@ def main() -> int:
                         "real-time iteration; default: the file's solver_options")
     p.add_argument("--unguarded", action="store_true", help="fly the bare planner (no guard, no acceptance)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
+    p.add_argument("--task", type=Path, help="a YAML file with an mpc: mapping to plan with (docking runs and "
+                   "evaluation) and score instead of the file's, e.g. task_turning_free.yaml")
+    p.add_argument("--trajectories", action="store_true",
+                   help="record every episode: trajectories.png and trajectories.npz in -o")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -254,6 +356,9 @@ def main() -> int:
     system = load_system_file(HERE / "system.yaml")
     spec = ProblemSpec.for_system(with_pose_constraint(system.paper_spec(), args.pose_eps), system)
     planner = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    args.task_obj = task_file(system, args.task) if args.task else None
+    if args.task_obj is not None:
+        planner["task"] = args.task_obj
     args.out.mkdir(parents=True, exist_ok=True)
     if args.diagnose:
         model, data = dataset_and_model(system, spec, 0, args)
@@ -273,13 +378,20 @@ def main() -> int:
         evidence = DataEvidence.from_data(system, x, u, y)
         metas[f"seed{seed}"] = {} if evidence is None else {"evidence": evidence.to_payload(tuple(system.target.names))[1]}
         print(f"trained seed {seed} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    ev = evaluate_nested(system, dynamics.make_robot_on_ramp, models,
+    recorder = Recorder() if args.trajectories else None
+    ev = evaluate_nested(system, recorder or dynamics.make_robot_on_ramp, models,
                          dynamics.sample_approach_starts, args.starts, args.steps, seed=3000,
                          oracle=dynamics.true_step_on_ramp, guard=None if args.unguarded else node_guard(),
                          metas=metas, progress=lambda s: print(s, flush=True), **planner)
+    goal = next(iter(ev.runs.values())).goal
+    report = ev.report() + "\n\nfinal state, mean |last state - dock| per field:\n\n" + final_fields(ev, goal)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
-    (args.out / "results.md").write_text(ev.report() + "\n")
-    print(ev.report())
+    (args.out / "results.md").write_text(report + "\n")
+    if recorder is not None:
+        episodes = recorder.by_controller(ev)
+        np.savez_compressed(args.out / "trajectories.npz", **{k: np.array(v) for k, v in episodes.items()})
+        trajectory_figure(episodes, args.out / "trajectories.png")
+    print(report)
     print(f"total {time.perf_counter() - t0:.0f} s")
     return 0
 
