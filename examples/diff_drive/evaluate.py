@@ -308,21 +308,6 @@ def trajectory_figure(episodes: dict[str, list[np.ndarray]], path: Path, dt: flo
     plt.close(fig)
 
 
-def task_file(system: object, path: Path) -> object:
-    """The :class:`~saml_ros.core.mpc.generic.section.MPCTask` of a YAML file's ``mpc:`` mapping (``path``, or
-    relative to this folder), checked and completed (goal bounds, ...) against the system file as its own section."""
-    import yaml
-
-    from saml_ros.core.mpc.generic.section import mpc_task, parse_mpc_section
-
-    path = path if path.exists() else HERE / path
-    raw = yaml.safe_load(path.read_text())
-    definition = copy.deepcopy(system.definition)  # type: ignore[attr-defined]
-    definition["mpc"] = parse_mpc_section(raw.get("mpc", raw) if isinstance(raw, dict) else raw, definition,
-                                          f"{path.name}: mpc")
-    return mpc_task(definition)
-
-
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=3)
@@ -349,14 +334,15 @@ def main() -> int:
     torch.set_num_threads(1)
     from saml_ros.core.model.evidence import DataEvidence
     from saml_ros.core.spec import ProblemSpec
-    from saml_ros.experiments.robot_eval import acceptance, evaluate_nested, node_guard
+    from saml_ros.experiments.robot_eval import acceptance, evaluate_nested, node_guard, task_from_file
     from saml_ros.user_code import load_system_file
 
     t0 = time.perf_counter()
     system = load_system_file(HERE / "system.yaml")
     spec = ProblemSpec.for_system(with_pose_constraint(system.paper_spec(), args.pose_eps), system)
     planner = {} if args.max_iter is None else {"max_iter": args.max_iter}
-    args.task_obj = task_file(system, args.task) if args.task else None
+    task_path = args.task if args.task is None or args.task.exists() else HERE / args.task
+    args.task_obj = task_from_file(system, task_path) if task_path else None
     if args.task_obj is not None:
         planner["task"] = args.task_obj
     args.out.mkdir(parents=True, exist_ok=True)
