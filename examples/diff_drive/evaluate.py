@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import math
 import sys
@@ -205,7 +206,12 @@ def horizon_errors(system: object, model: object, steps: int = 20) -> str:
     rng = np.random.default_rng(6)
     x0s = np.column_stack([rng.uniform(0.6, 1.2, 100), rng.normal(0, 0.02, 100), rng.normal(0, 0.05, 100),
                            rng.uniform(0.1, 0.3, 100), np.zeros(100)])
-    out = [f"{steps}-step prediction error of the final x, y (mm; model - true; mean over 100 states in the patch):"]
+    # the runaways' states (docs/your_robot.md): at the patch's edge, 0.4-0.6 rad off the axis, at speed
+    turned = np.column_stack([rng.uniform(0.45, 0.8, 100), rng.normal(0, 0.03, 100),
+                              rng.choice([-1.0, 1.0], 100) * rng.uniform(0.4, 0.6, 100), rng.uniform(0.25, 0.35, 100),
+                              np.zeros(100)])
+    out = [f"{steps}-step prediction error of the final x, y (mm; model - true; mean over 100 states in the patch "
+           "heading along the axis, and of |y error| over 100 states 0.4-0.6 rad off it at the patch's edge):"]
     half = steps // 2
     plans = {"straight": [np.array([0.5, 0.0])] * steps,
              "weave": [np.array([0.5, 1.5])] * half + [np.array([0.5, -1.5])] * (steps - half)}
@@ -223,6 +229,19 @@ def horizon_errors(system: object, model: object, steps: int = 20) -> str:
                 err[label].append(x[0, :2] - true[:2])
         out.append(f"  {name:8s}: " + ", ".join(f"{k} x {1e3 * np.mean(v, 0)[0]:+.2f}, y {1e3 * np.mean(v, 0)[1]:+.2f}"
                                                   for k, v in err.items()))
+    us = plans["straight"]
+    err = {"f_hat": [], "learned": []}
+    for x0 in turned:
+        sim = dynamics.make_robot_on_ramp(x0)
+        for u in us:
+            sim.step(u, 0.02)
+        for label, step in (("f_hat", system.base_step_np), ("learned", model.predict_np)):  # type: ignore[attr-defined]
+            x = x0[None].copy()
+            for u in us:
+                x = step(x, u[None])
+            err[label].append(abs(x[0, 1] - sim.state()[1]))
+    out.append("  straight, 0.4-0.6 rad off the axis: " + ", ".join(
+        f"{k} mean |y error| {1e3 * np.mean(v):.2f}, worst {1e3 * np.max(v):.2f}" for k, v in err.items()))
     return "\n".join(out)
 
 
@@ -327,6 +346,8 @@ def main() -> int:
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("--task", type=Path, help="a YAML file with an mpc: mapping to plan with (docking runs and "
                    "evaluation) and score instead of the file's, e.g. task_turning_free.yaml")
+    p.add_argument("--horizon", type=int, default=None,
+                   help="planning steps of every planner (docking runs and evaluation); default: the file's (20)")
     p.add_argument("--trajectories", action="store_true",
                    help="record every episode: trajectories.png and trajectories.npz in -o")
     p.add_argument("-o", "--out", type=Path, required=True)
@@ -343,6 +364,10 @@ def main() -> int:
     planner = {} if args.max_iter is None else {"max_iter": args.max_iter}
     task_path = args.task if args.task is None or args.task.exists() else HERE / args.task
     args.task_obj = task_from_file(system, task_path) if task_path else None
+    if args.horizon is not None:
+        from saml_ros.core.mpc.generic import system_task
+
+        args.task_obj = dataclasses.replace(args.task_obj or system_task(system), horizon=args.horizon)
     if args.task_obj is not None:
         planner["task"] = args.task_obj
     args.out.mkdir(parents=True, exist_ok=True)
