@@ -345,7 +345,7 @@ def main() -> int:
     p.add_argument("--unguarded", action="store_true", help="fly the bare planner (no guard, no acceptance)")
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("--task", type=Path, help="a YAML file with an mpc: mapping to plan with (docking runs and "
-                   "evaluation) and score instead of the file's, e.g. task_turning_free.yaml")
+                   "evaluation) and score instead of the file's, e.g. dock_task.yaml (here or a path)")
     p.add_argument("--horizon", type=int, default=None,
                    help="planning steps of every planner (docking runs and evaluation); default: the file's (20)")
     p.add_argument("--trajectories", action="store_true",

@@ -382,11 +382,7 @@ def test_hot_swap_changes_the_plan_not_the_solver() -> None:
 def test_reference_path_agrees_on_a_smooth_model() -> None:
     from saml_ros.core.mpc.generic.nlp import CasadiNLP
 
-    # a cost of the example's shape whose optimum from these far starts is unique (the example's own weighs the
-    # sideways offset 10x: two local optima there, which the two solvers need not agree on)
-    s = build(mutate("mpc.cost", {"stage": {"x": 10.0, "y": 10.0, "yaw": 0.5, "v": 0.05, "w": 0.01},
-                                  "terminal": {"x": 200.0, "y": 200.0, "yaw": 5.0, "v": 1.0, "w": 0.1},
-                                  "effort": {"v_cmd": 0.01, "w_cmd": 0.001}, "rate": {"v_cmd": 0.5, "w_cmd": 0.05}}))
+    s = build(example())
     sqp, nlp = GenericSQP(s, max_iter=60, tol=1e-12), CasadiNLP(s)
     for x in (np.array([0.0, 0.5, 0.3, 0.0, 0.0]), np.array([1.0, -0.5, 2.8, 0.2, 0.1])):
         a, b = sqp.solve(x), nlp.solve(x)
@@ -595,14 +591,15 @@ def test_robot_evaluation_pairs_starts_and_reports_headroom(tmp_path: Path) -> N
 
 
 def test_evaluation_task_file_is_checked_and_completed_like_the_section(tmp_path: Path) -> None:
-    """``robot_eval --task FILE``: a partial ``mpc:`` mapping (the example's former cost) is completed against the
-    system file (goal bounds, penalty) as the file's own section is, and a wrong key is named."""
+    """``robot_eval --task FILE``: a task file's ``mpc:`` mapping (the example's dock task) is checked and completed
+    against the system file (goal bounds, penalty) as the file's own section is, and a wrong key is named."""
     from saml_ros.core.mpc.generic.section import MPCSectionError
     from saml_ros.experiments.robot_eval import task_from_file
 
     s = load_system_file(EXAMPLE)
-    task = task_from_file(s, EXAMPLE.parent / "task_turning_free.yaml")
-    assert task.w_stage.tolist() == [10.0, 10.0, 0.5, 0.05, 0.01] and task.w_rate.tolist() == [0.5, 0.05]
+    task = task_from_file(s, EXAMPLE.parent / "dock_task.yaml")
+    assert task.w_stage.tolist() == [10.0, 100.0, 0.5, 0.05, 0.01] and task.w_rate.tolist() == [0.5, 1.0]
+    assert task.horizon == 40 and task.goal_topic is not None
     assert task.goal_low.tolist() == [-2.3, -2.3, -3.14159266, -0.8, -2.0] and task.penalty == 1000.0
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({"mpc": {"goal": {"fields": ["x"], "default": [1.0]}, "cost": {"stage": {"yw": 1.0}}}}))
