@@ -24,6 +24,11 @@ training runs') beside the base model f_hat and the oracle (the same planner on 
 section (``--max-iter 1``: every planner, docking runs included, takes one SQP step per control step, the real-time
 iteration); the statistics use the seed as the unit; results.md and results.json go to ``-o``.
 
+``--task FILE`` plans (docking runs and evaluation) and scores another ``mpc:`` mapping than the file's, e.g.
+``dock_task.yaml`` (a docking controller's cost, docs/your_robot.md); ``--horizon`` sets every planner's steps;
+``--trajectories`` records every episode (trajectories.png, trajectories.npz); results.md ends with the last state's
+mean error per field.
+
 ``--diagnose``: instead, the measurements behind this set-up for one seed: the one-step error of f_hat and of the
 learned model at the dock (held at rest against the slide) beside the slide's own step, its mean (bias) per field,
 and how many training transitions are near the dock at rest.
