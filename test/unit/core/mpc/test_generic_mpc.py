@@ -599,7 +599,7 @@ def test_evaluation_task_file_is_checked_and_completed_like_the_section(tmp_path
     s = load_system_file(EXAMPLE)
     task = task_from_file(s, EXAMPLE.parent / "dock_task.yaml")
     assert task.w_stage.tolist() == [10.0, 100.0, 0.5, 0.05, 0.01] and task.w_rate.tolist() == [0.5, 1.0]
-    assert task.horizon == 40 and task.goal_topic is not None
+    assert task.horizon == 20 and task.goal_topic is not None
     assert task.goal_low.tolist() == [-2.3, -2.3, -3.14159266, -0.8, -2.0] and task.penalty == 1000.0
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({"mpc": {"goal": {"fields": ["x"], "default": [1.0]}, "cost": {"stage": {"yw": 1.0}}}}))
