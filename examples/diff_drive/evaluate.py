@@ -28,6 +28,11 @@ iteration); the statistics use the seed as the unit; results.md and results.json
 and every planner with a learned model (docking runs and evaluation) plans the members' mean (the generic planner's
 solver option ``ensemble: mean``, docs/mpc.md).
 
+``--task FILE`` plans (docking runs and evaluation) and scores another ``mpc:`` mapping than the file's, e.g.
+``dock_task.yaml`` (a docking controller's cost, docs/your_robot.md); ``--horizon`` sets every planner's steps;
+``--trajectories`` records every episode (trajectories.png, trajectories.npz); results.md ends with the last state's
+mean error per field.
+
 ``--diagnose``: instead, the measurements behind this set-up for one seed: the one-step error of f_hat and of the
 learned model at the dock (held at rest against the slide) beside the slide's own step, its mean (bias) per field,
 the 20-step (horizon) errors driving straight and weaving (:func:`horizon_errors`) and on held-out docking runs
@@ -39,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import math
 import sys
@@ -88,8 +94,8 @@ def docking_runs(system: object, model: object, runs: int, steps: int, seed: int
                  explore: float = 0.1, max_iter: int | None = None, ensemble: str | None = None,
                  task: object = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of ``runs`` docking runs (starts of :func:`dynamics.sample_approach_starts` from ``seed``, not the
-    evaluation's) under the file's MPC planning with ``model`` (None: f_hat), ``steps`` steps each; with probability
-    ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
+    evaluation's) under the file's MPC (or ``task``'s) planning with ``model`` (None: f_hat), ``steps`` steps each;
+    with probability ``explore`` per step an operator's nudge (the plan's command plus noise, held 1-14 steps)."""
     from saml_ros.core.mpc.generic import GenericSQP
 
     rng = np.random.default_rng(seed)
@@ -303,7 +309,12 @@ def horizon_errors(system: object, model: object, steps: int = 20) -> str:
     rng = np.random.default_rng(6)
     x0s = np.column_stack([rng.uniform(0.6, 1.2, 100), rng.normal(0, 0.02, 100), rng.normal(0, 0.05, 100),
                            rng.uniform(0.1, 0.3, 100), np.zeros(100)])
-    out = [f"{steps}-step prediction error of the final x, y (mm; model - true; mean over 100 states in the patch):"]
+    # the runaways' states (docs/your_robot.md): at the patch's edge, 0.4-0.6 rad off the axis, at speed
+    turned = np.column_stack([rng.uniform(0.45, 0.8, 100), rng.normal(0, 0.03, 100),
+                              rng.choice([-1.0, 1.0], 100) * rng.uniform(0.4, 0.6, 100), rng.uniform(0.25, 0.35, 100),
+                              np.zeros(100)])
+    out = [f"{steps}-step prediction error of the final x, y (mm; model - true; mean over 100 states in the patch "
+           "heading along the axis, and of |y error| over 100 states 0.4-0.6 rad off it at the patch's edge):"]
     half = steps // 2
     plans = {"straight": [np.array([0.5, 0.0])] * steps,
              "weave": [np.array([0.5, 1.5])] * half + [np.array([0.5, -1.5])] * (steps - half)}
@@ -321,7 +332,102 @@ def horizon_errors(system: object, model: object, steps: int = 20) -> str:
                 err[label].append(x[0, :2] - true[:2])
         out.append(f"  {name:8s}: " + ", ".join(f"{k} x {1e3 * np.mean(v, 0)[0]:+.2f}, y {1e3 * np.mean(v, 0)[1]:+.2f}"
                                                   for k, v in err.items()))
+    us = plans["straight"]
+    err = {"f_hat": [], "learned": []}
+    for x0 in turned:
+        sim = dynamics.make_robot_on_ramp(x0)
+        for u in us:
+            sim.step(u, 0.02)
+        for label, step in (("f_hat", system.base_step_np), ("learned", _predict(model))):  # type: ignore[attr-defined]
+            x = x0[None].copy()
+            for u in us:
+                x = step(x, u[None])
+            err[label].append(abs(x[0, 1] - sim.state()[1]))
+    out.append("  straight, 0.4-0.6 rad off the axis: " + ", ".join(
+        f"{k} mean |y error| {1e3 * np.mean(v):.2f}, worst {1e3 * np.max(v):.2f}" for k, v in err.items()))
     return "\n".join(out)
+
+
+class Recorder:
+    """The evaluation's simulator (``dynamics.make_robot_on_ramp``) recording every episode: ``episodes`` holds, in
+    the order the evaluation flies them, ``(steps + 1, 7)`` arrays of each state and the command applied at it
+    (NaN on the last state)."""
+
+    def __init__(self) -> None:
+        self.episodes: list[list[np.ndarray]] = []
+
+    def __call__(self, x0: np.ndarray) -> object:
+        sim = dynamics.make_robot_on_ramp(x0)
+        rows = [np.r_[sim.state(), np.nan, np.nan]]
+        self.episodes.append(rows)
+
+        class Recording:
+            def state(self) -> np.ndarray:
+                return sim.state()
+
+            def step(self, u: np.ndarray, dt: float) -> None:
+                rows[-1][5:] = u
+                sim.step(u, dt)
+                rows.append(np.r_[sim.state(), np.nan, np.nan])
+
+        return Recording()
+
+    def by_controller(self, ev: object) -> dict[str, list[np.ndarray]]:
+        """controller (``base``, ``oracle``, ``learned``: each seed's model) -> its episodes over all seeds, in the
+        order ``evaluate_nested`` flies them (each seed's starts in turn, each start with every controller)."""
+        out: dict[str, list[np.ndarray]] = {}
+        it = iter(self.episodes)
+        for label, run in ev.runs.items():  # type: ignore[attr-defined]
+            labels = [k for k in run.errors if k != "pooled"]
+            for i in range(len(run.starts)):
+                for k in labels:
+                    episode = np.array(next(it))
+                    if not np.allclose(episode[-1, :5], run.finals[k][i]):
+                        raise RuntimeError("the recorded episodes are not in the evaluation's order")
+                    out.setdefault("learned" if k == label else k, []).append(episode)
+        return out
+
+
+def final_fields(ev: object, goal: np.ndarray) -> str:
+    """What the final error consists of: per controller, the mean |last state - dock| per field (markdown)."""
+    lines = ["| controller | x (mm) | y (mm) | yaw (mrad) | v (mm/s) | w (mrad/s) |", "|---|---|---|---|---|---|"]
+    finals: dict[str, list[np.ndarray]] = {}
+    for label, run in ev.runs.items():  # type: ignore[attr-defined]
+        for k, f in run.finals.items():
+            finals.setdefault("learned" if k == label else k, []).append(f)
+    for k, fs in finals.items():
+        e = 1e3 * np.abs(np.concatenate(fs) - goal).mean(0)
+        lines.append(f"| {k} | " + " | ".join(f"{v:.2f}" for v in e) + " |")
+    return "\n".join(lines)
+
+
+def trajectory_figure(episodes: dict[str, list[np.ndarray]], path: Path, dt: float = 0.02) -> None:
+    """``path`` (PNG): every episode's path (y against x), heading, yaw-rate command and distance from the dock
+    over ``x, y, v, w`` against time, per controller."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 2, figsize=(13, 8))
+    colours = {"base": "C0", "oracle": "C2", "learned": "C3"}
+    for label, eps in episodes.items():
+        for j, e in enumerate(eps):
+            t = dt * np.arange(len(e))
+            ax[0, 0].plot(e[:, 0], 1e3 * e[:, 1], colours.get(label, "C1"), lw=0.7, label=label if j == 0 else None)
+            ax[0, 1].plot(t, e[:, 2], colours.get(label, "C1"), lw=0.5)
+            ax[1, 0].plot(t, e[:, 6], colours.get(label, "C1"), lw=0.4)
+            ax[1, 1].plot(t, np.linalg.norm(e[:, [0, 1, 3, 4]] - [1.5, 0.0, 0.0, 0.0], axis=1), colours.get(label, "C1"),
+                          lw=0.5)
+    ax[0, 0].plot([1.5], [0.0], "k*", ms=10)
+    ax[0, 0].set(xlabel="x (m)", ylabel="y (mm)", title="paths (dock: star)")
+    ax[0, 0].legend()
+    ax[0, 1].set(xlabel="t (s)", ylabel="yaw (rad)")
+    ax[1, 0].set(xlabel="t (s)", ylabel="w_cmd (rad/s)")
+    ax[1, 1].set(xlabel="t (s)", ylabel="distance from the dock (x, y, v, w)", yscale="log")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def main() -> int:
@@ -350,23 +456,35 @@ def main() -> int:
     p.add_argument("--diagnose", action="store_true", help="the measurements behind the set-up (one seed)")
     p.add_argument("--save-models", action="store_true",
                    help="also write each trained model's weights to -o (seed<i>.pt, a torch state dict)")
+    p.add_argument("--task", type=Path, help="a YAML file with an mpc: mapping to plan with (docking runs and "
+                   "evaluation) and score instead of the file's, e.g. dock_task.yaml (here or a path)")
+    p.add_argument("--horizon", type=int, default=None,
+                   help="planning steps of every planner (docking runs and evaluation); default: the file's (20)")
+    p.add_argument("--trajectories", action="store_true",
+                   help="record every episode: trajectories.png and trajectories.npz in -o")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
     from saml_ros.core.model.evidence import DataEvidence
     from saml_ros.core.spec import ProblemSpec
-    from saml_ros.experiments.robot_eval import acceptance, evaluate_nested, node_guard
+    from saml_ros.experiments.robot_eval import acceptance, evaluate_nested, node_guard, task_from_file
     from saml_ros.user_code import load_system_file
 
     t0 = time.perf_counter()
     system = load_system_file(HERE / "system.yaml")
     spec = ProblemSpec.for_system(with_pose_constraint(system.paper_spec(), args.pose_eps), system)
     planner: dict[str, object] = {} if args.max_iter is None else {"max_iter": args.max_iter}
+    task_path = args.task if args.task is None or args.task.exists() else HERE / args.task
+    args.task_obj = task_from_file(system, task_path) if task_path else None
+    if args.horizon is not None:
+        from saml_ros.core.mpc.generic import system_task
+
+        args.task_obj = dataclasses.replace(args.task_obj or system_task(system), horizon=args.horizon)
+    if args.task_obj is not None:
+        planner["task"] = args.task_obj
     if _ensemble_option(args):
         planner["ensemble"] = _ensemble_option(args)
     if args.disagreement > 0:  # on top of the planners' task (the file's mpc: section unless another is given)
-        import dataclasses
-
         from saml_ros.core.mpc.generic import system_task
 
         task = getattr(args, "task_obj", None) or system_task(system)
@@ -396,13 +514,20 @@ def main() -> int:
         evidence = DataEvidence.from_data(system, x, u, y)
         metas[f"seed{seed}"] = {} if evidence is None else {"evidence": evidence.to_payload(tuple(system.target.names))[1]}
         print(f"trained seed {seed} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    ev = evaluate_nested(system, dynamics.make_robot_on_ramp, models,
+    recorder = Recorder() if args.trajectories else None
+    ev = evaluate_nested(system, recorder or dynamics.make_robot_on_ramp, models,
                          dynamics.sample_approach_starts, args.starts, args.steps, seed=3000,
                          oracle=dynamics.true_step_on_ramp, guard=None if args.unguarded else node_guard(),
                          metas=metas, progress=lambda s: print(s, flush=True), **planner)
+    goal = next(iter(ev.runs.values())).goal
+    report = ev.report() + "\n\nfinal state, mean |last state - dock| per field:\n\n" + final_fields(ev, goal)
     (args.out / "results.json").write_text(json.dumps(ev.to_json(), indent=1))
-    (args.out / "results.md").write_text(ev.report() + "\n")
-    print(ev.report())
+    (args.out / "results.md").write_text(report + "\n")
+    if recorder is not None:
+        episodes = recorder.by_controller(ev)
+        np.savez_compressed(args.out / "trajectories.npz", **{k: np.array(v) for k, v in episodes.items()})
+        trajectory_figure(episodes, args.out / "trajectories.png")
+    print(report)
     print(f"total {time.perf_counter() - t0:.0f} s")
     return 0
 

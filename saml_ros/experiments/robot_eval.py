@@ -371,11 +371,13 @@ def task_from_file(system: Any, path: str | Path) -> Any:
 
     import yaml
 
-    from saml_ros.core.mpc.generic.section import mpc_task
+    from saml_ros.core.mpc.generic.section import mpc_task, parse_mpc_section
 
     definition = copy.deepcopy(system.definition)
     raw = yaml.safe_load(Path(path).read_text())
-    definition["mpc"] = raw.get("mpc", raw) if isinstance(raw, dict) else raw
+    # checked and completed (goal bounds, penalty, ...) against the system file as its own section
+    definition["mpc"] = parse_mpc_section(raw.get("mpc", raw) if isinstance(raw, dict) else raw, definition,
+                                          f"{Path(path).name}: mpc")
     task = mpc_task(definition)
     if task is None:
         raise ValueError(f"{path}: no mpc: mapping")

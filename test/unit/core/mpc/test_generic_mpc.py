@@ -590,6 +590,23 @@ def test_robot_evaluation_pairs_starts_and_reports_headroom(tmp_path: Path) -> N
     assert (tmp_path / "e.png").stat().st_size > 1000
 
 
+def test_evaluation_task_file_is_checked_and_completed_like_the_section(tmp_path: Path) -> None:
+    """``robot_eval --task FILE``: a task file's ``mpc:`` mapping (the example's dock task) is checked and completed
+    against the system file (goal bounds, penalty) as the file's own section is, and a wrong key is named."""
+    from saml_ros.core.mpc.generic.section import MPCSectionError
+    from saml_ros.experiments.robot_eval import task_from_file
+
+    s = load_system_file(EXAMPLE)
+    task = task_from_file(s, EXAMPLE.parent / "dock_task.yaml")
+    assert task.w_stage.tolist() == [10.0, 100.0, 0.5, 0.05, 0.01] and task.w_rate.tolist() == [0.5, 1.0]
+    assert task.horizon == 20 and task.goal_topic is not None
+    assert task.goal_low.tolist() == [-2.3, -2.3, -3.14159266, -0.8, -2.0] and task.penalty == 1000.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"mpc": {"goal": {"fields": ["x"], "default": [1.0]}, "cost": {"stage": {"yw": 1.0}}}}))
+    with pytest.raises(MPCSectionError, match=r"bad.yaml: mpc.cost.stage.yw"):
+        task_from_file(s, bad)
+
+
 def test_nested_evaluation_flies_each_seed_from_its_own_starts() -> None:
     """Starts nested in seeds: each model flies its own starts beside base and oracle (the wet ramp: the oracle's
     slide), and the seed is the unit of the interval; the true dynamics with ``slide`` equal the simulator's."""
