@@ -462,6 +462,8 @@ def main() -> int:
                    help="planning steps of every planner (docking runs and evaluation); default: the file's (20)")
     p.add_argument("--trajectories", action="store_true",
                    help="record every episode: trajectories.png and trajectories.npz in -o")
+    p.add_argument("--start-seed", type=int, default=3000,
+                   help="seed of the evaluation's starts (another than the default: a confirmation on new starts)")
     p.add_argument("-o", "--out", type=Path, required=True)
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -516,7 +518,7 @@ def main() -> int:
         print(f"trained seed {seed} ({time.perf_counter() - t0:.0f} s)", flush=True)
     recorder = Recorder() if args.trajectories else None
     ev = evaluate_nested(system, recorder or dynamics.make_robot_on_ramp, models,
-                         dynamics.sample_approach_starts, args.starts, args.steps, seed=3000,
+                         dynamics.sample_approach_starts, args.starts, args.steps, seed=args.start_seed,
                          oracle=dynamics.true_step_on_ramp, guard=None if args.unguarded else node_guard(),
                          metas=metas, progress=lambda s: print(s, flush=True), **planner)
     goal = next(iter(ev.runs.values())).goal
