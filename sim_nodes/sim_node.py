@@ -25,7 +25,6 @@ from typing import Any
 
 import rclpy
 import rclpy.parameter
-import torch
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.task import Future
@@ -228,6 +227,15 @@ class SimNode(Node):
         self.diag_pub.publish(diagnostics_to_msg([entry], self.core.sim_now_ns()))
 
 
+def one_torch_thread() -> None:
+    """One intra-op torch thread once the simulator's core has imported torch (a time-stepped system's dynamics,
+    :class:`~saml_ros.core.worlds.sim_core.FastStep`): one small state per step, extra threads only contend for the
+    cores. A core that steps no torch model (the paddle ball's MuJoCo world) never imports it (2-3 CPU-s saved)."""
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.get_num_threads() != 1:
+        torch.set_num_threads(1)
+
+
 def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
     """Run the simulator node of ``binding`` until SIGINT / SIGTERM or ``max_sim_time`` (exit code 0).
 
@@ -242,7 +250,6 @@ def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
     if any(a in ("-h", "--help") for a in args[1:ros_start]):
         print(binding.usage())
         return 0
-    torch.set_num_threads(1)  # one small state per step: extra threads only contend for the 2 cores
     init_rclpy(args)
     node: SimNode | None = None
     code = 0
@@ -253,6 +260,7 @@ def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
             print(f"{binding.node_name}: {exc}", file=sys.stderr)
             code = USAGE_ERROR
         else:
+            one_torch_thread()
             done = node.done_future
             spin_until_stopped(node, stop, lambda: not done.done(), executor=node.params["executor"])
     finally:

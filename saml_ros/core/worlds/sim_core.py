@@ -28,15 +28,17 @@ import warnings
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from saml_ros.core.data.plausibility import Plausibility, parse_overrides
 from saml_ros.core.dynamics.system import System
 from saml_ros.core.errors import SamlError
 from saml_ros.core.systems.registry import get_entry
+
+if TYPE_CHECKING:  # imported by FastStep: a simulator that does not step a torch model never loads it
+    import torch
 
 NS_PER_S = 1_000_000_000
 MODES = ("realtime", "lockstep")
@@ -213,6 +215,9 @@ class FastStep:
     """
 
     def __init__(self, system: System, trace: bool = True) -> None:
+        import torch
+
+        self._torch = torch
         self.system = system
         self._x = torch.zeros(1, system.state.size, dtype=torch.float64)
         self._u = torch.zeros(1, system.control.size, dtype=torch.float64)
@@ -224,6 +229,7 @@ class FastStep:
             self._try_trace()
 
     def _try_trace(self) -> None:
+        torch = self._torch
         try:
             with torch.no_grad(), warnings.catch_warnings():
                 # torch.jit is deprecated in favour of torch.compile, which needs a C++ toolchain and tens of
@@ -243,7 +249,7 @@ class FastStep:
         """x_{k+1} = true_step(x_k, u) for ``x`` ``(n,)``, ``u`` ``(m,)``; a new float64 ``(n,)`` array."""
         self._xn[0] = x
         self._un[0] = u
-        with torch.inference_mode():
+        with self._torch.inference_mode():
             out = self._fn(self._x, self._u)
         return out[0].numpy().copy()
 

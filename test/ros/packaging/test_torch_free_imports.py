@@ -4,7 +4,8 @@ that neither train nor evaluate a network import it only where they do.
 * the learner node's own process: its parameters, configure's checks, the training process's setup (sent pickled),
   the telemetry it assembles; the training process it starts imports torch;
 * ``bringup`` (its monitor builds the system) and anything that only builds a system or its problem spec;
-* ``train`` refusing a run before it reads any data (a missing bag): torch comes once the data is read.
+* ``train`` refusing a run before it reads any data (a missing bag): torch comes once the data is read;
+* the paddle ball's simulator (a MuJoCo world; the time-stepped simulators step their dynamics in torch).
 
 Each check runs in a fresh interpreter (the test process has torch imported already), so these tests start
 processes and live under test/ros/. A change that pulls torch back into one of these paths fails here, naming the
@@ -78,6 +79,19 @@ if "train_refused" in STEPS:
 
     assert main(["--system", "friction", "--bag", sys.argv[2] + "/no_such_bag"]) == 2
     check("train_refused")
+if "paddle_sim" in STEPS:
+    import sim_nodes.paddle_ball_sim
+    from saml_ros.core.systems import get_entry
+    from sim_nodes.binding import COMMON_PARAMS, config_from_params
+    from saml_ros.core.worlds.sim_core import APPLIED, FLIGHT, STATE
+
+    binding = sim_nodes.paddle_ball_sim.BINDING
+    values = {p.name: p.default for p in (*COMMON_PARAMS, *binding.params)}
+    entry = get_entry(binding.system)
+    core = entry.simulator(entry.make_system(), config_from_params(values), values)
+    outputs = core.begin(0, 0) + [o for k in range(1, 30) for o in core.tick(k * 20_000_000)]
+    assert {STATE, APPLIED, FLIGHT} <= {kind for kind, _, _ in outputs}, outputs  # it simulated a bounce
+    check("paddle_sim")
 '''
 
 
@@ -92,6 +106,14 @@ def test_the_learner_node_bringup_and_a_refused_train_run_import_no_torch(tmp_pa
     out = _probe("learner,systems,train_refused", tmp_path)
     assert out.returncode == 0, out.stdout + out.stderr
     assert out.stdout.split() == ["ok", "learner", "ok", "systems", "ok", "train_refused"], out.stdout + out.stderr
+
+
+def test_the_paddle_ball_simulator_imports_no_torch(tmp_path: Path) -> None:
+    """The paddle ball's simulator steps a MuJoCo world: building its core and bouncing the ball import no torch
+    (the friction and quadrotor simulators step their torch dynamics, ``sim_core.FastStep``, which imports it)."""
+    out = _probe("paddle_sim", tmp_path)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert out.stdout.split() == ["ok", "paddle_sim"], out.stdout + out.stderr
 
 
 def test_the_probe_sees_torch_where_it_is_imported(tmp_path: Path) -> None:
