@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import importlib
 import tempfile
+import time
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 from helpers.ros_helpers import TestNode, ros_domain, wait_for
 
@@ -40,8 +42,7 @@ def table_parameters(executable: str, system: str) -> set[str]:
         return set(RCLPY_PARAMS)
     if executable.endswith("_sim"):
         binding = importlib.import_module(f"sim_nodes.{executable}").BINDING
-        return ({p.name for p in binding.all_params()} | {f"system.{n}" for n, _ in binding.system_params}
-                | RCLPY_PARAMS)
+        return {p.name for p in binding.all_params()} | {f"system.{n}" for n, _ in binding.system_params} | RCLPY_PARAMS
     raise KeyError(f"no parameter table for executable {executable!r}")
 
 
@@ -63,6 +64,21 @@ def _launch_args(executable: str, system: str, scratch: Path) -> tuple[list[str]
     return [], ros
 
 
+def _call_idempotent(probe: TestNode, srv_type: Any, service: str, timeout: float, attempt: float = 15.0) -> Any:
+    """Call a read-only service, asking again every ``attempt`` s until ``timeout``: a request sent just after
+    discovery can be lost (the server's response writer not yet matched with the client's reader), and a lost
+    response is never resent; asking again is safe only because the service changes nothing."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return probe.call(
+                srv_type, service, srv_type.Request(), timeout=min(attempt, max(deadline - time.monotonic(), 1.0))
+            )
+        except TimeoutError:
+            if time.monotonic() >= deadline:
+                raise
+
+
 def declared_parameters(targets: Iterable[tuple[str, str]], timeout: float = 120.0) -> dict[tuple[str, str], set[str]]:
     """``{(executable, system): names of the parameters that node declares}`` for every node of ``targets``
     (each started in its system's namespace, ``/<system>``)."""
@@ -79,10 +95,18 @@ def declared_parameters(targets: Iterable[tuple[str, str]], timeout: float = 120
                 procs[(exe, system)] = dom.launch(exe, *ros, namespace=f"/{system}", args=args)
             for (exe, system), proc in procs.items():
                 service = f"/{system}/{node_name(exe)}/list_parameters"
-                wait_for(lambda p=proc, srv=service: not p.alive() or any(  # type: ignore[misc]
-                    n == srv for n, _ in probe.node.get_service_names_and_types()), timeout=timeout, what=service)
+                wait_for(
+                    lambda p=proc, srv=service: (
+                        not p.alive()
+                        or any(  # type: ignore[misc]
+                            n == srv for n, _ in probe.node.get_service_names_and_types()
+                        )
+                    ),
+                    timeout=timeout,
+                    what=service,
+                )
                 assert proc.alive(), f"{exe} for {system} exited:\n{proc.output()}"
-                response = probe.call(ListParameters, service, ListParameters.Request(), timeout=timeout)
+                response = _call_idempotent(probe, ListParameters, service, timeout)
                 out[(exe, system)] = set(response.result.names)
         finally:
             probe.close()
