@@ -18,7 +18,6 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -48,15 +47,8 @@ def example_module(name: str) -> ModuleType:
     return sys.modules[key]
 
 
-@pytest.fixture(autouse=True)
-def _forget_registered_robots() -> Iterator[None]:
-    """Robots these tests load are registered by name; other test modules expect only the built-in systems."""
-    from saml_ros.core.systems import system_names, unregister_system
-
-    before = set(system_names())
-    yield
-    for name in set(system_names()) - before:
-        unregister_system(name)
+#: robots these tests load from system files are forgotten after each test (test/conftest.py)
+pytestmark = pytest.mark.usefixtures("restore_registry")
 
 
 def flight(seconds: float, seed: int, unknown_effects: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -12,7 +12,6 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,14 +26,8 @@ SYSTEM_FILE = EXAMPLE / "system.yaml"
 NS = "/dd"
 
 
-@pytest.fixture(autouse=True)
-def _forget_registered_robots() -> Iterator[None]:
-    from saml_ros.core.systems import system_names, unregister_system
-
-    before = set(system_names())
-    yield
-    for name in set(system_names()) - before:
-        unregister_system(name)
+#: robots these tests load from system files are forgotten after each test (test/conftest.py)
+pytestmark = pytest.mark.usefixtures("restore_registry")
 
 
 def launch_robot(dom: RosDomain) -> Process:

@@ -7,7 +7,6 @@ the members agree; both off by default."""
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,14 +27,8 @@ REPO = Path(__file__).resolve().parents[4]
 EXAMPLE = REPO / "examples" / "diff_drive" / "system.yaml"
 
 
-@pytest.fixture(autouse=True)
-def _forget_registered_robots() -> Iterator[None]:
-    from saml_ros.core.systems import system_names, unregister_system
-
-    before = set(system_names())
-    yield
-    for name in set(system_names()) - before:
-        unregister_system(name)
+#: robots these tests load from system files are forgotten after each test (test/conftest.py)
+pytestmark = pytest.mark.usefixtures("restore_registry")
 
 
 def example(**cost: Any) -> dict[str, Any]:

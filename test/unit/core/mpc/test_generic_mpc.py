@@ -33,14 +33,8 @@ REPO = Path(__file__).resolve().parents[4]
 EXAMPLE = REPO / "examples" / "diff_drive" / "system.yaml"
 
 
-@pytest.fixture(autouse=True)
-def _forget_registered_robots() -> Iterator[None]:
-    from saml_ros.core.systems import system_names, unregister_system
-
-    before = set(system_names())
-    yield
-    for name in set(system_names()) - before:
-        unregister_system(name)
+#: robots these tests load from system files are forgotten after each test (test/conftest.py)
+pytestmark = pytest.mark.usefixtures("restore_registry")
 
 
 def example() -> dict[str, Any]:

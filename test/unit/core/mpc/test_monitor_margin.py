@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -28,14 +27,8 @@ EXAMPLE = REPO / "examples" / "diff_drive"
 OLD_DEFAULT = MonitorConfig(margin=0.01, margin_relative=0.0)
 
 
-@pytest.fixture(autouse=True)
-def _forget_registered_robots() -> Iterator[None]:
-    from saml_ros.core.systems import system_names, unregister_system
-
-    before = set(system_names())
-    yield
-    for name in set(system_names()) - before:
-        unregister_system(name)
+#: robots these tests load from system files are forgotten after each test (test/conftest.py)
+pytestmark = pytest.mark.usefixtures("restore_registry")
 
 
 def feed(m: LiveErrorMonitor, err_model: float, err_base: float, n: int = 5) -> bool:
