@@ -12,6 +12,7 @@ from __future__ import annotations
 import fcntl
 import os
 import platform
+import shutil
 import subprocess
 import tempfile
 import time
@@ -66,3 +67,20 @@ def build_locked(cc: str, source: Path, so: Path, lock_name: str, cflags: Sequen
         finally:
             Path(tmp).unlink(missing_ok=True)
         return time.perf_counter() - t0
+
+
+def compiler() -> str | None:
+    """The C compiler to build with: ``$CC``, else ``cc``, as found on PATH (None: none)."""
+    return shutil.which(os.environ.get("CC") or "cc")
+
+
+def build_cached(source: Path, so: Path, lock_name: str, cflags: Sequence[str], timeout: float) -> float | None:
+    """:func:`build_locked` for a library ``so`` in the cache (its folder created): None when ``so`` is built
+    already (no compiler needed then), else the build's seconds. Raises RuntimeError without a C compiler."""
+    so.parent.mkdir(parents=True, exist_ok=True)
+    if so.is_file():
+        return None
+    cc = compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler (cc, or $CC) on PATH")
+    return build_locked(cc, source, so, lock_name, cflags, timeout)

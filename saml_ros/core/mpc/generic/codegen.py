@@ -21,8 +21,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from saml_ros.core.mpc.shooting.native import _compiler, switched_off
-from saml_ros.core.runtime.native_build import build_locked, cache_root, cpu_id
+from saml_ros.core.mpc.shooting.native import switched_off
+from saml_ros.core.runtime.native_build import build_cached, cache_root, cpu_id
 
 #: the flags of the generated code (no ``-march=native``: plain arithmetic, and a smaller hash surface)
 CFLAGS = ("-O2", "-fPIC", "-shared")
@@ -54,16 +54,10 @@ def compiled(fns: list[Any], name: str) -> tuple[list[Any], str | None]:
                 gen.add(f)
             gen.generate(tmp + os.sep)
             src = Path(tmp, f"{name}.c")
-            root = cache_root()
-            root.mkdir(parents=True, exist_ok=True)
-            so = root / build_name(src.read_text(), name)
-            if not so.is_file():
-                cc = _compiler()
-                if cc is None:
-                    raise RuntimeError("no C compiler (cc, or $CC) on PATH")
-                seconds = build_locked(cc, src, so, "casadi_codegen.lock", CFLAGS, timeout=600)
-                if seconds is not None:
-                    COMPILE_SECONDS.append(seconds)
+            so = cache_root() / build_name(src.read_text(), name)
+            seconds = build_cached(src, so, "casadi_codegen.lock", CFLAGS, timeout=600)
+            if seconds is not None:
+                COMPILE_SECONDS.append(seconds)
         return [ca.external(f.name(), str(so)) for f in fns], None
     except Exception as exc:  # noqa: BLE001 - any build or load problem: the symbolic functions
         why = f"{type(exc).__name__}: {exc}"[:400]

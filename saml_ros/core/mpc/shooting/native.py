@@ -27,14 +27,13 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import os
-import shutil
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from saml_ros.core.runtime.native_build import build_locked, cache_root, cpu_id
+from saml_ros.core.runtime.native_build import build_cached, cache_root, cpu_id
 
 #: the kernel's source (package data)
 SOURCE = Path(__file__).resolve().parent / "kernels" / "sqp_native.c"
@@ -88,11 +87,6 @@ def switched_off() -> bool:
     return os.environ.get(SWITCH_ENV, "1").strip().lower() in ("0", "false", "off", "no")
 
 
-def _compiler() -> str | None:
-    cc = os.environ.get("CC") or "cc"
-    return shutil.which(cc)
-
-
 def build_name(source: Path = SOURCE) -> str:
     """``sqp_native_<hash>.so`` of the source, the flags and this CPU."""
     h = hashlib.sha256()
@@ -125,16 +119,10 @@ def load_library() -> ctypes.CDLL | None:
     if _STATE.tried:
         return _STATE.lib
     try:
-        root = cache_root()
-        root.mkdir(parents=True, exist_ok=True)
-        so = root / build_name()
-        if not so.is_file():
-            cc = _compiler()
-            if cc is None:
-                raise RuntimeError("no C compiler (cc, or $CC) on PATH")
-            seconds = build_locked(cc, SOURCE, so, "sqp_native.lock", CFLAGS, timeout=120)
-            if seconds is not None:
-                _STATE.seconds = seconds
+        so = cache_root() / build_name()
+        seconds = build_cached(SOURCE, so, "sqp_native.lock", CFLAGS, timeout=120)
+        if seconds is not None:
+            _STATE.seconds = seconds
         _STATE.lib = _declare(ctypes.CDLL(str(so)))
         _STATE.reason = None
     except Exception as exc:  # noqa: BLE001 - any build or load problem means: the numpy path
