@@ -7,7 +7,7 @@ that neither train nor evaluate a network import it only where they do.
 * ``train`` refusing a run before it reads any data (a missing bag): torch comes once the data is read;
 * the MPC node until its first checkpoint: it plans with f_hat in numpy and CasADi; loading a network imports
   torch (``nodes.runtime.single_torch_thread`` sets its thread count before that);
-* the paddle ball's simulator (a MuJoCo world; the time-stepped simulators step their dynamics in torch).
+* the simulators: the paddle ball's MuJoCo world, the numpy twins of the friction and quadrotor true dynamics.
 
 Each check runs in a fresh interpreter (the test process has torch imported already), so these tests start
 processes and live under test/ros/. A change that pulls torch back into one of these paths fails here, naming the
@@ -117,19 +117,23 @@ if "mpc" in STEPS:
 
     assert torch.get_num_threads() == 1, torch.get_num_threads()
     print("ok torch_threads", flush=True)
-if "paddle_sim" in STEPS:
-    import sim_nodes.paddle_ball_sim
+if "sims" in STEPS:
+    import importlib
+
     from saml_ros.core.systems import get_entry
     from sim_nodes.binding import COMMON_PARAMS, config_from_params
     from saml_ros.core.worlds.sim_core import APPLIED, FLIGHT, STATE
 
-    binding = sim_nodes.paddle_ball_sim.BINDING
-    values = {p.name: p.default for p in (*COMMON_PARAMS, *binding.params)}
-    entry = get_entry(binding.system)
-    core = entry.simulator(entry.make_system(), config_from_params(values), values)
-    outputs = core.begin(0, 0) + [o for k in range(1, 30) for o in core.tick(k * 20_000_000)]
-    assert {STATE, APPLIED, FLIGHT} <= {kind for kind, _, _ in outputs}, outputs  # it simulated a bounce
-    check("paddle_sim")
+    for node in ("paddle_ball_sim", "friction_sim", "quadrotor_sim"):
+        binding = importlib.import_module("sim_nodes." + node).BINDING
+        values = {p.name: p.default for p in (*COMMON_PARAMS, *binding.params)}
+        entry = get_entry(binding.system)
+        core = entry.simulator(entry.make_system(), config_from_params(values), values)
+        outputs = core.begin(0, 0) + [o for k in range(1, 30) for o in core.tick(k * 20_000_000)]
+        kinds = {kind for kind, _, _ in outputs}
+        # it simulated: a bounce of the ball, commands applied to the time-stepped systems
+        assert ({STATE, APPLIED, FLIGHT} if node == "paddle_ball_sim" else {STATE, APPLIED}) <= kinds, outputs
+    check("sims")
 '''
 
 
@@ -154,12 +158,12 @@ def test_the_mpc_node_plans_with_f_hat_without_torch(tmp_path: Path) -> None:
     assert out.stdout.split() == ["ok", "mpc", "ok", "torch_threads"], out.stdout + out.stderr
 
 
-def test_the_paddle_ball_simulator_imports_no_torch(tmp_path: Path) -> None:
-    """The paddle ball's simulator steps a MuJoCo world: building its core and bouncing the ball import no torch
-    (the friction and quadrotor simulators step their torch dynamics, ``sim_core.FastStep``, which imports it)."""
-    out = _probe("paddle_sim", tmp_path)
+def test_the_simulators_import_no_torch(tmp_path: Path) -> None:
+    """Each simulator node's core steps its world without torch: the paddle ball's MuJoCo world, and the numpy
+    twins of the friction and quadrotor true dynamics (equal to ``true_step`` to rounding: test_sim_core.py)."""
+    out = _probe("sims", tmp_path)
     assert out.returncode == 0, out.stdout + out.stderr
-    assert out.stdout.split() == ["ok", "paddle_sim"], out.stdout + out.stderr
+    assert out.stdout.split() == ["ok", "sims"], out.stdout + out.stderr
 
 
 def test_the_probe_sees_torch_where_it_is_imported(tmp_path: Path) -> None:
