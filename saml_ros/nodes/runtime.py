@@ -23,6 +23,8 @@ from typing import Any, TypeVar
 
 #: ``{"signal": number of the newest SIGINT / SIGTERM received, 0 = none yet}``
 StopFlag = dict[str, int]
+#: ``[True]`` while an executable runs as the process entry (:func:`process_main`), which ends with ``os._exit``
+_ENDING_PROCESS = [False]
 
 
 def catch_stop_signals() -> StopFlag:
@@ -86,6 +88,7 @@ def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool]
             now, count = time.monotonic(), drain()
             if count != last:
                 last, quiet_since = count, now
+    spinner.shutdown()  # drops its callback generator, a reference cycle (see shutdown())
 
 
 #: executors :func:`make_executor` knows (environment variable ``SAML_EXECUTOR``; docs/performance.md)
@@ -120,11 +123,24 @@ def single_torch_thread() -> None:
 
 
 def shutdown(node: Any | None) -> None:
-    """Destroy ``node`` (if any) and shut rclpy down (if it is still up)."""
+    """Destroy ``node`` (if any) and shut rclpy down (if it is still up).
+
+    Executors, timers and clocks register weak methods among the context's shutdown callbacks; one freed after
+    ``rclpy.shutdown()`` (which empties that list) makes rclpy print an ignored ``ValueError`` traceback from
+    ``Context._remove_callback`` on the node's output (seen in the suite on the MPC node, freed by the cycle
+    collector in the moment between shutdown and the process's end). So garbage is collected before the shutdown,
+    and in a process that :func:`process_main` is about to end the cycle collector is then off (it ends with
+    ``os._exit``, nothing is left to free); called in-process (a test) the collector stays on.
+    """
+    import gc
+
     import rclpy
 
     if node is not None:
         node.destroy_node()
+    gc.collect()
+    if _ENDING_PROCESS[0]:
+        gc.disable()
     if rclpy.ok():
         rclpy.shutdown()
 
@@ -171,6 +187,7 @@ def process_main(main: _Main) -> _Main:
 
     @functools.wraps(main)
     def wrapper(argv: Sequence[str] | None = None) -> Any:
+        _ENDING_PROCESS[0] = argv is None
         code = main(argv)
         if argv is None:
             if isinstance(code, str):  # as sys.exit(message): the message on stderr, status 1
