@@ -228,9 +228,10 @@ class SimNode(Node):
 
 
 def one_torch_thread() -> None:
-    """One intra-op torch thread once the simulator's core has imported torch (a time-stepped system's dynamics,
-    :class:`~saml_ros.core.worlds.sim_core.FastStep`): one small state per step, extra threads only contend for the
-    cores. A core that steps no torch model (the paddle ball's MuJoCo world) never imports it (2-3 CPU-s saved)."""
+    """One intra-op torch thread once the simulator's core has imported torch (a time-stepped system without a
+    numpy step steps ``true_step`` with :class:`~saml_ros.core.worlds.sim_core.FastStep`): one small state per step,
+    extra threads only contend for the cores. The built-in simulators step numpy or MuJoCo and never import it
+    (2-3 CPU-s saved)."""
     torch = sys.modules.get("torch")
     if torch is not None and torch.get_num_threads() != 1:
         torch.set_num_threads(1)

@@ -44,7 +44,6 @@ from typing import Any
 
 import numpy as np
 import rclpy
-import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -74,7 +73,15 @@ from saml_ros.core.runtime.lifecycle import LIFECYCLE_PARAMS, TransitionRefused
 from saml_ros.core.systems import get_entry
 from saml_ros.nodes.managed import ManagedNode, run_managed
 from saml_ros.nodes.ros_params import ParamGuard, current_values, probe_system, start_params
-from saml_ros.nodes.runtime import catch_stop_signals, full_argv, init_rclpy, process_main, shutdown, wants_help
+from saml_ros.nodes.runtime import (
+    catch_stop_signals,
+    full_argv,
+    init_rclpy,
+    process_main,
+    shutdown,
+    single_torch_thread,
+    wants_help,
+)
 
 #: exit code for invalid parameters (as argparse's usage errors)
 USAGE_ERROR = 2
@@ -378,7 +385,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               "[--params-file config/mpc.yaml] [-r __ns:=/quadrotor]")
         return 0
     stop = catch_stop_signals()
-    torch.set_num_threads(1)  # checkpoints are tiny; extra threads would only contend for the cores
+    single_torch_thread()  # checkpoints are tiny; extra threads would only contend for the cores
     init_rclpy(args)
     node = None
     try:

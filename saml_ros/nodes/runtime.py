@@ -23,6 +23,8 @@ from typing import Any, TypeVar
 
 #: ``{"signal": number of the newest SIGINT / SIGTERM received, 0 = none yet}``
 StopFlag = dict[str, int]
+#: ``[True]`` while an executable runs as the process entry (:func:`process_main`), which ends with ``os._exit``
+_ENDING_PROCESS = [False]
 
 
 def catch_stop_signals() -> StopFlag:
@@ -57,7 +59,7 @@ def init_rclpy(args: Sequence[str]) -> None:
 
 def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool] | None = None, *,
                        period: float = 0.1, announce: bool = True, executor: str = "single",
-                       drain: Callable[[], int] | None = None, drain_timeout: float = 5.0,
+                       drain: Callable[[], int] | None = None, drain_timeout: float = 2.0,
                        drain_quiet: float = 0.3) -> None:
     """Spin ``node`` on :func:`make_executor`'s executor until a stop signal arrives or ``keep_going()`` is False.
 
@@ -67,7 +69,10 @@ def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool]
         executor: see :func:`make_executor`.
         drain: after the stop, keep spinning while this count (e.g. messages written) still grows, until it has
             not grown for ``drain_quiet`` s or ``drain_timeout`` s have passed: what the middleware already
-            delivered (acknowledged to its publishers) is taken, not dropped with the process.
+            delivered (acknowledged to its publishers) is taken, not dropped with the process. While the robot
+            keeps publishing the count never stops growing, so ``drain_timeout`` bounds the stop: 2 s leaves the
+            rest of ``ros2 launch``'s 5 s grace period for closing the bag (at 5 s a recorder beside a 50 Hz
+            simulator outlived the grace period under load).
     """
     spinner = make_executor(executor)
     spinner.add_node(node)
@@ -83,6 +88,7 @@ def spin_until_stopped(node: Any, stop: StopFlag, keep_going: Callable[[], bool]
             now, count = time.monotonic(), drain()
             if count != last:
                 last, quiet_since = count, now
+    spinner.shutdown()  # drops its callback generator, a reference cycle (see shutdown())
 
 
 #: executors :func:`make_executor` knows (environment variable ``SAML_EXECUTOR``; docs/performance.md)
@@ -106,12 +112,35 @@ def make_executor(kind: str = "single") -> Any:
     return SingleThreadedExecutor()
 
 
+def single_torch_thread() -> None:
+    """One intra-op torch thread in this process, whether torch is imported already or only later (by the first
+    checkpoint a node loads): a node that never meets a network never pays torch's 2-3 CPU-s import. Before the
+    import, ``OMP_NUM_THREADS=1`` is what torch reads for its thread count (checked by test_torch_free_imports)."""
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+    else:
+        os.environ["OMP_NUM_THREADS"] = "1"
+
+
 def shutdown(node: Any | None) -> None:
-    """Destroy ``node`` (if any) and shut rclpy down (if it is still up)."""
+    """Destroy ``node`` (if any) and shut rclpy down (if it is still up).
+
+    Executors, timers and clocks register weak methods among the context's shutdown callbacks; one freed after
+    ``rclpy.shutdown()`` (which empties that list) makes rclpy print an ignored ``ValueError`` traceback from
+    ``Context._remove_callback`` on the node's output (seen in the suite on the MPC node, freed by the cycle
+    collector in the moment between shutdown and the process's end). So garbage is collected before the shutdown,
+    and in a process that :func:`process_main` is about to end the cycle collector is then off (it ends with
+    ``os._exit``, nothing is left to free); called in-process (a test) the collector stays on.
+    """
+    import gc
+
     import rclpy
 
     if node is not None:
         node.destroy_node()
+    gc.collect()
+    if _ENDING_PROCESS[0]:
+        gc.disable()
     if rclpy.ok():
         rclpy.shutdown()
 
@@ -158,6 +187,7 @@ def process_main(main: _Main) -> _Main:
 
     @functools.wraps(main)
     def wrapper(argv: Sequence[str] | None = None) -> Any:
+        _ENDING_PROCESS[0] = argv is None
         code = main(argv)
         if argv is None:
             if isinstance(code, str):  # as sys.exit(message): the message on stderr, status 1

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from helpers.bag_publisher import rollout, save_events
-from helpers.ros_helpers import RosDomain, wait_for
+from helpers.ros_helpers import RosDomain, dying_with_test, wait_for
 from msg_schemas import CHECKPOINT_QOS, DATA_QOS, TELEMETRY_QOS, TypestoreFactory, get_schema
 from msg_schemas.telemetry import CheckpointInfo, checkpoint_to_msg, model_error_to_msg
 from saml_ros.bags.io import BagWriter, jazzy_typestore, saml_topics
@@ -33,7 +33,8 @@ def start_publisher(events: list[dict], tmp: Path, *args: str) -> subprocess.Pop
     """A bag_publisher.py process publishing the saved roll-out ``events`` (no torch in that process)."""
     path = tmp / f"events-{time.monotonic_ns()}.npz"
     save_events(path, events)
-    return subprocess.Popen([sys.executable, str(PUBLISHER), "--events", str(path), *args], stdout=subprocess.PIPE,
+    return subprocess.Popen(dying_with_test([sys.executable, str(PUBLISHER), "--events", str(path), *args]),
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=dict(os.environ))
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from helpers import REPO
+from helpers.ros_helpers import dying_with_test
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -37,7 +38,8 @@ class MPCProcess:
                    PYTHONUNBUFFERED="1")
         env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
         self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(args, cwd=tmp, env=env, stdout=self._log, stderr=subprocess.STDOUT,
+        self.proc = subprocess.Popen(dying_with_test(args), cwd=tmp, env=env, stdout=self._log,
+                                     stderr=subprocess.STDOUT,
                                      process_group=0)
 
     def log(self) -> str:

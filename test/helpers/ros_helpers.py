@@ -49,6 +49,8 @@ SHM = Path("/dev/shm")
 DOMAIN_IDS = range(1, 101)
 #: generous default timeout (s) for start-up and discovery on the shared, slow test machine
 STARTUP_TIMEOUT = 45.0
+#: util-linux's setpriv: runs a command with a parent-death signal (``None`` where it is missing)
+SETPRIV = shutil.which("setpriv")
 _SHM_PATTERN = re.compile(r"^(?:sem\.)?(?:fastrtps|fastdds)_(?P<id>port(?P<port>\d+)|[0-9a-f]+)(?:_el|_sl|_mutex)?$")
 
 
@@ -140,9 +142,22 @@ def launch(executable: str, *ros_args: str, env: dict[str, str] | None = None, n
     log_dir = log_dir if log_dir is not None else Path(tempfile.mkdtemp(prefix="saml_ros_logs_"))
     log_path = log_dir / f"{executable}-{time.monotonic_ns()}.log"
     with open(log_path, "wb") as log:
-        popen = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=full_env, cwd=cwd or REPO,
+        popen = subprocess.Popen(dying_with_test(cmd), stdout=log, stderr=subprocess.STDOUT, env=full_env,
+                                 cwd=cwd or REPO,
                                  start_new_session=True)
     return Process(executable, popen, log_path)
+
+
+def dying_with_test(argv: Sequence[str]) -> list[str]:
+    """``argv`` run so that the process gets SIGTERM when the test process that starts it dies.
+
+    The tests start their nodes in their own sessions (so a signal to the test's group does not reach them); a
+    pytest worker that is SIGKILLed (a run cut short) used to leave them running with PPID 1 for hours, costing
+    CPU and sharing ROS domains with later runs. ``setpriv --pdeathsig TERM`` sets the parent-death signal and
+    then execs ``argv`` (the process keeps its pid); it is kept across exec. Where setpriv is missing the command
+    runs as given.
+    """
+    return [SETPRIV, "--pdeathsig", "TERM", "--", *argv] if SETPRIV else list(argv)
 
 
 # ---------------------------------------------------------------------------------------- ROS domains
@@ -261,7 +276,7 @@ class RosDomain:
         output logged under ``name``; stopped at teardown like :meth:`launch`'s."""
         log = self.log_dir / f"{name}-{time.monotonic_ns()}.log"
         with open(log, "wb") as out:
-            popen = subprocess.Popen(list(argv), stdout=out, stderr=subprocess.STDOUT, cwd=cwd,
+            popen = subprocess.Popen(dying_with_test(argv), stdout=out, stderr=subprocess.STDOUT, cwd=cwd,
                                      env=dict(os.environ, PYTHONUNBUFFERED="1") if env is None else env,
                                      start_new_session=True)
         proc = Process(name, popen, log)

@@ -35,7 +35,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import torch
 
 from msg_schemas.telemetry import CHECKPOINT_REFUSAL_REASONS
 from saml_ros.core.data.plausibility import Plausibility
@@ -76,6 +75,8 @@ class AcceptanceConfig:
 def check_model(loaded: LoadedModel, bounds: Plausibility, recent: Probe | None = None,
                 config: AcceptanceConfig | None = None) -> Refusal | None:
     """``None`` if the loaded model may be planned with, else ``(reason, message)`` (see the module docstring)."""
+    import torch  # imported already: the model was loaded with it
+
     cfg = config or AcceptanceConfig()
     model, system = loaded.model, loaded.system
     where = f"{loaded.path.name}: " if loaded.path is not None else ""

@@ -44,18 +44,20 @@ from __future__ import annotations
 import math
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from saml_ros.core.dynamics.system import System
-from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.dynamics_np import Jac3, NumpyDynamics
 from saml_ros.core.mpc.mlp_np import NumpyMLP
 from saml_ros.core.mpc.monitor import MAX_STREAMS, LiveErrorMonitor, MonitorConfig, data_scale
 from saml_ros.core.mpc.shooting.controller import ShootingMPC
 from saml_ros.core.mpc.task_check import TaskCheck, TaskCheckConfig
+
+if TYPE_CHECKING:
+    from saml_ros.core.model.network import DynamicsModel
 
 #: the ``meta["learner"]`` key of a checkpoint's per-field residual bound (list of n_y floats)
 RESIDUAL_BOUND_KEY = "residual_bound"

@@ -147,9 +147,11 @@ class MPCService:
         if self.model_version == 0:
             self.logger.info("no checkpoint yet: running on the base model f_hat")
 
-    def stop(self) -> None:
-        """Stop the watcher's background thread."""
-        self.watcher.stop()
+    def stop(self, timeout: float = 0.5) -> None:
+        """Stop the watcher's background thread, waiting at most ``timeout`` s for it: it may be loading a
+        checkpoint (the first load imports torch, seconds on a loaded machine), which only reads files, and it is a
+        daemon thread, so a node that shuts down does not wait for it (launch's grace period is 5 s)."""
+        self.watcher.stop(timeout)
 
     # ------------------------------------------------------------------------------------------ input
     def notify(self, path: str, version: int, schema_hash: str) -> None:

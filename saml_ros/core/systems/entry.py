@@ -11,11 +11,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from saml_ros.core.params import Param
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from saml_ros.core.dynamics.system import System
 
 #: a controller class (or factory): ``(system, model | None, **options) -> saml_ros.core.mpc.contract.Controller``
@@ -128,6 +128,8 @@ class SystemEntry:
 
     def goal_vector(self, name: str, value: Any, size: int) -> np.ndarray:
         """``value`` of goal parameter ``name`` as ``size`` finite float64 numbers; ``ValueError`` otherwise."""
+        import numpy as np  # here, not at the top: `import saml_ros` (every executable's first step) stays light
+
         arr = np.atleast_1d(np.asarray(value, dtype=np.float64))
         if arr.shape != (size,) or not np.all(np.isfinite(arr)):
             raise ValueError(f"goal.{name} must be {size} finite number(s), got {value!r}")
@@ -151,5 +153,7 @@ class SystemEntry:
         target position ``goal``."""
         layout = self.system_class().state
         names = self.goal_fields[:fields]
+        import numpy as np
+
         pos = np.array([x[layout.index(f)] for f in names], dtype=np.float64)
         return float(np.linalg.norm(pos - np.asarray(goal, dtype=np.float64)[: len(names)]))

@@ -14,5 +14,6 @@ def friction_start(rng: np.random.Generator) -> np.ndarray:
 
 
 def friction_model(system: FrictionDoubleIntegrator) -> SteppedModel:
-    """Double integrator: safe default u = 0 (``system.safe_control()``), starts from :func:`friction_start`."""
-    return SteppedModel(system, system.safe_control(), friction_start)
+    """Double integrator: safe default u = 0 (``system.safe_control()``), starts from :func:`friction_start`,
+    stepped by the numpy true dynamics (``true_step_np``)."""
+    return SteppedModel(system, system.safe_control(), friction_start, step=system.true_step_np)

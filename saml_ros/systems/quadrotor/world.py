@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from saml_ros.core.worlds.sim_core import SteppedModel
+from saml_ros.systems.quadrotor.dynamics_np import QuadrotorTrueNP
 from saml_ros.systems.quadrotor.model import Quadrotor
 
 
@@ -44,7 +45,7 @@ def _normalize_quaternion(x: np.ndarray) -> np.ndarray:
 
 def quadrotor_model(system: Quadrotor, landing_height: float = 0.1) -> SteppedModel:
     """Quadrotor: safe default = hover thrust (``system.safe_control()``), starts from :func:`quadrotor_start`,
-    :func:`ground_contact`."""
+    :func:`ground_contact`, stepped by the numpy true dynamics (the oracle's :class:`QuadrotorTrueNP`)."""
     if not (math.isfinite(landing_height) and landing_height >= 0):
         raise ValueError(f"landing_height must be a finite number >= 0 m, got {landing_height}")
     return SteppedModel(
@@ -53,4 +54,5 @@ def quadrotor_model(system: Quadrotor, landing_height: float = 0.1) -> SteppedMo
         lambda rng: quadrotor_start(system, rng),
         lambda x: ground_contact(x, landing_height),
         _normalize_quaternion,
+        step=QuadrotorTrueNP(system).step1,
     )

@@ -104,15 +104,8 @@ def test_block_standard_error() -> None:
 
 def launch_script(dom: RosDomain, script: str, *ros_args: str) -> Process:
     """One of the example's own rclpy scripts (not a saml_ros executable) in the test's domain."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    log = dom.log_dir / f"{Path(script).stem}-{time.monotonic_ns()}.log"
-    with open(log, "wb") as out:
-        popen = subprocess.Popen([sys.executable, str(EXAMPLE / script), "--ros-args", "-r", f"__ns:={NS}",
-                                  *ros_args], stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO,
-                                 start_new_session=True)
-    proc = Process(Path(script).stem, popen, log)
-    dom.processes.append(proc)
-    return proc
+    return dom.start(Path(script).stem, [sys.executable, str(EXAMPLE / script), "--ros-args", "-r", f"__ns:={NS}",
+                                         *ros_args], cwd=REPO)
 
 
 def test_arm_learned_online_then_evaluated_on_a_held_out_flight(ros_env: RosDomain, ros_node: TestNode,

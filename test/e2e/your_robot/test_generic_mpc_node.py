@@ -9,7 +9,6 @@ from __future__ import annotations
 import copy
 import math
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -330,13 +329,7 @@ def test_mpc_reaches_shelf_targets_with_the_arm(ros_env: RosDomain, ros_node: Te
     # state_timeout 0.5 s (the file's: 0.1 s): on a loaded CI machine a state can wait that long for the node
     mpc = ros_env.launch("mpc", "-p", f"system_file:={arm / 'system.yaml'}", "-p", "state_timeout:=0.5",
                          namespace="/arm")
-    log = ros_env.log_dir / f"arm-{time.monotonic_ns()}.log"
-    with open(log, "wb") as out:
-        popen = subprocess.Popen([sys.executable, str(arm / "robot.py"), "--ros-args", "-r", "__ns:=/arm"],
-                                 stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                                 cwd=REPO, start_new_session=True)
-    robot = Process("arm", popen, log)
-    ros_env.processes.append(robot)
+    robot = ros_env.start("arm", [sys.executable, str(arm / "robot.py"), "--ros-args", "-r", "__ns:=/arm"], cwd=REPO)
 
     def near(q: list[float]) -> bool:
         return bool(states) and max(abs(a - b) for a, b in zip(states[-1].position, q, strict=True)) < 0.15

@@ -16,7 +16,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
@@ -39,14 +38,8 @@ def run_py(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 
 
 def launch_script(dom: RosDomain, script: Path, *ros_args: str) -> Process:
-    log = dom.log_dir / f"{script.stem}-{time.monotonic_ns()}.log"
-    with open(log, "wb") as out:
-        popen = subprocess.Popen([sys.executable, str(script), "--ros-args", "-r", f"__ns:={NS}", *ros_args],
-                                 stdout=out, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-                                 cwd=REPO, start_new_session=True)
-    proc = Process(script.stem, popen, log)
-    dom.processes.append(proc)
-    return proc
+    return dom.start(script.stem, [sys.executable, str(script), "--ros-args", "-r", f"__ns:={NS}", *ros_args],
+                     cwd=REPO)
 
 
 LOAD = textwrap.dedent("""

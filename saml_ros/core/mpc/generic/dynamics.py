@@ -17,15 +17,17 @@ Shapes: ``x (B, n)``, ``u (B, m)`` -> ``(B, n)``; Jacobians ``(B, n, n)``, ``(B,
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from saml_ros.core.dynamics.base_forms import CASADI, NUMPY, SCALAR, Form, Row, base_form
 from saml_ros.core.dynamics.system import System
-from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.generic.horizon import BufferedFunction, HorizonRollout, mlp_dims, mlp_numbers
 from saml_ros.core.mpc.mlp_np import NumpyMLP
+
+if TYPE_CHECKING:
+    from saml_ros.core.model.network import DynamicsModel
 
 Jac3 = tuple[np.ndarray, np.ndarray, np.ndarray]
 #: sequences per call of the whole-horizon batched rollout (the SQP's line search tries 4 shorter steps at once)

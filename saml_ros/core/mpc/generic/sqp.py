@@ -32,17 +32,19 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from saml_ros.core.dynamics.system import System
-from saml_ros.core.model.network import DynamicsModel
 from saml_ros.core.mpc.contract import MPCResult
 from saml_ros.core.mpc.generic.dynamics import GenericDynamics, SymbolicBase, TorchBase, make_base
 from saml_ros.core.mpc.generic.problem import GenericProblem
 from saml_ros.core.mpc.generic.section import MPCTask, mpc_task
 from saml_ros.core.mpc.shooting.qp import DEFAULT_BACKEND, solve_box_qp, solve_qp
+
+if TYPE_CHECKING:
+    from saml_ros.core.model.network import DynamicsModel
 
 _ALPHAS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 #: values of the solver option ``ensemble``: which network of an ensemble the planner predicts with

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from saml_ros.core.params import coerce_param
-from saml_ros.core.systems import get_system
+from saml_ros.core.systems import get_entry, get_system
 from saml_ros.core.worlds.sim_core import (
     APPLIED,
     CLOCK,
@@ -280,6 +280,35 @@ def test_fast_step_is_true_step(name: str) -> None:
     expected = system.true_step_np(x, u)
     for xi, ui, yi in zip(x, u, expected):
         np.testing.assert_array_equal(step(xi, ui), yi)
+
+
+@pytest.mark.parametrize("name", ["friction", "quadrotor"])
+def test_the_simulators_numpy_step_is_true_step(name: str) -> None:
+    """The simulator nodes step the numpy twin of the true dynamics (no torch in their processes): it equals
+    ``true_step`` (torch) to rounding on the training distribution and on a closed episode of the simulator."""
+    entry = get_entry(name)
+    system = entry.make_system()
+    assert entry.stepped_model is not None
+    model = entry.stepped_model(system)
+    assert model.step is not None
+    x, u = system.sample_inputs(500, np.random.default_rng(7))
+    expected = system.true_step_np(x, u)
+    got = np.stack([model.step(xi, ui) for xi, ui in zip(x, u)])
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+    sim = SteppedSim(model, SimConfig(mode="lockstep", seed=3))
+    assert sim.step_fn is model.step
+    torch_sim = SteppedSim(model, SimConfig(mode="lockstep", seed=3), step_fn=FastStep(system))
+    (a, t), (b, _) = only(sim.begin(0), STATE), only(torch_sim.begin(0), STATE)
+    np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(1)
+    span = 0.3 * (np.asarray(system.control_high) - np.asarray(system.control_low))
+    for _ in range(150):  # commands around the safe one (the quadrotor's hover): the episode moves both ways
+        u = system.safe_control() + rng.uniform(-span, span)
+        a, t_next = only(sim.on_cmd(u, t, 0), STATE)
+        b = only(torch_sim.on_cmd(u, t, 0), STATE)[0]
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+        t = t_next
+    assert sim.counters["steps"] == 150
 
 
 def test_coerce_param_accepts_yaml_spellings_and_names_bad_ones() -> None:
