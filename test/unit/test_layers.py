@@ -79,7 +79,13 @@ def _by_name_loads(name: str) -> list[tuple[str, int]]:
 
 
 def _graph() -> dict[str, set[str]]:
-    return {m: {t for t, _ in _imports(m) if t in MODULES and t != m} for m in MODULES}
+    """Module -> the package modules it imports (a copy of the graph built once per test run)."""
+    return {m: set(targets) for m, targets in _module_graph().items()}
+
+
+@functools.cache
+def _module_graph() -> dict[str, frozenset[str]]:
+    return {m: frozenset(t for t, _ in _imports(m) if t in MODULES and t != m) for m in MODULES}
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:

@@ -212,6 +212,10 @@ class FastStep:
     dispatches per op) and the trace is used only if it reproduces ``true_step`` bit for bit on 64 samples of
     the system's training distribution (the dynamics have no data-dependent Python branches, so it always
     should); otherwise, or if tracing fails, the eager ``true_step`` runs.
+
+    A built-in system (its ``params()`` rebuild it) is traced and checked once per process and set of parameters
+    (:data:`_TRACES`): an evaluation builds a fresh plant for every episode of every arm, and the check
+    cost ~0.1 s each time, more than a short episode's stepping.
     """
 
     def __init__(self, system: System, trace: bool = True) -> None:
@@ -229,6 +233,17 @@ class FastStep:
             self._try_trace()
 
     def _try_trace(self) -> None:
+        key = _trace_key(self.system)
+        if key is not None and key in _TRACES:
+            traced = _TRACES[key]
+            if traced is not None:
+                self._fn, self.traced = traced, True
+            return
+        self._trace_and_check()
+        if key is not None:
+            _TRACES[key] = self._fn if self.traced else None
+
+    def _trace_and_check(self) -> None:
         torch = self._torch
         try:
             with torch.no_grad(), warnings.catch_warnings():
@@ -252,6 +267,23 @@ class FastStep:
         with self._torch.inference_mode():
             out = self._fn(self._x, self._u)
         return out[0].numpy().copy()
+
+
+#: :class:`FastStep`'s traces by :func:`_trace_key` (``None``: tracing failed or did not reproduce ``true_step``)
+_TRACES: dict[tuple[type, str], Any] = {}
+
+
+def _trace_key(system: System) -> tuple[type, str] | None:
+    """``(type, parameters)`` of a built-in system (a class of the ``saml_ros`` package, whose ``params()`` rebuild
+    it: ``type(system)(**params)``), else ``None`` (never cached: a user's system may hold more than its
+    ``params()``)."""
+    params = getattr(system, "params", None)
+    if not type(system).__module__.startswith("saml_ros.") or not callable(params):
+        return None
+    try:
+        return type(system), repr(sorted(params().items()))
+    except Exception:  # noqa: BLE001 - no key: traced and checked as before
+        return None
 
 
 # ------------------------------------------------------------------------------------- system bindings

@@ -10,13 +10,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from helpers.models import QUAD, quad_evidence, quad_model, save_quad_checkpoint
 
 from saml_ros.core.model.checkpoint import CheckpointStore
 from saml_ros.core.model.network import DynamicsModel
+from saml_ros.core.mpc import follower
 from saml_ros.core.mpc.config import MPCConfig
-from saml_ros.core.mpc.follower import RECHECK_PERIOD_S
 from saml_ros.core.mpc.monitor import LiveErrorMonitor, MonitorConfig
 from saml_ros.core.mpc.service import MPCService
 
@@ -44,6 +45,32 @@ def _wait(pred: object, timeout: float = 30.0) -> None:
         time.sleep(0.05)
 
 
+#: the re-check period and the watcher's poll period in these tests (the product's: 1 s and 0.5 s): the background
+#: thread's re-checks come as they do in a node, ten times as often, so the tests wait for them, not for seconds
+RECHECK_PERIOD_S = 0.1
+POLL_PERIOD_S = 0.02
+
+
+@pytest.fixture(autouse=True)
+def _fast_rechecks(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(follower, "RECHECK_PERIOD_S", RECHECK_PERIOD_S)
+
+
+def _count_vets(service: MPCService) -> list[int]:
+    """From now on, every acceptance check the watcher runs (a new checkpoint's or a re-check of the model in use)
+    adds one to the returned counter (``[n]``), then runs as before."""
+    calls = [0]
+    vet = service.watcher._vet
+    assert vet is not None
+
+    def counted(loaded: object) -> object:
+        calls[0] += 1
+        return vet(loaded)  # type: ignore[arg-type]
+
+    service.watcher._vet = counted  # type: ignore[assignment]
+    return calls
+
+
 def _broken_far_out(push: float = 3.0) -> DynamicsModel:
     """A quadrotor model right where it was trained (|px| <= 2 m) and wrong from px = 3 m on (vz pushed by ``push``
     m/s per metre; ``helpers.models.quad_model`` with a push its plans survive: they stay plausible, so the MPC
@@ -69,7 +96,7 @@ def test_a_reannounced_model_in_use_is_a_no_op_and_the_model_in_use_is_rechecked
     log = Log()
     # the live monitor off (it is on by default and would roll the model back first): the re-check alone
     service = MPCService(MPCConfig.from_params({"system": "quadrotor", "run_dir": str(store.run_dir),
-                                                "guard.rollback": False}),
+                                                "guard.rollback": False, "poll_period": POLL_PERIOD_S}),
                          lambda u, s: None, log)
     service.start()  # no state flown yet: the checkpoint passes on its own probe set and is used
     try:
@@ -98,9 +125,11 @@ def test_a_reannounced_model_in_use_is_a_no_op_and_the_model_in_use_is_rechecked
         assert log.having("model version 1 retired (residual on the states flown); planning with the base model")
         assert not [m for m in log.having("refused checkpoint")], log.lines  # the copy was never refused
         # the retired model is not taken up again, nor re-checked: f_hat stays until a newer checkpoint
-        time.sleep(2 * RECHECK_PERIOD_S)
+        vets = _count_vets(service)
+        time.sleep(3 * RECHECK_PERIOD_S)
         service.control_step(far, 10**9 + 4 * 10**8, time.perf_counter())
         assert service.model_version == 0 and service.watcher.stats()["in_use_refused"] == 1
+        assert vets == [0]
     finally:
         service.stop()
 
@@ -111,14 +140,15 @@ def test_a_good_model_in_use_passes_its_rechecks(tmp_path: Path) -> None:
     log = Log()
     # the live monitor off (it is on by default and would roll the model back first): the re-check alone
     service = MPCService(MPCConfig.from_params({"system": "quadrotor", "run_dir": str(store.run_dir),
-                                                "guard.rollback": False}),
+                                                "guard.rollback": False, "poll_period": POLL_PERIOD_S}),
                          lambda u, s: None, log)
     service.start()
     try:
+        vets = _count_vets(service)
         x = QUAD.hover_state((1.0, -1.0, 2.0))
         for k in range(3):
             service.control_step(x, 10**9 + k * 10**8, time.perf_counter())
-        time.sleep(3 * RECHECK_PERIOD_S)
+        _wait(lambda: vets[0] >= 3)  # three re-checks of the model in use on the states flown, all passed
         service.control_step(x, 10**9 + 3 * 10**8, time.perf_counter())
         assert service.model_version == 1 and service.watcher.stats()["in_use_refused"] == 0
     finally:

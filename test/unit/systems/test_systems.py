@@ -27,7 +27,6 @@ from saml_ros.systems.paddle_ball.model import (
     roll_pitch_from_normal,
     rotate_y,
 )
-from saml_ros.systems.plots import write_figures
 from saml_ros.systems.quadrotor.model import Quadrotor
 
 F64 = torch.float64
@@ -390,6 +389,8 @@ def test_make_dataset_shapes_noise_and_determinism(name: str) -> None:
 
 
 def test_write_figures(tmp_path: pytest.TempPathFactory) -> None:
+    from saml_ros.systems.plots import write_figures  # matplotlib: only the process that runs this test loads it
+
     paths = write_figures(tmp_path)  # type: ignore[arg-type]
     assert [p.name for p in paths] == ["friction_profile.png", "ground_effect.png"]
     for p in paths:

@@ -24,12 +24,16 @@ from saml_ros.core.data.resampling import ResamplingPairer
 
 
 def assert_paired_right(trs: list, truth: Mapping[int, float | None]) -> None:
+    """Every transition on the grid, with the robot's states at its stamp and one period later and the command the
+    robot applied over that interval (the states compared all at once: one assert_allclose per transition was
+    most of these tests' time)."""
     assert trs
+    stamps = [tr.stamp_ns for tr in trs]
+    assert all((t - T0) % DT == 0 for t in stamps)
+    np.testing.assert_allclose(np.stack([tr.x for tr in trs]), np.stack([state(t) for t in stamps]), atol=1e-9)
+    np.testing.assert_allclose(np.stack([tr.y for tr in trs]), np.stack([state(t + DT) for t in stamps]), atol=1e-9)
     for tr in trs:
         k = (tr.stamp_ns - T0) // DT
-        assert (tr.stamp_ns - T0) % DT == 0
-        np.testing.assert_allclose(tr.x, state(tr.stamp_ns), atol=1e-9)
-        np.testing.assert_allclose(tr.y, state(tr.stamp_ns + DT), atol=1e-9)
         assert tr.u[0] == truth[k], f"step {k}: paired {tr.u[0]}, the robot applied {truth[k]}"
 
 

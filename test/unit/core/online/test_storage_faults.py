@@ -202,7 +202,7 @@ def test_learner_backs_off_a_failing_run_dir_keeps_latest_and_recovers(tmp_path:
 
 
 def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_path: Path) -> None:
-    """The training loop on a run directory that stops taking writes for 2.5 s, with a checkpoint period of 0.25 s:
+    """The training loop on a run directory that stops taking writes for 1.25 s, with a checkpoint period of 0.125 s:
     at most one error report per period (the back-off makes it fewer), every status names the cause, training goes
     on, and the first write after the recovery succeeds."""
     disk = Unwritable(tmp_path)
@@ -215,7 +215,7 @@ def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_
         with lock:
             got.append((time.monotonic(), msg))
 
-    loop = LoopConfig(telemetry_rate=20.0, checkpoint_period=0.25)
+    loop = LoopConfig(telemetry_rate=20.0, checkpoint_period=0.125)
     thread = threading.Thread(target=run_loop, args=(learner, loop, child, send), daemon=True)
     thread.start()
 
@@ -234,7 +234,7 @@ def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_
         disk.start()
         t0 = time.monotonic()
         updates0 = learner.updates
-        wait(lambda: time.monotonic() - t0 >= 2.5)
+        wait(lambda: time.monotonic() - t0 >= 1.25)
         errors = of(ErrorReport, "checkpoint", t0)
         statuses = [m for t, m in of(Status, since=t0 + 0.3)]
         updates1 = learner.updates
@@ -244,7 +244,7 @@ def test_training_loop_keeps_training_with_bounded_errors_while_writes_fail(tmp_
     finally:
         parent.send(Stop())
         thread.join(30)
-    assert 1 <= len(errors) <= 2.5 / 0.25 + 1, [m for _, m in errors]
+    assert 1 <= len(errors) <= 1.25 / 0.125 + 1, [m for _, m in errors]
     assert all("Not a directory" in m.message and "stays the latest" in m.message for _, m in errors)
     assert statuses and all(m.status["checkpoint_write_failures"] >= 1 for m in statuses)
     assert all("Not a directory [errno 20]" in m.notes["checkpoint_write_error"] for m in statuses)

@@ -311,6 +311,21 @@ def test_the_simulators_numpy_step_is_true_step(name: str) -> None:
     assert sim.counters["steps"] == 150
 
 
+def test_fast_step_traces_a_built_in_system_once_per_set_of_parameters() -> None:
+    """A second plant of an equal system reuses the checked trace; other parameters (more drag) get their own trace,
+    equal to their own dynamics, not the first one's."""
+    from saml_ros.systems.quadrotor.model import Quadrotor
+
+    first, again, draggy = FastStep(Quadrotor()), FastStep(Quadrotor()), FastStep(Quadrotor(drag=0.3))
+    assert first.traced and again.traced and draggy.traced
+    assert again._fn is first._fn and draggy._fn is not first._fn
+    x, u = draggy.system.sample_inputs(20, np.random.default_rng(3))
+    expected = draggy.system.true_step_np(x, u)
+    assert not np.array_equal(expected, first.system.true_step_np(x, u))
+    for xi, ui, yi in zip(x, u, expected):
+        np.testing.assert_array_equal(draggy(xi, ui), yi)
+
+
 def test_coerce_param_accepts_yaml_spellings_and_names_bad_ones() -> None:
     assert coerce_param("rate_hz", 20, 10.0) == 20.0 and isinstance(coerce_param("r", 20, 1.0), float)
     assert coerce_param("episode_steps", 5.0, 0) == 5
