@@ -93,8 +93,11 @@ def test_closed_loop_learns_switches_models_and_stops_on_sigint(ros_env: RosDoma
     assert found, out
     before, after = map(float, found.groups())
     assert after < before, out
+    # f_hat first, then at least two learned models; the last one flown is a learned one (not always the newest:
+    # the guard's live monitor may have rolled a model back to its predecessor, seen under load)
     versions = re.search(r"MPC models used: (\d+) \((\d+) -> (\d+)\)", out)
-    assert versions is not None and int(versions.group(2)) == 0 and int(versions.group(3)) >= 2, out
+    assert versions is not None and int(versions.group(1)) >= 3 and int(versions.group(2)) == 0, out
+    assert int(versions.group(3)) >= 1, out
     assert "stopped by signal SIGINT" in out and "children exited cleanly" in out
     for pid in pids.values():
         assert_group_gone(pid)
