@@ -235,6 +235,22 @@ def restore_registry() -> Iterator[None]:
         registry._LOADERS[:] = loaders
 
 
+@pytest.fixture(autouse=True)
+def _registry_left_as_found(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A test that leaves a system registered fails, naming it: the registry is global, and a robot a test loaded
+    (a system file registers its robot by name) changed what later tests of the same worker saw (test_registry's
+    list of names failed once the file order changed). Use the ``restore_registry`` fixture."""
+    from saml_ros.core.systems import registry
+
+    before = set(registry._ENTRIES)
+    yield
+    added = sorted(set(registry._ENTRIES) - before)
+    if added and "restore_registry" not in request.fixturenames:
+        for name in added:
+            registry._ENTRIES.pop(name, None)
+        pytest.fail(f"the test left system(s) {added} registered: use the restore_registry fixture", pytrace=False)
+
+
 class ToySystem(System):
     """A 1-d toy system used by trainer tests: a full model sees a constant input, so it can only
     predict one constant c for every sample — the learning problem is convex in c."""

@@ -22,6 +22,8 @@ from helpers.your_robot import f_hat_np, robot_folder
 
 from saml_ros.systems.system_file import SystemFileError
 
+pytestmark = pytest.mark.usefixtures("restore_registry")  # loading a system file registers its robot by name
+
 
 # ------------------------------------------------------------------------------------------ in process
 def test_module_next_to_the_system_file_is_found_and_recorded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
