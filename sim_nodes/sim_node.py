@@ -50,6 +50,7 @@ from saml_ros.nodes.runtime import (
     exit_process,
     init_rclpy,
     shutdown,
+    single_torch_thread,
     spin_until_stopped,
 )
 from sim_nodes.binding import SimBinding, config_from_params, read_sim_params
@@ -227,16 +228,6 @@ class SimNode(Node):
         self.diag_pub.publish(diagnostics_to_msg([entry], self.core.sim_now_ns()))
 
 
-def one_torch_thread() -> None:
-    """One intra-op torch thread once the simulator's core has imported torch (a time-stepped system without a
-    numpy step steps ``true_step`` with :class:`~saml_ros.core.worlds.sim_core.FastStep`): one small state per step,
-    extra threads only contend for the cores. The built-in simulators step numpy or MuJoCo and never import it
-    (2-3 CPU-s saved)."""
-    torch = sys.modules.get("torch")
-    if torch is not None and torch.get_num_threads() != 1:
-        torch.set_num_threads(1)
-
-
 def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
     """Run the simulator node of ``binding`` until SIGINT / SIGTERM or ``max_sim_time`` (exit code 0).
 
@@ -251,6 +242,9 @@ def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
     if any(a in ("-h", "--help") for a in args[1:ros_start]):
         print(binding.usage())
         return 0
+    # one small state per step: extra torch threads only contend for the cores (the built-in simulators step
+    # numpy or MuJoCo and never import torch; a world that steps true_step in torch does)
+    single_torch_thread()
     init_rclpy(args)
     node: SimNode | None = None
     code = 0
@@ -261,7 +255,6 @@ def run(binding: SimBinding, argv: Sequence[str] | None = None) -> int:
             print(f"{binding.node_name}: {exc}", file=sys.stderr)
             code = USAGE_ERROR
         else:
-            one_torch_thread()
             done = node.done_future
             spin_until_stopped(node, stop, lambda: not done.done(), executor=node.params["executor"])
     finally:

@@ -113,9 +113,10 @@ def make_executor(kind: str = "single") -> Any:
 
 
 def single_torch_thread() -> None:
-    """One intra-op torch thread in this process, whether torch is imported already or only later (by the first
-    checkpoint a node loads): a node that never meets a network never pays torch's 2-3 CPU-s import. Before the
-    import, ``OMP_NUM_THREADS=1`` is what torch reads for its thread count (checked by test_torch_free_imports)."""
+    """One intra-op torch thread in this process, whether torch is imported already or only later (the MPC's first
+    checkpoint, a simulator world stepping ``true_step`` in torch): a node that never needs torch never pays its
+    2-3 CPU-s import. Before the import, ``OMP_NUM_THREADS=1`` is what torch reads for its thread count (checked by
+    test_torch_free_imports)."""
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
     else:

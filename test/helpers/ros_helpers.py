@@ -148,6 +148,18 @@ def launch(executable: str, *ros_args: str, env: dict[str, str] | None = None, n
     return Process(executable, popen, log_path)
 
 
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, exited but not yet reaped by its parent, counts as gone)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 def dying_with_test(argv: Sequence[str]) -> list[str]:
     """``argv`` run so that the process gets SIGTERM when the test process that starts it dies.
 

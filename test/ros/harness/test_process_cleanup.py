@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 import pytest
-from helpers.ros_helpers import SETPRIV, wait_for
+from helpers.ros_helpers import SETPRIV, process_alive, wait_for
 
 #: a stand-in test process: starts a long sleeper the way the helpers start nodes (own session), prints its pid
 PARENT = r"""
@@ -21,14 +21,6 @@ time.sleep(120)
 """
 
 
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(") ", 1)[1][0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 @pytest.mark.skipif(SETPRIV is None, reason="util-linux setpriv is not installed")
 def test_a_started_process_dies_with_a_killed_test_process() -> None:
     """A pytest worker SIGKILLed mid-test (a run cut short) must not leave its nodes running in their own sessions
@@ -38,10 +30,10 @@ def test_a_started_process_dies_with_a_killed_test_process() -> None:
     assert parent.stdout is not None
     child = int(parent.stdout.readline())
     try:
-        assert _alive(child)
+        assert process_alive(child)
         parent.send_signal(signal.SIGKILL)
         parent.wait(timeout=30)
-        wait_for(lambda: not _alive(child), timeout=30, what=f"process {child} gone after its parent's SIGKILL")
+        wait_for(lambda: not process_alive(child), timeout=30, what=f"process {child} gone after its parent's SIGKILL")
     finally:
-        if _alive(child):
+        if process_alive(child):
             os.kill(child, signal.SIGKILL)

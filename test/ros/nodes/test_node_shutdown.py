@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from helpers.bag_publisher import rollout
-from helpers.ros_helpers import Process, RosDomain, wait_for
+from helpers.ros_helpers import Process, RosDomain, process_alive, wait_for
 
 from msg_schemas import DATA_QOS, TypestoreFactory, get_schema
 from saml_ros.bags.io import BagWriter, jazzy_typestore
@@ -91,17 +91,6 @@ def _training_pid(learner: Process) -> int:
     return int(found.group(1))
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie (exited, not yet reaped by its parent) is gone for our purpose
-        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
 def _check_clean_exits(nodes: list[Started], t_signal: float, run_dir: Path, trainer_pid: int) -> None:
     codes: dict[str, int | None] = {}
     for n in nodes:
@@ -117,7 +106,7 @@ def _check_clean_exits(nodes: list[Started], t_signal: float, run_dir: Path, tra
     learner_log = next(n for n in nodes if n.name == "learner").proc.output()
     assert FINAL_CHECKPOINT.search(learner_log), learner_log[-3000:]
     assert CheckpointStore(run_dir).load_latest_valid() is not None
-    assert not _alive(trainer_pid), "the learner's training process outlived the learner"
+    assert not process_alive(trainer_pid), "the learner's training process outlived the learner"
 
 
 def test_ctrl_c_under_launch_and_sigterm_every_node_exits_cleanly(ros_env: RosDomain, tmp_path: Path) -> None:
