@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from saml_ros.core.data.publishers import UNKNOWN_NODE
+
 REPO = Path(__file__).resolve().parents[1]
 #: the check's margin over the base model's worst episode (m)
 MARGIN = 0.1
@@ -62,6 +64,7 @@ class LoopRecord:
     learner_message: str = ""  #: the learner's diagnostics message when it named them
     learner_level: int = -1
     rollbacks: int = 0
+    refused: int = 0  #: checkpoints the MPC refused before flying them (its acceptance check)
     versions: list[int] = field(default_factory=list)  #: MPC model versions in order of use
     learned_steps: int = 0  #: steps of the robot wired right planned with a learned model
     checkpoint_error: float = math.nan  #: last checkpoint's mean squared one-step error, fresh samples
@@ -96,7 +99,7 @@ class LoopRecord:
             f"mpc multiple_publishers = {self.mpc_shared!r}",
             f"  last checkpoint: one-step squared error {self.checkpoint_error:.4g} against f_hat's "
             f"{self.base_error:.4g} ({ratio:.1f} x), fresh samples of the robot's true dynamics",
-            f"  MPC: models {self.versions}, roll backs {self.rollbacks}, steps planned with a learned model "
+            f"  MPC: models {self.versions}, roll backs {self.rollbacks}, refused {self.refused}, steps planned with a learned model "
             f"{self.learned_steps}",
             f"  episodes of the robot wired right: {len(self.episodes)}; on f_hat only {len(on_base)} "
             f"(worst {max(on_base, default=math.nan):.4f} m); flown on a learned model {len(learned)} "
@@ -131,7 +134,8 @@ class Observer:
         self.status: dict[int, dict[str, float]] = {}
         self.arrivals: list[int] = []  #: the model version of each status, in arrival order
         self.diag: dict[str, tele.DiagnosticEntry] = {}
-        self.shared: dict[str, tele.DiagnosticEntry] = {}  #: per node, the last entry naming several publishers
+        #: per node, the last entry naming several publishers (one naming all their nodes kept over one that does not)
+        self.shared: dict[str, tele.DiagnosticEntry] = {}
         jt = RCLPY.cls(tele.JOINT_STATE)
 
         def keep_all(spec: Any) -> Any:  # a burst waits in the reader queue instead of being dropped
@@ -172,7 +176,10 @@ class Observer:
         with self.lock:
             for e in entries:
                 self.diag[e.name] = e
-                if e.values.get("multiple_publishers"):
+                shared = str(e.values.get("multiple_publishers", ""))
+                # a value naming every publisher's node is kept over a later one the ROS graph had not named yet
+                if shared and (UNKNOWN_NODE not in shared or e.name not in self.shared
+                               or UNKNOWN_NODE in str(self.shared[e.name].values["multiple_publishers"])):
                     self.shared[e.name] = e
 
     def close(self) -> None:
@@ -263,6 +270,7 @@ def run_loop(system: str = "friction", sim_time: float = 300.0, run_dir: Path | 
     mpc = next((e for n, e in diag.items() if n.endswith("/mpc")), None)
     if mpc is not None:
         record.rollbacks = int(mpc.values.get("guard_rollbacks", 0))
+        record.refused = int(mpc.values.get("checkpoints_refused", 0))
     # the robot wired right: the simulator's stamps (the second robot's are half a period off)
     mine = [(t, x) for t, x in states if not second or dt_ns == 0 or (t - LOCKSTEP_T0_NS) % dt_ns == 0]
     if mine:

@@ -20,35 +20,51 @@ from helpers.ros_helpers import RosDomain
 
 from bench.bench_misconfig import MARGIN, Observer, run_loop  # noqa: E402
 
+EXPECTED = "/friction/state: /friction/friction_sim, /friction/robot_b"
+
 
 def test_two_robots_on_one_topic_are_named_and_the_bad_model_is_not_flown_off(ros_env: RosDomain,
                                                                             tmp_path: Path) -> None:
     seen: dict[str, Any] = {}
 
+    def named(observer: Observer) -> bool:
+        """Both nodes have named the two publishers' nodes (the ROS graph learns a publisher's node from the
+        participant's ``ros_discovery_info``, which can come after the endpoint itself; under load it came seconds
+        late, and the publishers were already counted)."""
+        with observer.lock:
+            values = [str(e.values.get("multiple_publishers", "")) for n, e in observer.shared.items()
+                      if n.endswith(("/learner", "/mpc"))]
+        return len(values) == 2 and all(EXPECTED in v for v in values)
+
     def until(record: Any, observer: Observer) -> bool:
         """Stop 20 s of simulated time after the first roll back or refusal (two more episodes of the robot wired
-        right)."""
+        right), or after 240 s of simulated time without one; in either case not before both nodes named the
+        publishers (the run's cap is 600 s of simulated time)."""
         with observer.lock:
             mpc = next((e for n, e in observer.diag.items() if n.endswith("/mpc")), None)
             last = max((t for t, _ in observer.states if t % 100_000_000 == 0), default=0)
-        if mpc is None or int(mpc.values.get("guard_rollbacks", 0)) < 1:
+            first = min((t for t, _ in observer.states), default=0)
+        if not named(observer):
             return False
-        seen.setdefault("rollback_at", last)
-        return last - seen["rollback_at"] >= 20_000_000_000
+        if mpc is not None and (int(mpc.values.get("guard_rollbacks", 0)) >= 1
+                                or int(mpc.values.get("checkpoints_refused", 0)) >= 1):
+            seen.setdefault("caught_at", last)
+            return last - seen["caught_at"] >= 20_000_000_000
+        return last - first >= 240_000_000_000
 
-    record = run_loop("friction", sim_time=240.0, run_dir=tmp_path / "run", until=until, timeout=900.0)
+    record = run_loop("friction", sim_time=600.0, run_dir=tmp_path / "run", until=until, timeout=900.0)
     print(record.summary(), record.tail, sep="\n")
     assert record.robot_rc == 0, record.tail
     # named on /diagnostics, with the nodes' names
     for shared in (record.learner_shared, record.mpc_shared):
-        assert "/friction/state: /friction/friction_sim, /friction/robot_b" in shared, record.summary()
+        assert EXPECTED in shared, record.summary()
     assert record.learner_level >= 1 and "several publishers on /friction/state" in record.learner_message
     # a model worse than f_hat, when the learner wrote one, was refused before flight or rolled back. Since the
     # learner holds out stretches of the stream and refits its normalisation robustly, some runs learn a model
     # better than f_hat from the two robots' mixed stream (0.4 x in one); the guard's roll back of a bad model
     # itself is checked deterministically in test/unit/core/test_misconfig.py.
     if record.checkpoint_error > record.base_error:
-        assert record.rollbacks >= 1, record.summary()
+        assert record.rollbacks + record.refused >= 1, record.summary()
     # no episode of the robot wired right flown on a learned model ends further off than f_hat's worst + 0.1 m
     worst = record.base_worst()
     assert all(e["error"] <= worst + MARGIN for e in record.flown_on_learned()), record.summary()
