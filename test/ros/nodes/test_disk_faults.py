@@ -291,10 +291,14 @@ def test_full_and_read_only_run_dir_under_a_running_learner(tmp_path: Path, ros_
 
     Training rate: at full speed the rate is the update speed times the share of time the training loop does not
     spend writing checkpoints (it does nothing else at this pace: ingest is idle, metrics are a few ms per report).
-    The test asserts that share during each outage within 20 % of the share right before and after it. The rate
-    itself is printed, not asserted: on this shared 2-core machine (load 8-12) the rate of a learner whose disk is fine
-    moved by 0.9-1.8x between 6 s windows of one run (measured against a second, untouched learner beside it), more
-    than the 20 % to be shown. Before the back-off a failed write was retried at once, 16-25 times a second, and
+    The test asserts that share during each outage at least 0.6 x the share right before and after it, and at most
+    one failed attempt per checkpoint period (the back-off; each attempt logs a line). Idle, the outages' share was
+    above the normal windows' (0.994 against 0.97: fewer writes); at load ~6 (three test workers and more beside
+    them on the 2 cores) one outage window measured 0.73 x: the share is wall time, and a preempted write's wall time
+    grows with the load. The retry storm the back-off replaced spent about half the time writing, 16-25 attempts a
+    second (both checks fail it). The rate itself is printed, not asserted: on this shared 2-core machine (load 8-12)
+    the rate of a learner whose disk is fine moved by 0.9-1.8x between 6 s windows of one run (measured against a
+    second, untouched learner beside it). Before the back-off a failed write was retried at once, 16-25 times a second, and
     the attempts took half the training loop's time with a 6000-transition buffer (``./dev bench storage`` run on
     the code before it; issue 29 measured training 4x slower).
     """
@@ -368,7 +372,7 @@ def test_full_and_read_only_run_dir_under_a_running_learner(tmp_path: Path, ros_
         assert len(watch.versions) > 50 and watch.versions[-1] > watch.versions[0]
         for i, outage in enumerate(outages):
             normal = (windows[f"normal {i}"].training_share + windows[f"normal {i + 1}"].training_share) / 2
-            assert windows[outage.name].training_share >= 0.8 * normal, windows
+            assert windows[outage.name].training_share >= 0.6 * normal, windows
             assert windows[outage.name].updates > 0
         assert "final checkpoint version" in learner.log()
 
