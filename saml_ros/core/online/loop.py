@@ -166,8 +166,10 @@ def run_loop(learner: OnlineLearner, loop: LoopConfig, conn: Any, send: Send, ra
             if done and started:
                 # the call that starts training (normalisation fit, trainer and kernel set-up) is not an update's
                 # cost: counted, it kept the chunks at one update for dozens of chunks
+                # and a chunk faster than the mean is believed at once: one slow update (the first optimizer step's
+                # imports, a preempted chunk) would otherwise hold the chunks small for ~20 chunks of the mean
                 took = (time.monotonic() - t0) / done
-                per_update = took if per_update == 0 else 0.8 * per_update + 0.2 * took
+                per_update = took if per_update == 0 or took < per_update else 0.8 * per_update + 0.2 * took
             if not done:  # the update budget (updates_per_transition) is spent: wait for data
                 conn.poll(0.05)
         except Exception as exc:  # noqa: BLE001 - report, back off, keep going
