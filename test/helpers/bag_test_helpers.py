@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -38,22 +39,24 @@ def start_publisher(events: list[dict], tmp: Path, *args: str) -> subprocess.Pop
                             stderr=subprocess.PIPE, text=True, env=dict(os.environ))
 
 
-def publish(events: list[dict], tmp: Path, *args: str, timeout: float = 90.0, recorder: Any = None) -> dict:
+def publish(events: list[dict], tmp: Path, *args: str, timeout: float = 90.0, recorder: Any = None,
+            ready: Callable[[], bool] | None = None) -> dict:
     """Publish ``events`` with a bag_publisher.py process in this test's ROS domain; returns its JSON report.
 
     With ``recorder`` (a ``record`` process) and ``--wait-subscribers``, the publisher sends only after the recorder
-    announced the match of each of its topics (``record: matched``): under load the recorder's side of a match can
-    lag the publisher's by more than any fixed settle time, and DDS drops what a volatile reader gets before it."""
+    announced the match of each of its topics (``record: matched``) and ``ready()`` (another reader's own side of
+    the match, e.g. a learner's /diagnostics) is true: under load a reader's side of a match can lag the
+    publisher's by more than any fixed settle time, and DDS drops what a volatile reader gets before it."""
     go = tmp / f"go-{time.monotonic_ns()}"
     if recorder is not None:
         args = (*args, "--go-file", str(go))
         before = recorder.output()
     proc = start_publisher(events, tmp, *args)
     if recorder is not None:
-        ready = go.with_name(go.name + ".ready")
-        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=60.0, what="the publisher's match")
+        ready_file = go.with_name(go.name + ".ready")
+        wait_for(lambda: ready_file.exists() or proc.poll() is not None, timeout=60.0, what="the publisher's match")
         assert proc.poll() is None, proc.communicate()
-        topics = json.loads(ready.read_text())
+        topics = json.loads(ready_file.read_text())
 
         def matched() -> bool:
             out = recorder.output()
@@ -61,6 +64,8 @@ def publish(events: list[dict], tmp: Path, *args: str, timeout: float = 90.0, re
 
         wait_for(lambda: matched() or not recorder.alive(), timeout=60.0, what="the recorder to match every topic")
         assert recorder.alive(), recorder.output()
+        if ready is not None:
+            wait_for(ready, timeout=60.0, what="the other readers to match the publisher")
         go.touch()
     out, err = proc.communicate(timeout=timeout)
     assert proc.returncode == 0, err

@@ -34,7 +34,7 @@ class Learner:
     def log(self) -> str:
         return self.proc.output()
 
-    def wait_log(self, text: str, timeout: float = 30.0) -> None:
+    def wait_log(self, text: str, timeout: float = 90.0) -> None:
         deadline = time.monotonic() + timeout
         while text not in self.log():
             if not self.proc.alive() or time.monotonic() > deadline:

@@ -59,7 +59,7 @@ def checkpointed_learner(tmp_path: Path, seed: int, updates: int) -> OnlineLearn
     return learner
 
 
-def wait_until(pred: Callable[[], bool], timeout: float = 30.0) -> None:
+def wait_until(pred: Callable[[], bool], timeout: float = 60.0) -> None:
     """Poll ``pred`` every 20 ms; fails the test after ``timeout`` s."""
     deadline = time.monotonic() + timeout
     while not pred():

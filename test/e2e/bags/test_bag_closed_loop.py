@@ -8,11 +8,13 @@ number the learner node paired in the same run (its ``paired`` counter, recorded
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from helpers.bag_publisher import rollout
 from helpers.bag_test_helpers import publish, start_recorder, unique_ns
+from helpers.learner_node import RosSide
 from helpers.ros_helpers import RosDomain, wait_for
 
 from msg_schemas.telemetry import diagnostics_from_msg
@@ -44,14 +46,32 @@ def learner_paired(bag: Path, ns: str) -> int:
     return paired
 
 
+def learner_matched(side: RosSide, ns: str) -> Callable[[], bool]:
+    """Whether the learner in ``ns`` reports (on /diagnostics) a publisher on its state and command topics."""
+    return lambda: side.counter(f"{ns}/publishers/state") > 0 and side.counter(f"{ns}/publishers/applied_cmd") > 0
+
+
+def settle_paired(side: RosSide, pred: Callable[[int], bool], what: str) -> None:
+    """Wait until the learner's ``paired`` counter, as the test reads /diagnostics, satisfies ``pred``, then 1 s
+    more (four more reports at 4 Hz) so the recorder, another reader of /diagnostics, has it too."""
+    side.wait(lambda: pred(side.counter("paired")), 60.0, what)
+    time.sleep(1.0)
+
+
 def test_bag_transitions_equal_what_the_learner_paired_from_a_publisher(ros_env: RosDomain, tmp_path: Path) -> None:
     bag, ns = tmp_path / "bag", unique_ns()
     learner = start_learner(ros_env, ns, tmp_path / "run")
     rec = start_recorder(ros_env, bag, "--system", "friction", "--namespace", ns)
-    events = rollout("friction", 300, 60, 4, 10**9)
-    report = publish(events, tmp_path, "--system", "friction", "--namespace", ns, "--rate", "150", "--clock",
-                     "--cmd", "--wait-subscribers", "2", "--wait-timeout", "60")
-    time.sleep(1.5)  # the learner's final counters reach the bag through /diagnostics (4 Hz)
+    side = RosSide(ros_env.domain_id, ns)
+    try:
+        events = rollout("friction", 300, 60, 4, 10**9)
+        report = publish(events, tmp_path, "--system", "friction", "--namespace", ns, "--rate", "150", "--clock",
+                         "--cmd", "--wait-subscribers", "2", "--wait-timeout", "60", recorder=rec,
+                         ready=learner_matched(side, ns))
+        # the learner's final counters reach the bag through /diagnostics (4 Hz)
+        settle_paired(side, lambda n: n == report["transitions"], f"the learner to pair {report['transitions']}")
+    finally:
+        side.close()
     assert rec.stop() == 0, rec.output()
     assert learner.stop() == 0, learner.output()
     out = extract_transitions([bag], "friction")
@@ -72,15 +92,27 @@ def test_bag_transitions_equal_what_the_learner_paired_in_the_closed_loop(ros_en
     wait_for(lambda: all(f"record: matched {ns}/{t} " in rec.output() for t in ("state", "applied_cmd"))
              or not rec.alive() or not sim.alive(), what="the recorder to match the simulator's publishers")
     assert rec.alive() and sim.alive(), rec.output() + sim.output()
-    time.sleep(1.0)  # the learner matches them in the same discovery round; a margin for a loaded machine
-    mpc = ros_env.launch("mpc", "-p", "system:=friction", "-p", f"run_dir:={run}", namespace=ns)
-    deadline = time.monotonic() + 150
-    while sim.alive() and time.monotonic() < deadline:
-        for proc in (learner, mpc, rec):
-            assert proc.alive(), f"{proc.name} died:\n{proc.output()}"
-        time.sleep(0.2)
-    assert sim.wait(1) == 0, sim.output()
-    time.sleep(1.5)
+    side = RosSide(ros_env.domain_id, ns)
+    try:
+        # the learner's own side of the match, from its /diagnostics
+        side.wait(learner_matched(side, ns), 60.0, "the learner to match the simulator's publishers")
+        mpc = ros_env.launch("mpc", "-p", "system:=friction", "-p", f"run_dir:={run}", namespace=ns)
+        deadline = time.monotonic() + 150
+        while sim.alive() and time.monotonic() < deadline:
+            for proc in (learner, mpc, rec):
+                assert proc.alive(), f"{proc.name} died:\n{proc.output()}"
+            time.sleep(0.2)
+        assert sim.wait(1) == 0, sim.output()
+        # the simulator is done: the count stops moving once the learner has paired what it received
+        seen: list[int] = []
+
+        def still(n: int) -> bool:
+            seen.append(n)
+            return n > 0 and len(seen) > 50 and seen[-50] == n  # unchanged for 1 s (50 reads 20 ms apart)
+
+        settle_paired(side, still, "the learner's paired count to settle")
+    finally:
+        side.close()
     assert rec.stop() == 0, rec.output()
     assert learner.stop() == 0, learner.output()
     assert mpc.stop() == 0, mpc.output()

@@ -115,6 +115,10 @@ def test_stale_state_gets_the_safe_command(ros_env: RosDomain, ros_node: TestNod
         return bool(cmds) and cmds[-1].linear.x > 0.1
 
     wait_for(drives_forward, timeout=30, what="a forward command to a fresh state")
+    # the answers to the last fresh states may still be on their way: once the watchdog sends its safe command
+    # (no state for state_timeout), they have come (a state is answered within a control period, 0.1 s, shorter)
+    wait_for(lambda: bool(cmds) and cmds[-1].linear.x == 0.0 and cmds[-1].angular.z == 0.0, timeout=30,
+             what="the watchdog's safe command once the fresh states stop")
     n = len(cmds)
     state.publish(odometry(2.0))  # two seconds old (state_timeout 0.25 s): the safe command
     wait_for(lambda: len(cmds) > n, timeout=30, what="the answer to a stale state")

@@ -343,8 +343,9 @@ def test_resume_skips_a_corrupt_checkpoint_and_loads_the_last_good_one(
         log = learner.log()
         assert f"skipped {bad}" in log and "truncated" in log
         assert "(2 torch thread(s), subnormals flushed)" in log  # train_threads reached the training process
-        tester.wait(lambda: tester.counter("checkpoints_skipped") == 1, 10.0, "checkpoints_skipped == 1")
+        tester.wait(lambda: tester.counter("checkpoints_skipped") == 1, 60.0, "checkpoints_skipped == 1")
         assert tester.counter("train_threads") == 2 and tester.counter("train_flush_denormal") == 1
+        tester.wait(lambda: bool(tester.last()), 60.0, "the first model_error report")
         first = tester.last()
         assert first["model_version"] == good_version and first["updates"] == good_updates
         assert first["lambda/near_origin"] == good_lam and good_lam > 0
@@ -389,7 +390,7 @@ def test_sigkill_while_checkpointing_then_restart_resumes_and_continues(
         tester.reset()
         second = Learner(ros_env, params, env=NO_SHM)
         second.wait_log(f"resumed from version {version}")
-        tester.wait(lambda: tester.last().get("model_version") == version, 15.0, f"model_version {version}")
+        tester.wait(lambda: tester.last().get("model_version") == version, 60.0, f"model_version {version}")
         resumed = tester.last()
         assert resumed["updates"] == updates and resumed["lambda/near_origin"] == lam
         # the restarted learner continues: more data, the update count grows from the checkpoint's

@@ -86,8 +86,9 @@ def test_learner_names_a_second_publisher_and_refuses_its_namespace_until_it_is_
     try:
         wait_for(lambda: value(diagnostics, "/friction/publishers/state") == "2", 20, what="the second publisher")
         want = f"/friction/state: /friction/robot_b, {ros_node.node.get_fully_qualified_name()}"
-        wait_for(lambda: value(diagnostics, "multiple_publishers") == want, 30,
-                 what=f"the publishers named: {value(diagnostics, 'multiple_publishers')!r}")
+        # the ROS graph names a publisher's node after it knows the publisher (seconds late under load)
+        wait_for(lambda: value(diagnostics, "multiple_publishers") == want, 120,
+                 what="the publishers named")
         entry = learner_status(diagnostics)
         assert entry is not None and entry.level >= WARN and "not paired while so" in entry.message, entry
         send(20)  # nothing of it is paired: it could be either robot's
@@ -99,9 +100,18 @@ def test_learner_names_a_second_publisher_and_refuses_its_namespace_until_it_is_
         robot_b.destroy_node()
     wait_for(lambda: value(diagnostics, "multiple_publishers") == "" and
              value(diagnostics, "/friction/publishers/state") == "1", 30, what="one publisher again")
-    time.sleep(0.5)  # the matched event that reopens the gate, processed by now
+    # the gate reopens on the learner's matched event, which it may process after /diagnostics showed one publisher:
+    # one-transition episodes until one is paired
+    deadline = time.monotonic() + 60
+    while paired() == 20:
+        assert time.monotonic() < deadline, f"pairing never resumed: {learner.output()[-2000:]}"
+        send(1)
+        until = time.monotonic() + 2.0
+        while paired() == 20 and time.monotonic() < until:
+            time.sleep(0.05)
+    assert paired() == 21
     send(15)
-    wait_for(lambda: paired() == 35, 20, what="pairing again")
+    wait_for(lambda: paired() == 36, 20, what="pairing again")
     out = learner.output()
     assert "several publishers on /friction/state: /friction/robot_b" in out and "one publisher per topic again" in out
 

@@ -80,7 +80,7 @@ def test_node_hot_swaps_checkpoints_and_refuses_bad_ones(tmp_path: Path, domain:
     probe = Probe(domain)
     k = [0]
 
-    def fly_until(pred: Any, what: str, timeout: float = 20.0) -> None:
+    def fly_until(pred: Any, what: str, timeout: float = 60.0) -> None:
         """Keep the loop running (one state per answer) until ``pred()``."""
         deadline = time.monotonic() + timeout
         while not pred():

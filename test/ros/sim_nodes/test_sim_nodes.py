@@ -251,7 +251,9 @@ def test_paddle_ball_lockstep_publishes_state_applied_cmd_and_post_impact_with_o
 def test_lockstep_max_speed_limits_simulated_seconds_per_wall_second(ros_env: RosDomain,
                                                                      ros_node: TestNode) -> None:
     """``max_speed``: an instant controller would run the lockstep friction loop at hundreds of times real time; at
-    ``max_speed:=5`` the 3 simulated seconds take at least 0.6 wall seconds, and the waits are counted."""
+    ``max_speed:=2`` the 3 simulated seconds take at least 1.5 wall seconds, and the waits are counted (50 ms of
+    wall time per step: a round trip to this test's controller on a loaded machine stays below it, so the
+    simulator waits; at 5x, 20 ms a step, a slow round trip left nothing to wait)."""
     schema = get_schema("friction")
     qos = DATA_QOS.to_rclpy()
     ns = "/paced"
@@ -266,17 +268,17 @@ def test_lockstep_max_speed_limits_simulated_seconds_per_wall_second(ros_env: Ro
     ros_node.subscribe(JointState, f"{ns}/state", qos, callback=answer)
     diags = ros_node.subscribe(DiagnosticArray, "/diagnostics")
     sim = ros_env.launch(
-        "friction_sim", "-p", "mode:=lockstep", "-p", "max_speed:=5.0", "-p", "max_sim_time:=3.0",
+        "friction_sim", "-p", "mode:=lockstep", "-p", "max_speed:=2.0", "-p", "max_sim_time:=3.0",
         "-p", "start_delay:=0.3", "-p", "lockstep_timeout:=20.0", "-p", "diagnostics_period:=0.2",
         "-p", "publish_clock:=false", namespace=ns,
     )
     assert sim.wait(TIMEOUT) == 0, sim.output()
-    assert "at most 5x real time" in sim.output()
+    assert "at most 2x real time" in sim.output()
     assert len(arrivals) >= 25, sim.output()
     (w0, t0), (w1, t1) = arrivals[0], arrivals[-1]
     sim_span = (t1 - t0) * 1e-9
     assert sim_span >= 2.4
-    assert w1 - w0 >= 0.95 * sim_span / 5.0, (w1 - w0, sim_span)
+    assert w1 - w0 >= 0.95 * sim_span / 2.0, (w1 - w0, sim_span)
     name = f"{ns}/friction_sim"
     wait_for(lambda: float(diagnostics_of(diags, name).get("max_speed_waited_s", 0.0)) > 0.1, 10.0,
              what="the waits counted on /diagnostics")

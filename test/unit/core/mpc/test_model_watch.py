@@ -8,8 +8,10 @@ checkpoints and keeps running.
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -83,16 +85,29 @@ def test_watcher_notifications(tmp_path: Path) -> None:
 
 
 def test_watcher_background_thread_hands_over_without_blocking(tmp_path: Path) -> None:
+    """take() never waits for the watcher's thread: while that thread is stuck preparing a checkpoint, take()
+    answers None at once (a blocking take() would wait for the release, 30 s away)."""
     system = get_system("quadrotor")
     store = CheckpointStore(tmp_path / "run")
     prepared: list[int] = []
-    with ModelWatcher(system, store.run_dir, poll_period=0.05,
-                      prepare=lambda lm: prepared.append(lm.version) or "ok") as watcher:  # type: ignore[func-returns-value]
-        t0 = time.perf_counter()
+    entered, release = threading.Event(), threading.Event()
+
+    def prepare(lm: Any) -> str:
+        entered.set()
+        release.wait(30.0)
+        prepared.append(lm.version)
+        return "ok"
+
+    with ModelWatcher(system, store.run_dir, poll_period=0.05, prepare=prepare) as watcher:
         assert watcher.take() is None
-        assert time.perf_counter() - t0 < 0.01
         save_model(store, "quadrotor")
+        assert entered.wait(30.0), "the watcher never prepared the checkpoint"
+        t0 = time.perf_counter()
+        assert watcher.take() is None  # still being prepared
+        waited = time.perf_counter() - t0
+        release.set()
         ready = watcher.wait_ready(10.0)
+    assert waited < 5.0, waited
     assert ready is not None and ready.version == 1 and ready.prepared == "ok" and prepared == [1]
     assert ready.load_seconds > 0
 
