@@ -379,14 +379,30 @@ class TestNode:
         profile = qos if qos is not None else QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         return self.node.create_publisher(msg_type, topic, profile)
 
-    def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = STARTUP_TIMEOUT) -> Any:
-        """Call service ``name`` once it is available; returns the response (``TimeoutError`` otherwise)."""
+    def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = STARTUP_TIMEOUT,
+             resend_after: float | None = None) -> Any:
+        """Call service ``name`` once it is available; returns the response (``TimeoutError`` otherwise).
+
+        ``resend_after``: for a service that changes nothing when asked twice (a state or parameter query, setting
+        a parameter to one value), the same request is sent again every ``resend_after`` s until one is answered:
+        DDS can drop a request or its response sent while one side of the service's discovery lags the other,
+        and nothing sends it again."""
         client = self.node.create_client(srv_type, name)
         try:
             wait_for(lambda: client.service_is_ready(), timeout, what=f"service {name}")
-            future = client.call_async(request if request is not None else srv_type.Request())
-            wait_for(future.done, timeout, what=f"response of {name}")
-            return future.result()
+            req = request if request is not None else srv_type.Request()
+            futures = [client.call_async(req)]
+            sent = time.monotonic()
+            deadline = sent + timeout
+            while not any(f.done() for f in futures):
+                now = time.monotonic()
+                if now > deadline:
+                    raise TimeoutError(f"no response of {name} within {timeout:g} s ({len(futures)} request(s))")
+                if resend_after is not None and now - sent >= resend_after:
+                    futures.append(client.call_async(req))
+                    sent = now
+                time.sleep(0.01)
+            return next(f for f in futures if f.done()).result()
         finally:
             self.node.destroy_client(client)
 

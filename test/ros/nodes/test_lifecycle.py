@@ -34,6 +34,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from msg_schemas import DATA_QOS, TELEMETRY_QOS  # noqa: E402
 from msg_schemas.telemetry import diagnostics_from_msg  # noqa: E402
 from saml_ros.core.model.checkpoint import CheckpointStore  # noqa: E402
+from saml_ros.nodes.lifecycle_client import GOAL  # noqa: E402
 
 NS = "/friction"
 LEARNER, MPC = f"{NS}/learner", f"{NS}/mpc"
@@ -53,11 +54,28 @@ class Loop:
     diags: list[Any]
 
     def change(self, fqn: str, label: str = "", transition_id: int = 0) -> bool:
+        """Whether ``fqn`` made the transition. DDS can drop a request or its answer while one side of the
+        service's discovery lags the other: with no answer in 5 s the node's state says which (changed: the
+        answer was lost, the transition's goal state tells its outcome; unchanged: the request is sent again)."""
         request = ChangeState.Request(transition=Transition(id=transition_id, label=label))
-        return bool(self.probe.call(ChangeState, f"{fqn}/change_state", request, timeout=TIMEOUT).success)
+        before = self.state(fqn)
+        deadline = time.monotonic() + TIMEOUT
+        while True:
+            try:
+                return bool(self.probe.call(ChangeState, f"{fqn}/change_state", request, timeout=5.0).success)
+            except TimeoutError:
+                state = self.state(fqn)
+                while state.endswith("ing") and time.monotonic() < deadline:  # configuring, activating, ...
+                    time.sleep(0.2)
+                    state = self.state(fqn)
+                if state != before:
+                    return state == GOAL.get(label)
+                if time.monotonic() > deadline:
+                    raise
 
     def state(self, fqn: str) -> str:
-        return str(self.probe.call(GetState, f"{fqn}/get_state", timeout=TIMEOUT).current_state.label)
+        return str(self.probe.call(GetState, f"{fqn}/get_state", timeout=TIMEOUT, resend_after=5.0)
+                   .current_state.label)
 
     def diagnostics(self, fqn: str) -> dict[str, str]:
         """The newest /diagnostics values of node ``fqn`` ({} before its first report)."""

@@ -37,7 +37,9 @@ def set_param(probe: TestNode, node: str, name: str, value: Any) -> tuple[bool, 
     from rclpy.parameter import Parameter
 
     request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
-    result = probe.call(SetParameters, f"{node}/set_parameters", request).results[0]
+    # sent again after 15 s without an answer (a lost request or response): setting one value twice changes nothing
+    # (a refusal would be counted twice: 15 s is far beyond a loaded node's answer)
+    result = probe.call(SetParameters, f"{node}/set_parameters", request, resend_after=15.0).results[0]
     return bool(result.successful), str(result.reason)
 
 
@@ -46,7 +48,8 @@ def get_param(probe: TestNode, node: str, name: str) -> Any:
     from rcl_interfaces.srv import GetParameters
     from rclpy.parameter import parameter_value_to_python
 
-    response = probe.call(GetParameters, f"{node}/get_parameters", GetParameters.Request(names=[name]))
+    response = probe.call(GetParameters, f"{node}/get_parameters", GetParameters.Request(names=[name]),
+                          resend_after=5.0)
     value = parameter_value_to_python(response.values[0])
     return list(value) if isinstance(value, list | tuple) or hasattr(value, "tolist") else value
 
