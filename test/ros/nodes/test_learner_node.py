@@ -447,8 +447,8 @@ def test_learner_stays_healthy_and_keeps_learning_after_absurd_values_reach_trai
         tester.send("/friction", episodes(400, np.random.default_rng(12), t0=t + 10 * DT_NS, ep_len=4))
         # enough healthy updates to learn from, whatever the machine's load, counted once every transition is paired
         # (a loaded run's 600 updates left the last checkpoint 12 % below the base model's error; in one loaded CI-like
-        # run the last two checkpoints were back near the first's error: the updates had been counted from before
-        # the second batch was paired)
+        # run the last two checkpoints were back near the first's error, with the updates counted from before the
+        # second batch was paired: the likeliest cause, not shown)
         tester.wait(lambda: tester.counter("/friction/paired") == 804, 60.0, "all 804 transitions paired")
         tester.wait(lambda: tester.last().get("updates", 0) > 0, 30.0, "a model_error report")
         updates, version = tester.last()["updates"], tester.counter("model_version")
