@@ -99,8 +99,8 @@ class LoopRecord:
             f"mpc multiple_publishers = {self.mpc_shared!r}",
             f"  last checkpoint: one-step squared error {self.checkpoint_error:.4g} against f_hat's "
             f"{self.base_error:.4g} ({ratio:.1f} x), fresh samples of the robot's true dynamics",
-            f"  MPC: models {self.versions}, roll backs {self.rollbacks}, refused {self.refused}, steps planned with a learned model "
-            f"{self.learned_steps}",
+            f"  MPC: models {self.versions}, roll backs {self.rollbacks}, refused {self.refused}, steps planned "
+            f"with a learned model {self.learned_steps}",
             f"  episodes of the robot wired right: {len(self.episodes)}; on f_hat only {len(on_base)} "
             f"(worst {max(on_base, default=math.nan):.4f} m); flown on a learned model {len(learned)} "
             f"(mean {mean:.4f} m, worst {worst:.4f} m); f_hat from the same starts: mean {base_mean:.4f} m, worst "

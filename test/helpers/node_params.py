@@ -12,10 +12,8 @@ from __future__ import annotations
 
 import importlib
 import tempfile
-import time
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
 
 from helpers.ros_helpers import TestNode, ros_domain, wait_for
 
@@ -64,21 +62,6 @@ def _launch_args(executable: str, system: str, scratch: Path) -> tuple[list[str]
     return [], ros
 
 
-def _call_idempotent(probe: TestNode, srv_type: Any, service: str, timeout: float, attempt: float = 15.0) -> Any:
-    """Call a read-only service, asking again every ``attempt`` s until ``timeout``: a request sent just after
-    discovery can be lost (the server's response writer not yet matched with the client's reader), and a lost
-    response is never resent; asking again is safe only because the service changes nothing."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return probe.call(
-                srv_type, service, srv_type.Request(), timeout=min(attempt, max(deadline - time.monotonic(), 1.0))
-            )
-        except TimeoutError:
-            if time.monotonic() >= deadline:
-                raise
-
-
 def declared_parameters(targets: Iterable[tuple[str, str]], timeout: float = 120.0) -> dict[tuple[str, str], set[str]]:
     """``{(executable, system): names of the parameters that node declares}`` for every node of ``targets``
     (each started in its system's namespace, ``/<system>``)."""
@@ -106,7 +89,8 @@ def declared_parameters(targets: Iterable[tuple[str, str]], timeout: float = 120
                     what=service,
                 )
                 assert proc.alive(), f"{exe} for {system} exited:\n{proc.output()}"
-                response = _call_idempotent(probe, ListParameters, service, timeout)
+                # read-only: asked again every 15 s (a request sent just after discovery can be lost)
+                response = probe.call(ListParameters, service, timeout=timeout, resend_after=15.0)
                 out[(exe, system)] = set(response.result.names)
         finally:
             probe.close()

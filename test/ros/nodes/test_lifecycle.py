@@ -195,7 +195,8 @@ def test_cleanup_releases_everything_and_lifecycle_manager_brings_the_nodes_up(l
         os.kill(pid, 0)  # the training process ended
     wait_for(lambda: loop.probe.node.count_publishers(f"{NS}/cmd") == 0, 10.0, what="no cmd publisher")
     # the learner's subscriptions are gone (their removal comes from another process than the MPC's)
-    wait_for(lambda: loop.probe.node.count_subscribers(f"{NS}/applied_cmd") == 0, 30.0, what="no applied_cmd subscriber")
+    wait_for(lambda: loop.probe.node.count_subscribers(f"{NS}/applied_cmd") == 0, 30.0,
+             what="no applied_cmd subscriber")
     version = loop.latest_version()
     manager = loop.dom.launch("lifecycle_manager", "-p", "node_names:=[learner, mpc]", namespace=NS)
     assert manager.wait(TIMEOUT) == 0, manager.output()
